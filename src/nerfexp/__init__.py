@@ -1,0 +1,1 @@
+"""nerfexp: a config-driven experiment and ablation framework for NeRF."""

@@ -1,0 +1,52 @@
+"""Pinhole cameras and the rays through their pixels.
+
+Convention (the NeRF / Blender / OpenGL one): a camera-to-world matrix ``c2w`` [4, 4] maps camera
+coordinates to world coordinates; in camera coordinates x points right, y up, and the camera looks
+down -z. Pixel (row i, column j) is sampled at its centre, (j + 0.5, i + 0.5) in image units.
+Ray directions are unit vectors, so a ray parameter ``t`` is a distance in world units.
+"""
+
+import torch
+from torch import Tensor
+
+
+def focal_from_fov(width: int, camera_angle_x: float) -> float:
+    """Focal length in pixels of a camera whose horizontal field of view is ``camera_angle_x``."""
+    return 0.5 * width / torch.tan(torch.tensor(0.5 * camera_angle_x, dtype=torch.float64)).item()
+
+
+def pixel_directions(height: int, width: int, focal: float, dtype=torch.float32, device=None) -> Tensor:
+    """Unit ray directions in camera coordinates, one per pixel centre: [H, W, 3]."""
+    rows = torch.arange(height, dtype=dtype, device=device) + 0.5
+    cols = torch.arange(width, dtype=dtype, device=device) + 0.5
+    i, j = torch.meshgrid(rows, cols, indexing="ij")
+    d = torch.stack([(j - 0.5 * width) / focal, -(i - 0.5 * height) / focal, -torch.ones_like(i)], -1)
+    return d / torch.linalg.vector_norm(d, dim=-1, keepdim=True)
+
+
+def camera_rays(c2w: Tensor, height: int, width: int, focal: float) -> tuple[Tensor, Tensor]:
+    """World-space rays through every pixel of cameras ``c2w`` [..., 4, 4].
+
+    Returns ``(origins, directions)``, each [..., H, W, 3]; directions have unit length.
+    """
+    d_cam = pixel_directions(height, width, focal, dtype=c2w.dtype, device=c2w.device)
+    rotation = c2w[..., None, None, :3, :3]  # [..., 1, 1, 3, 3]
+    directions = (rotation @ d_cam[..., None]).squeeze(-1)  # [..., H, W, 3]
+    origins = c2w[..., None, None, :3, 3].expand_as(directions)
+    return origins, directions
+
+
+def look_at(eye: Tensor, target: Tensor, up: Tensor) -> Tensor:
+    """Camera-to-world matrices [..., 4, 4] of cameras at ``eye`` [..., 3] looking at ``target``.
+
+    ``up`` [3] is the world's up direction; it must not be parallel to the viewing direction.
+    """
+    back = eye - target  # the camera looks down -z, so +z points back from the target
+    back = back / torch.linalg.vector_norm(back, dim=-1, keepdim=True)
+    right = torch.linalg.cross(up.expand_as(back), back, dim=-1)
+    right = right / torch.linalg.vector_norm(right, dim=-1, keepdim=True)
+    cam_up = torch.linalg.cross(back, right, dim=-1)
+    c2w = torch.zeros(*eye.shape[:-1], 4, 4, dtype=eye.dtype, device=eye.device)
+    c2w[..., :3, 0], c2w[..., :3, 1], c2w[..., :3, 2], c2w[..., :3, 3] = right, cam_up, back, eye
+    c2w[..., 3, 3] = 1
+    return c2w

@@ -1,0 +1,197 @@
+"""The NeRF "Realistic Synthetic 360" (Blender) dataset format.
+
+A dataset root holds, per split, ``transforms_{split}.json``::
+
+    {"camera_angle_x": <horizontal field of view, radians>,
+     "frames": [{"file_path": "./train/r_0", "transform_matrix": <4x4 camera-to-world>}, ...]}
+
+and the RGBA PNG images. ``file_path`` is relative to the root and usually has no extension
+(``./train/r_0`` means ``train/r_0.png``). Matrices use the OpenGL convention of
+``nerfexp.cameras``; images hold straight (not premultiplied) alpha.
+"""
+
+import io
+import json
+import math
+from dataclasses import dataclass
+from pathlib import Path, PurePosixPath
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+from PIL import Image
+from torch import Tensor
+from tqdm import tqdm
+
+from nerfexp.cameras import focal_from_fov
+from nerfexp.data.views import Views
+from nerfexp.errors import DatasetError
+from nerfexp.files import atomic_write
+
+TRANSFORMS = "transforms_{split}.json"
+
+
+def _png(rgba: np.ndarray) -> bytes:
+    """PNG file contents of an 8-bit RGBA image [H, W, 4]."""
+    buffer = io.BytesIO()
+    Image.fromarray(rgba, "RGBA").save(buffer, format="PNG")
+    return buffer.getvalue()
+
+
+def write_blender(root: Path, split: str, views: Views, camera_angle_x: float) -> None:
+    """Write ``views`` as ``root/transforms_{split}.json`` and 8-bit PNGs ``root/{split}/r_{i}.png``."""
+    root = Path(root)
+    (root / split).mkdir(parents=True, exist_ok=True)
+    pixels = torch.round(views.rgba.clamp(0, 1) * 255).to(torch.uint8).numpy()  # [N, H, W, 4]
+    frames = []
+    for i, image in enumerate(pixels):
+        atomic_write(root / split / f"r_{i}.png", _png(image))
+        frames.append({"file_path": f"./{split}/r_{i}", "transform_matrix": views.c2w[i].tolist()})
+    text = json.dumps({"camera_angle_x": float(camera_angle_x), "frames": frames}, indent=2)
+    atomic_write(root / TRANSFORMS.format(split=split), text.encode())
+
+
+def _is_number(value) -> bool:
+    return isinstance(value, (int, float)) and not isinstance(value, bool)
+
+
+def _matrix(value, where: str) -> Tensor:
+    """A 4x4 list of finite numbers as a float64 tensor [4, 4], or a DatasetError naming ``where``."""
+    is_4x4 = isinstance(value, list) and len(value) == 4
+    is_4x4 = is_4x4 and all(isinstance(row, list) and len(row) == 4 and all(map(_is_number, row)) for row in value)
+    if not is_4x4:
+        raise DatasetError(f"{where}: 'transform_matrix' must be a 4x4 list of numbers, got {str(value)[:80]}")
+    matrix = torch.tensor(value, dtype=torch.float64)
+    if not torch.isfinite(matrix).all():
+        raise DatasetError(f"{where}: 'transform_matrix' must be finite, got {value}")
+    return matrix
+
+
+def read_transforms(path: Path) -> tuple[float, list[tuple[str, Tensor]]]:
+    """``camera_angle_x`` and the frames ``(file_path, c2w [4, 4] float64)`` of a transforms file."""
+    if not path.is_file():
+        existing = ", ".join(sorted(p.name for p in path.parent.glob(TRANSFORMS.format(split="*")))) or "none"
+        raise DatasetError(f"{path} does not exist; transforms files in {path.parent}: {existing}")
+    try:
+        content = json.loads(path.read_bytes())
+    except json.JSONDecodeError as error:
+        raise DatasetError(f"{path}: invalid JSON at line {error.lineno}, column {error.colno}: {error.msg}") from None
+    except UnicodeDecodeError as error:
+        raise DatasetError(f"{path}: not UTF-8 text ({error})") from None
+    if not isinstance(content, dict):
+        raise DatasetError(f"{path}: expected a JSON object with keys 'camera_angle_x' and 'frames'")
+    for key in ("camera_angle_x", "frames"):
+        if key not in content:
+            raise DatasetError(f"{path}: missing key '{key}'")
+    angle = content["camera_angle_x"]
+    if not (_is_number(angle) and 0 < angle < math.pi):
+        raise DatasetError(f"{path}: 'camera_angle_x' must be a field of view in (0, pi) radians, got {angle!r}")
+    frames = content["frames"]
+    if not isinstance(frames, list) or not frames:
+        raise DatasetError(f"{path}: 'frames' must be a non-empty list, got {str(frames)[:80]}")
+    parsed = []
+    for i, frame in enumerate(frames):
+        where = f"{path}: frame {i}"
+        if not isinstance(frame, dict):
+            raise DatasetError(f"{where}: expected an object with 'file_path' and 'transform_matrix'")
+        for key in ("file_path", "transform_matrix"):
+            if key not in frame:
+                raise DatasetError(f"{where}: missing key '{key}'")
+        if not isinstance(frame["file_path"], str):
+            raise DatasetError(f"{where}: 'file_path' must be a string, got {frame['file_path']!r}")
+        parsed.append((frame["file_path"], _matrix(frame["transform_matrix"], where)))
+    return float(angle), parsed
+
+
+def image_path(root: Path, file_path: str) -> Path:
+    """The image a frame's ``file_path`` names: relative to ``root``, ``.png`` if it has no extension."""
+    relative = file_path.removeprefix("./")
+    path = root / relative
+    return path if PurePosixPath(relative).suffix else path.with_name(path.name + ".png")
+
+
+def _read_image(path: Path, source: str) -> Tensor:
+    """An image file as 8-bit RGBA [H, W, 4]; images without alpha get alpha 255."""
+    if not path.is_file():
+        raise DatasetError(f"image {path} does not exist (named by {source})")
+    try:
+        with Image.open(path) as image:
+            rgba = np.asarray(image.convert("RGBA"))
+    except OSError as error:
+        raise DatasetError(f"{path}: cannot read the image ({error})") from None
+    return torch.from_numpy(rgba.copy())
+
+
+def downscale_rgba(rgba: Tensor, factor: int) -> Tensor:
+    """Area-average straight-alpha images [N, H, W, 4] down to [N, H // factor, W // factor, 4].
+
+    Colour is averaged premultiplied by alpha (so transparent pixels' colours do not bleed into
+    edges), then divided by the averaged alpha where it is positive. Each output pixel averages
+    the input pixels under its footprint (adaptive average pooling): when ``factor`` divides H
+    and W these are exact factor x factor blocks, otherwise the whole image is still covered, so
+    a focal length computed from the new width stays right.
+    """
+    N, H, W, _ = rgba.shape  # views, rows, columns
+    if H // factor < 1 or W // factor < 1:
+        raise DatasetError(f"downscale {factor} is larger than the images ({W}x{H})")
+    rgb, alpha = rgba[..., :3], rgba[..., 3:]
+    premultiplied = torch.cat([rgb * alpha, alpha], -1).permute(0, 3, 1, 2)  # [N, 4, H, W]
+    pooled = F.adaptive_avg_pool2d(premultiplied, (H // factor, W // factor)).permute(0, 2, 3, 1)
+    alpha = pooled[..., 3:]
+    rgb = torch.where(alpha > 0, pooled[..., :3] / alpha.clamp_min(torch.finfo(alpha.dtype).tiny), 0.0)
+    return torch.cat([rgb.clamp(0, 1), alpha], -1)
+
+
+def load_blender(root, split: str, downscale: int = 1, max_views: int | None = None, stride: int = 1) -> Views:
+    """Load one split of a Blender-format dataset as ``Views``.
+
+    Keeps every ``stride``-th frame, then the first ``max_views`` of those; images are shrunk by
+    the integer factor ``downscale`` (see ``downscale_rgba``) and the focal length is
+    0.5 W / tan(0.5 camera_angle_x) for the final width W.
+    """
+    for name, value in (("downscale", downscale), ("stride", stride), ("max_views", max_views)):
+        if value is not None and value < 1:
+            raise DatasetError(f"{name} must be >= 1, got {value}")
+    root = Path(root)
+    if not root.is_dir():
+        raise DatasetError(
+            f"data.root {root} does not exist: set the config key data.root to a folder holding {TRANSFORMS.format(split=split)}"
+        )
+    transforms = root / TRANSFORMS.format(split=split)
+    camera_angle_x, frames = read_transforms(transforms)
+    frames = frames[::stride][:max_views]
+    images, first = [], None
+    for file_path, _ in tqdm(frames, desc=f"loading {split}", unit="image"):
+        path = image_path(root, file_path)
+        image = _read_image(path, f"file_path {file_path!r} in {transforms}")
+        if first is None:
+            first = (path, image.shape)
+        elif image.shape != first[1]:
+            (h, w), (h0, w0) = image.shape[:2], first[1][:2]
+            raise DatasetError(f"{path}: image size {w}x{h} differs from {first[0]} ({w0}x{h0}); all images must match")
+        images.append(image)
+    rgba = torch.stack(images).float() / 255
+    if downscale > 1:
+        rgba = downscale_rgba(rgba, downscale)
+    c2w = torch.stack([matrix for _, matrix in frames]).float()
+    return Views(rgba=rgba, c2w=c2w, focal=focal_from_fov(rgba.shape[2], camera_angle_x))
+
+
+@dataclass
+class BlenderScene:
+    """A Blender-format dataset (``data=blender``): the training views, the first ``n_val``
+    validation views, and every ``test_stride``-th test view, all shrunk by ``downscale``."""
+
+    root: str
+    downscale: int = 1
+    max_train_views: int | None = None
+    test_stride: int = 1
+    n_val: int = 2
+    near: float = 2.0
+    far: float = 6.0
+    background: str = "white"
+
+    def views(self, split: str) -> Views:
+        options = {"train": {"max_views": self.max_train_views}, "val": {"max_views": self.n_val},
+                   "test": {"stride": self.test_stride}}[split]
+        return load_blender(self.root, split, self.downscale, **options)

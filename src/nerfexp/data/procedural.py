@@ -1,0 +1,286 @@
+"""The built-in scene: a small still life rendered exactly by analytic ray intersection.
+
+World z is up and every object lies inside a ball of radius ``SCENE_RADIUS`` around the origin:
+a pedestal slab with a fine checkerboard, a red sphere with a sharp white Blinn-Phong highlight
+(the only view-dependent surface), a smaller sphere with a latitude/longitude checker, and four
+thin coloured rods. Objects are opaque and the background is transparent.
+
+Conventions for the whole module: rays are ``origins`` and unit ``directions`` [..., 3], starting
+outside every shape. An intersection returns ``(t, normal)``: ``t`` [...] the distance to the
+first hit in front of the origin (``inf`` for a miss) and ``normal`` [..., 3] the unit outward
+normal there (zero for a miss).
+"""
+
+import argparse
+import math
+from dataclasses import dataclass
+from pathlib import Path
+
+import torch
+from torch import Tensor
+from tqdm import tqdm
+
+from nerfexp.cameras import camera_rays, focal_from_fov, look_at
+from nerfexp.data.blender import write_blender
+from nerfexp.data.views import Views
+
+NEAR, FAR = 2.0, 6.0
+CAMERA_ANGLE_X = 0.6911112070083618
+CAMERA_RADIUS = 4.0
+SCENE_RADIUS = 1.3
+
+SLAB = ((-0.75, -0.75, -0.7), (0.75, 0.75, -0.5))  # box corners; objects stand on z = -0.5
+CHECKER_SIZE = 0.15  # side of one checker square
+CHECKER_COLOURS = ((0.25, 0.35, 0.7), (0.9, 0.7, 0.35))
+GLOSSY = ((0.1, 0.1, -0.05), 0.45, (0.75, 0.08, 0.08))  # centre, radius, colour
+STRIPED = ((-0.45, -0.45, -0.25), 0.25)  # centre, radius
+STRIPED_CELLS = (12, 6)  # checker cells around the equator and from pole to pole
+STRIPED_COLOURS = ((0.9, 0.9, 0.85), (0.25, 0.55, 0.3))
+RODS = (  # (x, y), radius, top z, colour; each stands on the slab
+    ((0.6, 0.6), 0.04, 0.45, (0.95, 0.85, 0.1)),
+    ((0.6, -0.55), 0.035, 0.2, (0.1, 0.8, 0.9)),
+    ((-0.55, 0.55), 0.045, 0.6, (0.85, 0.2, 0.8)),
+    ((-0.65, 0.0), 0.03, 0.3, (0.3, 0.9, 0.3)),
+)
+
+LIGHT_DIRECTION = (0.45, -0.35, 0.82)  # towards the light; normalised where used
+AMBIENT = 0.25
+SPECULAR = 0.9  # strength of the glossy sphere's white highlight
+SHININESS = 48.0
+
+TRAIN_ELEVATIONS = (math.radians(5.0), math.radians(80.0))
+ORBIT_ELEVATION = math.radians(30.0)
+ORBIT_OFFSETS = {"val": 1.0, "test": 2.0}  # radians; irrational multiples of 2 pi never coincide
+GOLDEN_ANGLE = math.pi * (3.0 - math.sqrt(5.0))
+RAY_CHUNK = 2**16  # rays traced at once
+RAYS_PER_GROUP = 2**20  # sub-pixel rays per rendered group of views
+
+
+def _unit(v: Tensor) -> Tensor:
+    return v / torch.linalg.vector_norm(v, dim=-1, keepdim=True).clamp_min(torch.finfo(v.dtype).tiny)
+
+
+def _hit_or_miss(hit: Tensor, t: Tensor, normal: Tensor) -> tuple[Tensor, Tensor]:
+    return torch.where(hit, t, torch.inf), torch.where(hit[..., None], normal, 0.0)
+
+
+def intersect_sphere(origins: Tensor, directions: Tensor, centre, radius: float) -> tuple[Tensor, Tensor]:
+    """First hit with the sphere |x - centre| = radius.
+
+    With q = o - centre: t = -b - sqrt(b^2 - c), b = d.q, c = |q|^2 - r^2 (|d| = 1).
+    Example: o = (0, 0, 4), d = (0, 0, -1), centre 0, r = 1 -> t = 3, normal (0, 0, 1).
+    """
+    q = origins - torch.as_tensor(centre, dtype=origins.dtype)
+    b = (directions * q).sum(-1)
+    disc = b * b - ((q * q).sum(-1) - radius**2)
+    t = -b - torch.sqrt(disc.clamp_min(0))
+    return _hit_or_miss((disc >= 0) & (t > 0), t, (q + t[..., None] * directions) / radius)
+
+
+def intersect_box(origins: Tensor, directions: Tensor, lo, hi) -> tuple[Tensor, Tensor]:
+    """First hit with the axis-aligned box lo <= x <= hi (slab method).
+
+    Per axis k the ray is between the planes for t in [min(t_lo, t_hi), max(t_lo, t_hi)], with
+    t_lo = (lo_k - o_k) / d_k (+-inf where d_k = 0); it enters at t_in = max_k min(.) and leaves
+    at t_out = min_k max(.); a hit needs 0 < t_in <= t_out. The normal is -sign(d_k) e_k on the
+    axis that sets t_in. Example: o = (3, 0, 0), d = (-1, 0, 0), box [-1, 1]^3 -> t = 2, n = (1, 0, 0).
+    """
+    t_lo = (torch.as_tensor(lo, dtype=origins.dtype) - origins) / directions
+    t_hi = (torch.as_tensor(hi, dtype=origins.dtype) - origins) / directions
+    t_in, axis = torch.minimum(t_lo, t_hi).max(-1)
+    t_out = torch.maximum(t_lo, t_hi).amin(-1)
+    normal = -torch.sign(directions) * torch.nn.functional.one_hot(axis, 3).to(origins.dtype)
+    return _hit_or_miss((t_in > 0) & (t_in <= t_out), t_in, normal)
+
+
+def intersect_cylinder(
+    origins: Tensor, directions: Tensor, centre_xy, radius: float, z_bottom: float, z_top: float
+) -> tuple[Tensor, Tensor]:
+    """First hit with the closed vertical cylinder |xy - centre_xy| <= radius, z_bottom <= z <= z_top.
+
+    Side: with q = o - centre, a = dx^2 + dy^2, b = dx qx + dy qy, c = qx^2 + qy^2 - r^2, the
+    entering root t = (-b - sqrt(b^2 - a c)) / a, kept if its z lies between the caps. Caps:
+    t = (z_cap - oz) / dz, kept if the hit lies in the disc. The nearest of the three wins.
+    Example: o = (2, 0, 0.5), d = (-1, 0, 0), r = 0.5, z in [0, 1] -> t = 1.5, n = (1, 0, 0).
+    """
+    q = origins - torch.tensor([*centre_xy, 0.0], dtype=origins.dtype)
+    qx, qy, qz = q.unbind(-1)
+    dx, dy, dz = directions.unbind(-1)
+    a = dx * dx + dy * dy
+    b = dx * qx + dy * qy
+    disc = b * b - a * (qx * qx + qy * qy - radius**2)
+    t_side = (-b - torch.sqrt(disc.clamp_min(0))) / a.clamp_min(torch.finfo(a.dtype).tiny)
+    z_side = qz + t_side * dz
+    side = (a > 0) & (disc >= 0) & (t_side > 0) & (z_side >= z_bottom) & (z_side <= z_top)
+    candidates = [_hit_or_miss(side, t_side, torch.stack([qx + t_side * dx, qy + t_side * dy, 0 * qz], -1) / radius)]
+    for z_cap, up in ((z_top, 1.0), (z_bottom, -1.0)):
+        t_cap = (z_cap - qz) / torch.where(dz == 0, 1.0, dz)
+        in_disc = (qx + t_cap * dx) ** 2 + (qy + t_cap * dy) ** 2 <= radius**2
+        normal = torch.tensor([0.0, 0.0, up], dtype=origins.dtype).expand_as(q)
+        candidates.append(_hit_or_miss((dz != 0) & (t_cap > 0) & in_disc, t_cap, normal))
+    return _nearest(candidates)[:2]
+
+
+def _nearest(hits: list[tuple[Tensor, Tensor]]) -> tuple[Tensor, Tensor, Tensor]:
+    """The nearest of K intersections ``(t, normal)``: (t [...], normal [..., 3], index [...])."""
+    ts = torch.stack([t for t, _ in hits], -1)  # [..., K]
+    normals = torch.stack([n for _, n in hits], -2)  # [..., K, 3]
+    t, index = ts.min(-1)
+    normal = torch.gather(normals, -2, index[..., None, None].expand(*index.shape, 1, 3)).squeeze(-2)
+    return t, normal, index
+
+
+def intersect_scene(origins: Tensor, directions: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+    """First hit with the scene: (t [...], normal [..., 3], object index [...]).
+
+    Objects in index order: slab, glossy sphere, striped sphere, the rods.
+    """
+    hits = [
+        intersect_box(origins, directions, *SLAB),
+        intersect_sphere(origins, directions, *GLOSSY[:2]),
+        intersect_sphere(origins, directions, *STRIPED),
+    ]
+    hits += [intersect_cylinder(origins, directions, xy, r, SLAB[1][2], top) for xy, r, top, _ in RODS]
+    return _nearest(hits)
+
+
+def _checker(cells: Tensor, colours) -> Tensor:
+    """Alternating colours [..., 3] by the parity of the summed integer cell coordinates [..., D]."""
+    odd = (torch.floor(cells).sum(-1) % 2)[..., None]
+    first, second = (torch.tensor(c, dtype=cells.dtype) for c in colours)
+    return first + odd * (second - first)
+
+
+def albedo(points: Tensor, normals: Tensor, index: Tensor) -> Tensor:
+    """Diffuse colour [..., 3] of the surface points [..., 3] of objects ``index`` [...]."""
+    # Half a square inside the surface, cells are away from the face planes they would flicker on.
+    slab = _checker((points - 0.5 * CHECKER_SIZE * normals) / CHECKER_SIZE, CHECKER_COLOURS)
+    longitude = torch.atan2(normals[..., 1], normals[..., 0]) + math.pi  # [0, 2 pi]
+    latitude = torch.acos(normals[..., 2].clamp(-1, 1))  # [0, pi]
+    cells = torch.stack([longitude / (2 * math.pi) * STRIPED_CELLS[0], latitude / math.pi * STRIPED_CELLS[1]], -1)
+    plain = [GLOSSY[2], *(colour for *_, colour in RODS)]
+    table = [slab, _checker(cells, STRIPED_COLOURS), *(torch.tensor(c, dtype=points.dtype) for c in plain)]
+    colours = torch.stack(torch.broadcast_tensors(*table), -2)  # [..., K, 3]
+    return torch.gather(colours, -2, index[..., None, None].expand(*index.shape, 1, 3)).squeeze(-2)
+
+
+def shade(normals: Tensor, view_dirs: Tensor, albedo: Tensor, specular: Tensor) -> Tensor:
+    """Ambient + Lambert + Blinn-Phong colour [..., 3] under the directional light, clipped to [0, 1].
+
+    rgb = albedo (A + (1 - A) max(n.l, 0)) + k_s max(n.h, 0)^p [n.l > 0], h = unit(l + v).
+    ``view_dirs`` [..., 3] point from the surface to the eye; ``specular`` [...] is k_s.
+    """
+    light = _unit(torch.tensor(LIGHT_DIRECTION, dtype=normals.dtype))
+    n_dot_l = (normals * light).sum(-1)
+    n_dot_h = (normals * _unit(light + view_dirs)).sum(-1).clamp_min(0)
+    highlight = specular * n_dot_h**SHININESS * (n_dot_l > 0)
+    rgb = albedo * (AMBIENT + (1 - AMBIENT) * n_dot_l.clamp_min(0))[..., None] + highlight[..., None]
+    return rgb.clamp(0, 1)
+
+
+def trace(origins: Tensor, directions: Tensor) -> tuple[Tensor, Tensor]:
+    """Colour [..., 3] (zero on a miss) and hit mask [...] of rays through the scene."""
+    t, normals, index = intersect_scene(origins, directions)
+    hit = torch.isfinite(t)
+    points = origins + torch.where(hit, t, 0.0)[..., None] * directions
+    specular = torch.tensor([0.0, SPECULAR] + [0.0] * (1 + len(RODS)), dtype=origins.dtype)[index]
+    rgb = shade(normals, -directions, albedo(points, normals, index), specular)
+    return torch.where(hit[..., None], rgb, 0.0), hit
+
+
+def render_rgba(c2w: Tensor, height: int, width: int, focal: float, supersample: int = 2) -> Tensor:
+    """Straight-alpha images [N, H, W, 4] float32 of the scene seen by cameras ``c2w`` [N, 4, 4].
+
+    Each pixel averages ``supersample`` x ``supersample`` rays through the centres of its
+    sub-pixels: alpha is the covered fraction, rgb the mean colour of the covered sub-pixels.
+    """
+    if supersample < 1:
+        raise ValueError(f"supersample must be >= 1, got {supersample}")
+    s = supersample
+    origins, directions = camera_rays(c2w.to(torch.float64), height * s, width * s, focal * s)
+    N = c2w.shape[0]
+    traced = [trace(o, d) for o, d in zip(origins.reshape(-1, 3).split(RAY_CHUNK), directions.reshape(-1, 3).split(RAY_CHUNK))]
+    rgb = torch.cat([c for c, _ in traced]).reshape(N, height, s, width, s, 3).sum((2, 4))
+    hits = torch.cat([h for _, h in traced]).reshape(N, height, s, width, s).sum((2, 4))[..., None]
+    rgb = torch.where(hits > 0, rgb / hits.clamp_min(1), 0.0)
+    return torch.cat([rgb, hits / s**2], -1).float()
+
+
+def scene_cameras(split: str, n: int) -> Tensor:
+    """Camera-to-world matrices [n, 4, 4] float64 at distance CAMERA_RADIUS, looking at the origin.
+
+    ``train``: a golden-angle spiral, uniform in area over elevations 5 to 80 degrees.
+    ``val`` / ``test``: orbits at elevation 30 degrees, evenly spaced, at different azimuth offsets.
+    """
+    k = torch.arange(n, dtype=torch.float64)
+    if split == "train":
+        low, high = (math.sin(e) for e in TRAIN_ELEVATIONS)
+        elevation = torch.asin(low + (high - low) * (k + 0.5) / n)
+        azimuth = k * GOLDEN_ANGLE
+    elif split in ORBIT_OFFSETS:
+        elevation = torch.full_like(k, ORBIT_ELEVATION)
+        azimuth = ORBIT_OFFSETS[split] + 2 * math.pi * k / n
+    else:
+        raise ValueError(f"unknown split {split!r}: expected one of 'train', 'val', 'test'")
+    eye = CAMERA_RADIUS * torch.stack(
+        [torch.cos(elevation) * torch.cos(azimuth), torch.cos(elevation) * torch.sin(azimuth), torch.sin(elevation)], -1
+    )
+    up = torch.tensor([0.0, 0.0, 1.0], dtype=torch.float64)
+    return look_at(eye, torch.zeros(3, dtype=torch.float64), up)
+
+
+def load_procedural(split: str, n_views: int, height: int, width: int, supersample: int = 2) -> Views:
+    """``n_views`` rendered views of ``split``, with a progress bar, as ``Views``."""
+    c2w = scene_cameras(split, n_views)
+    focal = focal_from_fov(width, CAMERA_ANGLE_X)
+    group = max(1, RAYS_PER_GROUP // (height * width * supersample**2))
+    images = []
+    with tqdm(total=n_views, desc=f"rendering {split}", unit="view") as bar:
+        for cameras in c2w.split(group):
+            images.append(render_rgba(cameras, height, width, focal, supersample))
+            bar.update(len(cameras))
+    return Views(rgba=torch.cat(images), c2w=c2w.float(), focal=focal)
+
+
+@dataclass
+class ProceduralScene:
+    """The built-in scene as a dataset (``data=procedural``): ``views(split)`` renders that split."""
+
+    image_size: int = 64
+    n_train: int = 100
+    n_val: int = 2
+    n_test: int = 8
+    supersample: int = 2
+    near: float = NEAR
+    far: float = FAR
+    background: str = "white"
+
+    def views(self, split: str) -> Views:
+        n_views = {"train": self.n_train, "val": self.n_val, "test": self.n_test}[split]
+        return load_procedural(split, n_views, self.image_size, self.image_size, self.supersample)
+
+
+def _positive_int(text: str) -> int:
+    value = int(text)
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"expected a positive integer, got {text}")
+    return value
+
+
+def main(argv: list[str] | None = None) -> None:
+    """``nerfexp-scene OUT_DIR``: render the three splits in the NeRF Blender format."""
+    parser = argparse.ArgumentParser(prog="nerfexp-scene", description=main.__doc__)
+    parser.add_argument("out_dir", type=Path, help="folder to write transforms_*.json and the PNGs to")
+    parser.add_argument("--resolution", type=_positive_int, default=100, help="image width and height")
+    parser.add_argument("--n-train", type=_positive_int, default=100)
+    parser.add_argument("--n-val", type=_positive_int, default=10)
+    parser.add_argument("--n-test", type=_positive_int, default=20)
+    parser.add_argument("--supersample", type=_positive_int, default=2, help="sub-pixel rays per side")
+    args = parser.parse_args(argv)
+    for split, n in (("train", args.n_train), ("val", args.n_val), ("test", args.n_test)):
+        views = load_procedural(split, n, args.resolution, args.resolution, args.supersample)
+        write_blender(args.out_dir, split, views, CAMERA_ANGLE_X)
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,13 @@
+"""Errors that nerfexp reports to the user as one clear line instead of a traceback."""
+
+
+class NerfexpError(Exception):
+    """Base class: bad input or a run that cannot continue, with a message that says what and where."""
+
+
+class DatasetError(NerfexpError):
+    """A dataset is missing or malformed; the message names the file or key and what was expected."""
+
+
+class NonFiniteError(NerfexpError):
+    """Training produced a NaN or infinity; the message names the step and the quantity."""

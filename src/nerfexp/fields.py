@@ -1,0 +1,126 @@
+"""The radiance field F(x, d) -> (rgb, sigma): the paper's MLP with a swappable view-dependence head."""
+
+from collections.abc import Callable
+
+import torch
+import torch.nn.functional as F
+from torch import Tensor, nn
+
+DENSITY_ACTIVATIONS: dict[str, Callable[[Tensor], Tensor]] = {
+    "relu": F.relu,  # the paper's; its gradient is zero wherever the field is empty, so it can die
+    "softplus": F.softplus,  # never has a zero gradient, so a field that went empty recovers
+}
+
+
+class NeRFField(nn.Module):
+    """sigma from the encoded position alone; rgb from a feature of it and the view direction.
+
+    Trunk: ``depth`` ReLU layers of ``width``; the encoded position is concatenated again to the
+    input of each layer listed in ``skips`` (0-based; the paper's 8 x 256 with skips=[5], the fifth
+    layer's output joined to the input, is ``skips=[5]``). The density is
+    ``activation(raw + density_bias)`` of one linear unit on the trunk output.
+
+    Args:
+        position_encoding: module with ``out_dim``, maps [..., 3] -> [..., out_dim].
+        view_head: builds the colour head from the trunk width (see ``ViewMLPHead``).
+        density_activation: a key of ``DENSITY_ACTIVATIONS``.
+    """
+
+    def __init__(self, position_encoding: nn.Module, view_head: Callable[[int], nn.Module], depth: int = 8,
+                 width: int = 256, skips: tuple[int, ...] = (5,), density_activation: str = "relu",
+                 density_bias: float = 0.0):
+        super().__init__()
+        if density_activation not in DENSITY_ACTIVATIONS:
+            raise ValueError(f"field.density_activation: expected one of {sorted(DENSITY_ACTIVATIONS)}, "
+                             f"got {density_activation!r}")
+        bad = [s for s in skips if not 0 < s < depth]
+        if bad:
+            raise ValueError(f"field.skips: layer indices must be in 1..{depth - 1} for depth {depth}, got {bad}")
+        self.position_encoding = position_encoding
+        self.skips = set(skips)
+        in_dim = position_encoding.out_dim
+        self.trunk = nn.ModuleList(
+            nn.Linear((0 if i == 0 else width) + (in_dim if i == 0 or i in self.skips else 0), width)
+            for i in range(depth))
+        self.sigma = nn.Linear(width, 1)
+        self.activation = DENSITY_ACTIVATIONS[density_activation]
+        self.density_bias = density_bias
+        self.view_head = view_head(width)
+
+    def forward(self, positions: Tensor, directions: Tensor) -> tuple[Tensor, Tensor]:
+        """positions, directions [..., 3] (directions unit) -> (rgb [..., 3] in [0, 1], sigma [...] >= 0)."""
+        encoded = self.position_encoding(positions)
+        h = encoded
+        for i, layer in enumerate(self.trunk):
+            if i in self.skips:
+                h = torch.cat([h, encoded], -1)
+            h = F.relu(layer(h))
+        sigma = self.activation(self.sigma(h).squeeze(-1) + self.density_bias)
+        return self.view_head(h, directions), sigma
+
+
+class ViewMLPHead(nn.Module):
+    """The paper's head: a linear feature of the trunk, joined with gamma(d), one ReLU layer, rgb."""
+
+    def __init__(self, in_features: int, direction_encoding: nn.Module, hidden: int = 128):
+        super().__init__()
+        self.direction_encoding = direction_encoding
+        self.feature = nn.Linear(in_features, in_features)
+        self.hidden = nn.Linear(in_features + direction_encoding.out_dim, hidden)
+        self.rgb = nn.Linear(hidden, 3)
+
+    def forward(self, h: Tensor, directions: Tensor) -> Tensor:
+        """h [..., F], directions [..., 3] -> rgb [..., 3]."""
+        x = torch.cat([self.feature(h), self.direction_encoding(directions)], -1)
+        return torch.sigmoid(self.rgb(F.relu(self.hidden(x))))
+
+
+class DiffuseHead(nn.Module):
+    """rgb from the position alone, the view direction unused: the "No View Dependence" ablation."""
+
+    def __init__(self, in_features: int):
+        super().__init__()
+        self.rgb = nn.Linear(in_features, 3)
+
+    def forward(self, h: Tensor, directions: Tensor) -> Tensor:
+        """h [..., F] -> rgb [..., 3]; ``directions`` is ignored."""
+        return torch.sigmoid(self.rgb(h))
+
+
+def sh_basis(directions: Tensor, degree: int) -> Tensor:
+    """Real spherical harmonics up to ``degree`` (0..3) at unit ``directions`` [..., 3]: [..., (degree+1)^2].
+
+    Ordered by band l, then m = -l..l, with the standard orthonormal constants (as in PlenOctrees).
+    """
+    if not 0 <= degree <= 3:
+        raise ValueError(f"view_dependence.degree: expected 0..3, got {degree}")
+    x, y, z = directions.unbind(-1)
+    out = [torch.full_like(x, 0.28209479177387814)]
+    if degree >= 1:
+        c1 = 0.4886025119029199
+        out += [-c1 * y, c1 * z, -c1 * x]
+    if degree >= 2:
+        xx, yy, zz, xy, yz, xz = x * x, y * y, z * z, x * y, y * z, x * z
+        out += [1.0925484305920792 * xy, -1.0925484305920792 * yz, 0.31539156525252005 * (2 * zz - xx - yy),
+                -1.0925484305920792 * xz, 0.5462742152960396 * (xx - yy)]
+    if degree >= 3:
+        out += [-0.5900435899266435 * y * (3 * xx - yy), 2.890611442640554 * xy * z,
+                -0.4570457994644658 * y * (4 * zz - xx - yy), 0.3731763325901154 * z * (2 * zz - 3 * xx - 3 * yy),
+                -0.4570457994644658 * x * (4 * zz - xx - yy), 1.445305721320277 * z * (xx - yy),
+                -0.5900435899266435 * x * (xx - 3 * yy)]
+    return torch.stack(out, -1)
+
+
+class SphericalHarmonicsHead(nn.Module):
+    """rgb = sigmoid(sum_k c_k Y_k(d)): the field predicts SH coefficients per colour channel."""
+
+    def __init__(self, in_features: int, degree: int = 2):
+        super().__init__()
+        self.degree = degree
+        self.coefficients = nn.Linear(in_features, 3 * (degree + 1) ** 2)
+
+    def forward(self, h: Tensor, directions: Tensor) -> Tensor:
+        """h [..., F], directions [..., 3] unit -> rgb [..., 3]."""
+        coefficients = self.coefficients(h).unflatten(-1, (3, -1))  # [..., 3, K]
+        basis = sh_basis(directions, self.degree)  # [..., K]
+        return torch.sigmoid((coefficients * basis[..., None, :]).sum(-1))

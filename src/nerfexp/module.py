@@ -1,0 +1,78 @@
+"""The LightningModule: trains a ``VolumeRenderer`` on ray batches and scores whole images."""
+
+from collections.abc import Callable
+
+import lightning as L
+import torch
+import torch.nn.functional as F
+from torch import Tensor
+
+from nerfexp.errors import NonFiniteError
+from nerfexp.metrics import psnr, ssim
+from nerfexp.renderer import VolumeRenderer
+
+
+class NeRFModule(L.LightningModule):
+    """Loss = sum over networks of the MSE of their colours (coarse + fine); Adam whose learning
+    rate decays exponentially from the optimizer's ``lr`` to ``lr_final`` over ``trainer.max_steps``.
+
+    Evaluation renders whole images in chunks of ``chunk`` rays (memory bounded at any resolution)
+    and scores the fine network's image (the only one without hierarchy).
+    """
+
+    def __init__(self, renderer: VolumeRenderer, optimizer: Callable[..., torch.optim.Optimizer],
+                 lr_final: float, chunk: int = 8192):
+        super().__init__()
+        self.renderer, self.optimizer, self.lr_final, self.chunk = renderer, optimizer, lr_final, chunk
+
+    def training_step(self, batch: dict[str, Tensor], batch_idx: int) -> Tensor:
+        outputs = self.renderer(batch["origins"], batch["directions"], deterministic=False)
+        losses = {name: F.mse_loss(out["rgb"], batch["rgb"]) for name, out in outputs.items()}
+        for name, value in losses.items():
+            if not torch.isfinite(value):
+                raise NonFiniteError(f"step {self.global_step}: the {name} network's colour loss is "
+                                     f"{value.item()} (non-finite); the run stopped here")
+        loss = sum(losses.values())
+        final = losses["fine" if "fine" in losses else "coarse"]
+        self.log("train/loss", loss, prog_bar=True)
+        self.log("train/psnr", -10 * torch.log10(final.detach()), prog_bar=True)
+        self.log("train/lr", self.optimizers().param_groups[0]["lr"])
+        return loss
+
+    @torch.no_grad()
+    def render_image(self, origins: Tensor, directions: Tensor) -> dict[str, Tensor]:
+        """Deterministic render of rays [H, W, 3] in chunks: ``rgb`` [H, W, 3], ``depth``, ``opacity`` [H, W]."""
+        H, W, _ = origins.shape
+        flat_o, flat_d = origins.reshape(-1, 3), directions.reshape(-1, 3)
+        parts = []
+        for start in range(0, H * W, self.chunk):
+            outputs = self.renderer(flat_o[start:start + self.chunk], flat_d[start:start + self.chunk],
+                                    deterministic=True)
+            final = outputs["fine" if "fine" in outputs else "coarse"]
+            parts.append({key: final[key] for key in ("rgb", "depth", "opacity")})
+        return {key: torch.cat([p[key] for p in parts]).reshape(H, W, *parts[0][key].shape[1:])
+                for key in parts[0]}
+
+    def _evaluate(self, batch: dict, split: str) -> dict:
+        image = self.render_image(batch["origins"], batch["directions"])
+        scores = {"psnr": psnr(image["rgb"], batch["rgb"]), "ssim": ssim(image["rgb"], batch["rgb"])}
+        for name, value in scores.items():
+            self.log(f"{split}/{name}", value, batch_size=1)
+        return {"index": int(batch["index"]), "target": batch["rgb"], **image, **scores}
+
+    def validation_step(self, batch: dict, batch_idx: int) -> dict:
+        return self._evaluate(batch, "val")
+
+    def test_step(self, batch: dict, batch_idx: int) -> dict:
+        return self._evaluate(batch, "test")
+
+    def configure_optimizers(self):
+        optimizer = self.optimizer(self.parameters())
+        base_lr = optimizer.param_groups[0]["lr"]
+        max_steps = self.trainer.max_steps
+        if max_steps is None or max_steps < 1:
+            raise ValueError("trainer.max_steps: expected a positive number of steps (the learning-rate "
+                             f"schedule spans them), got {max_steps}")
+        ratio = self.lr_final / base_lr
+        schedule = torch.optim.lr_scheduler.LambdaLR(optimizer, lambda step: ratio ** min(step / max_steps, 1.0))
+        return {"optimizer": optimizer, "lr_scheduler": {"scheduler": schedule, "interval": "step"}}

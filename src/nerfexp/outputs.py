@@ -1,0 +1,107 @@
+"""What every run leaves in its output directory, each file written atomically.
+
+- ``metrics.jsonl``: one JSON object per evaluation: step, wall_time_s, split, psnr, ssim (means).
+- ``results.json``: final test means, training time, steps, parameters, the resolved choices.
+- ``test/``: rendered test views (``r_{i}.png``) and their depth (``r_{i}_depth.png``).
+- TensorBoard: rendered images beside the ground truth, and depth (through the run's logger).
+"""
+
+import json
+import time
+from pathlib import Path
+
+import imageio.v3 as iio
+import lightning as L
+import numpy as np
+import torch
+from torch import Tensor
+
+from nerfexp.files import atomic_write
+from nerfexp.metrics import quantize
+
+
+def png_bytes(image: Tensor) -> bytes:
+    """An 8-bit PNG of [H, W] or [H, W, 3] values in [0, 1]."""
+    pixels = (quantize(image) * 255).to(torch.uint8).cpu().numpy()
+    return iio.imwrite("<bytes>", pixels, extension=".png")
+
+
+def depth_image(depth: Tensor, near: float, far: float) -> Tensor:
+    """Depth [H, W] as a grey image, near white and far black: [H, W] in [0, 1]."""
+    return ((far - depth) / (far - near)).clamp(0, 1)
+
+
+class RunRecorder(L.Callback):
+    """Writes a run's metrics, results and test renders; times the training in wall-clock seconds.
+
+    The elapsed time is part of the checkpoint, so a resumed run keeps counting from where it stopped.
+    """
+
+    def __init__(self, output_dir: str, choices: dict, run_config: dict | None = None):
+        self.output_dir = Path(output_dir)
+        self.choices, self.run_config = dict(choices), run_config
+        self.elapsed_s, self._started = 0.0, None
+        self._scores: dict[str, list[float]] = {}
+        self.results: dict = {}
+
+    def wall_time_s(self) -> float:
+        return self.elapsed_s + (time.perf_counter() - self._started if self._started is not None else 0.0)
+
+    def on_train_start(self, trainer, pl_module):
+        self._started = time.perf_counter()
+
+    def on_train_end(self, trainer, pl_module):
+        self.elapsed_s, self._started = self.wall_time_s(), None
+
+    def state_dict(self) -> dict:
+        return {"elapsed_s": self.wall_time_s()}
+
+    def load_state_dict(self, state_dict: dict) -> None:
+        self.elapsed_s = state_dict["elapsed_s"]
+
+    def _collect(self, trainer, pl_module, outputs: dict, split: str) -> None:
+        self._scores.setdefault("psnr", []).append(outputs["psnr"])
+        self._scores.setdefault("ssim", []).append(outputs["ssim"])
+        index, renderer = outputs["index"], pl_module.renderer
+        depth = depth_image(outputs["depth"], renderer.near, renderer.far)
+        if split == "test":
+            atomic_write(self.output_dir / "test" / f"r_{index}.png", png_bytes(outputs["rgb"]))
+            atomic_write(self.output_dir / "test" / f"r_{index}_depth.png", png_bytes(depth))
+        if index < 4 and trainer.logger is not None and not trainer.sanity_checking:
+            side_by_side = torch.cat([outputs["rgb"], outputs["target"], depth[..., None].expand(-1, -1, 3)], 1)
+            trainer.logger.experiment.add_image(f"{split}/render_target_depth/{index}", quantize(side_by_side),
+                                                trainer.global_step, dataformats="HWC")
+
+    def _flush(self, trainer, split: str) -> dict:
+        means = {name: float(np.mean(values)) for name, values in self._scores.items()}
+        self._scores = {}
+        record = {"step": trainer.global_step, "wall_time_s": self.wall_time_s(), "split": split, **means}
+        path = self.output_dir / "metrics.jsonl"
+        previous = path.read_bytes() if path.exists() else b""
+        atomic_write(path, previous + (json.dumps(record) + "\n").encode())
+        return means
+
+    def on_validation_batch_end(self, trainer, pl_module, outputs, batch, batch_idx, dataloader_idx=0):
+        if not trainer.sanity_checking:
+            self._collect(trainer, pl_module, outputs, "val")
+
+    def on_validation_epoch_end(self, trainer, pl_module):
+        if not trainer.sanity_checking:
+            self._flush(trainer, "val")
+
+    def on_test_batch_end(self, trainer, pl_module, outputs, batch, batch_idx, dataloader_idx=0):
+        self._collect(trainer, pl_module, outputs, "test")
+
+    def on_test_epoch_end(self, trainer, pl_module):
+        means = self._flush(trainer, "test")
+        renderer = pl_module.renderer
+        results = {
+            "test_psnr": means["psnr"], "test_ssim": means["ssim"],
+            "train_time_s": self.elapsed_s, "steps": trainer.global_step,
+            "time_per_step_s": self.elapsed_s / max(trainer.global_step, 1),
+            "n_params": sum(p.numel() for p in pl_module.parameters()),
+            "evaluations_per_ray": renderer.evaluations_per_ray,
+            "choices": self.choices, "config": self.run_config,
+        }
+        atomic_write(self.output_dir / "results.json", json.dumps(results, indent=2).encode())
+        self.results = results

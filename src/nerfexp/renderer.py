@@ -1,0 +1,73 @@
+"""Rays to pixels: sample, query the field(s), composite. The paper's coarse-to-fine pipeline."""
+
+from collections.abc import Callable
+
+import torch
+from torch import Tensor, nn
+
+from nerfexp.rendering import composite, render_weights
+from nerfexp.sampling import dilate_weights, intervals, sample_pdf, stratified_samples
+
+BACKGROUNDS = {"white": (1.0, 1.0, 1.0), "black": (0.0, 0.0, 0.0)}
+
+
+class VolumeRenderer(nn.Module):
+    """Renders rays with one field (``hierarchical=False``) or a coarse and a fine field.
+
+    Hierarchical: ``n_coarse`` stratified samples through the coarse field; its weights, dilated by
+    one interval (``dilate_weights``) as a piecewise-constant PDF over the coarse intervals, give
+    ``n_fine`` more samples by inverse-transform sampling; the fine field
+    evaluates all n_coarse + n_fine. Without it, one field evaluates ``n_single`` stratified samples
+    (the paper's "No Hierarchical" row: 256, the same network evaluations per ray as 64 + 192).
+
+    Args:
+        field: builds a field (called once per network), e.g. a partial ``NeRFField``.
+        near, far: ray distance bounds; background: a key of ``BACKGROUNDS``.
+    """
+
+    def __init__(self, field: Callable[[], nn.Module], hierarchical: bool, n_coarse: int, n_fine: int,
+                 n_single: int, near: float, far: float, background: str = "white"):
+        super().__init__()
+        if background not in BACKGROUNDS:
+            raise ValueError(f"data.background: expected one of {sorted(BACKGROUNDS)}, got {background!r}")
+        self.hierarchical = hierarchical
+        self.n_coarse = n_coarse if hierarchical else n_single
+        self.n_fine = n_fine if hierarchical else 0
+        self.near, self.far = near, far
+        self.coarse = field()
+        self.fine = field() if hierarchical else None
+        self.register_buffer("background", torch.tensor(BACKGROUNDS[background]), persistent=False)
+
+    @property
+    def evaluations_per_ray(self) -> int:
+        """Network evaluations per ray: n_coarse + (n_coarse + n_fine) hierarchical, else n_single."""
+        return self.n_coarse + (self.n_coarse + self.n_fine if self.hierarchical else 0)
+
+    def _render(self, field: nn.Module, origins: Tensor, directions: Tensor, t: Tensor,
+                far: Tensor) -> dict[str, Tensor]:
+        """Query ``field`` at samples t [B, S] of rays [B, 3]; each sample stands for its interval."""
+        t_starts, t_ends = intervals(t, far)
+        points = origins[:, None, :] + directions[:, None, :] * t[..., None]  # [B, S, 3]
+        rgbs, sigmas = field(points, directions[:, None, :].expand_as(points))
+        weights, _ = render_weights(sigmas, t_starts, t_ends)
+        out = composite(weights, rgbs, t, self.background, self.far)
+        out.update(weights=weights, t_starts=t_starts, t_ends=t_ends)
+        return out
+
+    def forward(self, origins: Tensor, directions: Tensor, deterministic: bool) -> dict[str, dict[str, Tensor]]:
+        """Render rays ``origins``, ``directions`` [B, 3] (unit directions).
+
+        Returns {"coarse": out, "fine": out} (only "coarse" without hierarchy), each out holding
+        ``rgb`` [B, 3], ``depth`` [B], ``opacity`` [B], ``weights``, ``t_starts``, ``t_ends`` [B, S].
+        """
+        B, _ = origins.shape  # rays, xyz
+        near = torch.full((B,), self.near, dtype=origins.dtype, device=origins.device)
+        far = torch.full_like(near, self.far)
+        t_coarse = stratified_samples(near, far, self.n_coarse, deterministic)
+        coarse = self._render(self.coarse, origins, directions, t_coarse, far)
+        if not self.hierarchical:
+            return {"coarse": coarse}
+        bins = torch.cat([coarse["t_starts"], coarse["t_ends"][:, -1:]], -1)  # [B, Nc + 1]
+        t_fine = sample_pdf(bins, dilate_weights(coarse["weights"]), self.n_fine, deterministic)
+        t_all = torch.sort(torch.cat([t_coarse, t_fine], -1), -1).values
+        return {"coarse": coarse, "fine": self._render(self.fine, origins, directions, t_all, far)}

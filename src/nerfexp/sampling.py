@@ -1,0 +1,88 @@
+"""Where along each ray the field is evaluated.
+
+Conventions: ``t`` are sample distances along unit-direction rays, [..., S], sorted. ``bins`` are
+interval edges [..., S+1] and ``weights`` [..., S] the mass of each interval (sums need not be 1).
+"""
+
+import torch
+from torch import Tensor
+
+
+def stratified_samples(near: Tensor, far: Tensor, n_samples: int, deterministic: bool,
+                       generator: torch.Generator | None = None) -> Tensor:
+    """One sample in each of ``n_samples`` equal bins of [near, far]: [..., n_samples].
+
+    Jittered uniformly inside its bin in training; the bin's midpoint when ``deterministic``.
+    near, far: [...].
+    """
+    edges = torch.linspace(0, 1, n_samples + 1, dtype=near.dtype, device=near.device)
+    if deterministic:
+        u = torch.full((*near.shape, n_samples), 0.5, dtype=near.dtype, device=near.device)
+    else:
+        u = torch.rand((*near.shape, n_samples), dtype=near.dtype, device=near.device, generator=generator)
+    fractions = edges[:-1] + u * (edges[1:] - edges[:-1])
+    return torch.lerp(near[..., None], far[..., None], fractions)
+
+
+def intervals(t: Tensor, far: Tensor) -> tuple[Tensor, Tensor]:
+    """The interval each sample stands for, as in the paper: [t_i, t_{i+1}], the last ending at ``far``.
+
+    The density at t_i fills the gap up to the next sample. This is the right side to err on for
+    surfaces: the last empty sample before a surface fills the gap up to the first sample inside it,
+    so a surface starts where it is first sampled (within the fine samples' spacing), whereas
+    splitting gaps at midpoints would move every surface forward by half the coarse spacing.
+    The paper's last interval is 1e10 long, which makes the last sample opaque whatever its
+    density; ending it at ``far`` lets a field with small positive density in empty space (softplus)
+    still show the background. t: [..., S] sorted, far: [...]. Returns (t_starts, t_ends), each [..., S].
+    """
+    return t, torch.cat([t[..., 1:], far[..., None]], -1)
+
+
+def dilate_weights(weights: Tensor) -> Tensor:
+    """Each interval's weight raised to the largest of its own and its two neighbours': [..., S].
+
+    With samples standing for [t_i, t_{i+1}], a surface first seen at sample k enters somewhere in
+    [t_{k-1}, t_k], an interval whose own weight is zero. Resampling the raw weights (or the paper's
+    midpoint bins) never puts fine samples there, so the surface stays displaced by up to one coarse
+    spacing however many fine samples are drawn; the dilated weights cover it, and the rendered
+    opacity converges as the fine samples grow (``tests/test_renderer.py``).
+    """
+    zero = torch.zeros_like(weights[..., :1])
+    before = torch.cat([zero, weights[..., :-1]], -1)
+    after = torch.cat([weights[..., 1:], zero], -1)
+    return torch.maximum(weights, torch.maximum(before, after))
+
+
+def sample_pdf(bins: Tensor, weights: Tensor, n_samples: int, deterministic: bool,
+               generator: torch.Generator | None = None) -> Tensor:
+    """Inverse-transform samples of the piecewise-constant density with mass ``weights`` on ``bins``.
+
+    Args:
+        bins: [..., S+1] sorted interval edges.
+        weights: [..., S] non-negative masses; all zero means uniform.
+        n_samples: samples per ray.
+        deterministic: evenly spaced quantiles u = (k + 1/2) / n instead of sorted uniform u in [0, 1).
+    Returns: sorted samples [..., n_samples] inside [bins[..., 0], bins[..., -1]], detached (no
+    gradient flows through sample positions).
+
+    The CDF starts at exactly 0 and ends at exactly 1; intervals of zero mass are never selected
+    (``searchsorted(right=True)`` skips them), so the in-bin fraction divides by a positive mass.
+    """
+    bins, weights = bins.detach(), weights.detach()
+    total = weights.sum(-1, keepdim=True)
+    weights = torch.where(total > 0, weights, torch.ones_like(weights))  # no mass: uniform
+    cdf = torch.cumsum(weights, -1)
+    cdf = torch.cat([torch.zeros_like(cdf[..., :1]), cdf / cdf[..., -1:]], -1)  # [..., S+1], x / x == 1 exactly
+    shape = (*cdf.shape[:-1], n_samples)
+    if deterministic:
+        u = (torch.arange(n_samples, dtype=cdf.dtype, device=cdf.device) + 0.5) / n_samples
+        u = u.expand(shape).contiguous()
+    else:
+        u = torch.rand(shape, dtype=cdf.dtype, device=cdf.device, generator=generator).sort(-1).values
+    n_bins = weights.shape[-1]
+    index = torch.searchsorted(cdf, u, right=True).clamp(1, n_bins)  # cdf[index-1] <= u < cdf[index]
+    cdf_lo, cdf_hi = cdf.gather(-1, index - 1), cdf.gather(-1, index)
+    bin_lo, bin_hi = bins.gather(-1, index - 1), bins.gather(-1, index)
+    mass = cdf_hi - cdf_lo
+    fraction = torch.where(mass > 0, (u - cdf_lo) / torch.where(mass > 0, mass, 1), 0)
+    return torch.lerp(bin_lo, bin_hi, fraction.clamp(0, 1))

@@ -1,0 +1,42 @@
+import torch
+
+from nerfexp.cameras import look_at
+from nerfexp.data.datamodule import RandomRays, WholeImages
+from nerfexp.data.views import Views
+
+
+def make_views(n=3, h=5, w=7, focal=6.0):
+    eyes = torch.tensor([[4.0, 0.0, 1.0], [0.0, -4.0, 2.0], [-3.0, 1.0, 0.5]])[:n]
+    c2w = look_at(eyes, torch.zeros(3), torch.tensor([0.0, 0.0, 1.0]))
+    rgba = torch.rand(n, h, w, 4, generator=torch.Generator().manual_seed(0))
+    return Views(rgba=rgba, c2w=c2w, focal=focal)
+
+
+def test_random_rays_carry_the_colour_of_the_pixel_they_pass_through():
+    views = make_views()
+    background = torch.ones(3)
+    batch = next(iter(RandomRays(views, background, batch_rays=64, seed=0)))
+    target = views.rgb_on(background)
+    for origin, direction, rgb in zip(batch["origins"], batch["directions"], batch["rgb"]):
+        n = int(torch.argmin(torch.linalg.vector_norm(views.c2w[:, :3, 3] - origin, dim=-1)))
+        assert torch.allclose(views.c2w[n, :3, 3], origin)
+        d_cam = views.c2w[n, :3, :3].T @ direction  # back into the camera frame: looks down -z
+        x, y = d_cam[0] / -d_cam[2] * views.focal, d_cam[1] / -d_cam[2] * views.focal
+        j, i = x + views.width / 2 - 0.5, views.height / 2 - y - 0.5  # pixel centres are integers here
+        assert abs(j - round(j.item())) < 1e-4 and abs(i - round(i.item())) < 1e-4
+        torch.testing.assert_close(rgb, target[n, round(i.item()), round(j.item())])
+
+
+def test_random_rays_are_repeatable_by_seed():
+    views = make_views()
+    a = next(iter(RandomRays(views, torch.ones(3), 32, seed=1)))["rgb"]
+    b = next(iter(RandomRays(views, torch.ones(3), 32, seed=1)))["rgb"]
+    c = next(iter(RandomRays(views, torch.ones(3), 32, seed=2)))["rgb"]
+    assert torch.equal(a, b) and not torch.equal(a, c)
+
+
+def test_whole_images_are_composited_on_the_background():
+    views = make_views()
+    item = WholeImages(views, torch.zeros(3))[1]
+    assert item["origins"].shape == (5, 7, 3) and item["index"] == 1
+    torch.testing.assert_close(item["rgb"], views.rgba[1, ..., :3] * views.rgba[1, ..., 3:])

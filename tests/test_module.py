@@ -1,0 +1,67 @@
+import functools
+
+import lightning as L
+import pytest
+import torch
+from torch import nn
+
+from nerfexp.errors import NonFiniteError
+from nerfexp.module import NeRFModule
+from nerfexp.renderer import VolumeRenderer
+
+
+class NaNField(nn.Module):
+    def forward(self, positions, directions):
+        return torch.full_like(positions, 0.5), torch.full(positions.shape[:-1], float("nan"))
+
+
+class ConstantField(nn.Module):
+    def __init__(self):
+        super().__init__()
+        self.raw = nn.Parameter(torch.zeros(()))
+
+    def forward(self, positions, directions):
+        sigma = nn.functional.softplus(self.raw).expand(positions.shape[:-1])
+        return torch.sigmoid(self.raw).expand(*positions.shape[:-1], 3), sigma
+
+
+def module(field, lr=1e-3, lr_final=1e-4):
+    renderer = VolumeRenderer(field, hierarchical=True, n_coarse=4, n_fine=4, n_single=12, near=2.0, far=6.0)
+    return NeRFModule(renderer, functools.partial(torch.optim.Adam, lr=lr), lr_final=lr_final, chunk=7)
+
+
+def batch(n=8):
+    directions = torch.nn.functional.normalize(torch.randn(n, 3), dim=-1)
+    return {"origins": -4 * directions, "directions": directions, "rgb": torch.rand(n, 3)}
+
+
+def test_non_finite_loss_stops_with_the_step_and_the_network():
+    with pytest.raises(NonFiniteError, match=r"step 0: the coarse network's colour loss is nan"):
+        module(NaNField).training_step(batch(), 0)
+
+
+def test_learning_rate_decays_exponentially_to_lr_final_over_max_steps():
+    m = module(ConstantField, lr=5e-4, lr_final=5e-5)
+    m.trainer = L.Trainer(max_steps=100, logger=False, enable_checkpointing=False, enable_progress_bar=False)
+    config = m.configure_optimizers()
+    optimizer, schedule = config["optimizer"], config["lr_scheduler"]["scheduler"]
+    lrs = []
+    for _ in range(100):
+        lrs.append(optimizer.param_groups[0]["lr"])
+        optimizer.step()
+        schedule.step()
+    assert lrs[0] == pytest.approx(5e-4) and lrs[50] == pytest.approx(5e-4 * 0.1 ** 0.5)
+    assert optimizer.param_groups[0]["lr"] == pytest.approx(5e-5)
+
+
+def test_image_rendering_in_chunks_equals_rendering_at_once():
+    torch.manual_seed(0)
+    m = module(ConstantField)
+    with torch.no_grad():
+        m.renderer.coarse.raw.fill_(0.3)
+        m.renderer.fine.raw.fill_(-0.2)
+    b = batch(15)
+    image = m.render_image(b["origins"].reshape(3, 5, 3), b["directions"].reshape(3, 5, 3))  # chunks of 7
+    whole = m.renderer(b["origins"], b["directions"], deterministic=True)["fine"]
+    torch.testing.assert_close(image["rgb"].reshape(15, 3), whole["rgb"])
+    torch.testing.assert_close(image["depth"].reshape(15), whole["depth"])
