@@ -79,3 +79,18 @@ def test_missing_dataset_folder_is_one_clear_line(tmp_path):
     result = run_nerfexp("data=blender", f"data.root={missing}", f"hydra.run.dir={tmp_path / 'run'}", cwd=tmp_path)
     assert result.returncode != 0
     assert str(missing) in result.stderr and "Traceback" not in result.stderr
+
+
+@pytest.mark.slow
+def test_a_blender_format_scene_written_by_the_exporter_trains(tmp_path, tiny):
+    scene = tmp_path / "scene"
+    exported = run_nerfexp(str(scene), "--resolution", "24", "--n-train", "10", "--n-val", "1", "--n-test", "2",
+                           cwd=tmp_path, script="nerfexp-scene")
+    assert exported.returncode == 0, exported.stderr[-2000:]
+    overrides = [o for o in tiny if not o.startswith(("data.", "scale.image_size"))]
+    result = run_nerfexp("data=blender", f"data.root={scene}", "data.downscale=2", "data.n_val=1", "data.test_stride=1",
+                         *overrides, f"hydra.run.dir={tmp_path / 'run'}", cwd=tmp_path)
+    assert result.returncode == 0, result.stderr[-3000:]
+    results = read_json(tmp_path / "run" / "results.json")
+    assert results["choices"]["data"] == "blender" and math.isfinite(results["test_psnr"])
+    assert sorted(p.name for p in (tmp_path / "run" / "test").glob("r_?.png")) == ["r_0.png", "r_1.png"]

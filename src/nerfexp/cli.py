@@ -9,7 +9,7 @@ from hydra.core.hydra_config import HydraConfig
 from hydra.utils import instantiate
 from omegaconf import DictConfig, OmegaConf
 
-from nerfexp.errors import NerfexpError
+from nerfexp.errors import ConfigError, NerfexpError
 from nerfexp.outputs import RunRecorder
 
 log = logging.getLogger("nerfexp")
@@ -17,6 +17,10 @@ log = logging.getLogger("nerfexp")
 
 def train(cfg: DictConfig) -> None:
     """Train on ``cfg.data``, then score the test split; everything is written to the run's directory."""
+    missing = sorted(OmegaConf.missing_keys(cfg))
+    if missing:
+        raise ConfigError(f"missing mandatory value: {', '.join(missing)} (set it on the command line, "
+                          f"e.g. {missing[0]}=...)")
     L.seed_everything(cfg.seed, workers=True)
     runtime = HydraConfig.get().runtime
     choices = {k: v for k, v in runtime.choices.items() if not k.startswith("hydra")}
@@ -37,6 +41,5 @@ def train(cfg: DictConfig) -> None:
 def main(cfg: DictConfig) -> None:
     try:
         train(cfg)
-    except NerfexpError as error:
-        log.error("%s", error)
-        sys.exit(1)
+    except NerfexpError as error:  # bad input or a failed run: one line on stderr, exit status 1
+        sys.exit(f"nerfexp: error: {error}")

@@ -5,6 +5,10 @@ class NerfexpError(Exception):
     """Base class: bad input or a run that cannot continue, with a message that says what and where."""
 
 
+class ConfigError(NerfexpError):
+    """A config value is missing or unusable; the message names the key."""
+
+
 class DatasetError(NerfexpError):
     """A dataset is missing or malformed; the message names the file or key and what was expected."""
 

@@ -16,8 +16,8 @@ class NeRFField(nn.Module):
     """sigma from the encoded position alone; rgb from a feature of it and the view direction.
 
     Trunk: ``depth`` ReLU layers of ``width``; the encoded position is concatenated again to the
-    input of each layer listed in ``skips`` (0-based; the paper's 8 x 256 with skips=[5], the fifth
-    layer's output joined to the input, is ``skips=[5]``). The density is
+    input of each layer listed in ``skips`` (0-based: the paper's 8 x 256 joins it to the fifth
+    layer's output, the sixth layer's input, so ``skips=[5]``). The density is
     ``activation(raw + density_bias)`` of one linear unit on the trunk output.
 
     Args:
@@ -37,24 +37,27 @@ class NeRFField(nn.Module):
         if bad:
             raise ValueError(f"field.skips: layer indices must be in 1..{depth - 1} for depth {depth}, got {bad}")
         self.position_encoding = position_encoding
-        self.skips = set(skips)
+        self.skips = tuple(skips)
         in_dim = position_encoding.out_dim
-        self.trunk = nn.ModuleList(
-            nn.Linear((0 if i == 0 else width) + (in_dim if i == 0 or i in self.skips else 0), width)
-            for i in range(depth))
+        self.trunk = nn.ModuleList(nn.Linear(in_dim if i == 0 else width, width) for i in range(depth))
+        # The skip's concatenation [h, encoded] @ W = h @ W_h + encoded @ W_e: the encoded half of the
+        # layer is its own (bias-free) linear map, which saves building the concatenated tensor.
+        self.skip_inputs = nn.ModuleDict({str(i): nn.Linear(in_dim, width, bias=False) for i in self.skips})
         self.sigma = nn.Linear(width, 1)
         self.activation = DENSITY_ACTIVATIONS[density_activation]
         self.density_bias = density_bias
         self.view_head = view_head(width)
 
     def forward(self, positions: Tensor, directions: Tensor) -> tuple[Tensor, Tensor]:
-        """positions, directions [..., 3] (directions unit) -> (rgb [..., 3] in [0, 1], sigma [...] >= 0)."""
+        """positions [..., S, 3] and unit directions [..., S or 1, 3] (one per ray broadcasts over
+        its samples) -> (rgb [..., S, 3] in [0, 1], sigma [..., S] >= 0)."""
         encoded = self.position_encoding(positions)
         h = encoded
         for i, layer in enumerate(self.trunk):
+            h = layer(h)
             if i in self.skips:
-                h = torch.cat([h, encoded], -1)
-            h = F.relu(layer(h))
+                h = h + self.skip_inputs[str(i)](encoded)
+            h = F.relu(h, inplace=True)  # in place: ReLU backward needs only its output
         sigma = self.activation(self.sigma(h).squeeze(-1) + self.density_bias)
         return self.view_head(h, directions), sigma
 
@@ -66,13 +69,16 @@ class ViewMLPHead(nn.Module):
         super().__init__()
         self.direction_encoding = direction_encoding
         self.feature = nn.Linear(in_features, in_features)
-        self.hidden = nn.Linear(in_features + direction_encoding.out_dim, hidden)
+        # The hidden layer on [feature, gamma(d)], split in two: the direction's half is computed
+        # once per ray and broadcast over the ray's samples.
+        self.hidden = nn.Linear(in_features, hidden)
+        self.hidden_direction = nn.Linear(direction_encoding.out_dim, hidden, bias=False)
         self.rgb = nn.Linear(hidden, 3)
 
     def forward(self, h: Tensor, directions: Tensor) -> Tensor:
-        """h [..., F], directions [..., 3] -> rgb [..., 3]."""
-        x = torch.cat([self.feature(h), self.direction_encoding(directions)], -1)
-        return torch.sigmoid(self.rgb(F.relu(self.hidden(x))))
+        """h [..., S, F], directions [..., S or 1, 3] -> rgb [..., S, 3]."""
+        x = self.hidden(self.feature(h)) + self.hidden_direction(self.direction_encoding(directions))
+        return torch.sigmoid(self.rgb(F.relu(x, inplace=True)))
 
 
 class DiffuseHead(nn.Module):
@@ -83,7 +89,7 @@ class DiffuseHead(nn.Module):
         self.rgb = nn.Linear(in_features, 3)
 
     def forward(self, h: Tensor, directions: Tensor) -> Tensor:
-        """h [..., F] -> rgb [..., 3]; ``directions`` is ignored."""
+        """h [..., S, F] -> rgb [..., S, 3]; ``directions`` is ignored."""
         return torch.sigmoid(self.rgb(h))
 
 
@@ -120,7 +126,7 @@ class SphericalHarmonicsHead(nn.Module):
         self.coefficients = nn.Linear(in_features, 3 * (degree + 1) ** 2)
 
     def forward(self, h: Tensor, directions: Tensor) -> Tensor:
-        """h [..., F], directions [..., 3] unit -> rgb [..., 3]."""
+        """h [..., S, F], unit directions [..., S or 1, 3] -> rgb [..., S, 3]."""
         coefficients = self.coefficients(h).unflatten(-1, (3, -1))  # [..., 3, K]
         basis = sh_basis(directions, self.degree)  # [..., K]
         return torch.sigmoid((coefficients * basis[..., None, :]).sum(-1))

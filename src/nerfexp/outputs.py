@@ -26,9 +26,10 @@ def png_bytes(image: Tensor) -> bytes:
     return iio.imwrite("<bytes>", pixels, extension=".png")
 
 
-def depth_image(depth: Tensor, near: float, far: float) -> Tensor:
-    """Depth [H, W] as a grey image, near white and far black: [H, W] in [0, 1]."""
-    return ((far - depth) / (far - near)).clamp(0, 1)
+def depth_image(depth: Tensor, opacity: Tensor, near: float, far: float) -> Tensor:
+    """Depth [H, W] as a grey image, near white and far black, faded by opacity [H, W] so that
+    empty space (whose depth is the mean of vanishing weights) is black: [H, W] in [0, 1]."""
+    return ((far - depth) / (far - near)).clamp(0, 1) * opacity.clamp(0, 1)
 
 
 class RunRecorder(L.Callback):
@@ -63,7 +64,7 @@ class RunRecorder(L.Callback):
         self._scores.setdefault("psnr", []).append(outputs["psnr"])
         self._scores.setdefault("ssim", []).append(outputs["ssim"])
         index, renderer = outputs["index"], pl_module.renderer
-        depth = depth_image(outputs["depth"], renderer.near, renderer.far)
+        depth = depth_image(outputs["depth"], outputs["opacity"], renderer.near, renderer.far)
         if split == "test":
             atomic_write(self.output_dir / "test" / f"r_{index}.png", png_bytes(outputs["rgb"]))
             atomic_write(self.output_dir / "test" / f"r_{index}_depth.png", png_bytes(depth))

@@ -48,7 +48,7 @@ class VolumeRenderer(nn.Module):
         """Query ``field`` at samples t [B, S] of rays [B, 3]; each sample stands for its interval."""
         t_starts, t_ends = intervals(t, far)
         points = origins[:, None, :] + directions[:, None, :] * t[..., None]  # [B, S, 3]
-        rgbs, sigmas = field(points, directions[:, None, :].expand_as(points))
+        rgbs, sigmas = field(points, directions[:, None, :])  # one direction per ray, broadcast
         weights, _ = render_weights(sigmas, t_starts, t_ends)
         out = composite(weights, rgbs, t, self.background, self.far)
         out.update(weights=weights, t_starts=t_starts, t_ends=t_ends)

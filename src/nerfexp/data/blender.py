@@ -155,7 +155,8 @@ def load_blender(root, split: str, downscale: int = 1, max_views: int | None = N
     root = Path(root)
     if not root.is_dir():
         raise DatasetError(
-            f"data.root {root} does not exist: set the config key data.root to a folder holding {TRANSFORMS.format(split=split)}"
+            f"data.root {root} does not exist: set the config key data.root to a folder holding "
+            f"{TRANSFORMS.format(split=split)}"
         )
     transforms = root / TRANSFORMS.format(split=split)
     camera_angle_x, frames = read_transforms(transforms)

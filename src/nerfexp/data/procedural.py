@@ -158,8 +158,8 @@ def albedo(points: Tensor, normals: Tensor, index: Tensor) -> Tensor:
     longitude = torch.atan2(normals[..., 1], normals[..., 0]) + math.pi  # [0, 2 pi]
     latitude = torch.acos(normals[..., 2].clamp(-1, 1))  # [0, pi]
     cells = torch.stack([longitude / (2 * math.pi) * STRIPED_CELLS[0], latitude / math.pi * STRIPED_CELLS[1]], -1)
-    plain = [GLOSSY[2], *(colour for *_, colour in RODS)]
-    table = [slab, _checker(cells, STRIPED_COLOURS), *(torch.tensor(c, dtype=points.dtype) for c in plain)]
+    glossy, rods = (torch.tensor(c, dtype=points.dtype) for c in (GLOSSY[2], [c for *_, c in RODS]))
+    table = [slab, glossy, _checker(cells, STRIPED_COLOURS), *rods]  # the order of intersect_scene
     colours = torch.stack(torch.broadcast_tensors(*table), -2)  # [..., K, 3]
     return torch.gather(colours, -2, index[..., None, None].expand(*index.shape, 1, 3)).squeeze(-2)
 
@@ -199,7 +199,8 @@ def render_rgba(c2w: Tensor, height: int, width: int, focal: float, supersample:
     s = supersample
     origins, directions = camera_rays(c2w.to(torch.float64), height * s, width * s, focal * s)
     N = c2w.shape[0]
-    traced = [trace(o, d) for o, d in zip(origins.reshape(-1, 3).split(RAY_CHUNK), directions.reshape(-1, 3).split(RAY_CHUNK))]
+    chunks = zip(origins.reshape(-1, 3).split(RAY_CHUNK), directions.reshape(-1, 3).split(RAY_CHUNK))
+    traced = [trace(o, d) for o, d in chunks]
     rgb = torch.cat([c for c, _ in traced]).reshape(N, height, s, width, s, 3).sum((2, 4))
     hits = torch.cat([h for _, h in traced]).reshape(N, height, s, width, s).sum((2, 4))[..., None]
     rgb = torch.where(hits > 0, rgb / hits.clamp_min(1), 0.0)

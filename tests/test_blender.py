@@ -1,0 +1,189 @@
+"""The Blender (NeRF synthetic) format: round trips, downscaling, frame selection and clear errors."""
+
+import json
+import math
+import re
+
+import numpy as np
+import pytest
+import torch
+from PIL import Image
+
+from nerfexp.data.blender import load_blender, write_blender
+from nerfexp.data.views import Views
+from nerfexp.errors import DatasetError
+
+ANGLE = 0.6911112070083618
+
+
+def make_views(n=6, height=6, width=8, seed=0) -> Views:
+    g = torch.Generator().manual_seed(seed)
+    rgba = torch.rand(n, height, width, 4, generator=g)
+    rgba[..., 3] = torch.where(rgba[..., 3] < 0.3, 0.0, rgba[..., 3])  # some fully transparent pixels
+    q, _ = torch.linalg.qr(torch.randn(n, 3, 3, generator=g, dtype=torch.float64))
+    c2w = torch.eye(4).repeat(n, 1, 1)
+    c2w[:, :3, :3], c2w[:, :3, 3] = q.float(), torch.randn(n, 3, generator=g)
+    return Views(rgba=rgba, c2w=c2w, focal=1.0)
+
+
+@pytest.fixture
+def scene(tmp_path):
+    views = make_views()
+    write_blender(tmp_path, "train", views, ANGLE)
+    return tmp_path, views
+
+
+def edit_transforms(root, edit):
+    path = root / "transforms_train.json"
+    content = json.loads(path.read_text())
+    edit(content)
+    path.write_text(json.dumps(content))
+
+
+def test_round_trip(scene):
+    root, views = scene
+    assert (root / "train" / "r_5.png").is_file()
+    assert json.loads((root / "transforms_train.json").read_text())["frames"][2]["file_path"] == "./train/r_2"
+    loaded = load_blender(root, "train")
+    assert torch.equal(loaded.c2w, views.c2w)
+    torch.testing.assert_close(loaded.rgba, views.rgba, atol=0.5 / 255, rtol=0)  # 8-bit rounding
+    assert loaded.focal == pytest.approx(0.5 * 8 / math.tan(0.5 * ANGLE))
+    assert not list(root.rglob("*.tmp"))  # no temporary files left behind
+
+
+def test_downscale_by_two_halves_size_and_focal(scene):
+    root, _ = scene
+    full, half = load_blender(root, "train"), load_blender(root, "train", downscale=2)
+    assert half.rgba.shape == (6, 3, 4, 4)
+    assert half.focal == pytest.approx(full.focal / 2)
+    # alpha is the block mean; colour is the alpha-weighted block mean
+    blocks = full.rgba.reshape(6, 3, 2, 4, 2, 4)
+    alpha = blocks[..., 3].mean((2, 4))
+    torch.testing.assert_close(half.rgba[..., 3], alpha)
+    weighted = (blocks[..., :3] * blocks[..., 3:]).mean((2, 4)) / alpha[..., None]
+    torch.testing.assert_close(half.rgba[..., :3][alpha > 0], weighted[alpha > 0])
+
+
+def test_downscale_does_not_bleed_transparent_colour(tmp_path):
+    # One opaque red pixel in a 2x2 block of transparent blue: alpha 1/4, colour pure red.
+    rgba = torch.zeros(1, 2, 2, 4)
+    rgba[..., 2] = 1
+    rgba[0, 0, 0] = torch.tensor([1.0, 0, 0, 1])
+    write_blender(tmp_path, "train", Views(rgba=rgba, c2w=torch.eye(4)[None], focal=1.0), ANGLE)
+    assert load_blender(tmp_path, "train", downscale=2).rgba[0, 0, 0].tolist() == [1, 0, 0, 0.25]
+
+
+def test_downscale_not_dividing_the_size_keeps_the_whole_image(tmp_path):
+    write_blender(tmp_path, "train", make_views(n=1, height=5, width=7), ANGLE)
+    views = load_blender(tmp_path, "train", downscale=2)
+    assert views.rgba.shape == (1, 2, 3, 4) and views.focal == pytest.approx(0.5 * 3 / math.tan(0.5 * ANGLE))
+
+
+@pytest.mark.parametrize("stride, max_views, frames", [
+    (1, None, [0, 1, 2, 3, 4, 5]), (2, None, [0, 2, 4]), (1, 2, [0, 1]), (2, 2, [0, 2]), (4, 10, [0, 4]),
+    (1, 6, list(range(6))),
+])
+def test_stride_then_max_views_select_frames(scene, stride, max_views, frames):
+    root, views = scene
+    loaded = load_blender(root, "train", max_views=max_views, stride=stride)
+    assert torch.equal(loaded.c2w, views.c2w[frames])
+    torch.testing.assert_close(loaded.rgba, views.rgba[frames], atol=0.5 / 255, rtol=0)
+
+
+def test_rgb_png_without_alpha_is_opaque(scene):
+    root, _ = scene
+    rgb = np.arange(6 * 8 * 3, dtype=np.uint8).reshape(6, 8, 3)
+    Image.fromarray(rgb, "RGB").save(root / "train" / "r_0.png")
+    image = load_blender(root, "train", max_views=1).rgba[0]
+    assert (image[..., 3] == 1).all()
+    assert torch.equal(image[..., :3], torch.from_numpy(rgb).float() / 255)
+
+
+def test_file_path_with_extension_and_without_dot_slash(scene):
+    root, views = scene
+    edit_transforms(root, lambda c: c["frames"][0].update(file_path="train/r_3.png"))
+    assert torch.equal(load_blender(root, "train").c2w[0], views.c2w[0])  # pose from frame 0, image of r_3
+    torch.testing.assert_close(load_blender(root, "train").rgba[0], views.rgba[3], atol=0.5 / 255, rtol=0)
+
+
+def write_png(path, height, width):
+    Image.fromarray(np.zeros((height, width, 4), dtype=np.uint8), "RGBA").save(path)
+
+
+def break_root(root):
+    return root / "nowhere", {}
+
+
+def break_split(root):
+    return root, {"split": "val"}
+
+
+def break_json(root):
+    (root / "transforms_train.json").write_text('{\n  "camera_angle_x": 0.7,\n  "frames": [,]\n}')
+    return root, {}
+
+
+def drop(key):
+    def edit(root):
+        edit_transforms(root, lambda c: c.pop(key))
+        return root, {}
+    return edit
+
+
+def drop_in_frame(key):
+    def edit(root):
+        edit_transforms(root, lambda c: c["frames"][1].pop(key))
+        return root, {}
+    return edit
+
+
+def set_matrix(value):
+    def edit(root):
+        edit_transforms(root, lambda c: c["frames"][4].update(transform_matrix=value))
+        return root, {}
+    return edit
+
+
+def remove_image(root):
+    (root / "train" / "r_3.png").unlink()
+    return root, {}
+
+
+def resize_image(root):
+    write_png(root / "train" / "r_2.png", 6, 9)
+    return root, {}
+
+
+def empty_frames(root):
+    edit_transforms(root, lambda c: c.update(frames=[]))
+    return root, {}
+
+
+def argument(**options):
+    return lambda root: (root, options)
+
+
+@pytest.mark.parametrize("breakage, message", [
+    (break_root, "data.root .*nowhere does not exist.*config key data.root"),
+    (break_split, "transforms_val.json does not exist; transforms files in .*: transforms_train.json"),
+    (break_json, "transforms_train.json: invalid JSON at line 3"),
+    (drop("camera_angle_x"), "transforms_train.json: missing key 'camera_angle_x'"),
+    (drop("frames"), "transforms_train.json: missing key 'frames'"),
+    (drop_in_frame("file_path"), "frame 1: missing key 'file_path'"),
+    (drop_in_frame("transform_matrix"), "frame 1: missing key 'transform_matrix'"),
+    (set_matrix([[1, 0, 0, 0]] * 3), "frame 4: 'transform_matrix' must be a 4x4"),
+    (set_matrix([[1, 0, 0, "x"]] * 4), "frame 4: 'transform_matrix' must be a 4x4"),
+    (set_matrix(7), "frame 4: 'transform_matrix' must be a 4x4"),
+    (remove_image, re.escape("r_3.png does not exist")),
+    (resize_image, "r_2.png: image size 9x6 differs from .*r_0.png \\(8x6\\)"),
+    (empty_frames, "'frames' must be a non-empty list"),
+    (argument(max_views=0), "max_views must be >= 1"),
+    (argument(stride=0), "stride must be >= 1"),
+    (argument(downscale=0), "downscale must be >= 1"),
+    (argument(downscale=7), "downscale 7 is larger than the images"),
+])
+def test_errors_name_the_file_or_key(scene, breakage, message):
+    root, options = breakage(scene[0])
+    options = {"split": "train", **options}
+    with pytest.raises(DatasetError, match=message):
+        load_blender(root, **options)
