@@ -187,3 +187,17 @@ def test_errors_name_the_file_or_key(scene, breakage, message):
     options = {"split": "train", **options}
     with pytest.raises(DatasetError, match=message):
         load_blender(root, **options)
+
+
+def test_scene_caps_the_image_side_for_cpu_sized_runs(tmp_path):
+    # 12 x 16 images capped at 5 pixels: the factor is ceil(16 / 5) = 4, giving 3 x 4 and focal / 4,
+    # the same as asking for downscale=4 directly; a cap the images already fit changes nothing.
+    from nerfexp.data.blender import BlenderScene
+
+    write_blender(tmp_path, "train", make_views(height=12, width=16), ANGLE)
+    capped = BlenderScene(str(tmp_path), max_side=5).views("train")
+    direct = load_blender(tmp_path, "train", downscale=4)
+    assert capped.rgba.shape == (6, 3, 4, 4)
+    assert capped.focal == pytest.approx(direct.focal)
+    torch.testing.assert_close(capped.rgba, direct.rgba)
+    assert BlenderScene(str(tmp_path), max_side=16).views("train").rgba.shape == (6, 12, 16, 4)

@@ -25,6 +25,12 @@ class NeRFModule(L.LightningModule):
         super().__init__()
         self.renderer, self.optimizer, self.lr_final, self.chunk = renderer, optimizer, lr_final, chunk
 
+    def on_fit_start(self) -> None:
+        # exp(-optical depth) behind surfaces produces float32 denormals, which make the CPU's
+        # backward pass about 1.8x slower (measured: 0.173 vs 0.097 s per step at scale=cpu, with
+        # identical results); flushing them to zero costs nothing in accuracy at these magnitudes.
+        torch.set_flush_denormal(True)
+
     def training_step(self, batch: dict[str, Tensor], batch_idx: int) -> Tensor:
         outputs = self.renderer(batch["origins"], batch["directions"], deterministic=False)
         losses = {name: F.mse_loss(out["rgb"], batch["rgb"]) for name, out in outputs.items()}

@@ -181,10 +181,13 @@ def load_blender(root, split: str, downscale: int = 1, max_views: int | None = N
 @dataclass
 class BlenderScene:
     """A Blender-format dataset (``data=blender``): the training views, the first ``n_val``
-    validation views, and every ``test_stride``-th test view, all shrunk by ``downscale``."""
+    validation views, and every ``test_stride``-th test view, all shrunk by ``downscale`` and then,
+    where ``max_side`` is set, by the smallest further integer factor that brings the longer image
+    side to at most ``max_side`` pixels (so CPU-sized runs fit scenes of any resolution)."""
 
     root: str
     downscale: int = 1
+    max_side: int | None = None
     max_train_views: int | None = None
     test_stride: int = 1
     n_val: int = 2
@@ -195,4 +198,9 @@ class BlenderScene:
     def views(self, split: str) -> Views:
         options = {"train": {"max_views": self.max_train_views}, "val": {"max_views": self.n_val},
                    "test": {"stride": self.test_stride}}[split]
-        return load_blender(self.root, split, self.downscale, **options)
+        views = load_blender(self.root, split, self.downscale, **options)
+        side = max(views.height, views.width)
+        if self.max_side is None or side <= self.max_side:
+            return views
+        rgba = downscale_rgba(views.rgba, math.ceil(side / self.max_side))
+        return Views(rgba=rgba, c2w=views.c2w, focal=views.focal * rgba.shape[2] / views.width)

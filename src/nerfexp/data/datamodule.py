@@ -74,7 +74,8 @@ class RayDataModule(L.LightningDataModule):
         return self.splits[split]
 
     def train_dataloader(self) -> DataLoader:
-        rays = RandomRays(self._views("train"), self.background, self.batch_rays, self.seed)
+        rank = self.trainer.global_rank if self.trainer is not None else 0  # each process its own stream
+        rays = RandomRays(self._views("train"), self.background, self.batch_rays, self.seed + rank)
         return DataLoader(rays, batch_size=None)
 
     def val_dataloader(self) -> DataLoader:
