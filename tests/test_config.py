@@ -53,7 +53,7 @@ def test_paper_scale_is_the_papers_network():
 def test_plain_install_finds_its_configs(tmp_path):
     """``pip install .`` (not editable) must carry conf/ inside the package."""
     target = tmp_path / "site"
-    subprocess.run([sys.executable, "-m", "pip", "install", "-q", "--no-deps", "--no-build-isolation",
+    subprocess.run([sys.executable, "-m", "pip", "install", "-q", "--no-deps",
                     "--target", str(target), "."], check=True, cwd=__file__.rsplit("/tests/", 1)[0])
     probe = ("import nerfexp, sys; from hydra import compose, initialize_config_module\n"
              "with initialize_config_module('nerfexp.conf', version_base=None):\n"
