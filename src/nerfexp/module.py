@@ -9,7 +9,7 @@ from torch import Tensor
 
 from nerfexp.errors import NonFiniteError
 from nerfexp.metrics import psnr, ssim
-from nerfexp.renderer import VolumeRenderer
+from nerfexp.renderer import VolumeRenderer, final_output
 
 
 class NeRFModule(L.LightningModule):
@@ -39,7 +39,7 @@ class NeRFModule(L.LightningModule):
                 raise NonFiniteError(f"step {self.global_step}: the {name} network's colour loss is "
                                      f"{value.item()} (non-finite); the run stopped here")
         loss = sum(losses.values())
-        final = losses["fine" if "fine" in losses else "coarse"]
+        final = final_output(losses)
         self.log("train/loss", loss, prog_bar=True)
         self.log("train/psnr", -10 * torch.log10(final.detach()), prog_bar=True)
         self.log("train/lr", self.optimizers().param_groups[0]["lr"])
@@ -54,7 +54,7 @@ class NeRFModule(L.LightningModule):
         for start in range(0, H * W, self.chunk):
             outputs = self.renderer(flat_o[start:start + self.chunk], flat_d[start:start + self.chunk],
                                     deterministic=True)
-            final = outputs["fine" if "fine" in outputs else "coarse"]
+            final = final_output(outputs)
             parts.append({key: final[key] for key in ("rgb", "depth", "opacity")})
         return {key: torch.cat([p[key] for p in parts]).reshape(H, W, *parts[0][key].shape[1:])
                 for key in parts[0]}

@@ -11,6 +11,11 @@ from nerfexp.sampling import dilate_weights, intervals, sample_pdf, stratified_s
 BACKGROUNDS = {"white": (1.0, 1.0, 1.0), "black": (0.0, 0.0, 0.0)}
 
 
+def final_output(outputs: dict[str, dict[str, Tensor]]) -> dict[str, Tensor]:
+    """The output that is scored and shown: the fine network's, or the only network's without hierarchy."""
+    return outputs["fine"] if "fine" in outputs else outputs["coarse"]
+
+
 class VolumeRenderer(nn.Module):
     """Renders rays with one field (``hierarchical=False``) or a coarse and a fine field.
 
