@@ -37,12 +37,11 @@ class NeRFField(nn.Module):
         if bad:
             raise ValueError(f"field.skips: layer indices must be in 1..{depth - 1} for depth {depth}, got {bad}")
         self.position_encoding = position_encoding
-        self.skips = tuple(skips)
+        self.skips = set(skips)
         in_dim = position_encoding.out_dim
-        self.trunk = nn.ModuleList(nn.Linear(in_dim if i == 0 else width, width) for i in range(depth))
-        # The skip's concatenation [h, encoded] @ W = h @ W_h + encoded @ W_e: the encoded half of the
-        # layer is its own (bias-free) linear map, which saves building the concatenated tensor.
-        self.skip_inputs = nn.ModuleDict({str(i): nn.Linear(in_dim, width, bias=False) for i in self.skips})
+        self.trunk = nn.ModuleList(
+            nn.Linear((0 if i == 0 else width) + (in_dim if i == 0 or i in self.skips else 0), width)
+            for i in range(depth))
         self.sigma = nn.Linear(width, 1)
         self.activation = DENSITY_ACTIVATIONS[density_activation]
         self.density_bias = density_bias
@@ -54,10 +53,9 @@ class NeRFField(nn.Module):
         encoded = self.position_encoding(positions)
         h = encoded
         for i, layer in enumerate(self.trunk):
-            h = layer(h)
             if i in self.skips:
-                h = h + self.skip_inputs[str(i)](encoded)
-            h = F.relu(h, inplace=True)  # in place: ReLU backward needs only its output
+                h = torch.cat([h, encoded], -1)
+            h = F.relu(layer(h), inplace=True)  # in place: ReLU backward needs only its output
         sigma = self.activation(self.sigma(h).squeeze(-1) + self.density_bias)
         return self.view_head(h, directions), sigma
 
