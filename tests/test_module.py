@@ -25,9 +25,10 @@ class ConstantField(nn.Module):
         return torch.sigmoid(self.raw).expand(*positions.shape[:-1], 3), sigma
 
 
-def module(field, lr=1e-3, lr_final=1e-4):
+def module(field, lr=1e-3, lr_final=1e-4, lr_warmup_steps=0):
     renderer = VolumeRenderer(field, hierarchical=True, n_coarse=4, n_fine=4, n_single=12, near=2.0, far=6.0)
-    return NeRFModule(renderer, functools.partial(torch.optim.Adam, lr=lr), lr_final=lr_final, chunk=7)
+    return NeRFModule(renderer, functools.partial(torch.optim.Adam, lr=lr), lr_final=lr_final, chunk=7,
+                      lr_warmup_steps=lr_warmup_steps)
 
 
 def batch(n=8):
@@ -40,18 +41,29 @@ def test_non_finite_loss_stops_with_the_step_and_the_network():
         module(NaNField).training_step(batch(), 0)
 
 
-def test_learning_rate_decays_exponentially_to_lr_final_over_max_steps():
-    m = module(ConstantField, lr=5e-4, lr_final=5e-5)
-    m.trainer = L.Trainer(max_steps=100, logger=False, enable_checkpointing=False, enable_progress_bar=False)
+def learning_rates(m: NeRFModule, steps: int) -> list[float]:
+    m.trainer = L.Trainer(max_steps=steps, logger=False, enable_checkpointing=False, enable_progress_bar=False)
     config = m.configure_optimizers()
     optimizer, schedule = config["optimizer"], config["lr_scheduler"]["scheduler"]
     lrs = []
-    for _ in range(100):
+    for _ in range(steps + 1):
         lrs.append(optimizer.param_groups[0]["lr"])
         optimizer.step()
         schedule.step()
+    return lrs
+
+
+def test_learning_rate_decays_exponentially_to_lr_final_over_max_steps():
+    lrs = learning_rates(module(ConstantField, lr=5e-4, lr_final=5e-5), 100)
     assert lrs[0] == pytest.approx(5e-4) and lrs[50] == pytest.approx(5e-4 * 0.1 ** 0.5)
-    assert optimizer.param_groups[0]["lr"] == pytest.approx(5e-5)
+    assert lrs[100] == pytest.approx(5e-5)
+
+
+def test_warmup_ramps_linearly_then_follows_the_decay():
+    # step s < 10: (s + 1) / 10 of the decayed rate 5e-3 * 0.1^(s / 100); from step 9 on, the decay alone
+    lrs = learning_rates(module(ConstantField, lr=5e-3, lr_final=5e-4, lr_warmup_steps=10), 100)
+    assert lrs[0] == pytest.approx(5e-4) and lrs[4] == pytest.approx(0.5 * 5e-3 * 0.1 ** 0.04)
+    assert lrs[50] == pytest.approx(5e-3 * 0.1 ** 0.5) and lrs[100] == pytest.approx(5e-4)
 
 
 def test_image_rendering_in_chunks_equals_rendering_at_once():

@@ -94,36 +94,43 @@ LIGHT = torch.nn.functional.normalize(torch.tensor(P.LIGHT_DIRECTION, dtype=F64)
 
 
 def test_highlight_depends_on_the_view():
-    # Normal towards the light: seen from the light, h = n and the highlight is at full strength;
-    # seen 60 degrees away, n.h = cos(30 deg) and 0.866^48 ~ 1e-3: no highlight.
+    # Normal towards the light: seen from the light, h = n, n.l = 1 and rgb = albedo + k_s (clipped);
+    # seen 60 degrees away, n.h = cos(30 deg): rgb = albedo + k_s cos(30 deg)^p.
     normal, albedo = LIGHT, torch.tensor([0.75, 0.08, 0.08], dtype=F64)
     axis = torch.nn.functional.normalize(torch.linalg.cross(LIGHT, torch.tensor([0.0, 0, 1], dtype=F64), dim=0), dim=0)
     away = math.cos(math.pi / 3) * LIGHT + math.sin(math.pi / 3) * torch.linalg.cross(axis, LIGHT, dim=0)
-    k_s = torch.tensor(P.SPECULAR, dtype=F64)
+    k_s = torch.tensor(P.SPECULAR[1], dtype=F64)
     facing, aside = (P.shade(normal, v, albedo, k_s) for v in (LIGHT, away))
-    assert (facing[1:] - aside[1:] > 0.8).all()  # white highlight on green and blue
-    assert torch.equal(P.shade(normal, LIGHT, albedo, k_s * 0), P.shade(normal, away, albedo, k_s * 0))
+    torch.testing.assert_close(facing, (albedo + k_s).clamp(max=1))
+    torch.testing.assert_close(aside, albedo + k_s * math.cos(math.pi / 6) ** P.SHININESS)
+    assert (facing[1:] - aside[1:] > 0.5).all()  # a white highlight on green and blue
     torch.testing.assert_close(P.shade(normal, away, albedo, k_s * 0), albedo)  # n.l = 1: fully lit
 
 
-def test_only_the_glossy_sphere_has_a_highlight():
-    # Look along -n at the point of each sphere whose normal points at the light, from the light.
-    for (centre, radius, *_), glossy in ((P.GLOSSY, True), (P.STRIPED, False)):
+def test_each_surface_has_its_own_highlight_strength():
+    # From the light, looking along -n at the point of each sphere whose normal points at the light:
+    # the colour is the albedo plus that sphere's k_s, clipped to 1.
+    for (centre, radius, *_), k_s in ((P.GLOSSY, P.SPECULAR[1]), (P.STRIPED, P.SPECULAR[2])):
         point = torch.tensor(centre, dtype=F64) + radius * LIGHT
         rgb, hit = P.trace((point + 2 * LIGHT)[None], -LIGHT[None])
+        _, _, index = P.intersect_scene((point + 2 * LIGHT)[None], -LIGHT[None])
+        albedo = P.albedo(point[None], LIGHT[None], index)
         assert hit.item()
-        assert (rgb.min().item() > 0.95) == glossy  # white only where the highlight is
+        torch.testing.assert_close(rgb, (albedo + k_s).clamp(max=1))
 
 
 def test_objects_seen_from_above_have_their_albedo():
-    # Straight down onto a top with normal +z and no highlight: rgb = albedo (A + (1 - A) l_z).
+    # Straight down onto a rod's top (normal +z, no highlight): rgb = albedo (A + (1 - A) l_z).
     lit = P.AMBIENT + (1 - P.AMBIENT) * LIGHT[2].item()
     for (x, y), *_, colour in P.RODS:
         rgb, hit = P.trace(*ray((x, y, 3), (0, 0, -1)))
         assert hit.item() and rgb[0].tolist() == pytest.approx([lit * c for c in colour])
+    # The glossy sphere's top adds its highlight: k_s (n.h)^p with n = v = +z, h = unit(l + z).
     (x, y, z), radius, colour = P.GLOSSY
     rgb, _ = P.trace(*ray((x, y, 3), (0, 0, -1)))
-    assert rgb[0, 0] > 0.5 and (rgb[0, 1:] < 0.3).all()  # red, with a little of the highlight
+    n_dot_h = torch.nn.functional.normalize(LIGHT + torch.tensor([0.0, 0, 1], dtype=F64), dim=0)[2].item()
+    highlight = P.SPECULAR[1] * n_dot_h**P.SHININESS
+    assert rgb[0].tolist() == pytest.approx([min(lit * c + highlight, 1.0) for c in colour])
 
 
 def test_slab_checker_alternates_every_square():

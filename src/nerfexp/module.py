@@ -14,16 +14,18 @@ from nerfexp.renderer import VolumeRenderer, final_output
 
 class NeRFModule(L.LightningModule):
     """Loss = sum over networks of the MSE of their colours (coarse + fine); Adam whose learning
-    rate decays exponentially from the optimizer's ``lr`` to ``lr_final`` over ``trainer.max_steps``.
+    rate decays exponentially from the optimizer's ``lr`` to ``lr_final`` over ``trainer.max_steps``,
+    ramped up linearly over the first ``lr_warmup_steps`` (0: none, as in the paper).
 
     Evaluation renders whole images in chunks of ``chunk`` rays (memory bounded at any resolution)
     and scores the fine network's image (the only one without hierarchy).
     """
 
     def __init__(self, renderer: VolumeRenderer, optimizer: Callable[..., torch.optim.Optimizer],
-                 lr_final: float, chunk: int = 8192):
+                 lr_final: float, chunk: int = 8192, lr_warmup_steps: int = 0):
         super().__init__()
         self.renderer, self.optimizer, self.lr_final, self.chunk = renderer, optimizer, lr_final, chunk
+        self.lr_warmup_steps = lr_warmup_steps
 
     def on_fit_start(self) -> None:
         # exp(-optical depth) behind surfaces produces float32 denormals, which make the CPU's
@@ -79,6 +81,11 @@ class NeRFModule(L.LightningModule):
         if max_steps is None or max_steps < 1:
             raise ValueError("trainer.max_steps: expected a positive number of steps (the learning-rate "
                              f"schedule spans them), got {max_steps}")
-        ratio = self.lr_final / base_lr
-        schedule = torch.optim.lr_scheduler.LambdaLR(optimizer, lambda step: ratio ** min(step / max_steps, 1.0))
+        ratio, warmup = self.lr_final / base_lr, self.lr_warmup_steps
+
+        def factor(step: int) -> float:
+            ramp = min((step + 1) / warmup, 1.0) if warmup > 0 else 1.0
+            return ramp * ratio ** min(step / max_steps, 1.0)
+
+        schedule = torch.optim.lr_scheduler.LambdaLR(optimizer, factor)
         return {"optimizer": optimizer, "lr_scheduler": {"scheduler": schedule, "interval": "step"}}

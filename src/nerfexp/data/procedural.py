@@ -1,9 +1,10 @@
 """The built-in scene: a small still life rendered exactly by analytic ray intersection.
 
 World z is up and every object lies inside a ball of radius ``SCENE_RADIUS`` around the origin:
-a pedestal slab with a fine checkerboard, a red sphere with a sharp white Blinn-Phong highlight
-(the only view-dependent surface), a smaller sphere with a latitude/longitude checker, and four
-thin coloured rods. Objects are opaque and the background is transparent.
+a pedestal slab with a fine checkerboard, a red sphere with a strong white Blinn-Phong highlight,
+a smaller sphere with a latitude/longitude checker, and four thin coloured rods. The slab and the
+small sphere carry a faint sheen (the rods none), so view dependence matters over a good part of
+each image, as it does in the Blender scenes. Objects are opaque and the background is transparent.
 
 Conventions for the whole module: rays are ``origins`` and unit ``directions`` [..., 3], starting
 outside every shape. An intersection returns ``(t, normal)``: ``t`` [...] the distance to the
@@ -45,8 +46,8 @@ RODS = (  # (x, y), radius, top z, colour; each stands on the slab
 
 LIGHT_DIRECTION = (0.45, -0.35, 0.82)  # towards the light; normalised where used
 AMBIENT = 0.25
-SPECULAR = 0.9  # strength of the glossy sphere's white highlight
-SHININESS = 48.0
+SPECULAR = (0.6, 0.8, 0.4, 0.0)  # k_s of the white highlight on the slab, glossy sphere, striped sphere, rods
+SHININESS = 10.0
 
 TRAIN_ELEVATIONS = (math.radians(5.0), math.radians(80.0))
 ORBIT_ELEVATION = math.radians(30.0)
@@ -183,7 +184,7 @@ def trace(origins: Tensor, directions: Tensor) -> tuple[Tensor, Tensor]:
     t, normals, index = intersect_scene(origins, directions)
     hit = torch.isfinite(t)
     points = origins + torch.where(hit, t, 0.0)[..., None] * directions
-    specular = torch.tensor([0.0, SPECULAR] + [0.0] * (1 + len(RODS)), dtype=origins.dtype)[index]
+    specular = torch.tensor(SPECULAR[:3] + SPECULAR[3:] * len(RODS), dtype=origins.dtype)[index]
     rgb = shade(normals, -directions, albedo(points, normals, index), specular)
     return torch.where(hit[..., None], rgb, 0.0), hit
 
