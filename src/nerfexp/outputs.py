@@ -1,12 +1,18 @@
 """What every run leaves in its output directory, each file written atomically.
 
+- ``status.json``: ``running`` (with host and process id), ``finished`` or ``failed`` (with the error),
+  and the run's command-line overrides, so a report can list jobs that crashed or still run.
 - ``metrics.jsonl``: one JSON object per evaluation: step, wall_time_s, split, psnr, ssim (means).
-- ``results.json``: final test means, training time, steps, parameters, the resolved choices.
+- ``results.json``: final test means, last validation PSNR, training time, throughput, parameters,
+  the machine, the resolved choices and overrides.
 - ``test/``: rendered test views (``r_{i}.png``) and their depth (``r_{i}_depth.png``).
-- TensorBoard: rendered images beside the ground truth, and depth (through the run's logger).
+- TensorBoard: rendered images beside the ground truth, and depth (through the run's logger); the
+  run's choices and overrides as hyper-parameters, with the PSNR/SSIM scalars as their metrics.
 """
 
 import json
+import os
+import socket
 import time
 from pathlib import Path
 
@@ -14,10 +20,36 @@ import imageio.v3 as iio
 import lightning as L
 import numpy as np
 import torch
+from lightning.pytorch.loggers import TensorBoardLogger
 from torch import Tensor
+from torch.utils.tensorboard.summary import hparams as hparams_summaries
 
 from nerfexp.files import atomic_write
 from nerfexp.metrics import quantize
+
+STATUS = "status.json"
+HPARAM_METRICS = ("val/psnr", "val/ssim", "test/psnr", "test/ssim")  # the HPARAMS view's metric columns
+
+
+def write_status(output_dir: str | Path, state: str, overrides: list[str], **details) -> None:
+    """Record a run's ``state`` (running, finished, failed) with its host, process id and ``details``."""
+    record = {"state": state, "overrides": list(overrides), "host": socket.gethostname(), "pid": os.getpid(),
+              "time_unix": time.time(), **details}
+    atomic_write(Path(output_dir) / STATUS, json.dumps(record, indent=2).encode())
+
+
+def machine() -> dict:
+    """Where a run's times were measured: host name and compute device."""
+    if torch.cuda.is_available():
+        device = f"{torch.cuda.get_device_name()} (CUDA {torch.version.cuda})"
+    else:
+        device = f"CPU ({os.cpu_count()} cores, {torch.get_num_threads()} torch threads)"
+    return {"host": socket.gethostname(), "device": device}
+
+
+def hparam_value(value):
+    """A value TensorBoard's HPARAMS view accepts (bool, number or string)."""
+    return value if isinstance(value, bool | int | float | str) else json.dumps(value)
 
 
 def png_bytes(image: Tensor) -> bytes:
@@ -38,15 +70,26 @@ class RunRecorder(L.Callback):
     The elapsed time is part of the checkpoint, so a resumed run keeps counting from where it stopped.
     """
 
-    def __init__(self, output_dir: str, choices: dict, run_config: dict | None = None):
+    def __init__(self, output_dir: str, choices: dict, run_config: dict | None = None,
+                 overrides: list[str] = ()):
         self.output_dir = Path(output_dir)
-        self.choices, self.run_config = dict(choices), run_config
+        self.choices, self.run_config, self.overrides = dict(choices), run_config, list(overrides)
+        self.last_val_psnr: float | None = None
         self.elapsed_s, self._started = 0.0, None
         self._scores: dict[str, list[float]] = {}
         self.results: dict = {}
 
     def wall_time_s(self) -> float:
         return self.elapsed_s + (time.perf_counter() - self._started if self._started is not None else 0.0)
+
+    def on_fit_start(self, trainer, pl_module):
+        """Declare the run's hyper-parameters (its choices and overrides) for TensorBoard's HPARAMS view."""
+        if isinstance(trainer.logger, TensorBoardLogger):
+            params = {**self.choices, **dict(o.lstrip("+~").split("=", 1) for o in self.overrides if "=" in o)}
+            params = {key: hparam_value(value) for key, value in params.items()}
+            writer = trainer.logger.experiment
+            for summary in hparams_summaries(params, dict.fromkeys(HPARAM_METRICS, 0.0)):
+                writer.file_writer.add_summary(summary)
 
     def on_train_start(self, trainer, pl_module):
         self._started = time.perf_counter()
@@ -88,21 +131,25 @@ class RunRecorder(L.Callback):
 
     def on_validation_epoch_end(self, trainer, pl_module):
         if not trainer.sanity_checking:
-            self._flush(trainer, "val")
+            self.last_val_psnr = self._flush(trainer, "val")["psnr"]
 
     def on_test_batch_end(self, trainer, pl_module, outputs, batch, batch_idx, dataloader_idx=0):
         self._collect(trainer, pl_module, outputs, "test")
 
     def on_test_epoch_end(self, trainer, pl_module):
         means = self._flush(trainer, "test")
-        renderer = pl_module.renderer
+        renderer, steps = pl_module.renderer, max(trainer.global_step, 1)
+        batch_rays = getattr(trainer.datamodule, "batch_rays", None)
         results = {
-            "test_psnr": means["psnr"], "test_ssim": means["ssim"],
+            "test_psnr": means["psnr"], "test_ssim": means["ssim"], "val_psnr": self.last_val_psnr,
             "train_time_s": self.elapsed_s, "steps": trainer.global_step,
-            "time_per_step_s": self.elapsed_s / max(trainer.global_step, 1),
+            "time_per_step_s": self.elapsed_s / steps,
+            "rays_per_s": batch_rays * steps / self.elapsed_s if batch_rays and self.elapsed_s > 0 else None,
+            "batch_rays": batch_rays,
             "n_params": sum(p.numel() for p in pl_module.parameters()),
             "evaluations_per_ray": renderer.evaluations_per_ray,
-            "choices": self.choices, "config": self.run_config,
+            "machine": machine(), "choices": self.choices, "overrides": self.overrides,
+            "config": self.run_config,
         }
         atomic_write(self.output_dir / "results.json", json.dumps(results, indent=2).encode())
         self.results = results

@@ -188,7 +188,7 @@ class BlenderScene:
     root: str
     downscale: int = 1
     max_side: int | None = None
-    max_train_views: int | None = None
+    n_train: int | None = None  # the first n_train training views; None: all
     test_stride: int = 1
     n_val: int = 2
     near: float = 2.0
@@ -196,7 +196,7 @@ class BlenderScene:
     background: str = "white"
 
     def views(self, split: str) -> Views:
-        options = {"train": {"max_views": self.max_train_views}, "val": {"max_views": self.n_val},
+        options = {"train": {"max_views": self.n_train}, "val": {"max_views": self.n_val},
                    "test": {"stride": self.test_stride}}[split]
         views = load_blender(self.root, split, self.downscale, **options)
         side = max(views.height, views.width)

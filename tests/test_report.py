@@ -1,0 +1,150 @@
+"""nerfexp-report on hand-made run directories whose numbers are known, checked exactly."""
+
+import csv
+import json
+import math
+import os
+import socket
+import subprocess
+import sys
+from pathlib import Path
+
+import imageio.v3 as iio
+import pytest
+
+from nerfexp.report import PAPER_ABLATION, find_runs, group_variants, kendall_tau, main, write_report
+
+
+def dead_pid() -> int:
+    """The id of a process that has exited (as a job killed by the system leaves behind)."""
+    process = subprocess.Popen([sys.executable, "-c", "pass"])
+    process.wait()
+    return process.pid
+
+
+def make_run(root: Path, name: str, overrides: list[str], state: str = "finished", psnr: float = 20.0,
+             ssim: float = 0.8, time_s: float = 100.0, choices: dict | None = None, pid: int | None = None,
+             error: str = "", host: str | None = None, curve=((50.0, 15.0), (100.0, 18.0))) -> Path:
+    run = root / name
+    run.mkdir(parents=True)
+    status = {"state": state, "overrides": overrides, "host": host or socket.gethostname(),
+              "pid": pid or os.getpid(), "time_unix": 0.0}
+    if error:
+        status["error"] = error
+    (run / "status.json").write_text(json.dumps(status))
+    lines = [{"step": 10 * (i + 1), "wall_time_s": t, "split": "val", "psnr": p, "ssim": 0.5}
+             for i, (t, p) in enumerate(curve)]
+    if state == "finished":
+        lines.append({"step": 20, "wall_time_s": time_s, "split": "test", "psnr": psnr, "ssim": ssim})
+        results = {"test_psnr": psnr, "test_ssim": ssim, "val_psnr": curve[-1][1], "train_time_s": time_s,
+                   "steps": 20, "time_per_step_s": time_s / 20, "rays_per_s": 256 * 20 / time_s,
+                   "batch_rays": 256, "n_params": 1000, "evaluations_per_ray": 96,
+                   "machine": {"host": host or "lab-pc", "device": "CPU (2 cores, 2 torch threads)"},
+                   "choices": choices or {}, "overrides": overrides}
+        (run / "results.json").write_text(json.dumps(results))
+    (run / "metrics.jsonl").write_text("".join(json.dumps(line) + "\n" for line in lines))
+    return run
+
+
+@pytest.fixture
+def sweep(tmp_path):
+    """Variant A: three seeds at 20, 22, 24 dB. Variant B: one finished (25 dB), one failed, one
+    killed. Variant C: its only job still running (this test's own process)."""
+    root = tmp_path / "sweep"
+    for seed, (psnr, ssim, time_s) in enumerate([(20, 0.80, 90), (22, 0.85, 100), (24, 0.90, 110)]):
+        make_run(root, f"{seed}", ["hierarchical=true", f"seed={seed}"], psnr=psnr, ssim=ssim, time_s=time_s)
+    make_run(root, "3", ["hierarchical=false", "seed=0"], psnr=25.0, ssim=0.95, time_s=50)
+    make_run(root, "4", ["hierarchical=false", "seed=1"], state="failed",
+             error="NonFiniteError: step 7: the fine network's colour loss is nan")
+    make_run(root, "5", ["hierarchical=false", "seed=2"], state="running", pid=dead_pid())
+    make_run(root, "6", ["encoding=none", "seed=0"], state="running")
+    return root
+
+
+def read_csv(path: Path) -> list[dict]:
+    with open(path) as file:
+        return list(csv.DictReader(file))
+
+
+def test_means_stds_and_unfinished_jobs_exactly(sweep):
+    write_report([sweep], sweep)
+    rows = {row["variant"]: row for row in read_csv(sweep / "report.csv")}
+    assert list(rows) == ["hierarchical=false", "hierarchical=true", "encoding=none"]  # ranked by PSNR
+    a, b, c = rows["hierarchical=true"], rows["hierarchical=false"], rows["encoding=none"]
+    # 20, 22, 24: mean 22, sample std sqrt(((-2)^2 + 0 + 2^2) / 2) = 2; SSIM 0.85 +- 0.05; time 100 +- 10
+    assert (a["runs"], a["finished"]) == ("3", "3")
+    assert float(a["test_psnr_mean"]) == 22.0 and float(a["test_psnr_std"]) == 2.0
+    assert math.isclose(float(a["test_ssim_mean"]), 0.85) and math.isclose(float(a["test_ssim_std"]), 0.05)
+    assert float(a["train_time_s"]) == 100.0 and float(a["time_per_step_s"]) == 5.0
+    # the failed and the killed job count as runs, not as results: one finished, std undefined
+    assert (b["runs"], b["finished"], float(b["test_psnr_mean"])) == ("3", "1", 25.0)
+    assert math.isnan(float(b["test_psnr_std"]))
+    assert (c["runs"], c["finished"]) == ("1", "0") and math.isnan(float(c["test_psnr_mean"]))
+    report = (sweep / "report.md").read_text()
+    assert "| hierarchical=true | 3/3 | 22.00 ± 2.00 | 0.850 ± 0.050 | 100 |" in report
+    assert "Runs: 7 (4 finished, 1 failed, 1 killed, 1 running)" in report
+    assert "failed: NonFiniteError: step 7: the fine network's colour loss is nan" in report
+    assert "killed: process" in report and f"running: on {socket.gethostname()}, process {os.getpid()}" in report
+    assert "1. hierarchical=false: 25.00 dB\n2. hierarchical=true: 22.00 dB" in report
+
+
+def test_plots_are_pngs_of_the_stated_size(sweep):
+    write_report([sweep], sweep)
+    for name in ("psnr_vs_time.png", "pareto.png"):
+        image = iio.imread(sweep / name)
+        assert image.shape[:2] == (500, 800) and image.std() > 0  # 8 x 5 inches at 100 dpi, not blank
+
+
+def test_paper_rows_beside_ours_with_the_difference_on_blender_data(tmp_path):
+    rows = ["complete", "no_posenc", "no_view_dependence"]
+    for i, (row, psnr) in enumerate(zip(rows, [30.0, 29.5, 27.0])):
+        make_run(tmp_path, str(i), [f"ablation={row}", "seed=0"], psnr=psnr,
+                 choices={"ablation": row, "data": "blender"})
+    write_report([tmp_path], tmp_path)
+    table = {row["variant"]: row for row in read_csv(tmp_path / "report.csv")}
+    complete = table["ablation=complete"]
+    assert complete["paper_row"] == "Complete Model" and float(complete["paper_psnr"]) == 31.01
+    assert math.isclose(float(complete["psnr_minus_paper"]), 30.0 - 31.01)
+    assert math.isclose(float(table["ablation=no_view_dependence"]["psnr_minus_paper"]), 27.0 - 27.66)
+    assert "agrees with the paper's Table 4" in (tmp_path / "report.md").read_text()
+
+
+def test_a_different_order_is_named_and_other_scenes_get_no_difference(tmp_path):
+    # Ours: no PE (29) above complete (28); the paper: complete (31.01) above no PE (28.77).
+    for i, (row, psnr) in enumerate([("complete", 28.0), ("no_posenc", 29.0)]):
+        make_run(tmp_path, str(i), [f"ablation={row}"], psnr=psnr, choices={"ablation": row, "data": "procedural"})
+    write_report([tmp_path], tmp_path)
+    report = (tmp_path / "report.md").read_text()
+    assert "differs from the paper's Table 4 in 1 of 1 pairs (Kendall's tau -1.00)" in report
+    assert "we rank No Pos. Encoding above Complete Model; the paper the reverse" in report
+    assert all(math.isnan(float(row["psnr_minus_paper"])) for row in read_csv(tmp_path / "report.csv"))
+
+
+def test_kendall_tau():
+    assert kendall_tau(list("abc"), list("abc")) == (1.0, [])
+    assert kendall_tau(list("abc"), list("cba"))[0] == -1.0
+    tau, discordant = kendall_tau(list("bac"), list("abc"))  # one of three pairs swapped: 1 - 2/3
+    assert math.isclose(tau, 1 / 3) and discordant == [("b", "a")]
+    assert [PAPER_ABLATION[k][1] for k in ("complete", "no_pe_vd_h")] == [31.01, 26.67]
+
+
+def test_averaging_over_scenes_and_machines_are_named(tmp_path):
+    for i, (root, psnr, host) in enumerate([("/d/lego", 30.0, "gpu-a"), ("/d/ship", 26.0, "gpu-b")]):
+        make_run(tmp_path, str(i), ["ablation=complete", f"data.root={root}", "seed=0"], psnr=psnr, host=host)
+    variants = group_variants(find_runs([tmp_path]), over=("seed", "data.root"))
+    assert [(v.label, v.mean("test_psnr")) for v in variants] == [("ablation=complete", 28.0)]
+    assert len(group_variants(find_runs([tmp_path]))) == 2  # by default each scene is its own variant
+    write_report([tmp_path], tmp_path)
+    assert "not comparable with each other" in (tmp_path / "report.md").read_text()
+
+
+def test_the_command_line(tmp_path, sweep):
+    out = tmp_path / "out"
+    main([str(sweep), "--out", str(out)])
+    assert {p.name for p in out.iterdir()} == {"report.md", "report.csv", "psnr_vs_time.png", "pareto.png"}
+    empty = tmp_path / "empty"
+    empty.mkdir()
+    with pytest.raises(SystemExit, match="no runs"):
+        main([str(empty)])
+    with pytest.raises(SystemExit, match="is not a directory"):
+        main([str(tmp_path / "missing")])

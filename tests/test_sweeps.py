@@ -1,0 +1,126 @@
+"""The sweeps in sweeps/: what they compose into, and the smoke sweep end to end through the report."""
+
+import csv
+import math
+
+import imageio.v3 as iio
+import pytest
+from hydra import compose, initialize_config_module
+from hydra._internal.core_plugins.basic_sweeper import BasicSweeper
+from hydra.core.override_parser.overrides_parser import OverridesParser
+from hydra.types import RunMode
+from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
+from tensorboard.plugins.hparams.plugin_data_pb2 import HParamsPluginData
+
+from conftest import TINY, read_json, run_nerfexp
+
+# The paper's Table 4, written out independently of conf/ablation/: position L (None: raw xyz),
+# direction L (None: raw; the rows 7 and 8 values are ours, scaled in proportion), view dependence,
+# hierarchical, number of training images.
+TABLE_4 = {
+    "no_pe_vd_h": (None, None, False, False, 100),
+    "no_posenc": (None, None, True, True, 100),
+    "no_view_dependence": (10, 4, False, True, 100),
+    "no_hierarchical": (10, 4, True, False, 100),
+    "far_fewer_images": (10, 4, True, True, 25),
+    "fewer_images": (10, 4, True, True, 50),
+    "fewer_frequencies": (5, 2, True, True, 100),
+    "more_frequencies": (15, 6, True, True, 100),
+    "complete": (10, 4, True, True, 100),
+}
+
+
+def sweep_jobs(name: str, arguments: tuple[str, ...] = ()) -> list[list[str]]:
+    """The override lists of a sweep's jobs as Hydra's basic sweeper expands them: the sweep's
+    params, then the command line's ``arguments``."""
+    with initialize_config_module("nerfexp.conf", version_base=None):
+        cfg = compose("config", overrides=[f"+sweeps={name}"], return_hydra_config=True)
+    assert cfg.hydra.mode == RunMode.MULTIRUN
+    params = [f"{key}={value}" for key, value in cfg.hydra.sweeper.params.items()] + list(arguments)
+    return BasicSweeper.split_arguments(OverridesParser.create().parse_overrides(params), None)[0]
+
+
+def encoding_l(node) -> int | None:
+    return node.n_freqs if node._target_.endswith("PositionalEncoding") else None
+
+
+@pytest.mark.parametrize("name, scale", [("paper_ablation", "paper"), ("cpu_ablation", "cpu")])
+def test_ablation_sweeps_are_the_nine_rows_of_table_4(name, scale):
+    root = ["data.root=/data/lego"] if name == "paper_ablation" else []
+    jobs = sweep_jobs(name, tuple(root))
+    assert len(jobs) == 27  # 9 rows x 3 seeds
+    rows = {job[0].split("=")[1] for job in jobs}
+    assert rows == set(TABLE_4) and sorted(job[1] for job in jobs[:3]) == ["seed=0", "seed=1", "seed=2"]
+    for row, (l_x, l_d, view_dependent, hierarchical, n_images) in TABLE_4.items():
+        with initialize_config_module("nerfexp.conf", version_base=None):
+            cfg = compose("config", overrides=[f"+sweeps={name}", f"ablation={row}", *root])
+        renderer = cfg.model.renderer
+        assert (encoding_l(renderer.field.position_encoding), encoding_l(cfg.encoding.direction)) == (l_x, l_d), row
+        assert renderer.field.view_head._target_.endswith("ViewMLPHead" if view_dependent else "DiffuseHead"), row
+        assert (renderer.hierarchical, cfg.data.n_train) == (hierarchical, n_images), row
+        if scale == "paper":  # (Nc, Nf) = (64, 128); without hierarchy one network with Nc = 256
+            assert cfg.data._target_.endswith("BlenderScene") and cfg.data.root == "/data/lego"
+            assert (renderer.n_coarse, renderer.n_fine, renderer.n_single) == (64, 128, 256)
+            assert (cfg.scale.width, cfg.scale.depth, cfg.scale.batch_rays) == (256, 8, 4096)
+        else:
+            assert cfg.data._target_.endswith("ProceduralScene")
+
+
+def test_command_line_overrides_beat_the_sweeps_own_values():
+    jobs = sweep_jobs("smoke", ("seed=5",))
+    assert sorted(" ".join(job) for job in jobs) == ["ablation=complete seed=5", "ablation=no_pe_vd_h seed=5"]
+    assert len(sweep_jobs("smoke", ("seed=7,8,9",))) == 6
+
+
+@pytest.mark.slow
+def test_smoke_sweep_through_the_report(tmp_path):
+    sweep = tmp_path / "smoke"
+    done = run_nerfexp("+sweeps=smoke", f"hydra.sweep.dir={sweep}", cwd=tmp_path)
+    assert done.returncode == 0, done.stderr[-3000:]
+    report = run_nerfexp(str(sweep), cwd=tmp_path, script="nerfexp-report")
+    assert report.returncode == 0, report.stderr[-3000:]
+    with open(sweep / "report.csv") as file:
+        rows = list(csv.DictReader(file))
+    assert sorted(row["variant"] for row in rows) == ["ablation=complete", "ablation=no_pe_vd_h"]
+    for row in rows:
+        assert (row["runs"], row["finished"]) == ("2", "2")
+        for key in ("test_psnr_mean", "test_psnr_std", "test_ssim_mean", "train_time_s", "rays_per_s",
+                    "n_params", "evaluations_per_ray", "paper_psnr"):
+            assert math.isfinite(float(row[key])), (row["variant"], key)
+    for name in ("psnr_vs_time.png", "pareto.png"):
+        assert iio.imread(sweep / name).shape[:2] == (500, 800)
+    assert "## Ranking by mean test PSNR" in (sweep / "report.md").read_text()
+    # TensorBoard's HPARAMS view: each job's choices and overrides, with the PSNR/SSIM scalars as metrics
+    events = EventAccumulator(str(sweep / "0" / "tensorboard"))
+    events.Reload()
+    content = events.PluginTagToContent("hparams")["_hparams_/session_start_info"]
+    hparams = HParamsPluginData.FromString(content).session_start_info.hparams
+    assert hparams["ablation"].string_value == "complete" and hparams["seed"].number_value == 0
+    assert hparams["hierarchical"].number_value == 1  # TensorBoard stores booleans as numbers
+    assert {"val/psnr", "test/psnr", "test/ssim"} <= set(events.Tags()["scalars"])
+
+
+@pytest.mark.slow
+def test_a_failing_job_does_not_stop_the_sweep_and_is_reported(tmp_path):
+    sweep = tmp_path / "sweep"
+    done = run_nerfexp("-m", *TINY, "scale.lr=-1,5e-3", f"hydra.sweep.dir={sweep}", cwd=tmp_path)
+    assert done.returncode != 0 and "Invalid learning rate" in done.stderr
+    assert read_json(sweep / "0" / "status.json")["state"] == "failed"
+    assert read_json(sweep / "1" / "status.json")["state"] == "finished" and (sweep / "1" / "results.json").exists()
+    report = run_nerfexp(str(sweep), cwd=tmp_path, script="nerfexp-report")
+    assert report.returncode == 0, report.stderr
+    text = (sweep / "report.md").read_text()
+    assert "Runs: 2 (1 finished, 1 failed)" in text and "failed: ValueError: Invalid learning rate: -1" in text
+
+
+@pytest.mark.slow
+def test_optuna_search_maximizes_validation_psnr(tmp_path):
+    sweep = tmp_path / "optuna"
+    done = run_nerfexp("+sweeps=optuna", *TINY, "hydra.sweeper.n_trials=2", f"hydra.sweep.dir={sweep}", cwd=tmp_path)
+    assert done.returncode == 0, done.stderr[-3000:]
+    best = (sweep / "optimization_results.yaml").read_text()
+    trials = [read_json(sweep / str(i) / "results.json") for i in range(2)]
+    assert all(math.isfinite(t["val_psnr"]) for t in trials)
+    best_value = max(t["val_psnr"] for t in trials)
+    assert f"best_value: {best_value}" in best, best
+    assert {k for o in trials[0]["overrides"] for k in [o.split("=")[0]]} >= {"scale.lr", "scale.batch_rays"}
