@@ -148,3 +148,24 @@ def test_the_command_line(tmp_path, sweep):
         main([str(empty)])
     with pytest.raises(SystemExit, match="is not a directory"):
         main([str(tmp_path / "missing")])
+
+
+def test_jobs_a_stopped_sweep_never_started_are_counted(tmp_path):
+    # multirun.yaml plans hierarchical x seed = 2 x 3 = 6 jobs (as Hydra's basic sweeper writes it);
+    # four job directories exist.
+    (tmp_path / "multirun.yaml").write_text(
+        "hydra:\n  sweeper:\n    _target_: hydra._internal.core_plugins.basic_sweeper.BasicSweeper\n"
+        "    params:\n      hierarchical: true,false\n      seed: 0,1,2\n  overrides:\n    task: [scale.steps=10]\n")
+    for i in range(4):
+        make_run(tmp_path, str(i), [f"hierarchical={'true' if i < 3 else 'false'}", f"seed={i % 3}", "scale.steps=10"])
+    write_report([tmp_path], tmp_path)
+    assert f"`{tmp_path}` plans 6 jobs, 4 started: the rest never started" in (tmp_path / "report.md").read_text()
+
+
+def test_the_order_of_overrides_does_not_split_a_variant(tmp_path):
+    make_run(tmp_path, "0", ["ablation=complete", "seed=0", "+sweeps=cpu_ablation"], psnr=20.0)
+    make_run(tmp_path, "1", ["+sweeps=cpu_ablation", "seed=1", "ablation=complete"], psnr=22.0)
+    make_run(tmp_path, "2", ["ablation=no_posenc", "seed=0", "+sweeps=cpu_ablation"], psnr=18.0)
+    variants = group_variants(find_runs([tmp_path]))
+    assert [(v.label, v.mean("test_psnr")) for v in variants] == [("ablation=complete", 21.0),
+                                                                  ("ablation=no_posenc", 18.0)]

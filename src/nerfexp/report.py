@@ -28,7 +28,10 @@ from dataclasses import dataclass, field
 from itertools import combinations
 from pathlib import Path
 
+from hydra._internal.core_plugins.basic_sweeper import BasicSweeper
+from hydra.core.override_parser.overrides_parser import OverridesParser
 from matplotlib.figure import Figure
+from omegaconf import OmegaConf
 
 from nerfexp.files import atomic_write
 from nerfexp.outputs import STATUS
@@ -139,6 +142,21 @@ def find_runs(directories: list[Path]) -> list[Run]:
     return [read_run(path) for path in sorted(paths)]
 
 
+def planned_jobs(directory: Path) -> int | None:
+    """How many jobs the multirun in ``directory`` launches (its ``multirun.yaml``): the grid of a
+    basic sweep, the trials of a search; None where that cannot be told."""
+    path = directory / "multirun.yaml"
+    if not path.exists():
+        return None
+    hydra = OmegaConf.load(path).hydra
+    sweeper = hydra.sweeper
+    if sweeper._target_.endswith("BasicSweeper"):
+        params = [f"{key}={value}" for key, value in (sweeper.params or {}).items()] + list(hydra.overrides.task)
+        batches = BasicSweeper.split_arguments(OverridesParser.create().parse_overrides(params), None)
+        return sum(len(batch) for batch in batches)
+    return sweeper.get("n_trials")
+
+
 def _key(override: str) -> str:
     return override.split("=", 1)[0].lstrip("+~")
 
@@ -148,11 +166,11 @@ def group_variants(runs: list[Run], over: tuple[str, ...] = ("seed",)) -> list[V
     every run shares are left out of the labels. Variants are ranked by mean test PSNR."""
     kept = [tuple(o for o in run.overrides if _key(o) not in over) for run in runs]
     shared = set.intersection(*(set(k) for k in kept)) if kept else set()
-    groups: dict[tuple, list[Run]] = {}
+    groups: dict[frozenset, tuple[tuple, list[Run]]] = {}  # the order of overrides does not matter
     for key, run in zip(kept, runs):
-        groups.setdefault(key, []).append(run)
+        groups.setdefault(frozenset(key), (key, []))[1].append(run)
     variants = []
-    for key, members in groups.items():
+    for key, members in groups.values():
         label = ", ".join(o for o in key if o not in shared) or ", ".join(key) or "default"
         variants.append(Variant(label, members))
     return sorted(variants, key=lambda v: (-v.mean("test_psnr") if v.finished else math.inf, v.label))
@@ -231,11 +249,15 @@ def machines_text(runs: list[Run]) -> str:
     where = "; ".join(f"{host}: {device}" for host, device in seen) or "unknown"
     note = (" Runs come from different machines, so their times are not comparable with each other."
             if len(seen) > 1 else "")
-    return (f"Times are training wall-clock seconds as each run measured them (excluding data preparation "
-            f"and evaluation), on {where}.{note}")
+    return (f"Times are training wall-clock seconds as each run measured them (periodic validation included; "
+            f"preparing the data and the final test not), on {where}.{note}")
 
 
 def markdown(variants: list[Variant], runs: list[Run], sources: list[Path]) -> str:
+    planned = [(source, planned_jobs(source)) for source in sources]
+    started = {source: sum(source in run.path.parents for run in runs) for source in sources}
+    not_started = [f"`{source}` plans {n} jobs, {started[source]} started" for source, n in planned
+                   if n is not None and n > started[source]]
     rows = table_rows(variants)
     order = ["finished", "failed", "killed", "running", "unknown"]
     states = {state: n for state in order if (n := sum(run.state == state for run in runs))}
@@ -266,7 +288,10 @@ def markdown(variants: list[Variant], runs: list[Run], sources: list[Path]) -> s
     unfinished = [run for run in runs if run.state != "finished"]
     lines += ["", "## Jobs that did not finish", ""]
     lines += [f"- `{run.path}` ({', '.join(run.overrides) or 'no overrides'}): {run.state}"
-              + (f": {run.detail}" if run.detail else "") for run in unfinished] or ["None."]
+              + (f": {run.detail}" if run.detail else "") for run in unfinished]
+    lines += [f"- {text}: the rest never started (the sweep stopped or is still going)" for text in not_started]
+    if not unfinished and not not_started:
+        lines.append("None.")
     lines += ["", "Plots: `psnr_vs_time.png` (validation PSNR against training seconds), `pareto.png` "
               "(test PSNR against total training time)."]
     return "\n".join(lines) + "\n"
