@@ -83,7 +83,10 @@ class RunRecorder(L.Callback):
         return self.elapsed_s + (time.perf_counter() - self._started if self._started is not None else 0.0)
 
     def on_fit_start(self, trainer, pl_module):
-        """Declare the run's hyper-parameters (its choices and overrides) for TensorBoard's HPARAMS view."""
+        """Declare the run's hyper-parameters (its choices and overrides) for TensorBoard's HPARAMS view.
+
+        The summaries are written directly rather than through ``TensorBoardLogger.log_hyperparams``,
+        which would also log the metrics' placeholder values as scalars at step 0."""
         if isinstance(trainer.logger, TensorBoardLogger):
             params = {**self.choices, **dict(o.lstrip("+~").split("=", 1) for o in self.overrides if "=" in o)}
             params = {key: hparam_value(value) for key, value in params.items()}
