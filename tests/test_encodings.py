@@ -1,5 +1,6 @@
 import math
 
+import pytest
 import torch
 
 from nerfexp.encodings import IdentityEncoding, PositionalEncoding
@@ -35,3 +36,37 @@ def test_identity():
     x = torch.randn(4, 3)
     assert IdentityEncoding().out_dim == 3
     assert torch.equal(IdentityEncoding()(x), x)
+
+
+def textbook_encoding_float64(x: torch.Tensor, n_freqs: int) -> torch.Tensor:
+    """gamma(x) computed directly in float64 from the formula: the reference."""
+    x = x.double()
+    angles = (torch.pi * x[..., None, :] * 2.0 ** torch.arange(n_freqs, dtype=torch.float64)[:, None]).flatten(-2)
+    return torch.cat([x, torch.sin(angles), torch.cos(angles)], -1)
+
+
+@pytest.mark.parametrize("n_freqs", [10, 15, 20])
+def test_float32_encoding_matches_float64_at_every_frequency(n_freqs):
+    # Scene coordinates: cameras at radius 4 and far = 6 put samples within |x| < 10. The float32
+    # encoding of a float32 input must match the float64 formula on that same input to ~1e-6 at every
+    # frequency: its range reduction is exact, so only pi r (|r| < 2) and sin/cos round.
+    x = (torch.rand(50_000, 3, generator=torch.Generator().manual_seed(0)) * 20 - 10).float()
+    error = (PositionalEncoding(n_freqs)(x).double() - textbook_encoding_float64(x, n_freqs)).abs().max().item()
+    assert error < 1e-6, error
+    # The textbook float32 formula sin(2^k (pi x)) multiplies the rounding of pi x by 2^k: its error at the
+    # top frequency is about 2^(L-1) pi |x| 2^-24 (0.002 at L = 10, 0.06 at L = 15, 1 at L = 20).
+    naive_angles = ((torch.pi * x)[..., None, :] * 2.0 ** torch.arange(n_freqs)[:, None]).flatten(-2)
+    naive = torch.cat([x, torch.sin(naive_angles), torch.cos(naive_angles)], -1)
+    naive_error = (naive.double() - textbook_encoding_float64(x, n_freqs)).abs().max().item()
+    bound = 2 ** (n_freqs - 1) * torch.pi * 10 * 2.0 ** -24
+    assert 0.1 * min(bound, 1) < naive_error <= 2 * bound
+
+
+def test_encoding_gradient_is_the_derivative_of_the_formula():
+    # d/dx sin(2^k pi x) = 2^k pi cos(2^k pi x): the fmod reduction passes the gradient through unchanged
+    x = torch.tensor([[0.3, -1.7, 2.9]], dtype=torch.float64, requires_grad=True)
+    out = PositionalEncoding(6).double()(x)
+    out[0, 3 + 5 * 3 + 1].backward()  # sin(2^5 pi x_1)
+    expected = 2 ** 5 * math.pi * math.cos(2 ** 5 * math.pi * -1.7)
+    assert math.isclose(x.grad[0, 1].item(), expected, rel_tol=1e-12)
+    assert x.grad[0, 0] == 0 and x.grad[0, 2] == 0

@@ -1,3 +1,4 @@
+import math
 import functools
 
 import pytest
@@ -70,3 +71,27 @@ def test_bad_field_config_is_named():
         NeRFField(IdentityEncoding(), DiffuseHead, depth=2, width=8, skips=(), density_activation="exp")
     with pytest.raises(ValueError, match="skips"):
         NeRFField(IdentityEncoding(), DiffuseHead, depth=2, width=8, skips=(5,))
+
+
+def test_truncated_exp_is_exp_finite_everywhere_with_bounded_gradient():
+    from nerfexp.fields import TRUNC_EXP_GRADIENT_CLAMP, trunc_exp
+
+    x = torch.tensor([-50.0, 0.0, 3.0, 14.0, 20.0, 88.0, 1e4], requires_grad=True)
+    y = trunc_exp(x)
+    torch.testing.assert_close(y[:6], torch.exp(x[:6].detach()))  # exp itself wherever float32 holds it
+    assert torch.isfinite(y).all() and y[-1] > 1e38  # exp(1e4) clamped just below float32's largest value
+    y.sum().backward()
+    cap = math.exp(TRUNC_EXP_GRADIENT_CLAMP)
+    torch.testing.assert_close(x.grad[:4], torch.exp(x[:4].detach()))  # the exact gradient below the clamp
+    torch.testing.assert_close(x.grad[4:], torch.full((3,), cap))
+    # the exact derivative where it is not truncated, by finite differences in float64
+    assert torch.autograd.gradcheck(trunc_exp, torch.tensor([-3.0, 0.5, 9.0], dtype=torch.float64, requires_grad=True))
+
+
+@pytest.mark.parametrize("activation", ["relu", "softplus", "trunc_exp"])
+def test_density_activations_are_config_choices(activation):
+    field = NeRFField(IdentityEncoding(), DiffuseHead, depth=2, width=16, skips=(), density_activation=activation)
+    rgb, sigma = field(torch.randn(32, 3) * 100, torch.zeros(32, 3))
+    assert torch.isfinite(sigma).all() and (sigma >= 0).all()
+    with pytest.raises(ValueError, match="field.density_activation: expected one of .*'trunc_exp'.*got 'exp'"):
+        NeRFField(IdentityEncoding(), DiffuseHead, depth=2, width=16, skips=(), density_activation="exp")

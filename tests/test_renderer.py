@@ -76,3 +76,49 @@ def test_gradients_flow_to_both_networks():
         grads = [p.grad for p in net.parameters()]
         assert all(g is not None and torch.isfinite(g).all() for g in grads)
         assert any(g.abs().sum() > 0 for g in grads)
+
+
+def test_bf16_mixed_training_keeps_rendering_in_float32(monkeypatch):
+    # A real training run under Lightning's bf16-mixed precision on the CPU: the network's matrix
+    # products run in bf16, yet every rendering call gets float32 densities, and training stays finite.
+    import lightning as L
+    from torch.utils.data import DataLoader
+
+    import nerfexp.renderer as renderer_module
+    from nerfexp.encodings import PositionalEncoding
+    from nerfexp.fields import NeRFField, ViewMLPHead
+    from nerfexp.module import NeRFModule
+
+    rendered_dtypes = []
+    original = renderer_module.render_weights
+
+    def recording_render_weights(sigmas, t_starts, t_ends):
+        rendered_dtypes.append(sigmas.dtype)
+        return original(sigmas, t_starts, t_ends)
+
+    monkeypatch.setattr(renderer_module, "render_weights", recording_render_weights)
+    head = functools.partial(ViewMLPHead, direction_encoding=PositionalEncoding(2), hidden=16)
+    field = functools.partial(NeRFField, PositionalEncoding(4), head, depth=3, width=32, skips=(1,),
+                              density_activation="softplus", density_bias=-1.0)
+    torch.manual_seed(0)
+    renderer = VolumeRenderer(field, hierarchical=True, n_coarse=8, n_fine=8, n_single=16, near=2.0, far=6.0)
+    network_dtypes = set()
+    renderer.coarse.trunk[0].register_forward_hook(lambda m, i, out: network_dtypes.add(out.dtype))
+    module = NeRFModule(renderer, functools.partial(torch.optim.Adam, lr=1e-3), lr_final=1e-4)
+    directions = torch.nn.functional.normalize(torch.randn(64, 3), dim=-1)
+    batch = {"origins": -4 * directions, "directions": directions, "rgb": torch.rand(64, 3)}
+    trainer = L.Trainer(accelerator="cpu", precision="bf16-mixed", max_steps=5, logger=False,
+                        enable_checkpointing=False, enable_progress_bar=False, enable_model_summary=False,
+                        limit_val_batches=0)
+    trainer.fit(module, train_dataloaders=DataLoader([batch] * 5, batch_size=None))
+    assert trainer.global_step == 5
+    assert torch.bfloat16 in network_dtypes  # autocast was on for the network
+    assert rendered_dtypes and set(rendered_dtypes) == {torch.float32}
+    assert all(torch.isfinite(p).all() for p in module.parameters())
+    # the bf16 render is the float32 render to bf16's precision (8 significant bits)
+    with torch.no_grad():
+        exact = renderer(batch["origins"], directions, deterministic=True)["fine"]
+        with torch.autocast("cpu", dtype=torch.bfloat16):
+            mixed = renderer(batch["origins"], directions, deterministic=True)["fine"]
+    assert mixed["rgb"].dtype == torch.float32 and mixed["depth"].dtype == torch.float32
+    torch.testing.assert_close(mixed["rgb"], exact["rgb"], atol=0.03, rtol=0)

@@ -80,3 +80,86 @@ def test_sample_pdf_detaches_positions():
 def test_dilate_weights_by_hand():
     w = torch.tensor([[0.0, 0.0, 0.3, 0.1, 0.0, 0.0, 0.2]])
     assert torch.equal(dilate_weights(w), torch.tensor([[0.0, 0.3, 0.3, 0.3, 0.1, 0.2, 0.2]]))
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_sample_pdf_zero_width_bins_hold_their_samples_at_the_edge(dtype):
+    # bins [0, 1], [1, 1] (zero width, half the mass), [1, 3]: half the quantiles land exactly at 1.
+    out = sample_pdf(torch.tensor([0.0, 1.0, 1.0, 3.0], dtype=dtype), torch.tensor([1.0, 2.0, 1.0], dtype=dtype), 8,
+                     deterministic=True)
+    # CDF: 0, 1/4, 3/4, 1. u = (k + 1/2)/8: 1/16 -> 0.25, 3/16 -> 0.75, 5/16..11/16 -> 1, 13/16 -> 1.5, 15/16 -> 2.5
+    expected = torch.tensor([0.25, 0.75, 1.0, 1.0, 1.0, 1.0, 1.5, 2.5], dtype=dtype)
+    torch.testing.assert_close(out, expected)
+
+
+def test_sample_pdf_nan_weights_are_not_hidden():
+    # a NaN weight means the coarse pass failed: the samples say so instead of silently going uniform
+    out = sample_pdf(torch.tensor([0.0, 1.0, 2.0]), torch.tensor([float("nan"), 1.0]), 4, deterministic=True)
+    assert torch.isnan(out).any()
+
+
+def test_sample_pdf_deterministic_is_reproducible_and_random_follows_the_generator():
+    bins, weights = torch.linspace(0, 1, 9).expand(2, 9), torch.rand(2, 8)
+    assert torch.equal(sample_pdf(bins, weights, 16, True), sample_pdf(bins, weights, 16, True))
+    a = sample_pdf(bins, weights, 16, False, generator=torch.Generator().manual_seed(3))
+    b = sample_pdf(bins, weights, 16, False, generator=torch.Generator().manual_seed(3))
+    assert torch.equal(a, b)
+
+
+# ---- properties (hypothesis) -----------------------------------------------------------------------
+
+from hypothesis import given, settings  # noqa: E402
+from hypothesis import strategies as st  # noqa: E402
+
+
+@st.composite
+def pdfs(draw):
+    """Bins [S+1] from a start in [0, 10] and widths from 0 (zero-width bins) to 1e3; masses [S] with
+    zeros, tiny and large values; S from 1 (a single bin)."""
+    S = draw(st.integers(1, 20))
+    widths = draw(st.lists(st.one_of(st.just(0.0), st.floats(1e-6, 1e3)), min_size=S, max_size=S))
+    masses = draw(st.lists(st.one_of(st.just(0.0), st.floats(1e-30, 1.0), st.floats(1.0, 1e6)), min_size=S,
+                           max_size=S))
+    start = draw(st.floats(0.0, 10.0))
+    edges = [start]
+    for w in widths:
+        edges.append(edges[-1] + w)
+    return edges, masses
+
+
+def cdf_at(x: torch.Tensor, bins: torch.Tensor, masses: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """float64 CDF of the piecewise-constant density just below and just above each x, by a direct sum
+    over bins (independent of sample_pdf): F(x-) and F(x+) differ only at zero-width bins holding mass."""
+    p = masses / masses.sum() if masses.sum() > 0 else torch.full_like(masses, 1 / len(masses))
+    lo, hi = bins[:-1], bins[1:]
+    width = hi - lo
+    inside = torch.where(width > 0, ((x[:, None] - lo) / torch.where(width > 0, width, 1)).clamp(0, 1), 0)
+    below = (p * torch.where(width > 0, inside, (x[:, None] > lo).double())).sum(-1)
+    above = (p * torch.where(width > 0, inside, (x[:, None] >= lo).double())).sum(-1)
+    return below, above
+
+
+@settings(max_examples=300, deadline=None)
+@given(pdfs(), st.integers(1, 64), st.sampled_from([torch.float32, torch.float64]), st.booleans())
+def test_sample_pdf_properties(pdf, n, dtype, deterministic):
+    edges, masses = pdf
+    bins, weights = torch.tensor(edges, dtype=dtype), torch.tensor(masses, dtype=dtype)
+    out = sample_pdf(bins, weights, n, deterministic, generator=torch.Generator().manual_seed(0))
+    assert out.shape == (n,) and out.dtype == dtype and torch.isfinite(out).all()
+    assert (out[1:] >= out[:-1]).all()  # sorted
+    assert (out >= bins[0]).all() and (out <= bins[-1]).all()
+    # every sample lies in a bin that holds mass (any bin when there is none)
+    held = weights > 0 if weights.sum() > 0 else torch.ones_like(weights, dtype=torch.bool)
+    in_bin = (out[:, None] >= bins[:-1]) & (out[:, None] <= bins[1:])
+    assert (in_bin & held).any(-1).all()
+    if deterministic:  # the k-th sample is the (k + 1/2)/n quantile, to float precision in the CDF
+        u = (torch.arange(n, dtype=torch.float64) + 0.5) / n
+        below, above = cdf_at(out.double(), bins.double(), weights.double())
+        # tolerance: the CDF's own rounding, plus the rounding of the sample's position (half an ulp of
+        # |x|) times the steepest density
+        p = weights.double() / weights.double().sum() if weights.sum() > 0 else torch.ones(len(weights)) / len(weights)
+        widths = (bins[1:] - bins[:-1]).double()
+        steepest = (p / widths)[widths > 0].max() if (widths > 0).any() else torch.tensor(0.0)
+        eps = torch.finfo(dtype).eps
+        tol = 64 * eps + 2 * eps * out.double().abs() * steepest
+        assert ((below - tol <= u) & (u <= above + tol)).all()

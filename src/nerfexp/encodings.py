@@ -23,6 +23,12 @@ class PositionalEncoding(nn.Module):
     Output layout for x [..., D]: [x | sin(pi 2^k x_d) for k, d | cos(pi 2^k x_d) for k, d], so
     ``out_dim = D * (include_input + 2 L)``: 63 for positions with L = 10, 27 for directions with L = 4.
 
+    Exact range reduction: sin(2^k pi x) = sin(pi r) with r = fmod(2^k x, 2). Scaling by a power of two
+    and ``fmod`` are exact in floating point, so the phase is rounded once, in pi r with |pi r| < 2 pi,
+    and every frequency of the float32 input is computed to about 1e-6 (``tests/test_encodings.py``).
+    The textbook ``sin(2^k (pi x))`` rounds pi x first and multiplies that rounding by 2^k: in float32
+    at |x| = 8 its error reaches 0.4 at L = 20 (README, "Numerics").
+
     >>> PositionalEncoding(n_freqs=1)(torch.tensor([[0.5, 0.0, 0.0]]))[0, 3:6]  # sin(pi x)
     tensor([1., 0., 0.])
     """
@@ -31,10 +37,11 @@ class PositionalEncoding(nn.Module):
         super().__init__()
         self.n_freqs, self.in_dim, self.include_input = n_freqs, in_dim, include_input
         self.out_dim = in_dim * (int(include_input) + 2 * n_freqs)
-        # Powers of two are exact in every float type, so 2^k (pi x) rounds only in pi x, at x's precision.
         self.register_buffer("powers", 2.0 ** torch.arange(n_freqs), persistent=False)
 
     def forward(self, x: Tensor) -> Tensor:
-        scaled = ((torch.pi * x)[..., None, :] * self.powers[:, None]).flatten(-2)  # [..., L * D], k-major
+        """x [..., D] -> [..., out_dim]."""
+        scaled = (x[..., None, :] * self.powers[:, None].to(x.dtype)).flatten(-2)  # 2^k x, exact: [..., L * D]
+        phase = torch.pi * torch.fmod(scaled, 2)  # same sine and cosine, |phase| < 2 pi
         parts = [x] if self.include_input else []
-        return torch.cat(parts + [torch.sin(scaled), torch.cos(scaled)], dim=-1)
+        return torch.cat(parts + [torch.sin(phase), torch.cos(phase)], dim=-1)

@@ -6,9 +6,37 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
+TRUNC_EXP_GRADIENT_CLAMP = 15.0  # the gradient of trunc_exp is at most e^15 = 3.3e6 per unit of upstream gradient
+
+
+class _TruncatedExp(torch.autograd.Function):
+    """exp(x) that never overflows, with a bounded gradient (the "truncated exponential" of Instant-NGP).
+
+    Forward: min(exp(x), largest float), so sigma is finite whatever the network outputs (an overflow
+    to inf would make d sigma / dx inf and the loss gradient nan). Backward: exp(min(x, 15)), so one
+    huge pre-activation cannot send a huge update through the network; below 15 it is the exact gradient.
+    """
+
+    @staticmethod
+    def forward(ctx, x: Tensor) -> Tensor:
+        ctx.save_for_backward(x)
+        return torch.exp(x).clamp(max=torch.finfo(x.dtype).max)  # an overflow to inf becomes the largest float
+
+    @staticmethod
+    def backward(ctx, grad: Tensor) -> Tensor:
+        (x,) = ctx.saved_tensors
+        return grad * torch.exp(x.clamp(max=TRUNC_EXP_GRADIENT_CLAMP))
+
+
+def trunc_exp(x: Tensor) -> Tensor:
+    """Density exp(x), finite for any x, with gradients bounded by e^15 (see ``_TruncatedExp``)."""
+    return _TruncatedExp.apply(x)
+
+
 DENSITY_ACTIVATIONS: dict[str, Callable[[Tensor], Tensor]] = {
     "relu": F.relu,  # the paper's; its gradient is zero wherever the field is empty, so it can die
-    "softplus": F.softplus,  # never has a zero gradient, so a field that went empty recovers
+    "softplus": F.softplus,  # never has a zero gradient, so a field that went empty recovers; linear above 20
+    "trunc_exp": trunc_exp,  # exp (Instant-NGP, Plenoxels-style): densities span decades at equal step sizes
 }
 
 

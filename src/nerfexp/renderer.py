@@ -54,6 +54,9 @@ class VolumeRenderer(nn.Module):
         t_starts, t_ends = intervals(t, far)
         points = origins[:, None, :] + directions[:, None, :] * t[..., None]  # [B, S, 3]
         rgbs, sigmas = field(points, directions[:, None, :])  # one direction per ray, broadcast
+        # Rendering runs in the rays' precision whatever the network's: under bf16 autocast the field
+        # answers in bf16 (8 significant bits), too coarse for exp/cumsum of optical depths.
+        rgbs, sigmas = rgbs.to(t.dtype), sigmas.to(t.dtype)
         weights, _ = render_weights(sigmas, t_starts, t_ends)
         out = composite(weights, rgbs, t, self.background, self.far)
         out.update(weights=weights, t_starts=t_starts, t_ends=t_ends)

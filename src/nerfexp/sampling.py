@@ -65,12 +65,17 @@ def sample_pdf(bins: Tensor, weights: Tensor, n_samples: int, deterministic: boo
     Returns: sorted samples [..., n_samples] inside [bins[..., 0], bins[..., -1]], detached (no
     gradient flows through sample positions).
 
-    The CDF starts at exactly 0 and ends at exactly 1; intervals of zero mass are never selected
-    (``searchsorted(right=True)`` skips them), so the in-bin fraction divides by a positive mass.
+    Safe by construction: the CDF starts at exactly 0 and ends at exactly 1 (x / x == 1 in floating
+    point), so every u in [0, 1) finds a bin; intervals of zero mass are never selected
+    (``searchsorted(right=True)`` skips them), so the in-bin fraction divides by a positive mass; the
+    fraction is clamped to [0, 1] and ``lerp`` stays inside the bin, also a zero-width one. No epsilon
+    is added to the weights (the common ``weights + 1e-5`` puts samples in empty space and biases every
+    PDF); all-zero weights are uniform by selection. A nan weight gives nan samples, so a failed coarse
+    pass is seen rather than silently resampled uniformly.
     """
     bins, weights = bins.detach(), weights.detach()
     total = weights.sum(-1, keepdim=True)
-    weights = torch.where(total > 0, weights, torch.ones_like(weights))  # no mass: uniform
+    weights = torch.where(total == 0, torch.ones_like(weights), weights)  # no mass: uniform (a nan stays nan)
     cdf = torch.cumsum(weights, -1)
     cdf = torch.cat([torch.zeros_like(cdf[..., :1]), cdf / cdf[..., -1:]], -1)  # [..., S+1], x / x == 1 exactly
     shape = (*cdf.shape[:-1], n_samples)
@@ -84,5 +89,5 @@ def sample_pdf(bins: Tensor, weights: Tensor, n_samples: int, deterministic: boo
     cdf_lo, cdf_hi = cdf.gather(-1, index - 1), cdf.gather(-1, index)
     bin_lo, bin_hi = bins.gather(-1, index - 1), bins.gather(-1, index)
     mass = cdf_hi - cdf_lo
-    fraction = torch.where(mass > 0, (u - cdf_lo) / torch.where(mass > 0, mass, 1), 0)
+    fraction = torch.where(mass == 0, 0, (u - cdf_lo) / torch.where(mass == 0, 1, mass))  # nan stays nan
     return torch.lerp(bin_lo, bin_hi, fraction.clamp(0, 1))
