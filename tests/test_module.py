@@ -4,15 +4,22 @@ import lightning as L
 import pytest
 import torch
 from torch import nn
+from torch.utils.data import DataLoader
 
-from nerfexp.errors import NonFiniteError
 from nerfexp.module import NeRFModule
 from nerfexp.renderer import VolumeRenderer
 
 
-class NaNField(nn.Module):
+class OpaqueField(nn.Module):
+    """Of one colour, opaque from the first sample on: sigma 1e6 over the ray's length of at least 3 gives an
+    optical depth of 3e6, and exp(-3e6) is 0 in float32, so the ray's opacity is 1 and its colour the field's."""
+
+    def __init__(self, colour: float):
+        super().__init__()
+        self.colour = nn.Parameter(torch.tensor(colour))
+
     def forward(self, positions, directions):
-        return torch.full_like(positions, 0.5), torch.full(positions.shape[:-1], float("nan"))
+        return self.colour.expand(*positions.shape[:-1], 3), torch.full(positions.shape[:-1], 1e6)
 
 
 class ConstantField(nn.Module):
@@ -36,9 +43,27 @@ def batch(n=8):
     return {"origins": -4 * directions, "directions": directions, "rgb": torch.rand(n, 3)}
 
 
-def test_non_finite_loss_stops_with_the_step_and_the_network():
-    with pytest.raises(NonFiniteError, match=r"step 0: the coarse network's colour loss is nan"):
-        module(NaNField).training_step(batch(), 0)
+def test_training_exposes_each_networks_loss_and_opacity_detached():
+    torch.manual_seed(0)
+    fields = iter([OpaqueField(0.25), OpaqueField(0.75)])
+    m, b = module(lambda: next(fields)), batch(8)
+    trainer = L.Trainer(max_steps=1, accelerator="cpu", logger=False, enable_checkpointing=False,
+                        enable_progress_bar=False, enable_model_summary=False)
+    trainer.fit(m, train_dataloaders=DataLoader([b], batch_size=None))
+    # Every ray renders its network's colour (the weights before the step's update): MSE against the target.
+    for name, colour in (("coarse", 0.25), ("fine", 0.75)):
+        figures = m.diagnostics[name]
+        torch.testing.assert_close(figures["loss"], ((colour - b["rgb"]) ** 2).mean())
+        torch.testing.assert_close(figures["opacity"], torch.ones(8))
+        assert not figures["loss"].requires_grad and not figures["opacity"].requires_grad
+
+
+def test_networks_are_named_as_the_renderer_outputs():
+    m = module(ConstantField)
+    assert m.networks == {"coarse": m.renderer.coarse, "fine": m.renderer.fine}
+    flat = NeRFModule(VolumeRenderer(ConstantField, hierarchical=False, n_coarse=4, n_fine=4, n_single=8, near=2.0,
+                                     far=6.0), functools.partial(torch.optim.Adam, lr=1e-3), lr_final=1e-4)
+    assert flat.networks == {"coarse": flat.renderer.coarse}
 
 
 def learning_rates(m: NeRFModule, steps: int) -> list[float]:

@@ -14,4 +14,9 @@ class DatasetError(NerfexpError):
 
 
 class NonFiniteError(NerfexpError):
-    """Training produced a NaN or infinity; the message names the step and the quantity."""
+    """Training produced a NaN or infinity; the message names the step, the quantity and the component."""
+
+
+class FieldCollapseError(NerfexpError):
+    """A network's density field went to zero everywhere and stayed there; the message names the step,
+    the network and what to try."""

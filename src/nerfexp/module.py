@@ -5,9 +5,8 @@ from collections.abc import Callable
 import lightning as L
 import torch
 import torch.nn.functional as F
-from torch import Tensor
+from torch import Tensor, nn
 
-from nerfexp.errors import NonFiniteError
 from nerfexp.metrics import psnr, ssim
 from nerfexp.renderer import VolumeRenderer, final_output
 
@@ -19,6 +18,12 @@ class NeRFModule(L.LightningModule):
 
     Evaluation renders whole images in chunks of ``chunk`` rays (memory bounded at any resolution)
     and scores the fine network's image (the only one without hierarchy).
+
+    ``diagnostics`` holds what the latest training batch showed of each network, detached (no graph,
+    no copy): ``{"coarse": {"loss": [], "opacity": [B]}, "fine": {...}}`` (only "coarse" without
+    hierarchy), the colour loss and the rendered opacity of each of the B rays. Callbacks read it
+    between the backward pass and the optimizer step (``nerfexp.guards.TrainingGuard``), which
+    ``training_step``'s return value does not reach, and at no cost of extra rendering.
     """
 
     def __init__(self, renderer: VolumeRenderer, optimizer: Callable[..., torch.optim.Optimizer],
@@ -26,6 +31,12 @@ class NeRFModule(L.LightningModule):
         super().__init__()
         self.renderer, self.optimizer, self.lr_final, self.chunk = renderer, optimizer, lr_final, chunk
         self.lr_warmup_steps = lr_warmup_steps
+        self.diagnostics: dict[str, dict[str, Tensor]] = {}
+
+    @property
+    def networks(self) -> dict[str, nn.Module]:
+        """The renderer's networks under the names its outputs use: coarse and fine, or coarse alone."""
+        return {name: net for name in ("coarse", "fine") if (net := getattr(self.renderer, name)) is not None}
 
     def on_fit_start(self) -> None:
         # exp(-optical depth) behind surfaces produces float32 denormals, which make the CPU's
@@ -36,10 +47,8 @@ class NeRFModule(L.LightningModule):
     def training_step(self, batch: dict[str, Tensor], batch_idx: int) -> Tensor:
         outputs = self.renderer(batch["origins"], batch["directions"], deterministic=False)
         losses = {name: F.mse_loss(out["rgb"], batch["rgb"]) for name, out in outputs.items()}
-        for name, value in losses.items():
-            if not torch.isfinite(value):
-                raise NonFiniteError(f"step {self.global_step}: the {name} network's colour loss is "
-                                     f"{value.item()} (non-finite); the run stopped here")
+        self.diagnostics = {name: {"loss": losses[name].detach(), "opacity": out["opacity"].detach()}
+                            for name, out in outputs.items()}
         loss = sum(losses.values())
         final = final_output(losses)
         self.log("train/loss", loss, prog_bar=True)

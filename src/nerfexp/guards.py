@@ -1,0 +1,201 @@
+"""Guards during training: a NaN or infinite loss or gradient, and a density field collapsed to zero.
+
+``TrainingGuard`` is a Lightning callback that looks at every optimizer step in
+``on_before_optimizer_step``: after the backward pass (after gradient accumulation, and after mixed
+precision has unscaled the gradients), before the update, the one point where a bad update can still
+be dropped. It reads the module's ``diagnostics`` (per network, the batch's detached colour loss []
+and opacity [B], see ``NeRFModule``) and the gradients.
+
+A healthy step costs one device-to-host copy of a few numbers: the losses, each network's largest
+opacity in the batch and the total gradient norm (one fused ``torch._foreach_norm``, the kernel
+``clip_grad_norm_`` uses; a NaN or inf in any entry makes the norm non-finite). Parameters are walked
+by name only when that norm is not finite (finite gradients whose norm overflowed pass that walk).
+With gradient accumulation, the losses and the batch seen are those of the last accumulated batch.
+"""
+
+import io
+import logging
+import math
+from pathlib import Path
+
+import lightning as L
+import torch
+from lightning.fabric.utilities import move_data_to_device
+from torch import Tensor
+
+from nerfexp.errors import FieldCollapseError, NonFiniteError
+from nerfexp.files import atomic_write
+
+log = logging.getLogger(__name__)
+
+NONFINITE_ACTIONS = ("stop", "skip")
+COLLAPSE_ACTIONS = ("stop", "warn")
+
+
+def count_nonfinite(values: Tensor) -> str:
+    """How ``values`` fail to be finite, e.g. "nan in 3 and infinite in 1" (of its entries)."""
+    counts = {"nan": int(torch.isnan(values).sum()), "infinite": int(torch.isinf(values).sum())}
+    return " and ".join(f"{kind} in {n}" for kind, n in counts.items() if n)
+
+
+def networks_phrase(names: list[str]) -> str:
+    """"the fine network", "the coarse and fine networks"."""
+    return f"the {' and '.join(names)} network{'s' if len(names) > 1 else ''}"
+
+
+class TrainingGuard(L.Callback):
+    """Stops (or skips the batch) on a non-finite loss or gradient; stops (or warns) on a collapsed field.
+
+    Non-finite values: the message names the step, the quantity and the component, e.g.
+    ``step 12: the gradient of renderer.fine.trunk.1.weight (fine network) is nan in 37 of 4096 entries;
+    batch and weights saved to RUN_DIR/debug/nonfinite_step12.pt; the run stopped here``. A loss is
+    named before any gradient (a NaN loss makes every gradient NaN), the coarse network before the
+    fine one (the fine samples come from the coarse weights). The file (``torch.load(path,
+    weights_only=True)``) holds ``step``, ``message``, the ``batch`` (its tensors), the module's
+    ``state_dict`` before the update and the ``gradients`` by parameter name.
+
+    Collapse: a network whose opacity stays below ``collapse_opacity`` on every ray of
+    ``collapse_patience`` consecutive training batches renders an empty scene; a ReLU density that
+    went negative everywhere has zero gradient and never comes back (on a white background the loss
+    then sits at the empty scene's).
+
+    With a gradient scaler (``trainer.precision=16-mixed``) infinite gradients are routine: the scaler
+    skips those steps and lowers its scale. Only the losses are checked then.
+
+    Args:
+        dirpath: where debug files go; default ``TRAINER.default_root_dir/debug``.
+        on_nonfinite: ``stop`` raises ``NonFiniteError``; ``skip`` drops the batch's update (no
+            parameter or optimizer state changes), logs ``train/skipped_batches`` and goes on.
+        max_skips: ``skip`` skips at most this many batches in a run; the next non-finite one stops it.
+        on_collapse: ``stop`` raises ``FieldCollapseError``; ``warn`` logs the message once per network.
+        collapse_patience: consecutive empty batches that make a collapse.
+        collapse_opacity: a ray whose opacity is below this counts as empty.
+    """
+
+    def __init__(self, dirpath: str | None = None, on_nonfinite: str = "stop", max_skips: int = 10,
+                 on_collapse: str = "stop", collapse_patience: int = 200, collapse_opacity: float = 1e-4):
+        if on_nonfinite not in NONFINITE_ACTIONS:
+            raise ValueError(f"guard on_nonfinite: expected one of {NONFINITE_ACTIONS}, got {on_nonfinite!r}")
+        if on_collapse not in COLLAPSE_ACTIONS:
+            raise ValueError(f"guard on_collapse: expected one of {COLLAPSE_ACTIONS}, got {on_collapse!r}")
+        if max_skips < 0 or collapse_patience < 1:
+            raise ValueError(f"guard: expected max_skips >= 0 and collapse_patience >= 1, got {max_skips} "
+                             f"and {collapse_patience}")
+        self.dirpath, self.on_nonfinite, self.max_skips = dirpath, on_nonfinite, max_skips
+        self.on_collapse, self.collapse_patience = on_collapse, collapse_patience
+        self.collapse_opacity = collapse_opacity
+        self.skipped_batches = 0
+        self.empty_batches: dict[str, int] = {}  # network -> consecutive batches with every ray empty
+        self._reported_collapse: set[str] = set()
+        self._batch = None
+        self._check_gradients = True
+
+    def state_dict(self) -> dict:
+        return {"skipped_batches": self.skipped_batches, "empty_batches": dict(self.empty_batches)}
+
+    def load_state_dict(self, state_dict: dict) -> None:
+        self.skipped_batches = state_dict["skipped_batches"]
+        self.empty_batches = dict(state_dict["empty_batches"])
+
+    def on_fit_start(self, trainer: L.Trainer, pl_module: L.LightningModule) -> None:
+        # a gradient scaler (16-mixed) skips the steps whose gradients overflow, and lowers its scale
+        self._check_gradients = getattr(trainer.precision_plugin, "scaler", None) is None
+
+    def on_train_batch_start(self, trainer, pl_module, batch, batch_idx: int) -> None:
+        self._batch = batch  # a reference, saved only if the step goes wrong
+
+    def on_before_optimizer_step(self, trainer: L.Trainer, pl_module: L.LightningModule,
+                                 optimizer: torch.optim.Optimizer) -> None:
+        diagnostics = pl_module.diagnostics
+        names = list(diagnostics)
+        losses = torch.stack([diagnostics[name]["loss"] for name in names])
+        opacities = torch.stack([diagnostics[name]["opacity"].max() for name in names])
+        grads = [p.grad for group in optimizer.param_groups for p in group["params"] if p.grad is not None]
+        if not self._check_gradients:
+            grads = []
+        grad_norm = torch.linalg.vector_norm(torch.stack(torch._foreach_norm(grads))) if grads else losses.new_zeros(())
+        summary = torch.cat([losses, opacities, grad_norm[None]]).tolist()  # the step's one device-to-host copy
+        loss_values = dict(zip(names, summary[:len(names)]))
+        max_opacities = dict(zip(names, summary[len(names):-1]))
+
+        problem = self._nonfinite(pl_module, loss_values, math.isfinite(summary[-1]))
+        if problem is not None:
+            self._stop_or_skip(trainer, pl_module, optimizer, problem)
+        else:
+            self._watch_collapse(trainer.global_step, max_opacities)
+        if self.on_nonfinite == "skip":
+            pl_module.log("train/skipped_batches", float(self.skipped_batches))
+
+    def _nonfinite(self, pl_module: L.LightningModule, losses: dict[str, float], grads_finite: bool) -> str | None:
+        """The first non-finite quantity of the step, described; None if all are finite."""
+        bad_losses = [name for name, value in losses.items() if not math.isfinite(value)]
+        if bad_losses:
+            first, rest = bad_losses[0], bad_losses[1:]
+            also = f" (the {' and '.join(rest)} network's too)" if rest else ""
+            return f"the {first} network's colour loss is {losses[first]}{also}"
+        if grads_finite:
+            return None
+        network_of = {p: name for name, net in pl_module.networks.items() for p in net.parameters()}
+        bad = [(name, p) for name, p in pl_module.named_parameters()
+               if p.grad is not None and not torch.isfinite(p.grad).all()]
+        if not bad:  # finite entries whose 2-norm overflowed the dtype: nothing is NaN or infinite
+            return None
+        (name, p), rest = bad[0], bad[1:]
+        where = f" ({network_of[p]} network)" if p in network_of else ""
+        text = f"the gradient of {name}{where} is {count_nonfinite(p.grad)} of {p.grad.numel()} entries"
+        if rest:
+            nets = [net for net in pl_module.networks if any(network_of.get(q) == net for _, q in rest)]
+            text += f"; so are the gradients of {len(rest)} more parameter{'s' if len(rest) > 1 else ''}" + (
+                f" (in {networks_phrase(nets)})" if nets else "")
+        return text
+
+    def _stop_or_skip(self, trainer: L.Trainer, pl_module: L.LightningModule, optimizer: torch.optim.Optimizer,
+                      problem: str) -> None:
+        step = trainer.global_step
+        dirpath = Path(self.dirpath) if self.dirpath is not None else Path(trainer.default_root_dir) / "debug"
+        path = dirpath / f"nonfinite_step{step}.pt"
+        skip = self.on_nonfinite == "skip" and self.skipped_batches < self.max_skips
+        if skip:
+            outcome = f"batch skipped ({self.skipped_batches + 1} of at most {self.max_skips})"
+        elif self.on_nonfinite == "skip":
+            outcome = (f"{self.skipped_batches} batches skipped already, the most allowed "
+                       f"(max_skips={self.max_skips}): the run stopped here")
+        else:
+            outcome = "the run stopped here"
+        message = f"step {step}: {problem}; batch and weights saved to {path}; {outcome}"
+        self._save(path, step, message, pl_module)
+        if not skip:
+            raise NonFiniteError(message)
+        optimizer.zero_grad(set_to_none=True)  # a parameter without a gradient is left alone by the step
+        self.skipped_batches += 1
+        log.warning(message)
+
+    def _save(self, path: Path, step: int, message: str, pl_module: L.LightningModule) -> None:
+        """The batch, the weights and the gradients, on the CPU, loadable with ``weights_only=True``."""
+        record = {
+            "step": step, "message": message, "batch": move_data_to_device(self._batch, "cpu"),
+            "state_dict": {key: value.cpu() for key, value in pl_module.state_dict().items()},
+            "gradients": {name: p.grad.detach().cpu() for name, p in pl_module.named_parameters()
+                          if p.grad is not None},
+        }
+        buffer = io.BytesIO()
+        torch.save(record, buffer)
+        atomic_write(path, buffer.getvalue())
+
+    def _watch_collapse(self, step: int, max_opacities: dict[str, float]) -> None:
+        """Count each network's consecutive batches in which no ray reaches ``collapse_opacity``."""
+        for name, opacity in max_opacities.items():
+            self.empty_batches[name] = self.empty_batches.get(name, 0) + 1 if opacity < self.collapse_opacity else 0
+        collapsed = [name for name in max_opacities if self.empty_batches[name] >= self.collapse_patience
+                     and name not in self._reported_collapse]
+        if not collapsed:
+            return
+        message = (f"step {step}: {networks_phrase(collapsed)} rendered nothing (opacity below "
+                   f"{self.collapse_opacity:g} on every ray) for {self.collapse_patience} consecutive batches: "
+                   "the density has collapsed to zero everywhere, and a ReLU density gets no gradient there to "
+                   "recover. Try model.renderer.field.density_activation=softplus, a lower learning rate (scale.lr) "
+                   "or a higher model.renderer.field.density_bias")
+        if self.on_collapse == "stop":
+            raise FieldCollapseError(message)
+        self._reported_collapse.update(collapsed)
+        log.warning(message)
