@@ -122,3 +122,24 @@ def test_bf16_mixed_training_keeps_rendering_in_float32(monkeypatch):
             mixed = renderer(batch["origins"], directions, deterministic=True)["fine"]
     assert mixed["rgb"].dtype == torch.float32 and mixed["depth"].dtype == torch.float32
     torch.testing.assert_close(mixed["rgb"], exact["rgb"], atol=0.03, rtol=0)
+
+
+class Fog(nn.Module):
+    """Density 0.1 everywhere, white."""
+
+    def forward(self, positions, directions):
+        sigma = torch.full(positions.shape[:-1], 0.1, dtype=positions.dtype)
+        return torch.ones(*sigma.shape, 3, dtype=positions.dtype), sigma
+
+
+def test_hierarchical_rendering_reaches_back_to_near():
+    # Fog filling [near, far] = [2, 6]: opacity 1 - exp(-0.4). The first coarse sample lies half a spacing
+    # past near; the fine samples must still reach [near, t_0], or the fog there is lost for good
+    # (an error of e^-0.375 - e^-0.4 = 0.017 with 8 coarse samples, whatever n_fine).
+    exact = -math.expm1(-0.4)
+    errors = []
+    for n_fine in (64, 1024, 16384):
+        renderer = VolumeRenderer(Fog, hierarchical=True, n_coarse=8, n_fine=n_fine, n_single=0, near=2.0, far=6.0)
+        out = renderer(*rays_down_z(1), deterministic=True)["fine"]
+        errors.append(abs(out["opacity"].item() - exact))
+    assert errors[0] < 5e-3 and errors[1] < 3e-4 and errors[2] < 2e-5, errors

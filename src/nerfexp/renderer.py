@@ -75,7 +75,10 @@ class VolumeRenderer(nn.Module):
         coarse = self._render(self.coarse, origins, directions, t_coarse, far)
         if not self.hierarchical:
             return {"coarse": coarse}
-        bins = torch.cat([coarse["t_starts"], coarse["t_ends"][:, -1:]], -1)  # [B, Nc + 1]
+        # PDF bins [B, Nc + 1]: the coarse intervals, the first one reaching back to near, since the
+        # coarse render's first sample lies up to one spacing past near and what lies before it must
+        # still be reachable by fine samples (else a density at near is lost however many are drawn)
+        bins = torch.cat([near[:, None], coarse["t_starts"][:, 1:], far[:, None]], -1)
         t_fine = sample_pdf(bins, dilate_weights(coarse["weights"]), self.n_fine, deterministic)
         t_all = torch.sort(torch.cat([t_coarse, t_fine], -1), -1).values
         return {"coarse": coarse, "fine": self._render(self.fine, origins, directions, t_all, far)}
