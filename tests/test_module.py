@@ -102,3 +102,32 @@ def test_image_rendering_in_chunks_equals_rendering_at_once():
     whole = m.renderer(b["origins"], b["directions"], deterministic=True)["fine"]
     torch.testing.assert_close(image["rgb"].reshape(15, 3), whole["rgb"])
     torch.testing.assert_close(image["depth"].reshape(15), whole["depth"])
+
+
+def test_denormals_are_flushed_during_fit_only_and_restored_after_a_failure():
+    from torch.utils.data import DataLoader
+
+    from nerfexp.module import FlushDenormals, flushes_denormals
+
+    class Probe(L.Callback):
+        def __init__(self, fail: bool):
+            self.fail, self.seen = fail, []
+
+        def on_train_batch_end(self, trainer, pl_module, outputs, batch, batch_idx):
+            self.seen.append(flushes_denormals())
+            if self.fail:
+                raise RuntimeError("stop here")
+
+    assert not flushes_denormals()  # IEEE arithmetic: tiny / 2 is a denormal, not 0
+    for fail in (False, True):
+        probe = Probe(fail)
+        trainer = L.Trainer(max_steps=2, logger=False, enable_checkpointing=False, enable_progress_bar=False,
+                            enable_model_summary=False, limit_val_batches=0, callbacks=[FlushDenormals(), probe])
+        loader = DataLoader([batch()] * 2, batch_size=None)
+        if fail:
+            with pytest.raises(RuntimeError, match="stop here"):
+                trainer.fit(module(ConstantField), train_dataloaders=loader)
+        else:
+            trainer.fit(module(ConstantField), train_dataloaders=loader)
+        assert probe.seen and all(probe.seen)  # flushed while training
+        assert not flushes_denormals()  # and restored afterwards
