@@ -22,6 +22,7 @@ Example: a ray down z through the slab |z| < 1/2 of density 3 absorbs 1 - exp(-3
 tensor([0.9502], dtype=torch.float64)
 """
 
+import abc
 import math
 
 import numpy as np
@@ -88,7 +89,7 @@ def erf_difference(x: Tensor, y: Tensor) -> Tensor:
                                    torch.special.erf(x) - torch.special.erf(y)))
 
 
-class AnalyticField(nn.Module):
+class AnalyticField(nn.Module, abc.ABC):
     """A field of one colour ``colour`` whose density has a closed form, with the exact render of any ray.
 
     Subclasses give ``density`` (positions [..., 3] -> sigma [...]) and ``opacity_and_depth`` (float64
@@ -100,12 +101,14 @@ class AnalyticField(nn.Module):
         super().__init__()
         self.colour = tuple(colour)
 
+    @abc.abstractmethod
     def density(self, positions: Tensor) -> Tensor:
-        raise NotImplementedError
+        """sigma [...] at positions [..., 3]."""
 
+    @abc.abstractmethod
     def opacity_and_depth(self, origins: Tensor, directions: Tensor, near: float,
                           far: float) -> tuple[Tensor, Tensor]:
-        raise NotImplementedError
+        """The exact opacity and depth [B] of float64 rays [B, 3] over [near, far]."""
 
     def forward(self, positions: Tensor, directions: Tensor) -> tuple[Tensor, Tensor]:
         """positions [..., S, 3], directions [..., S or 1, 3] (unused) -> (rgb [..., S, 3], sigma [..., S])."""
