@@ -70,3 +70,12 @@ def test_encoding_gradient_is_the_derivative_of_the_formula():
     expected = 2 ** 5 * math.pi * math.cos(2 ** 5 * math.pi * -1.7)
     assert math.isclose(x.grad[0, 1].item(), expected, rel_tol=1e-12)
     assert x.grad[0, 0] == 0 and x.grad[0, 2] == 0
+
+
+def test_input_scale_moves_every_frequency_down():
+    # gamma(x / 8) with L = 4: sin(2^k pi x / 8); the raw input stays x. At x = 2: sin(pi/4), sin(pi/2), sin(pi), sin(2 pi)
+    enc = PositionalEncoding(n_freqs=4, in_dim=1, input_scale=0.125).double()
+    out = enc(torch.tensor([[2.0]], dtype=torch.float64))[0]
+    r = math.sqrt(0.5)
+    expected = [2.0, r, 1.0, 0.0, 0.0, r, 0.0, -1.0, 1.0]
+    torch.testing.assert_close(out, torch.tensor(expected, dtype=torch.float64), atol=1e-12, rtol=0)

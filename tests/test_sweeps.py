@@ -58,6 +58,8 @@ def test_ablation_sweeps_are_the_nine_rows_of_table_4(name, scale):
         assert (encoding_l(renderer.field.position_encoding), encoding_l(cfg.encoding.direction)) == (l_x, l_d), row
         assert renderer.field.view_head._target_.endswith("ViewMLPHead" if view_dependent else "DiffuseHead"), row
         assert (renderer.hierarchical, cfg.data.n_train) == (hierarchical, n_images), row
+        if l_x is not None:  # the paper's gamma(x); at 64 px the CPU rows encode x / 8 (sweeps/cpu_ablation.yaml)
+            assert renderer.field.position_encoding.input_scale == (1.0 if scale == "paper" else 0.125), row
         if scale == "paper":  # (Nc, Nf) = (64, 128); without hierarchy one network with Nc = 256
             assert cfg.data._target_.endswith("BlenderScene") and cfg.data.root == "/data/lego"
             assert (renderer.n_coarse, renderer.n_fine, renderer.n_single) == (64, 128, 256)

@@ -22,6 +22,8 @@ class PositionalEncoding(nn.Module):
     Applied per coordinate, L = ``n_freqs``; the raw input comes first when ``include_input``.
     Output layout for x [..., D]: [x | sin(pi 2^k x_d) for k, d | cos(pi 2^k x_d) for k, d], so
     ``out_dim = D * (include_input + 2 L)``: 63 for positions with L = 10, 27 for directions with L = 4.
+    ``input_scale`` s encodes s p instead of p (the raw input stays p): every frequency moves down
+    log2(1/s) octaves. s = 1 is the paper's; a power of two keeps the range reduction below exact.
 
     Exact range reduction: sin(2^k pi x) = sin(pi r) with r = fmod(2^k x, 2). Scaling by a power of two
     and ``fmod`` are exact in floating point, so the phase is rounded once, in pi r with |pi r| < 2 pi,
@@ -33,15 +35,15 @@ class PositionalEncoding(nn.Module):
     tensor([1., 0., 0.])
     """
 
-    def __init__(self, n_freqs: int, in_dim: int = 3, include_input: bool = True):
+    def __init__(self, n_freqs: int, in_dim: int = 3, include_input: bool = True, input_scale: float = 1.0):
         super().__init__()
         self.n_freqs, self.in_dim, self.include_input = n_freqs, in_dim, include_input
         self.out_dim = in_dim * (int(include_input) + 2 * n_freqs)
-        self.register_buffer("powers", 2.0 ** torch.arange(n_freqs), persistent=False)
+        self.register_buffer("powers", input_scale * 2.0 ** torch.arange(n_freqs), persistent=False)
 
     def forward(self, x: Tensor) -> Tensor:
         """x [..., D] -> [..., out_dim]."""
-        scaled = (x[..., None, :] * self.powers[:, None].to(x.dtype)).flatten(-2)  # 2^k x, exact: [..., L * D]
+        scaled = (x[..., None, :] * self.powers[:, None].to(x.dtype)).flatten(-2)  # s 2^k x: [..., L * D]
         phase = torch.pi * torch.fmod(scaled, 2)  # same sine and cosine, |phase| < 2 pi
         parts = [x] if self.include_input else []
         return torch.cat(parts + [torch.sin(phase), torch.cos(phase)], dim=-1)
