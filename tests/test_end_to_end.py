@@ -94,18 +94,3 @@ def test_a_blender_format_scene_written_by_the_exporter_trains(tmp_path, tiny):
     results = read_json(tmp_path / "run" / "results.json")
     assert results["choices"]["data"] == "blender" and math.isfinite(results["test_psnr"])
     assert sorted(p.name for p in (tmp_path / "run" / "test").glob("r_?.png")) == ["r_0.png", "r_1.png"]
-
-
-@pytest.mark.slow
-def test_an_interrupted_run_resumes_from_its_last_checkpoint(tmp_path, tiny):
-    first = run_nerfexp(*tiny, f"hydra.run.dir={tmp_path}", cwd=tmp_path)
-    assert first.returncode == 0, first.stderr[-3000:]
-    first_time = read_json(tmp_path / "results.json")["train_time_s"]
-    resumed = run_nerfexp(*tiny, "trainer.max_steps=120", f"resume={tmp_path}/checkpoints/last.ckpt",
-                          f"hydra.run.dir={tmp_path}", cwd=tmp_path)
-    assert resumed.returncode == 0, resumed.stderr[-3000:]
-    results = read_json(tmp_path / "results.json")
-    assert results["steps"] == 120 and results["train_time_s"] > first_time  # the clock kept counting
-    records = [json.loads(line) for line in (tmp_path / "metrics.jsonl").read_text().splitlines()]
-    assert [(r["split"], r["step"]) for r in records] == [
-        ("val", 30), ("val", 60), ("test", 60), ("val", 90), ("val", 120), ("test", 120)]

@@ -1,7 +1,9 @@
 """Command-line entry points: build everything from the config, run it, nothing else."""
 
+import argparse
 import logging
 import sys
+from pathlib import Path
 
 import hydra
 import lightning as L
@@ -10,8 +12,9 @@ from hydra.types import RunMode
 from hydra.utils import instantiate
 from omegaconf import DictConfig, OmegaConf
 
+from nerfexp.data.datamodule import fill_ray_bounds
 from nerfexp.errors import ConfigError, NerfexpError
-from nerfexp.outputs import RunRecorder, write_status
+from nerfexp.outputs import EVAL, EvalRecorder, RunRecorder, find_run, load_module, run_config, write_status
 
 log = logging.getLogger("nerfexp")
 
@@ -23,6 +26,7 @@ def train(cfg: DictConfig) -> dict:
     if missing:
         raise ConfigError(f"missing mandatory value: {', '.join(missing)} (set it on the command line, "
                           f"e.g. {missing[0]}=...)")
+    fill_ray_bounds(cfg)
     L.seed_everything(cfg.seed, workers=True)
     runtime = HydraConfig.get().runtime
     choices = {k: v for k, v in runtime.choices.items() if not k.startswith("hydra") and v is not None}
@@ -63,3 +67,31 @@ def main(cfg: DictConfig) -> float | None:
         raise
     write_status(output_dir, "finished", overrides)
     return results["val_psnr"]
+
+
+def evaluate(cfg: DictConfig, run_dir: Path, checkpoint: Path) -> dict:
+    """Score ``checkpoint`` on the test split of the run's data (``cfg``, the run's config), without
+    training; the scores go to ``RUN_DIR/eval.json`` (see ``EvalRecorder``) and are returned."""
+    model, step = load_module(cfg, checkpoint)
+    recorder = EvalRecorder(run_dir, checkpoint, step)
+    trainer = instantiate(cfg.trainer, logger=False, callbacks=[recorder], enable_checkpointing=False,
+                          default_root_dir=str(run_dir))
+    trainer.test(model, datamodule=instantiate(cfg.datamodule), verbose=False)
+    return recorder.results
+
+
+def evaluate_main(argv: list[str] | None = None) -> None:
+    """``nerfexp-eval RUN_DIR`` (or a checkpoint file in it): score the run's checkpoint on its test split
+    with the config the run used, and write the scores to RUN_DIR/eval.json."""
+    parser = argparse.ArgumentParser(prog="nerfexp-eval", description=evaluate_main.__doc__)
+    parser.add_argument("run", type=Path, help="a run directory (its checkpoints/last.ckpt), or a checkpoint file")
+    parser.add_argument("overrides", nargs="*", metavar="KEY=VALUE",
+                        help="changes to the run's config, e.g. data.root=/new/place/of/the/scene")
+    args = parser.parse_args(argv)
+    try:
+        run_dir, checkpoint = find_run(args.run)
+        results = evaluate(run_config(run_dir, args.overrides), run_dir, checkpoint)
+    except NerfexpError as error:
+        sys.exit(f"nerfexp-eval: error: {error}")
+    print(f"test PSNR {results['test_psnr']:.2f} dB, SSIM {results['test_ssim']:.4f} of {checkpoint} "
+          f"(step {results['step']}); written to {run_dir / EVAL}")

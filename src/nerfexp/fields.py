@@ -46,7 +46,10 @@ class NeRFField(nn.Module):
     Trunk: ``depth`` ReLU layers of ``width``; the encoded position is concatenated again to the
     input of each layer listed in ``skips`` (0-based: the paper's 8 x 256 joins it to the fifth
     layer's output, the sixth layer's input, so ``skips=[5]``). The density is
-    ``activation(raw + density_bias)`` of one linear unit on the trunk output.
+    ``activation(raw + density_bias)`` of one linear unit on the trunk output; in training mode
+    (``self.training``) with ``density_noise_std`` > 0, noise ~ N(0, density_noise_std^2) is added to
+    the raw density before the activation, a regulariser against floaters (the paper: std 1 on real
+    scenes, none on synthetic ones). Evaluation is deterministic.
 
     Args:
         position_encoding: module with ``out_dim``, maps [..., 3] -> [..., out_dim].
@@ -56,7 +59,7 @@ class NeRFField(nn.Module):
 
     def __init__(self, position_encoding: nn.Module, view_head: Callable[[int], nn.Module], depth: int = 8,
                  width: int = 256, skips: tuple[int, ...] = (5,), density_activation: str = "relu",
-                 density_bias: float = 0.0):
+                 density_bias: float = 0.0, density_noise_std: float = 0.0):
         super().__init__()
         if density_activation not in DENSITY_ACTIVATIONS:
             raise ValueError(f"field.density_activation: expected one of {sorted(DENSITY_ACTIVATIONS)}, "
@@ -64,6 +67,8 @@ class NeRFField(nn.Module):
         bad = [s for s in skips if not 0 < s < depth]
         if bad:
             raise ValueError(f"field.skips: layer indices must be in 1..{depth - 1} for depth {depth}, got {bad}")
+        if not density_noise_std >= 0:
+            raise ValueError(f"field.density_noise_std: expected a standard deviation >= 0, got {density_noise_std}")
         self.position_encoding = position_encoding
         self.skips = set(skips)
         in_dim = position_encoding.out_dim
@@ -73,6 +78,7 @@ class NeRFField(nn.Module):
         self.sigma = nn.Linear(width, 1)
         self.activation = DENSITY_ACTIVATIONS[density_activation]
         self.density_bias = density_bias
+        self.density_noise_std = density_noise_std
         self.view_head = view_head(width)
 
     def forward(self, positions: Tensor, directions: Tensor) -> tuple[Tensor, Tensor]:
@@ -84,7 +90,10 @@ class NeRFField(nn.Module):
             if i in self.skips:
                 h = torch.cat([h, encoded], -1)
             h = F.relu(layer(h), inplace=True)  # in place: ReLU backward needs only its output
-        sigma = self.activation(self.sigma(h).squeeze(-1) + self.density_bias)
+        raw = self.sigma(h).squeeze(-1) + self.density_bias
+        if self.training and self.density_noise_std > 0:
+            raw = raw + self.density_noise_std * torch.randn_like(raw)
+        sigma = self.activation(raw)
         return self.view_head(h, directions), sigma
 
 

@@ -1,6 +1,7 @@
 """The LightningModule: trains a ``VolumeRenderer`` on ray batches and scores whole images."""
 
-from collections.abc import Callable
+import contextlib
+from collections.abc import Callable, Iterator
 
 import lightning as L
 import torch
@@ -39,7 +40,11 @@ class NeRFModule(L.LightningModule):
         return {name: net for name in ("coarse", "fine") if (net := getattr(self.renderer, name)) is not None}
 
     def training_step(self, batch: dict[str, Tensor], batch_idx: int) -> Tensor:
-        outputs = self.renderer(batch["origins"], batch["directions"], deterministic=False)
+        """One step on ``batch``; its stratified jitter is drawn from ``batch["seed"]`` where the batch
+        has one (``RandomRays``), so that the step is a function of the batch and the weights alone."""
+        with seeded_random(batch.get("seed"), self.device):
+            outputs = self.renderer(batch["origins"], batch["directions"], deterministic=False,
+                                    viewdirs=batch.get("viewdirs"))
         losses = {name: F.mse_loss(out["rgb"], batch["rgb"]) for name, out in outputs.items()}
         self.diagnostics = {name: {"loss": losses[name].detach(), "opacity": out["opacity"].detach()}
                             for name, out in outputs.items()}
@@ -51,21 +56,24 @@ class NeRFModule(L.LightningModule):
         return loss
 
     @torch.no_grad()
-    def render_image(self, origins: Tensor, directions: Tensor) -> dict[str, Tensor]:
-        """Deterministic render of rays [H, W, 3] in chunks: ``rgb`` [H, W, 3], ``depth``, ``opacity`` [H, W]."""
+    def render_image(self, origins: Tensor, directions: Tensor, viewdirs: Tensor | None = None) -> dict[str, Tensor]:
+        """Deterministic render of rays [H, W, 3] (``viewdirs`` [H, W, 3] optional, see ``VolumeRenderer``)
+        in chunks: ``rgb`` [H, W, 3], ``depth``, ``opacity`` [H, W]."""
         H, W, _ = origins.shape
         flat_o, flat_d = origins.reshape(-1, 3), directions.reshape(-1, 3)
+        flat_v = None if viewdirs is None else viewdirs.reshape(-1, 3)
         parts = []
         for start in range(0, H * W, self.chunk):
-            outputs = self.renderer(flat_o[start:start + self.chunk], flat_d[start:start + self.chunk],
-                                    deterministic=True)
+            chunk = slice(start, start + self.chunk)
+            outputs = self.renderer(flat_o[chunk], flat_d[chunk], deterministic=True,
+                                    viewdirs=None if flat_v is None else flat_v[chunk])
             final = final_output(outputs)
             parts.append({key: final[key] for key in ("rgb", "depth", "opacity")})
         return {key: torch.cat([p[key] for p in parts]).reshape(H, W, *parts[0][key].shape[1:])
                 for key in parts[0]}
 
     def _evaluate(self, batch: dict, split: str) -> dict:
-        image = self.render_image(batch["origins"], batch["directions"])
+        image = self.render_image(batch["origins"], batch["directions"], batch.get("viewdirs"))
         scores = {"psnr": psnr(image["rgb"], batch["rgb"]), "ssim": ssim(image["rgb"], batch["rgb"])}
         for name, value in scores.items():
             self.log(f"{split}/{name}", value, batch_size=1)
@@ -92,6 +100,19 @@ class NeRFModule(L.LightningModule):
 
         schedule = torch.optim.lr_scheduler.LambdaLR(optimizer, factor)
         return {"optimizer": optimizer, "lr_scheduler": {"scheduler": schedule, "interval": "step"}}
+
+
+@contextlib.contextmanager
+def seeded_random(seed: int | None, device: torch.device) -> Iterator[None]:
+    """Inside the block torch's global random numbers (CPU, and ``device`` if it is a CUDA device) come
+    from a stream seeded with ``seed``; the previous states are restored after it. ``None``: the global
+    stream, untouched."""
+    if seed is None:
+        yield
+        return
+    with torch.random.fork_rng(devices=[device] if device.type == "cuda" else []):
+        torch.manual_seed(seed)
+        yield
 
 
 def flushes_denormals() -> bool:

@@ -8,10 +8,15 @@
 - ``test/``: rendered test views (``r_{i}.png``) and their depth (``r_{i}_depth.png``).
 - TensorBoard: rendered images beside the ground truth, and depth (through the run's logger); the
   run's choices and overrides as hyper-parameters, with the PSNR/SSIM scalars as their metrics.
+- ``eval.json``: a checkpoint's scores on the test split (``nerfexp-eval``, ``EvalRecorder``).
+
+A finished (or interrupted) run is read back by ``find_run``, ``run_config`` and ``load_module``: its
+directory holds the config it ran with (``RUN_CONFIG``) and its checkpoints (``LAST_CHECKPOINT``).
 """
 
 import json
 import os
+import pickle
 import socket
 import time
 from pathlib import Path
@@ -20,14 +25,22 @@ import imageio.v3 as iio
 import lightning as L
 import numpy as np
 import torch
+from hydra.utils import instantiate
 from lightning.pytorch.loggers import TensorBoardLogger
+from omegaconf import DictConfig, OmegaConf
+from omegaconf.errors import OmegaConfBaseException
 from torch import Tensor
 from torch.utils.tensorboard.summary import hparams as hparams_summaries
 
+from nerfexp.data.datamodule import fill_ray_bounds
+from nerfexp.errors import ConfigError, NerfexpError
 from nerfexp.files import atomic_write
 from nerfexp.metrics import quantize
 
 STATUS = "status.json"
+EVAL = "eval.json"
+RUN_CONFIG = Path(".hydra", "config.yaml")  # the composed config, as Hydra saves it in every run directory
+LAST_CHECKPOINT = Path("checkpoints", "last.ckpt")
 HPARAM_METRICS = ("val/psnr", "val/ssim", "test/psnr", "test/ssim")  # the HPARAMS view's metric columns
 
 
@@ -52,10 +65,14 @@ def hparam_value(value):
     return value if isinstance(value, bool | int | float | str) else json.dumps(value)
 
 
+def pixels(image: Tensor) -> np.ndarray:
+    """8-bit pixels [H, W] or [H, W, 3] (uint8) of values in [0, 1], rounded as ``quantize`` rounds."""
+    return (quantize(image) * 255).to(torch.uint8).cpu().numpy()
+
+
 def png_bytes(image: Tensor) -> bytes:
     """An 8-bit PNG of [H, W] or [H, W, 3] values in [0, 1]."""
-    pixels = (quantize(image) * 255).to(torch.uint8).cpu().numpy()
-    return iio.imwrite("<bytes>", pixels, extension=".png")
+    return iio.imwrite("<bytes>", pixels(image), extension=".png")
 
 
 def depth_image(depth: Tensor, opacity: Tensor, near: float, far: float) -> Tensor:
@@ -155,4 +172,66 @@ class RunRecorder(L.Callback):
             "config": self.run_config,
         }
         atomic_write(self.output_dir / "results.json", json.dumps(results, indent=2).encode())
+        self.results = results
+
+
+def find_run(path: str | Path) -> tuple[Path, Path]:
+    """``(run directory, checkpoint)`` of ``path``: a run directory (its ``checkpoints/last.ckpt``) or a
+    checkpoint file in one (``RUN_DIR/checkpoints/NAME.ckpt``: the run directory two levels up)."""
+    path = Path(path)
+    if not path.exists():
+        raise NerfexpError(f"{path} does not exist: expected a run directory or a checkpoint file in one")
+    run_dir, checkpoint = (path, path / LAST_CHECKPOINT) if path.is_dir() else (path.parent.parent, path)
+    if not (run_dir / RUN_CONFIG).is_file():
+        raise NerfexpError(f"{run_dir} is not a run directory: it has no {RUN_CONFIG}")
+    if not checkpoint.is_file():
+        raise NerfexpError(f"{checkpoint} does not exist: the run in {run_dir} has saved no checkpoint")
+    return run_dir, checkpoint
+
+
+def run_config(run_dir: Path, overrides: list[str] = ()) -> DictConfig:
+    """The config a run used (its ``RUN_CONFIG``), with ``KEY=VALUE`` ``overrides`` of existing keys
+    (e.g. ``data.root=...`` for a scene that moved)."""
+    cfg = OmegaConf.load(Path(run_dir) / RUN_CONFIG)
+    OmegaConf.set_struct(cfg, True)  # an override of a key the run does not have is a typo, not a new key
+    try:
+        return OmegaConf.merge(cfg, OmegaConf.from_dotlist(list(overrides)))
+    except OmegaConfBaseException as error:
+        raise ConfigError(f"cannot apply {' '.join(overrides)} to {Path(run_dir) / RUN_CONFIG}: "
+                          f"{str(error).splitlines()[0]}") from None
+
+
+def load_module(cfg: DictConfig, checkpoint: Path) -> tuple[L.LightningModule, int]:
+    """The run's model (``cfg.model``) with the weights of ``checkpoint``, on the CPU, and the number of
+    optimizer steps it had taken."""
+    fill_ray_bounds(cfg)  # a run's saved config holds null where the scene chose near and far
+    module = instantiate(cfg.model)
+    try:
+        state = torch.load(checkpoint, map_location="cpu", weights_only=True)
+        module.load_state_dict(state["state_dict"])
+    except (OSError, RuntimeError, KeyError, EOFError, pickle.UnpicklingError) as error:
+        raise NerfexpError(f"{checkpoint}: not a checkpoint of this run's model "
+                           f"({type(error).__name__}: {str(error).splitlines()[0]})") from None
+    return module, state["global_step"]
+
+
+class EvalRecorder(L.Callback):
+    """Scores a checkpoint on the test split: ``eval.json`` in ``output_dir`` holds ``test_psnr``,
+    ``test_ssim`` (means over the test views, as in ``results.json``), ``psnr`` and ``ssim`` per view,
+    the ``checkpoint``, its ``step`` and the ``machine``."""
+
+    def __init__(self, output_dir: str | Path, checkpoint: str | Path, step: int):
+        self.output_dir, self.checkpoint, self.step = Path(output_dir), Path(checkpoint), step
+        self._scores: dict[str, list[float]] = {"psnr": [], "ssim": []}
+        self.results: dict = {}
+
+    def on_test_batch_end(self, trainer, pl_module, outputs, batch, batch_idx, dataloader_idx=0):
+        for name, values in self._scores.items():
+            values.append(outputs[name])
+
+    def on_test_epoch_end(self, trainer, pl_module):
+        results = {"test_psnr": float(np.mean(self._scores["psnr"])), "test_ssim": float(np.mean(self._scores["ssim"])),
+                   **self._scores, "checkpoint": str(self.checkpoint.resolve()), "step": self.step,
+                   "machine": machine()}
+        atomic_write(self.output_dir / EVAL, json.dumps(results, indent=2).encode())
         self.results = results

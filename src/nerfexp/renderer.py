@@ -48,31 +48,45 @@ class VolumeRenderer(nn.Module):
         """Network evaluations per ray: n_coarse + (n_coarse + n_fine) hierarchical, else n_single."""
         return self.n_coarse + (self.n_coarse + self.n_fine if self.hierarchical else 0)
 
-    def _render(self, field: nn.Module, origins: Tensor, directions: Tensor, t: Tensor,
+    def _render(self, field: nn.Module, origins: Tensor, directions: Tensor, viewdirs: Tensor, t: Tensor,
                 far: Tensor) -> dict[str, Tensor]:
-        """Query ``field`` at samples t [B, S] of rays [B, 3]; each sample stands for its interval."""
+        """Query ``field`` at samples t [B, S] of rays [B, 3]; each sample stands for its interval.
+
+        The field sees the unit ``viewdirs`` [B, 3]; an interval [t_i, t_{i+1}] is (t_{i+1} - t_i) |d| long.
+        """
         t_starts, t_ends = intervals(t, far)
         points = origins[:, None, :] + directions[:, None, :] * t[..., None]  # [B, S, 3]
-        rgbs, sigmas = field(points, directions[:, None, :])  # one direction per ray, broadcast
+        rgbs, sigmas = field(points, viewdirs[:, None, :])  # one direction per ray, broadcast
         # Rendering runs in the rays' precision whatever the network's: under bf16 autocast the field
         # answers in bf16 (8 significant bits), too coarse for exp/cumsum of optical depths.
         rgbs, sigmas = rgbs.to(t.dtype), sigmas.to(t.dtype)
-        weights, _ = render_weights(sigmas, t_starts, t_ends)
+        lengths = torch.linalg.vector_norm(directions, dim=-1, keepdim=True)  # [B, 1]: distance per unit of t
+        weights, _ = render_weights(sigmas, t_starts * lengths, t_ends * lengths)
         out = composite(weights, rgbs, t, self.background, self.far)
         out.update(weights=weights, t_starts=t_starts, t_ends=t_ends)
         return out
 
-    def forward(self, origins: Tensor, directions: Tensor, deterministic: bool) -> dict[str, dict[str, Tensor]]:
-        """Render rays ``origins``, ``directions`` [B, 3] (unit directions).
+    def forward(self, origins: Tensor, directions: Tensor, deterministic: bool,
+                viewdirs: Tensor | None = None) -> dict[str, dict[str, Tensor]]:
+        """Render rays o + t d, ``origins``, ``directions`` [B, 3], for t in [near, far].
+
+        Directions need not be unit vectors (NDC rays' are not): densities are integrated over the
+        length t |d| in the space the points o + t d live in (NDC space for NDC rays, as in the
+        paper's code). The field's view direction is ``viewdirs`` [B, 3] (unit; for NDC rays the
+        world direction), by default the unit ``directions``.
 
         Returns {"coarse": out, "fine": out} (only "coarse" without hierarchy), each out holding
-        ``rgb`` [B, 3], ``depth`` [B], ``opacity`` [B], ``weights``, ``t_starts``, ``t_ends`` [B, S].
+        ``rgb`` [B, 3], ``depth`` [B] (in units of t), ``opacity`` [B], ``weights``, ``t_starts``,
+        ``t_ends`` [B, S].
         """
         B, _ = origins.shape  # rays, xyz
+        if viewdirs is None:
+            lengths = torch.linalg.vector_norm(directions, dim=-1, keepdim=True)
+            viewdirs = directions / lengths.clamp_min(torch.finfo(lengths.dtype).tiny)
         near = torch.full((B,), self.near, dtype=origins.dtype, device=origins.device)
         far = torch.full_like(near, self.far)
         t_coarse = stratified_samples(near, far, self.n_coarse, deterministic)
-        coarse = self._render(self.coarse, origins, directions, t_coarse, far)
+        coarse = self._render(self.coarse, origins, directions, viewdirs, t_coarse, far)
         if not self.hierarchical:
             return {"coarse": coarse}
         # PDF bins [B, Nc + 1]: the coarse intervals, the first one reaching back to near, since the
@@ -81,4 +95,4 @@ class VolumeRenderer(nn.Module):
         bins = torch.cat([near[:, None], coarse["t_starts"][:, 1:], far[:, None]], -1)
         t_fine = sample_pdf(bins, dilate_weights(coarse["weights"]), self.n_fine, deterministic)
         t_all = torch.sort(torch.cat([t_coarse, t_fine], -1), -1).values
-        return {"coarse": coarse, "fine": self._render(self.fine, origins, directions, t_all, far)}
+        return {"coarse": coarse, "fine": self._render(self.fine, origins, directions, viewdirs, t_all, far)}

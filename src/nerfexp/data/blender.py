@@ -110,7 +110,7 @@ def image_path(root: Path, file_path: str) -> Path:
     return path if PurePosixPath(relative).suffix else path.with_name(path.name + ".png")
 
 
-def _read_image(path: Path, source: str) -> Tensor:
+def read_image(path: Path, source: str) -> Tensor:
     """An image file as 8-bit RGBA [H, W, 4]; images without alpha get alpha 255."""
     if not path.is_file():
         raise DatasetError(f"image {path} does not exist (named by {source})")
@@ -164,7 +164,7 @@ def load_blender(root, split: str, downscale: int = 1, max_views: int | None = N
     images, first = [], None
     for file_path, _ in tqdm(frames, desc=f"loading {split}", unit="image"):
         path = image_path(root, file_path)
-        image = _read_image(path, f"file_path {file_path!r} in {transforms}")
+        image = read_image(path, f"file_path {file_path!r} in {transforms}")
         if first is None:
             first = (path, image.shape)
         elif image.shape != first[1]:

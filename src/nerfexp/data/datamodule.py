@@ -1,10 +1,19 @@
-"""Rays for Lightning: random training batches over all pixels, whole images for evaluation."""
+"""Rays for Lightning: random training batches over all pixels, whole images for evaluation.
 
+The datasets below serve world rays; the loaders' collate step (``model_batch``) turns them into the
+model's rays (NDC for forward-facing LLFF scenes) and adds the world view directions as "viewdirs".
+"""
+
+import functools
+import itertools
 from collections.abc import Iterator
 from typing import Protocol
 
 import lightning as L
+import numpy as np
 import torch
+from hydra.utils import instantiate
+from omegaconf import DictConfig, open_dict
 from torch import Tensor
 from torch.utils.data import DataLoader, Dataset, IterableDataset
 
@@ -14,34 +23,74 @@ from nerfexp.renderer import BACKGROUNDS
 
 
 class Scene(Protocol):
-    """What a dataset format provides (``data`` in the config builds one)."""
+    """What a dataset format provides (``data`` in the config builds one).
+
+    A scene may also define ``model_rays(origins, directions) -> (origins, directions)``, the rays the
+    model renders made from world rays [..., 3] (``LLFFScene``: NDC rays); without it they are the world rays.
+    """
 
     background: str
 
     def views(self, split: str) -> Views: ...
 
 
+def fill_ray_bounds(cfg: DictConfig) -> None:
+    """Set ``data.near`` and ``data.far`` left null in ``cfg`` (``data=colmap``: they come from the sparse
+    points) to the scene's ``bounds()``, in place, so that the renderer built from ``cfg`` and the
+    config a run records hold the values used. Values set in the config stay."""
+    if cfg.data.get("near") is not None and cfg.data.get("far") is not None:
+        return
+    near, far = instantiate(cfg.data).bounds()
+    with open_dict(cfg.data):
+        cfg.data.near, cfg.data.far = float(near), float(far)
+
+
+def model_batch(scene: Scene, batch: dict) -> dict:
+    """A batch of world rays as the model takes it: "origins" and "directions" [..., 3] converted by the
+    scene's ``model_rays`` where it has one, and "viewdirs" [..., 3] the world (unit) directions."""
+    origins, directions = batch["origins"], batch["directions"]
+    convert = getattr(scene, "model_rays", None)
+    if convert is not None:
+        origins, directions = convert(origins, directions)
+    return {**batch, "origins": origins, "directions": directions, "viewdirs": batch["directions"]}
+
+
+def batch_seeds(seed: int, index: int) -> tuple[int, int]:
+    """Two independent 63-bit seeds for batch ``index`` of the stream ``seed`` (any ints): one for the
+    batch's rays, one for the training step's own random numbers. Hashed by numpy's ``SeedSequence``,
+    so neighbouring seeds and indices give unrelated streams."""
+    words = np.random.SeedSequence([seed % 2**64, index % 2**64]).generate_state(2, np.uint64)
+    return int(words[0] >> 1), int(words[1] >> 1)
+
+
 class RandomRays(IterableDataset):
     """An endless stream of batches of ``batch_rays`` rays drawn uniformly from all training pixels.
 
-    Each batch is {"origins", "directions", "rgb"}, each [B, 3]. Rays are computed from pixel
-    indices on the fly, so only the images are held in memory. ``seed`` makes the stream repeatable.
+    Each batch is {"origins", "directions", "rgb"}, each [B, 3], and "seed", an int from which the
+    training step draws its own random numbers (the stratified jitter). Rays are computed from pixel
+    indices on the fly, so only the images are held in memory.
+
+    Batch k is a function of (``seed``, k) alone (``batch_seeds``), and the stream begins at batch
+    ``start``: a run resumed after k optimizer steps (``start=k``) draws the batches an uninterrupted
+    run would have drawn.
     """
 
-    def __init__(self, views: Views, background: Tensor, batch_rays: int, seed: int):
+    def __init__(self, views: Views, background: Tensor, batch_rays: int, seed: int, start: int = 0):
         self.rgb = views.rgb_on(background)  # [N, H, W, 3]
         self.c2w = views.c2w
         self.d_cam = pixel_directions(views.height, views.width, views.focal)  # [H, W, 3]
-        self.batch_rays, self.seed = batch_rays, seed
+        self.batch_rays, self.seed, self.start = batch_rays, seed, start
 
     def __iter__(self) -> Iterator[dict[str, Tensor]]:
-        generator = torch.Generator().manual_seed(self.seed)
         N, H, W, _ = self.rgb.shape  # views, rows, columns, channels
-        while True:
+        for index in itertools.count(self.start):
+            rays_seed, step_seed = batch_seeds(self.seed, index)
+            generator = torch.Generator().manual_seed(rays_seed)
             n, i, j = (torch.randint(size, (self.batch_rays,), generator=generator) for size in (N, H, W))
             rotation = self.c2w[n, :3, :3]  # [B, 3, 3]
             directions = (rotation @ self.d_cam[i, j][..., None]).squeeze(-1)
-            yield {"origins": self.c2w[n, :3, 3], "directions": directions, "rgb": self.rgb[n, i, j]}
+            yield {"origins": self.c2w[n, :3, 3], "directions": directions, "rgb": self.rgb[n, i, j],
+                   "seed": step_seed}
 
 
 class WholeImages(Dataset):
@@ -67,6 +116,7 @@ class RayDataModule(L.LightningDataModule):
         self.scene, self.batch_rays, self.seed = scene, batch_rays, seed
         self.background = torch.tensor(BACKGROUNDS[scene.background])
         self.splits: dict[str, Views] = {}
+        self._collate = functools.partial(model_batch, scene)  # each loader's items -> the model's batches
 
     def _views(self, split: str) -> Views:
         if split not in self.splits:
@@ -74,12 +124,15 @@ class RayDataModule(L.LightningDataModule):
         return self.splits[split]
 
     def train_dataloader(self) -> DataLoader:
-        rank = self.trainer.global_rank if self.trainer is not None else 0  # each process its own stream
-        rays = RandomRays(self._views("train"), self.background, self.batch_rays, self.seed + rank)
-        return DataLoader(rays, batch_size=None)
+        rank, step = (self.trainer.global_rank, self.trainer.global_step) if self.trainer is not None else (0, 0)
+        # each process its own stream; a resumed run's loader is made after the checkpoint restored the step
+        rays = RandomRays(self._views("train"), self.background, self.batch_rays, self.seed + rank, start=step)
+        return DataLoader(rays, batch_size=None, collate_fn=self._collate)
 
     def val_dataloader(self) -> DataLoader:
-        return DataLoader(WholeImages(self._views("val"), self.background), batch_size=None)
+        return DataLoader(WholeImages(self._views("val"), self.background), batch_size=None,
+                          collate_fn=self._collate)
 
     def test_dataloader(self) -> DataLoader:
-        return DataLoader(WholeImages(self._views("test"), self.background), batch_size=None)
+        return DataLoader(WholeImages(self._views("test"), self.background), batch_size=None,
+                          collate_fn=self._collate)

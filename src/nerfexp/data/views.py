@@ -2,6 +2,7 @@
 
 from dataclasses import dataclass
 
+import torch
 from torch import Tensor
 
 
@@ -33,3 +34,11 @@ class Views:
         """Colours composited over ``background`` [3]: [N, H, W, 3]."""
         rgb, alpha = self.rgba[..., :3], self.rgba[..., 3:]
         return rgb * alpha + background * (1 - alpha)
+
+
+def holdout_split(n: int, holdout: int, n_val: int, n_train: int | None = None) -> dict[str, Tensor]:
+    """Image indices per split of ``n`` images: test every ``holdout``-th (i % holdout == 0, the LLFF
+    convention), train the first ``n_train`` of the rest (None: all), val the first ``n_val`` test ones."""
+    index = torch.arange(n)
+    test = index[index % holdout == 0]
+    return {"train": index[index % holdout != 0][:n_train], "val": test[:n_val], "test": test}

@@ -1,0 +1,398 @@
+"""Scenes posed by COLMAP (through pycolmap): a folder of photographs in, posed ``Views`` out.
+
+A scene root ``DIR`` holds ``images/`` (any depth; COLMAP names images by their path below it). The
+sparse model is taken from the first of these that exists, binary or text
+(``cameras``, ``images``, ``points3D`` ``.bin`` or ``.txt``):
+
+    DIR/sparse/0, DIR/sparse        a model you made yourself (COLMAP's usual layout)
+    DIR/colmap/sparse/0             the model nerfexp made earlier (the cache)
+
+and is otherwise made by ``reconstruct``: SIFT features, exhaustive (or sequential) matching and
+incremental mapping with one camera shared by all images, written to ``DIR/colmap/`` (the SQLite
+``database.db`` and ``sparse/0``). A model whose camera has distortion is undistorted to ``PINHOLE``
+into ``DIR/colmap/undistorted/`` (``images/`` and ``sparse/``), and the images are then read from
+there. Folders are built under a temporary name in ``DIR`` and renamed into place when complete, so
+an interrupted run leaves no half-made cache; nothing outside ``DIR/colmap`` is ever written, and
+nothing is deleted but this run's own temporary folder.
+
+Conventions. COLMAP's poses are ``cam_from_world`` (x_cam = R x_world + t) for a camera that looks
+down +z with y down; nerfexp's ``c2w`` looks down -z with y up (``nerfexp.cameras``):
+
+    c2w = [[R^T, -R^T t], [0, 1]] @ diag(1, -1, -1, 1)
+
+The world is then re-centred on the mean camera centre and scaled by s = bound / (the largest camera
+distance from it), so every camera lies within ``bound`` of the origin; its orientation is COLMAP's.
+Pixel centres are at (j + 0.5, i + 0.5) in both. ``near`` and ``far`` are ray distances (rays have
+unit directions, so they are distances |X - c|, not depths z): over the images, 0.9 x the smallest
+0.1th percentile and 1.1 x the largest 99.9th percentile of each image's distances to the sparse
+points it observes (LLFF's percentiles). Surfaces without features have no points: a smooth object
+nearer than every textured one can lie before ``near``; set ``data.near`` then. Tensors are float64
+until ``Views`` are made.
+
+The principal point must be at the image centre (within half a pixel) and fx = fy, as ``Views``
+has them: COLMAP's defaults (a shared camera, the principal point not refined, undistortion keeping
+it centred) give this; a model that breaks it is refused with a DatasetError rather than cropped.
+"""
+
+import contextlib
+import math
+import os
+import shutil
+import tempfile
+from collections.abc import Iterator
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+import pycolmap
+import torch
+from torch import Tensor
+from tqdm import tqdm
+
+from nerfexp.data.blender import downscale_rgba, read_image
+from nerfexp.data.views import Views, holdout_split
+from nerfexp.errors import DatasetError
+
+CACHE = "colmap"  # DIR/colmap: nerfexp's own database, sparse model and undistorted images
+MODEL_FILES = ("cameras", "images", "points3D")
+IMAGE_SUFFIXES = {".png", ".jpg", ".jpeg", ".tif", ".tiff", ".bmp"}
+PERCENTILES = (0.1, 99.9)  # of each image's point distances: near and far (as LLFF's imgs2poses)
+MARGINS = (0.9, 1.1)  # near and far are widened by these factors
+PIXEL_TOLERANCE = 0.5  # principal point off-centre, or fx != fy at the image edge, by at most this (pixels)
+MATCHERS = ("exhaustive", "sequential")
+ADVICE = ("try more overlap between neighbouring views (60-80%), more texture (plain walls, sky, glass and "
+          "reflections give no features), sharper images, more features (data.max_features), "
+          "data.matcher=exhaustive, or a camera model that fits the lens (data.camera_model=OPENCV for wide angles)")
+
+
+def image_files(folder: Path) -> list[str]:
+    """Names of the images below ``folder`` as COLMAP gives them (relative POSIX paths), sorted."""
+    return sorted(p.relative_to(folder).as_posix() for p in folder.rglob("*")
+                  if p.suffix.lower() in IMAGE_SUFFIXES and p.is_file() and not p.name.startswith("."))
+
+
+def is_model(path: Path) -> bool:
+    """Whether ``path`` holds a COLMAP sparse model, binary or text."""
+    return any(all((path / f"{name}{ext}").is_file() for name in MODEL_FILES) for ext in (".bin", ".txt"))
+
+
+def find_model(root: Path) -> Path | None:
+    """The sparse model to use for the scene ``root``: the user's, else nerfexp's cache, else None."""
+    for path in (root / "sparse" / "0", root / "sparse", root / CACHE / "sparse" / "0"):
+        if is_model(path):
+            return path
+    return None
+
+
+def read_model(path):
+    """A ``pycolmap.Reconstruction`` read from the folder ``path`` (binary or text files)."""
+    path = Path(path)
+    if not is_model(path):
+        raise DatasetError(f"{path} holds no COLMAP sparse model: expected cameras, images and points3D, "
+                           f"all .bin or all .txt")
+    try:
+        return pycolmap.Reconstruction(path)
+    except Exception as error:  # pycolmap raises plain exceptions for malformed files
+        raise DatasetError(f"{path}: cannot read the COLMAP model ({error})") from None
+
+
+@contextlib.contextmanager
+def _colmap_log_level(verbose: bool) -> Iterator[None]:
+    """COLMAP's own log (glog, on stderr) at INFO with ``verbose``, else warnings and errors only."""
+    previous = pycolmap.logging.minloglevel
+    pycolmap.logging.minloglevel = 0 if verbose else 1
+    try:
+        yield
+    finally:
+        pycolmap.logging.minloglevel = previous
+
+
+@contextlib.contextmanager
+def _building(final: Path) -> Iterator[Path]:
+    """A fresh temporary folder beside ``final``, renamed to ``final`` when the block succeeds and
+    removed when it fails (it is this run's own; nothing else is touched)."""
+    final.parent.mkdir(parents=True, exist_ok=True)
+    work = Path(tempfile.mkdtemp(prefix=f".{final.name}-", dir=final.parent))
+    try:
+        yield work
+        os.rename(work, final)  # atomic; fails rather than replace an existing non-empty folder
+    except BaseException:
+        shutil.rmtree(work, ignore_errors=True)
+        raise
+
+
+def check_camera_model(name: str) -> None:
+    """A DatasetError unless ``name`` is a COLMAP perspective camera model (undistortable to PINHOLE)."""
+    models = [m for m in pycolmap.CameraModelId.__members__ if m not in ("INVALID", "EQUIRECTANGULAR")]
+    if name not in models:
+        raise DatasetError(f"unsupported camera model {name!r} (data.camera_model): nerfexp needs a perspective "
+                           f"camera, one of {', '.join(models)}")
+
+
+def registered_enough(n_registered: int, n_images: int, min_registered: float, where: str) -> None:
+    """A DatasetError unless at least max(2, ceil(min_registered n_images)) images were registered."""
+    needed = max(2, math.ceil(min_registered * n_images))
+    if n_registered < needed:
+        raise DatasetError(f"COLMAP registered {n_registered} of {n_images} images of {where} (at least {needed} "
+                           f"needed, data.min_registered={min_registered:g}); {ADVICE}")
+
+
+def reconstruct(root, camera_model: str = "SIMPLE_RADIAL", matcher: str = "exhaustive", max_features: int = 4096,
+                threads: int = -1, min_registered: float = 0.8, verbose: bool = False) -> Path:
+    """Run COLMAP on ``root/images`` into ``root/colmap`` and return the sparse model's folder.
+
+    Features (SIFT on the CPU, at most ``max_features`` per image, one ``camera_model`` camera shared
+    by all images), matching (``exhaustive`` or ``sequential``) and incremental mapping, each a step
+    of a progress bar (``verbose``: COLMAP's own log too). ``threads`` -1 uses every core. Raises a
+    DatasetError, and keeps nothing, when fewer than ``min_registered`` of the images are registered.
+    """
+    root = Path(root)
+    image_dir = root / "images"
+    names = image_files(image_dir)
+    if not names:
+        raise DatasetError(f"{image_dir} holds no images ({', '.join(sorted(IMAGE_SUFFIXES))})")
+    check_camera_model(camera_model)
+    if matcher not in MATCHERS:
+        raise DatasetError(f"unknown matcher {matcher!r} (data.matcher): expected one of {', '.join(MATCHERS)}")
+    cache = root / CACHE
+    if cache.exists():
+        raise DatasetError(f"{cache} exists but holds no sparse model in sparse/0; move it away (nerfexp never "
+                           f"deletes it) to reconstruct the scene again")
+    stages = ("features", "matching", "mapping")
+    progress = tqdm(total=len(stages), desc="COLMAP", unit="stage")
+    with _colmap_log_level(verbose), _building(cache) as work, progress as bar:
+        database = work / "database.db"
+        bar.set_postfix_str(f"features of {len(names)} images")
+        extraction = pycolmap.FeatureExtractionOptions(num_threads=threads, use_gpu=False)
+        extraction.sift.max_num_features = max_features
+        pycolmap.extract_features(database, image_dir, camera_mode=pycolmap.CameraMode.SINGLE,
+                                  reader_options=pycolmap.ImageReaderOptions(camera_model=camera_model),
+                                  extraction_options=extraction, device=pycolmap.Device.cpu)
+        bar.update()
+        bar.set_postfix_str(f"{matcher} matching")
+        matching = pycolmap.FeatureMatchingOptions(num_threads=threads, use_gpu=False)
+        match = pycolmap.match_exhaustive if matcher == "exhaustive" else pycolmap.match_sequential
+        match(database, matching_options=matching, device=pycolmap.Device.cpu)
+        bar.update()
+        bar.set_postfix_str("incremental mapping")
+        options = pycolmap.IncrementalPipelineOptions(num_threads=threads, multiple_models=False)
+        models = pycolmap.incremental_mapping(database, image_dir, work / "sparse", options)
+        bar.update()
+        n_registered = max((m.num_reg_images() for m in models.values()), default=0)
+        registered_enough(n_registered, len(names), min_registered, image_dir)
+        if not is_model(work / "sparse" / "0"):
+            raise DatasetError(f"COLMAP wrote no model for {image_dir} to {work / 'sparse' / '0'}")
+    return cache / "sparse" / "0"
+
+
+def undistort(root: Path, model_dir: Path, image_dir: Path, verbose: bool = False) -> tuple[Path, Path]:
+    """The PINHOLE model and image folders of the undistorted scene, ``root/colmap/undistorted/{sparse,
+    images}``, made by COLMAP's undistorter from ``model_dir`` and ``image_dir`` unless they exist."""
+    final = root / CACHE / "undistorted"
+    if is_model(final / "sparse"):
+        return final / "sparse", final / "images"
+    if final.exists():
+        raise DatasetError(f"{final} exists but holds no model in sparse/; move it away (nerfexp never deletes it) "
+                           f"to undistort the images again")
+    progress = tqdm(total=1, desc="COLMAP", unit="stage", postfix="undistortion to PINHOLE")
+    with _colmap_log_level(verbose), _building(final) as work, progress as bar:
+        pycolmap.undistort_images(work, model_dir, image_dir)
+        bar.update()
+    return final / "sparse", final / "images"
+
+
+def colmap_to_c2w(cam_from_world: Tensor) -> Tensor:
+    """nerfexp camera-to-world matrices [N, 4, 4] from COLMAP's world-to-camera [R | t] [N, 3, 4].
+
+    c2w = [[R^T, -R^T t], [0, 1]] @ diag(1, -1, -1, 1): the camera centre is -R^T t, and COLMAP's
+    camera axes (x right, y down, looking down +z) become OpenGL's (x right, y up, looking down -z).
+    Example: R = I, t = (0, 0, 4) -> centre (0, 0, -4), viewing direction -c2w[:3, 2] = (0, 0, 1).
+    """
+    R, t = cam_from_world[:, :, :3], cam_from_world[:, :, 3:]  # [N, 3, 3], [N, 3, 1]
+    c2w = torch.zeros(len(R), 4, 4, dtype=cam_from_world.dtype)
+    c2w[:, :3, :3] = R.transpose(1, 2) * torch.tensor([1.0, -1.0, -1.0], dtype=R.dtype)  # flips columns y, z
+    c2w[:, :3, 3:] = -R.transpose(1, 2) @ t
+    c2w[:, 3, 3] = 1
+    return c2w
+
+
+def cam_from_world(reconstruction, image_ids: list[int]) -> Tensor:
+    """COLMAP's world-to-camera poses [R | t] [N, 3, 4] float64 of the images ``image_ids``."""
+    return torch.tensor(np.stack([reconstruction.images[i].cam_from_world().matrix() for i in image_ids]))
+
+
+def normalize(c2w: Tensor, points: Tensor, bound: float) -> tuple[Tensor, Tensor, Tensor, float]:
+    """Centre on the mean camera centre m and scale by s = bound / max_i |c_i - m|.
+
+    c2w [N, 4, 4], points [P, 3] -> (c2w with centres s (c - m), s (points - m), m [3], s).
+    """
+    centres = c2w[:, :3, 3]
+    mean = centres.mean(0)
+    radius = torch.linalg.vector_norm(centres - mean, dim=-1).max().item()
+    if not radius > 0:
+        raise DatasetError("all registered cameras are at one position: the scene's scale is undefined")
+    scale = bound / radius
+    normalized = c2w.clone()
+    normalized[:, :3, 3] = (centres - mean) * scale
+    return normalized, (points - mean) * scale, mean, scale
+
+
+def near_far(centres: Tensor, points: Tensor, observed: list[Tensor]) -> tuple[float, float]:
+    """Ray bounds from the sparse points: centres [N, 3], points [P, 3], observed[i] the indices [K_i]
+    of the points image i sees. near = 0.9 min_i q0.1_i, far = 1.1 max_i q99.9_i, with q_i the
+    percentiles of image i's distances |X - c_i| (images that see no point are left out)."""
+    low, high = [], []
+    for centre, index in zip(centres, observed):
+        if len(index):
+            distances = torch.linalg.vector_norm(points[index] - centre, dim=-1)
+            q = torch.quantile(distances, torch.tensor(PERCENTILES, dtype=distances.dtype) / 100)
+            low.append(q[0])
+            high.append(q[1])
+    if not low:
+        raise DatasetError("the COLMAP model has no 3D points seen by its images: near and far are undefined")
+    return MARGINS[0] * torch.stack(low).min().item(), MARGINS[1] * torch.stack(high).max().item()
+
+
+def shared_focal(reconstruction, image_ids: list[int], where: Path) -> tuple[float, int, int]:
+    """(focal, width, height) of the one pinhole camera, principal point at the centre, of ``image_ids``."""
+    cameras = {reconstruction.images[i].camera_id for i in image_ids}
+    described = {(c.model.name, c.width, c.height, tuple(c.params)) for c in map(reconstruction.camera, cameras)}
+    if len(described) > 1:
+        raise DatasetError(f"{where}: the images use {len(described)} different cameras; nerfexp needs one shared "
+                           f"camera (COLMAP's CameraMode.SINGLE, or --ImageReader.single_camera 1)")
+    camera = reconstruction.camera(cameras.pop())
+    model, width, height = camera.model.name, camera.width, camera.height
+    if model not in ("SIMPLE_PINHOLE", "PINHOLE"):
+        raise DatasetError(f"{where}: camera model {model} is not a pinhole model (undistortion should have made it "
+                           f"PINHOLE)")
+    fx, fy, cx, cy = (camera.params[0], *camera.params) if model == "SIMPLE_PINHOLE" else camera.params
+    focal = 0.5 * (fx + fy)
+    if abs(fx - fy) / focal * 0.5 * max(width, height) > PIXEL_TOLERANCE:
+        raise DatasetError(f"{where}: focal lengths fx={fx:.6g} and fy={fy:.6g} differ (more than "
+                           f"{PIXEL_TOLERANCE} px at the image edge); nerfexp's cameras have one focal length")
+    if max(abs(cx - 0.5 * width), abs(cy - 0.5 * height)) > PIXEL_TOLERANCE:
+        raise DatasetError(f"{where}: principal point ({cx:.6g}, {cy:.6g}) is off the image centre "
+                           f"({0.5 * width:g}, {0.5 * height:g}) by more than {PIXEL_TOLERANCE} px; nerfexp's cameras "
+                           f"have it at the centre: reconstruct without refining it (COLMAP's default)")
+    return float(focal), width, height
+
+
+@dataclass
+class ColmapData:
+    """A posed COLMAP scene: ``names`` of the N registered images in name order, in ``image_dir``;
+    ``c2w`` [N, 4, 4] float64 normalized; the shared ``focal``, ``width`` and ``height`` of the model;
+    the ray bounds ``near``, ``far``; the normalization x -> ``scale`` (x - ``centre``)."""
+
+    names: list[str]
+    image_dir: Path
+    c2w: Tensor
+    focal: float
+    width: int
+    height: int
+    near: float
+    far: float
+    centre: Tensor
+    scale: float
+
+
+def load_colmap(root, bound: float = 4.0, camera_model: str = "SIMPLE_RADIAL", matcher: str = "exhaustive",
+                max_features: int = 4096, threads: int = -1, min_registered: float = 0.8,
+                verbose: bool = False) -> ColmapData:
+    """The scene ``root`` posed: its model found (``find_model``) or made (``reconstruct``), undistorted
+    where its camera has distortion, converted, normalized into ``bound`` and bounded by its points."""
+    root = Path(root)
+    image_dir = root / "images"
+    if not image_dir.is_dir():
+        raise DatasetError(f"{image_dir} does not exist: data.root must be a folder holding images/ (and optionally "
+                           f"a COLMAP model in sparse/0)")
+    n_images = len(image_files(image_dir))
+    model_dir = find_model(root) or reconstruct(root, camera_model, matcher, max_features, threads, min_registered,
+                                                verbose)
+    reconstruction = read_model(model_dir)
+    for camera in reconstruction.cameras.values():
+        check_camera_model(camera.model.name)
+    if not all(camera.is_undistorted() for camera in reconstruction.cameras.values()):
+        model_dir, image_dir = undistort(root, model_dir, image_dir, verbose)
+        reconstruction = read_model(model_dir)
+    ids = sorted(reconstruction.reg_image_ids(), key=lambda i: reconstruction.images[i].name)
+    registered_enough(len(ids), max(n_images, len(ids)), min_registered, f"{root / 'images'} (model {model_dir})")
+    focal, width, height = shared_focal(reconstruction, ids, model_dir)
+    point_ids = sorted(reconstruction.point3D_ids())
+    row = {point_id: k for k, point_id in enumerate(point_ids)}
+    points = torch.tensor(np.array([reconstruction.points3D[p].xyz for p in point_ids]).reshape(-1, 3))
+    observed = [torch.tensor([row[p.point3D_id] for p in reconstruction.images[i].get_observation_points2D()],
+                             dtype=torch.long) for i in ids]
+    c2w, points, centre, scale = normalize(colmap_to_c2w(cam_from_world(reconstruction, ids)), points, bound)
+    near, far = near_far(c2w[:, :3, 3], points, observed)
+    names = [reconstruction.images[i].name for i in ids]
+    return ColmapData(names, image_dir, c2w, focal, width, height, near, far, centre, scale)
+
+
+
+def read_views(data: ColmapData, index: Tensor, downscale: int = 1, max_side: int | None = None) -> Views:
+    """The images ``index`` of ``data`` as opaque ``Views``, shrunk by ``downscale`` and then, where
+    ``max_side`` is set, by the smallest further integer factor that brings the longer side to at most
+    ``max_side``; the focal length follows the width."""
+    side = max(data.width, data.height) // downscale
+    shrink = downscale * (math.ceil(side / max_side) if max_side is not None and side > max_side else 1)
+    images = []
+    for i in tqdm(index.tolist(), desc="loading colmap", unit="image"):
+        path = data.image_dir / data.names[i]
+        image = read_image(path, f"the COLMAP model's image {data.names[i]!r}")
+        if image.shape[:2] != (data.height, data.width):
+            raise DatasetError(f"{path}: image size {image.shape[1]}x{image.shape[0]} is not the COLMAP camera's "
+                               f"{data.width}x{data.height}")
+        rgba = image[None].float() / 255  # [1, H, W, 4]
+        images.append(downscale_rgba(rgba, shrink) if shrink > 1 else rgba)
+    rgba = torch.cat(images) if images else torch.zeros(0, data.height // shrink, data.width // shrink, 4)
+    return Views(rgba=rgba, c2w=data.c2w[index].float(), focal=data.focal * rgba.shape[2] / data.width)
+
+
+@dataclass
+class ColmapScene:
+    """Photographs posed by COLMAP (``data=colmap``); see the module's docstring for the cache, the
+    conventions and the normalization. Test views are every ``holdout``-th image in name order,
+    training views the first ``n_train`` of the rest, validation views the first ``n_val`` test views.
+    ``near`` and ``far`` None: from the sparse points (``bounds()``)."""
+
+    root: str
+    downscale: int = 1
+    max_side: int | None = None
+    n_train: int | None = None
+    holdout: int = 8
+    n_val: int = 2
+    bound: float = 4.0
+    near: float | None = None
+    far: float | None = None
+    background: str = "white"
+    camera_model: str = "SIMPLE_RADIAL"
+    matcher: str = "exhaustive"
+    max_features: int = 4096
+    threads: int = -1
+    min_registered: float = 0.8
+    verbose: bool = False
+    _data: ColmapData | None = field(default=None, init=False, repr=False)
+
+    def load(self) -> ColmapData:
+        """The posed scene, reconstructed or read once and kept."""
+        for name in ("downscale", "holdout", "max_side"):
+            value = getattr(self, name)
+            lowest = 2 if name == "holdout" else 1
+            if value is not None and value < lowest:
+                raise DatasetError(f"data.{name} must be >= {lowest}, got {value}")
+        if not self.bound > 0:
+            raise DatasetError(f"data.bound must be positive, got {self.bound}")
+        if self._data is None:
+            self._data = load_colmap(self.root, self.bound, self.camera_model, self.matcher, self.max_features,
+                                     self.threads, self.min_registered, self.verbose)
+        return self._data
+
+    def bounds(self) -> tuple[float, float]:
+        """(near, far): the configured values where set, else the sparse points' (see ``near_far``)."""
+        data = self.load()
+        return (data.near if self.near is None else self.near), (data.far if self.far is None else self.far)
+
+    def views(self, split: str) -> Views:
+        data = self.load()
+        index = holdout_split(len(data.names), self.holdout, self.n_val, self.n_train)[split]
+        return read_views(data, index, self.downscale, self.max_side)
