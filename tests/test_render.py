@@ -165,3 +165,17 @@ def test_rendering_a_missing_run_is_one_clear_line(tmp_path, make):
     expected = str(path) if make == "nothing" else f"{tmp_path} is not a run directory"
     assert result.returncode == 1 and len(lines) == 1, result.stderr[-2000:]
     assert lines[0].startswith("nerfexp-render: error: ") and expected in lines[0], lines
+
+
+def test_focus_depth_from_a_scene_whose_bounds_are_a_method_or_an_attribute():
+    # LLFF keeps per-view bounds as an attribute, COLMAP returns (near, far) from bounds(): near 2, far 6
+    # give 1 / (0.25 / 1.8 + 0.75 / 30) either way
+    from types import SimpleNamespace
+
+    from nerfexp.render import scene_focus_depth
+
+    expected = 1 / (0.25 / 1.8 + 0.75 / 30)
+    as_attribute = SimpleNamespace(bounds=torch.tensor([[2.0, 5.0], [3.0, 6.0]]))
+    as_method = SimpleNamespace(bounds=lambda: (2.0, 6.0))
+    for scene in (as_attribute, as_method):
+        assert scene_focus_depth(scene, OmegaConf.create({})) == pytest.approx(expected)

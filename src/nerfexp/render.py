@@ -118,8 +118,11 @@ def default_path(data: DictConfig) -> str:
 
 def scene_focus_depth(scene: Scene, data: DictConfig) -> float:
     """The spiral's focus depth from the scene's depth bounds: its ``bounds`` (per-view near and far,
-    as LLFF stores them) where it has them, else the data config's ``near`` and ``far``."""
+    as LLFF stores them; ``bounds()``, a method, for COLMAP scenes) where it has them, else the data
+    config's ``near`` and ``far``."""
     bounds = getattr(scene, "bounds", None)
+    if callable(bounds):
+        bounds = bounds()
     if bounds is not None:
         bounds = torch.as_tensor(bounds, dtype=torch.float64)
         return llff_focus_depth(bounds.min().item(), bounds.max().item())
