@@ -26,6 +26,7 @@ import imageio.v2 as imageio
 import imageio.v3 as iio
 import numpy as np
 import torch
+import torch.nn.functional as F
 from hydra.utils import instantiate
 from omegaconf import DictConfig
 from torch import Tensor
@@ -42,13 +43,9 @@ KINDS = ("rgb", "depth", "opacity")  # what is rendered of each frame, each a vi
 RENDER_DIR = "render"
 
 
-def _unit(v: Tensor) -> Tensor:
-    return v / torch.linalg.vector_norm(v, dim=-1, keepdim=True)
-
-
 def mean_up(c2w: Tensor) -> Tensor:
     """The cameras' mean up direction [3] (unit): the normalized sum of their y axes (LLFF's convention)."""
-    return _unit(c2w[:, :3, 1].sum(0))
+    return F.normalize(c2w[:, :3, 1].sum(0), dim=-1)
 
 
 def orbit_path(c2w: Tensor, n_frames: int) -> Tensor:
@@ -69,7 +66,7 @@ def orbit_path(c2w: Tensor, n_frames: int) -> Tensor:
     heights = centres @ up  # [N]
     elevation = torch.asin((heights / distances).clamp(-1, 1)).mean()
     across = centres - heights[:, None] * up  # [N, 3]: the centres projected onto the plane
-    a = _unit(across[torch.linalg.vector_norm(across, dim=-1).argmax()])
+    a = F.normalize(across[torch.linalg.vector_norm(across, dim=-1).argmax()], dim=-1)
     b = torch.linalg.cross(up, a, dim=-1)
     phi = 2 * math.pi * torch.arange(n_frames, dtype=c2w.dtype) / n_frames  # [F]
     ring = torch.cos(phi)[:, None] * a + torch.sin(phi)[:, None] * b  # [F, 3]
@@ -100,8 +97,8 @@ def spiral_path(c2w: Tensor, n_frames: int, focus_depth: float, rotations: float
     """
     centre = c2w[:, :3, 3].mean(0)
     up = mean_up(c2w)
-    back = _unit(c2w[:, :3, 2].sum(0))
-    right = _unit(torch.linalg.cross(up, back, dim=-1))
+    back = F.normalize(c2w[:, :3, 2].sum(0), dim=-1)
+    right = F.normalize(torch.linalg.cross(up, back, dim=-1), dim=-1)
     basis = torch.stack([right, torch.linalg.cross(back, right, dim=-1), back])  # [3, 3]: rows x, y, z
     radii = torch.quantile((c2w[:, :3, 3] - centre).abs() @ basis.T, 0.9, dim=0)  # [3]
     theta = 2 * math.pi * rotations * torch.arange(n_frames, dtype=c2w.dtype) / n_frames  # [F]

@@ -50,12 +50,11 @@ from torch import Tensor
 from tqdm import tqdm
 
 from nerfexp.data.blender import downscale_rgba, read_image
-from nerfexp.data.views import Views, holdout_split
+from nerfexp.data.views import IMAGE_SUFFIXES, Views, holdout_split
 from nerfexp.errors import DatasetError
 
 CACHE = "colmap"  # DIR/colmap: nerfexp's own database, sparse model and undistorted images
 MODEL_FILES = ("cameras", "images", "points3D")
-IMAGE_SUFFIXES = {".png", ".jpg", ".jpeg", ".tif", ".tiff", ".bmp"}
 PERCENTILES = (0.1, 99.9)  # of each image's point distances: near and far (as LLFF's imgs2poses)
 MARGINS = (0.9, 1.1)  # near and far are widened by these factors
 PIXEL_TOLERANCE = 0.5  # principal point off-centre, or fx != fy at the image edge, by at most this (pixels)

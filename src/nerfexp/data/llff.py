@@ -34,13 +34,12 @@ from tqdm import tqdm
 
 from nerfexp.cameras import look_at, pixel_directions
 from nerfexp.data.blender import downscale_rgba, read_image
-from nerfexp.data.views import Views, holdout_split
+from nerfexp.data.views import IMAGE_SUFFIXES, Views, holdout_split
 from nerfexp.errors import ConfigError, DatasetError
 from nerfexp.files import atomic_write
 from nerfexp.ndc import ndc_rays
 
 POSES_BOUNDS = "poses_bounds.npy"
-IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg")
 BOUNDS_MARGIN = 0.75  # the nearest bound is scaled to 1 / 0.75
 NDC_NEAR = 1.0  # the near plane z = -1 of NDC rays, in front of the scaled scene's nearest depth 4/3
 LAYOUT = (f"an LLFF scene holds {POSES_BOUNDS} (N x 17: per image a 3x5 matrix [down, right, back, centre, "
