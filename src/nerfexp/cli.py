@@ -1,6 +1,7 @@
 """Command-line entry points: build everything from the config, run it, nothing else."""
 
 import argparse
+import json
 import logging
 import sys
 from pathlib import Path
@@ -12,16 +13,31 @@ from hydra.types import RunMode
 from hydra.utils import instantiate
 from omegaconf import DictConfig, OmegaConf
 
-from nerfexp.data.datamodule import fill_ray_bounds
+from nerfexp.data.datamodule import fill_ray_bounds, rank_slice
 from nerfexp.errors import ConfigError, NerfexpError
-from nerfexp.outputs import EVAL, EvalRecorder, RunRecorder, find_run, load_module, run_config, write_status
+from nerfexp.outputs import (
+    EVAL,
+    LAST_CHECKPOINT,
+    RESULTS,
+    EvalRecorder,
+    RunRecorder,
+    find_run,
+    is_global_zero,
+    load_module,
+    run_config,
+    write_status,
+)
 
 log = logging.getLogger("nerfexp")
 
 
-def train(cfg: DictConfig) -> dict:
-    """Train on ``cfg.data``, then score the test split; everything is written to the run's directory.
-    Returns the run's results (see ``RunRecorder``)."""
+def train(cfg: DictConfig) -> dict | None:
+    """Train on ``cfg.data``, then score the test split with the last checkpoint; everything is written
+    to the run's directory. Returns the run's results (see ``RunRecorder``) in global rank 0, else None.
+
+    The test loads the checkpoint because under ``trainer=ddp`` (Lightning's ``ddp_spawn``) ``fit`` and
+    ``test`` each run in new processes, and this one gets back only the weights: the checkpoint carries
+    the step, the training time and the last validation, and rank 0 leaves the results in ``results.json``."""
     missing = sorted(OmegaConf.missing_keys(cfg))
     if missing:
         raise ConfigError(f"missing mandatory value: {', '.join(missing)} (set it on the command line, "
@@ -37,9 +53,12 @@ def train(cfg: DictConfig) -> dict:
     recorder = RunRecorder(runtime.output_dir, choices, OmegaConf.to_container(cfg, resolve=True), overrides)
     callbacks = [instantiate(c) for c in cfg.callbacks.values()] + [recorder]
     trainer = instantiate(cfg.trainer, logger=instantiate(cfg.logger), callbacks=callbacks)
+    rank_slice(datamodule.batch_rays, 0, trainer.world_size)  # a batch that the processes cannot share: an error now
     trainer.fit(model, datamodule=datamodule, ckpt_path=cfg.resume)
-    trainer.test(model, datamodule=datamodule, verbose=False)
-    results = recorder.results
+    trainer.test(model, datamodule=datamodule, ckpt_path=Path(runtime.output_dir) / LAST_CHECKPOINT, verbose=False)
+    if not trainer.is_global_zero:
+        return None
+    results = json.loads((recorder.output_dir / RESULTS).read_text())
     log.info("test PSNR %.2f dB, SSIM %.4f after %d steps in %.0f s; outputs in %s", results["test_psnr"],
              results["test_ssim"], results["steps"], results["train_time_s"], recorder.output_dir)
     return results
@@ -55,29 +74,35 @@ def main(cfg: DictConfig) -> float | None:
     (the sweep then ends with the first job's error; ``nerfexp-report`` lists the failed jobs)."""
     hydra_config = HydraConfig.get()
     output_dir, overrides = hydra_config.runtime.output_dir, list(hydra_config.overrides.task)
-    write_status(output_dir, "running", overrides)
+    writes = is_global_zero()  # under SLURM every process of a distributed job runs this; rank 0 records
+    if writes:
+        write_status(output_dir, "running", overrides)
     try:
         results = train(cfg)
     except BaseException as error:  # an interrupt too: the job did not finish
-        write_status(output_dir, "failed", overrides, error=f"{type(error).__name__}: {error}")
+        if writes:
+            write_status(output_dir, "failed", overrides, error=f"{type(error).__name__}: {error}")
         if isinstance(error, NerfexpError):
             if hydra_config.mode == RunMode.RUN:
                 sys.exit(f"nerfexp: error: {error}")
             log.error("job failed: %s", error)
         raise
+    if results is None:  # not global rank 0
+        return None
     write_status(output_dir, "finished", overrides)
     return results["val_psnr"]
 
 
 def evaluate(cfg: DictConfig, run_dir: Path, checkpoint: Path) -> dict:
     """Score ``checkpoint`` on the test split of the run's data (``cfg``, the run's config), without
-    training; the scores go to ``RUN_DIR/eval.json`` (see ``EvalRecorder``) and are returned."""
+    training, on the run's trainer (``trainer=ddp``: its processes share the images); the scores go to
+    ``RUN_DIR/eval.json`` (see ``EvalRecorder``) and are returned."""
     model, step = load_module(cfg, checkpoint)
     recorder = EvalRecorder(run_dir, checkpoint, step)
     trainer = instantiate(cfg.trainer, logger=False, callbacks=[recorder], enable_checkpointing=False,
                           default_root_dir=str(run_dir))
     trainer.test(model, datamodule=instantiate(cfg.datamodule), verbose=False)
-    return recorder.results
+    return json.loads((run_dir / EVAL).read_text())
 
 
 def evaluate_main(argv: list[str] | None = None) -> None:

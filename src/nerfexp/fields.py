@@ -81,20 +81,30 @@ class NeRFField(nn.Module):
         self.density_noise_std = density_noise_std
         self.view_head = view_head(width)
 
-    def forward(self, positions: Tensor, directions: Tensor) -> tuple[Tensor, Tensor]:
-        """positions [..., S, 3] and unit directions [..., S or 1, 3] (one per ray broadcasts over
-        its samples) -> (rgb [..., S, 3] in [0, 1], sigma [..., S] >= 0)."""
+    def _trunk(self, positions: Tensor) -> Tensor:
+        """positions [..., 3] -> the trunk's output features [..., width]."""
         encoded = self.position_encoding(positions)
         h = encoded
         for i, layer in enumerate(self.trunk):
             if i in self.skips:
                 h = torch.cat([h, encoded], -1)
             h = F.relu(layer(h), inplace=True)  # in place: ReLU backward needs only its output
+        return h
+
+    def forward(self, positions: Tensor, directions: Tensor) -> tuple[Tensor, Tensor]:
+        """positions [..., S, 3] and unit directions [..., S or 1, 3] (one per ray broadcasts over
+        its samples) -> (rgb [..., S, 3] in [0, 1], sigma [..., S] >= 0)."""
+        h = self._trunk(positions)
         raw = self.sigma(h).squeeze(-1) + self.density_bias
         if self.training and self.density_noise_std > 0:
             raw = raw + self.density_noise_std * torch.randn_like(raw)
         sigma = self.activation(raw)
         return self.view_head(h, directions), sigma
+
+    def density(self, positions: Tensor) -> Tensor:
+        """sigma [...] >= 0 at positions [..., 3], without the colour head and without training noise:
+        what the occupancy grid and early ray termination look at (``nerfexp.occupancy``)."""
+        return self.activation(self.sigma(self._trunk(positions)).squeeze(-1) + self.density_bias)
 
 
 class ViewMLPHead(nn.Module):

@@ -1,6 +1,10 @@
 """The LightningModule: trains a ``VolumeRenderer`` on ray batches and scores whole images."""
 
 import contextlib
+import logging
+import os
+import shutil
+import time
 from collections.abc import Callable, Iterator
 
 import lightning as L
@@ -8,8 +12,12 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
+from nerfexp.bounds import scene_aabb
+from nerfexp.errors import ConfigError
 from nerfexp.metrics import psnr, ssim
 from nerfexp.renderer import VolumeRenderer, final_output
+
+log = logging.getLogger(__name__)
 
 
 class NeRFModule(L.LightningModule):
@@ -25,14 +33,26 @@ class NeRFModule(L.LightningModule):
     hierarchy), the colour loss and the rendered opacity of each of the B rays. Callbacks read it
     between the backward pass and the optimizer step (``nerfexp.guards.TrainingGuard``), which
     ``training_step``'s return value does not reach, and at no cost of extra rendering.
+
+    With an occupancy grid (``renderer.grid``) the module updates it after each training step's
+    rendering, from the same seeded random stream (so a step stays a function of the batch and the
+    state), and gives it the scene's box when training starts if it has none (``nerfexp.bounds``).
+    Each step logs ``train/samples_per_ray`` (evaluated by the networks, all of them together) and
+    ``train/rays_per_s`` (rays over the step's host wall-clock time).
+    ``compile``: each network is compiled with ``torch.compile`` (in place, so checkpoints keep their keys).
     """
 
     def __init__(self, renderer: VolumeRenderer, optimizer: Callable[..., torch.optim.Optimizer],
-                 lr_final: float, chunk: int = 8192, lr_warmup_steps: int = 0):
+                 lr_final: float, chunk: int = 8192, lr_warmup_steps: int = 0, compile: bool = False):
         super().__init__()
         self.renderer, self.optimizer, self.lr_final, self.chunk = renderer, optimizer, lr_final, chunk
         self.lr_warmup_steps = lr_warmup_steps
         self.diagnostics: dict[str, dict[str, Tensor]] = {}
+        self._step_started: float | None = None
+        if compile:
+            check_compiler()
+            for net in self.networks.values():
+                net.compile(dynamic=True)  # packed batches change size every step
 
     @property
     def networks(self) -> dict[str, nn.Module]:
@@ -45,6 +65,8 @@ class NeRFModule(L.LightningModule):
         with seeded_random(batch.get("seed"), self.device):
             outputs = self.renderer(batch["origins"], batch["directions"], deterministic=False,
                                     viewdirs=batch.get("viewdirs"))
+            if self.renderer.grid is not None:  # after rendering: the jitter above is that of a run without grid
+                self.renderer.grid.update(self.global_step, self.renderer.density_fns())
         losses = {name: F.mse_loss(out["rgb"], batch["rgb"]) for name, out in outputs.items()}
         self.diagnostics = {name: {"loss": losses[name].detach(), "opacity": out["opacity"].detach()}
                             for name, out in outputs.items()}
@@ -53,7 +75,25 @@ class NeRFModule(L.LightningModule):
         self.log("train/loss", loss, prog_bar=True)
         self.log("train/psnr", -10 * torch.log10(final.detach()), prog_bar=True)
         self.log("train/lr", self.optimizers().param_groups[0]["lr"])
+        for key, value in self.renderer.stats.items():
+            self.log(f"train/{key}", value)
         return loss
+
+    def on_train_start(self) -> None:
+        grid, datamodule = self.renderer.grid, self.trainer.datamodule
+        if grid is not None and not grid.has_bounds:
+            scene = datamodule.scene
+            box = scene_aabb(scene, getattr(datamodule, "splits", {}).get("train"), self.renderer.near,
+                             self.renderer.far)
+            grid.set_bounds(box.to(grid.aabb.device))
+            log.info("occupancy grid over %s", [[round(v, 3) for v in row] for row in box.tolist()])
+
+    def on_train_batch_start(self, batch: dict, batch_idx: int) -> None:
+        self._step_started = time.perf_counter()
+
+    def on_train_batch_end(self, outputs, batch: dict, batch_idx: int) -> None:
+        if self._step_started is not None:
+            self.log("train/rays_per_s", len(batch["origins"]) / (time.perf_counter() - self._step_started))
 
     @torch.no_grad()
     def render_image(self, origins: Tensor, directions: Tensor, viewdirs: Tensor | None = None) -> dict[str, Tensor]:
@@ -72,18 +112,19 @@ class NeRFModule(L.LightningModule):
         return {key: torch.cat([p[key] for p in parts]).reshape(H, W, *parts[0][key].shape[1:])
                 for key in parts[0]}
 
-    def _evaluate(self, batch: dict, split: str) -> dict:
+    def _evaluate(self, batch: dict) -> dict:
+        """One whole image scored: its "index", "psnr", "ssim", the render ("rgb", "depth", "opacity") and
+        the "target". The means over images are logged by ``nerfexp.outputs.RunRecorder``, which gathers
+        the images of all processes in a distributed run (a mean per process would weigh them wrongly)."""
         image = self.render_image(batch["origins"], batch["directions"], batch.get("viewdirs"))
         scores = {"psnr": psnr(image["rgb"], batch["rgb"]), "ssim": ssim(image["rgb"], batch["rgb"])}
-        for name, value in scores.items():
-            self.log(f"{split}/{name}", value, batch_size=1)
         return {"index": int(batch["index"]), "target": batch["rgb"], **image, **scores}
 
     def validation_step(self, batch: dict, batch_idx: int) -> dict:
-        return self._evaluate(batch, "val")
+        return self._evaluate(batch)
 
     def test_step(self, batch: dict, batch_idx: int) -> dict:
-        return self._evaluate(batch, "test")
+        return self._evaluate(batch)
 
     def configure_optimizers(self):
         optimizer = self.optimizer(self.parameters())
@@ -100,6 +141,15 @@ class NeRFModule(L.LightningModule):
 
         schedule = torch.optim.lr_scheduler.LambdaLR(optimizer, factor)
         return {"optimizer": optimizer, "lr_scheduler": {"scheduler": schedule, "interval": "step"}}
+
+
+def check_compiler() -> None:
+    """A ConfigError unless torch.compile can build kernels here: on a machine without a GPU its
+    inductor backend compiles C++, which needs a compiler (``$CXX``, g++ or clang++) on the PATH."""
+    if torch.cuda.is_available() or any(shutil.which(c) for c in (os.environ.get("CXX", "g++"), "g++", "clang++")):
+        return
+    raise ConfigError("model.compile=true: torch.compile builds C++ kernels on CPUs and no C++ compiler (g++, "
+                      "clang++ or $CXX) is on the PATH; install one or set model.compile=false")
 
 
 @contextlib.contextmanager

@@ -29,6 +29,7 @@ from nerfexp.errors import DatasetError
 from nerfexp.files import atomic_write
 
 TRANSFORMS = "transforms_{split}.json"
+BLENDER_HALF_SIDE = 1.5  # the synthetic scenes' objects lie in [-1.5, 1.5]^3
 
 
 def _png(rgba: np.ndarray) -> bytes:
@@ -194,6 +195,11 @@ class BlenderScene:
     near: float = 2.0
     far: float = 6.0
     background: str = "white"
+    aabb: list | None = None  # the occupancy grid's box; None: [-1.5, 1.5]^3 (``bounding_box``)
+
+    def bounding_box(self) -> Tensor:
+        """[2, 3]: [-1.5, 1.5]^3, the box that holds the objects of NeRF's synthetic scenes (as in nerfacc)."""
+        return torch.tensor([[-BLENDER_HALF_SIDE] * 3, [BLENDER_HALF_SIDE] * 3])
 
     def views(self, split: str) -> Views:
         options = {"train": {"max_views": self.n_train}, "val": {"max_views": self.n_val},

@@ -19,6 +19,7 @@ from torch.utils.data import DataLoader, Dataset, IterableDataset
 
 from nerfexp.cameras import camera_rays, pixel_directions
 from nerfexp.data.views import Views
+from nerfexp.errors import ConfigError
 from nerfexp.renderer import BACKGROUNDS
 
 
@@ -55,38 +56,57 @@ def model_batch(scene: Scene, batch: dict) -> dict:
     return {**batch, "origins": origins, "directions": directions, "viewdirs": batch["directions"]}
 
 
-def batch_seeds(seed: int, index: int) -> tuple[int, int]:
+def batch_seeds(seed: int, index: int, rank: int = 0) -> tuple[int, int]:
     """Two independent 63-bit seeds for batch ``index`` of the stream ``seed`` (any ints): one for the
-    batch's rays, one for the training step's own random numbers. Hashed by numpy's ``SeedSequence``,
-    so neighbouring seeds and indices give unrelated streams."""
-    words = np.random.SeedSequence([seed % 2**64, index % 2**64]).generate_state(2, np.uint64)
-    return int(words[0] >> 1), int(words[1] >> 1)
+    batch's rays, shared by every process, and one for the training step's own random numbers on
+    process ``rank`` (each rank jitters its own rays). Hashed by numpy's ``SeedSequence``, so
+    neighbouring seeds, indices and ranks give unrelated streams; rank 0's seeds do not depend on how
+    many processes there are."""
+    words = np.random.SeedSequence([seed % 2**64, index % 2**64]).generate_state(2 + rank, np.uint64)
+    return int(words[0] >> 1), int(words[1 + rank] >> 1)
+
+
+def rank_slice(batch_rays: int, rank: int, world_size: int) -> slice:
+    """The rays of a global batch of ``batch_rays`` that process ``rank`` of ``world_size`` trains on:
+    the ``rank``-th of ``world_size`` equal, disjoint, contiguous parts, e.g. rays 256:512 of 1024 on
+    rank 1 of 4. ``batch_rays`` must be divisible by ``world_size``."""
+    if batch_rays % world_size:
+        raise ConfigError(f"scale.batch_rays={batch_rays} is the global batch, split evenly over {world_size} "
+                          f"processes (trainer.devices x trainer.num_nodes): choose a multiple of {world_size}")
+    share = batch_rays // world_size
+    return slice(rank * share, (rank + 1) * share)
 
 
 class RandomRays(IterableDataset):
-    """An endless stream of batches of ``batch_rays`` rays drawn uniformly from all training pixels.
+    """An endless stream of batches of rays drawn uniformly from all training pixels: this process's
+    share of each global batch of ``batch_rays`` rays.
 
-    Each batch is {"origins", "directions", "rgb"}, each [B, 3], and "seed", an int from which the
-    training step draws its own random numbers (the stratified jitter). Rays are computed from pixel
-    indices on the fly, so only the images are held in memory.
+    Each batch is {"origins", "directions", "rgb"}, each [B / world_size, 3], and "seed", an int from
+    which the training step draws its own random numbers (the stratified jitter). Rays are computed
+    from pixel indices on the fly, so only the images are held in memory.
 
-    Batch k is a function of (``seed``, k) alone (``batch_seeds``), and the stream begins at batch
-    ``start``: a run resumed after k optimizer steps (``start=k``) draws the batches an uninterrupted
-    run would have drawn.
+    Global batch k is a function of (``seed``, k) alone (``batch_seeds``); process ``rank`` of
+    ``world_size`` keeps its part ``rank_slice`` of it, so the processes of a distributed run train on
+    disjoint rays whose union is the batch one process would draw, and the batch size is the same
+    objective on any number of processes. The stream begins at batch ``start``: a run resumed after k
+    optimizer steps (``start=k``) draws the batches an uninterrupted run would have drawn.
     """
 
-    def __init__(self, views: Views, background: Tensor, batch_rays: int, seed: int, start: int = 0):
+    def __init__(self, views: Views, background: Tensor, batch_rays: int, seed: int, start: int = 0,
+                 rank: int = 0, world_size: int = 1):
         self.rgb = views.rgb_on(background)  # [N, H, W, 3]
         self.c2w = views.c2w
         self.d_cam = pixel_directions(views.height, views.width, views.focal)  # [H, W, 3]
         self.batch_rays, self.seed, self.start = batch_rays, seed, start
+        self.rank, self.part = rank, rank_slice(batch_rays, rank, world_size)
 
     def __iter__(self) -> Iterator[dict[str, Tensor]]:
         N, H, W, _ = self.rgb.shape  # views, rows, columns, channels
         for index in itertools.count(self.start):
-            rays_seed, step_seed = batch_seeds(self.seed, index)
+            rays_seed, step_seed = batch_seeds(self.seed, index, self.rank)
             generator = torch.Generator().manual_seed(rays_seed)
-            n, i, j = (torch.randint(size, (self.batch_rays,), generator=generator) for size in (N, H, W))
+            n, i, j = (torch.randint(size, (self.batch_rays,), generator=generator)[self.part]
+                       for size in (N, H, W))
             rotation = self.c2w[n, :3, :3]  # [B, 3, 3]
             directions = (rotation @ self.d_cam[i, j][..., None]).squeeze(-1)
             yield {"origins": self.c2w[n, :3, 3], "directions": directions, "rgb": self.rgb[n, i, j],
@@ -109,7 +129,9 @@ class WholeImages(Dataset):
 
 
 class RayDataModule(L.LightningDataModule):
-    """Loads a scene's splits and serves them as rays."""
+    """Loads a scene's splits and serves them as rays: training batches of ``batch_rays`` rays in all
+    (the global batch, split over the processes of a distributed run), whole images for evaluation
+    (Lightning gives each process every world_size-th image, see ``nerfexp.outputs.gather_evaluations``)."""
 
     def __init__(self, scene: Scene, batch_rays: int, seed: int = 0):
         super().__init__()
@@ -124,9 +146,13 @@ class RayDataModule(L.LightningDataModule):
         return self.splits[split]
 
     def train_dataloader(self) -> DataLoader:
-        rank, step = (self.trainer.global_rank, self.trainer.global_step) if self.trainer is not None else (0, 0)
-        # each process its own stream; a resumed run's loader is made after the checkpoint restored the step
-        rays = RandomRays(self._views("train"), self.background, self.batch_rays, self.seed + rank, start=step)
+        trainer = self.trainer
+        rank, world_size, step = ((trainer.global_rank, trainer.world_size, trainer.global_step)
+                                  if trainer is not None else (0, 1, 0))
+        # each process its part of the global batch; a resumed run's loader is made after the checkpoint
+        # restored the step
+        rays = RandomRays(self._views("train"), self.background, self.batch_rays, self.seed, start=step,
+                          rank=rank, world_size=world_size)
         return DataLoader(rays, batch_size=None, collate_fn=self._collate)
 
     def val_dataloader(self) -> DataLoader:

@@ -261,6 +261,7 @@ class LLFFScene:
     far: float = 1.0
     background: str = "black"
     density_noise_std: float = 1.0
+    aabb: list | None = None  # the occupancy grid's box; None: ``bounding_box``
     _data: LLFFData | None = field(default=None, init=False, repr=False)
 
     def load(self) -> LLFFData:
@@ -280,6 +281,11 @@ class LLFFScene:
 
     def views(self, split: str) -> Views:
         return self.load().split(split)
+
+    def bounding_box(self) -> Tensor | None:
+        """[2, 3] with ``ndc``: NDC's cube, x and y widened to +-1.5 for the rays of cameras beside the
+        reference one, z in [-1, 1] (the near plane to infinity); without ``ndc`` None: bound from the cameras."""
+        return torch.tensor([[-1.5, -1.5, -1.0], [1.5, 1.5, 1.0]]) if self.ndc else None
 
     @property
     def bounds(self) -> Tensor:

@@ -61,6 +61,19 @@ def _unit(v: Tensor) -> Tensor:
     return v / torch.linalg.vector_norm(v, dim=-1, keepdim=True).clamp_min(torch.finfo(v.dtype).tiny)
 
 
+def objects_box() -> Tensor:
+    """The smallest axis-aligned box [2, 3] (lower, upper corner) holding every object, float32: the slab,
+    the two spheres and the rods (cylinders standing on the slab's top, z = SLAB[1][2])."""
+    lower, upper = [list(SLAB[0])], [list(SLAB[1])]
+    for centre, radius in (GLOSSY[:2], STRIPED):
+        lower.append([c - radius for c in centre])
+        upper.append([c + radius for c in centre])
+    for (x, y), radius, top, _ in RODS:
+        lower.append([x - radius, y - radius, SLAB[1][2]])
+        upper.append([x + radius, y + radius, top])
+    return torch.stack([torch.tensor(lower).amin(0), torch.tensor(upper).amax(0)])
+
+
 def _hit_or_miss(hit: Tensor, t: Tensor, normal: Tensor) -> tuple[Tensor, Tensor]:
     return torch.where(hit, t, torch.inf), torch.where(hit[..., None], normal, 0.0)
 
@@ -256,10 +269,15 @@ class ProceduralScene:
     near: float = NEAR
     far: float = FAR
     background: str = "white"
+    aabb: list | None = None  # the occupancy grid's box; None: the objects' extent (``bounding_box``)
 
     def views(self, split: str) -> Views:
         n_views = {"train": self.n_train, "val": self.n_val, "test": self.n_test}[split]
         return load_procedural(split, n_views, self.image_size, self.image_size, self.supersample)
+
+    def bounding_box(self) -> Tensor:
+        """[2, 3]: the smallest box holding every object (``objects_box``)."""
+        return objects_box()
 
 
 def _positive_int(text: str) -> int:

@@ -1,0 +1,149 @@
+"""An occupancy grid: which cells of the scene's bounding box hold density, so that the renderer can
+leave out samples in empty space (``acceleration=occupancy``; nerfacc's ``OccGridEstimator`` idea,
+written in torch so that it runs on the CPU and on GPUs alike).
+
+Conventions: ``aabb`` [2, 3] is the box (lower corner, upper corner); the grid has ``resolution``^3
+cells, cell (i, j, k) covering ``lower + [i, i+1] x [j, j+1] x [k, k+1] * cell_size``, flattened as
+``(i * R + j) * R + k``. A cell's ``density`` [R^3] is a running estimate of the largest density in it;
+a cell is *occupied* when that estimate exceeds the density threshold (see ``OccupancyGrid``).
+Everything outside the box counts as empty: no sample there is evaluated.
+"""
+
+import logging
+import math
+from collections.abc import Callable, Sequence
+
+import torch
+from torch import Tensor, nn
+
+log = logging.getLogger(__name__)
+
+
+def cell_indices(points: Tensor, aabb: Tensor, resolution: int) -> tuple[Tensor, Tensor]:
+    """The flat index [...] of the cell holding each point [..., 3], and whether it lies inside the box [...].
+
+    Points outside the box (or NaN) get index 0 and ``inside`` false; the box is half-open, [lower, upper).
+    """
+    unit = (points - aabb[0]) / (aabb[1] - aabb[0])  # [..., 3], in [0, 1) inside the box
+    inside = ((unit >= 0) & (unit < 1)).all(-1)
+    ijk = (unit * resolution).floor().clamp(0, resolution - 1).long()
+    ijk = torch.where(inside[..., None], ijk, 0)
+    return (ijk[..., 0] * resolution + ijk[..., 1]) * resolution + ijk[..., 2], inside
+
+
+def cell_corners(resolution: int, device: torch.device | None = None) -> Tensor:
+    """The integer lower corner (i, j, k) of every cell, in flat-index order: [R^3, 3] float32."""
+    axis = torch.arange(resolution, dtype=torch.float32, device=device)
+    return torch.stack(torch.meshgrid(axis, axis, axis, indexing="ij"), -1).reshape(-1, 3)
+
+
+def density_threshold(opacity: float, cell_diagonal: float) -> float:
+    """The density sigma at which light crossing a cell along its diagonal (the longest path through it)
+    is absorbed with probability ``opacity``: 1 - exp(-sigma diagonal) = opacity, so
+    sigma = -log(1 - opacity) / diagonal."""
+    return -math.log1p(-opacity) / cell_diagonal
+
+
+class OccupancyGrid(nn.Module):
+    """A binary grid of occupied cells over the box ``aabb``, kept up to date from the density field.
+
+    Every ``update_every`` training steps (``update``), the density of the networks is evaluated at one
+    uniformly jittered point in each of a set of cells: all cells during the first ``warmup_steps``
+    steps, afterwards a random quarter of them (each cell on average every fourth update). A cell's
+    estimate becomes max(decay * old, new): it remembers a density it has seen (a jittered point can miss
+    a thin surface once) and forgets it at rate ``decay`` per evaluation when the density goes away. A
+    cell is occupied when its estimate exceeds min(sigma_t, mean of all estimates), where sigma_t is the
+    density at which light crossing the cell along its diagonal loses the fraction ``threshold``
+    (``density_threshold``); the mean guards the first updates, when the whole field is faint.
+    Until the first update every cell is occupied.
+
+    Rays stop at ``early_stop_transmittance``: the renderer marches them in ``segments`` runs of
+    samples and evaluates a run only for rays that let through at least that much light in front of
+    it (see ``VolumeRenderer``); 0 turns it off.
+
+    The bounds are a buffer: ``aabb`` [2, 3] here or, left None, set once from the scene
+    (``set_bounds``, which ``NeRFModule`` calls when training starts). ``density``, ``occupied`` and
+    ``aabb`` are saved in checkpoints, so a resumed run continues with the same grid.
+    """
+
+    def __init__(self, resolution: int = 32, threshold: float = 0.01, decay: float = 0.95, warmup_steps: int = 256,
+                 update_every: int = 16, early_stop_transmittance: float = 1e-4, segments: int = 4,
+                 aabb: Sequence[Sequence[float]] | None = None):
+        super().__init__()
+        checks = {"resolution": resolution >= 1, "threshold": 0 < threshold < 1, "decay": 0 <= decay <= 1,
+                  "warmup_steps": warmup_steps >= 0, "update_every": update_every >= 1,
+                  "early_stop_transmittance": 0 <= early_stop_transmittance < 1, "segments": segments >= 1}
+        bad = [key for key, ok in checks.items() if not ok]
+        if bad:
+            values = {"resolution": resolution, "threshold": threshold, "decay": decay, "warmup_steps": warmup_steps,
+                      "update_every": update_every, "early_stop_transmittance": early_stop_transmittance,
+                      "segments": segments}
+            raise ValueError(f"acceleration.grid.{bad[0]}: expected resolution >= 1, 0 < threshold < 1, "
+                             f"0 <= decay <= 1, warmup_steps >= 0, update_every >= 1, 0 <= early_stop_transmittance "
+                             f"< 1, segments >= 1; got {bad[0]}={values[bad[0]]}")
+        self.resolution, self.threshold, self.decay = resolution, threshold, decay
+        self.warmup_steps, self.update_every = warmup_steps, update_every
+        self.early_stop_transmittance, self.segments = early_stop_transmittance, segments
+        n_cells = resolution**3
+        self.register_buffer("aabb", torch.full((2, 3), torch.nan))
+        self.register_buffer("density", torch.zeros(n_cells))
+        self.register_buffer("occupied", torch.ones(n_cells, dtype=torch.bool))
+        self._bounded = False  # known on the host, so that rendering never waits for the device to say
+        self.register_load_state_dict_post_hook(OccupancyGrid._after_load)
+        if aabb is not None:
+            self.set_bounds(torch.as_tensor(aabb, dtype=torch.float32))
+
+    @property
+    def has_bounds(self) -> bool:
+        return self._bounded
+
+    @staticmethod
+    def _after_load(module: "OccupancyGrid", incompatible_keys) -> None:
+        module._bounded = bool(torch.isfinite(module.aabb).all())  # the checkpoint's box, if it had one
+
+    def set_bounds(self, aabb: Tensor) -> None:
+        """Set the box [2, 3] (lower, upper corner), lower < upper on every axis."""
+        if aabb.shape != (2, 3) or not torch.isfinite(aabb).all() or not (aabb[0] < aabb[1]).all():
+            raise ValueError(f"occupancy grid bounds: expected [[x0, y0, z0], [x1, y1, z1]] with finite x0 < x1, "
+                             f"y0 < y1, z0 < z1, got {aabb.tolist()}")
+        self.aabb.copy_(aabb)
+        self._bounded = True
+
+    @property
+    def cell_size(self) -> Tensor:
+        """[3]: the edge lengths of one cell."""
+        return (self.aabb[1] - self.aabb[0]) / self.resolution
+
+    def occupied_at(self, points: Tensor) -> Tensor:
+        """Whether each point [..., 3] lies in an occupied cell inside the box: bool [...]."""
+        if not self.has_bounds:
+            raise RuntimeError("the occupancy grid has no bounds: set data.aabb, or train (the module sets them "
+                               "from the scene when training starts)")
+        index, inside = cell_indices(points, self.aabb.to(points.dtype), self.resolution)
+        return inside & self.occupied[index]
+
+    def due(self, step: int) -> bool:
+        """Whether ``update`` re-evaluates cells at training step ``step``."""
+        return step % self.update_every == 0
+
+    @torch.no_grad()
+    def update(self, step: int, density_fns: Sequence[Callable[[Tensor], Tensor]]) -> None:
+        """Re-evaluate cells with ``density_fns`` (positions [N, 3] -> sigma [N]; the largest answer
+        counts, so a cell is empty only where every network finds it empty) if ``due(step)``.
+
+        Draws its jitter and its choice of cells from torch's global random numbers."""
+        if not self.due(step):
+            return
+        n_cells = self.density.numel()
+        if step < self.warmup_steps:
+            cells = torch.arange(n_cells, device=self.density.device)
+        else:
+            cells = torch.randperm(n_cells, device=self.density.device)[: max(n_cells // 4, 1)]
+        corners = cell_corners(self.resolution, self.density.device)[cells]
+        jitter = torch.rand(corners.shape, device=corners.device)
+        points = self.aabb[0] + (corners + jitter) * self.cell_size  # [N, 3]
+        sigma = torch.stack([fn(points).float() for fn in density_fns]).amax(0)
+        self.density[cells] = torch.maximum(self.density[cells] * self.decay, sigma)
+        diagonal = float(torch.linalg.vector_norm(self.cell_size))
+        limit = torch.clamp(self.density.mean(), max=density_threshold(self.threshold, diagonal))
+        self.occupied.copy_(self.density > limit)
