@@ -15,7 +15,8 @@ from hydra.utils import instantiate
 from conftest import TINY, read_json, run_nerfexp
 from nerfexp.analytic import GaussianBlob, Slab, aimed_rays
 from nerfexp.bounds import frustum_aabb, parse_aabb, scene_aabb
-from nerfexp.data.procedural import ProceduralScene, objects_box, scene_cameras
+from nerfexp.cameras import camera_rays
+from nerfexp.data.procedural import CAMERA_ANGLE_X, ProceduralScene, objects_box, scene_cameras
 from nerfexp.data.views import Views
 from nerfexp.errors import ConfigError
 from nerfexp.occupancy import OccupancyGrid, cell_corners, cell_indices, density_threshold
@@ -193,7 +194,9 @@ def test_every_component_trains_packed(accelerated_configs, encoding, view_depen
 def test_scene_bounds_from_the_config_the_scene_or_the_cameras():
     box = objects_box()  # slab [-0.75, 0.75]^2 x [-0.7, -0.5], the rods reach z = 0.6
     torch.testing.assert_close(box, torch.tensor([[-0.75, -0.75, -0.7], [0.75, 0.75, 0.6]]))
-    assert torch.equal(scene_aabb(ProceduralScene(), None, NEAR, FAR), box)
+    footprint = FAR * 2 * math.tan(CAMERA_ANGLE_X / 2) / 64  # one pixel at the far bound, 64 x 64 views
+    padded = torch.stack([box[0] - footprint, box[1] + footprint])
+    torch.testing.assert_close(scene_aabb(ProceduralScene(image_size=64), None, NEAR, FAR), padded)
     explicit = ProceduralScene(aabb=[[-1, -2, -3], [1, 2, 3]])
     assert scene_aabb(explicit, None, NEAR, FAR).tolist() == [[-1, -2, -3], [1, 2, 3]]
     for bad in ([1, 2, 3], [[0, 0, 0], [1, -1, 1]], "big", [[0, 0, 0], [1, 1, float("nan")]]):
@@ -206,6 +209,25 @@ def test_scene_bounds_from_the_config_the_scene_or_the_cameras():
     assert (frusta[0] <= box[0]).all() and (frusta[1] >= box[1]).all() and (frusta[1] - frusta[0]).min() > 4
     no_box = type("Colmap", (), {"aabb": None})()
     assert torch.equal(scene_aabb(no_box, views, NEAR, FAR), frusta)
+
+
+def ray_meets_box(origins: torch.Tensor, directions: torch.Tensor, box: torch.Tensor) -> torch.Tensor:
+    """Whether rays [..., 3] pass through the box [2, 3] in front of their origins (slab test): [...]."""
+    t0, t1 = (box[0] - origins) / directions, (box[1] - origins) / directions
+    t_in, t_out = torch.minimum(t0, t1).amax(-1), torch.maximum(t0, t1).amin(-1)
+    return (t_in <= t_out) & (t_out > 0)
+
+
+def test_every_pixel_that_shows_an_object_has_its_ray_through_the_scenes_box():
+    # the ground truth's partly covered edge pixels: their rays (through pixel centres) can miss the
+    # objects themselves, yet the field must absorb there, so the grid's box must hold those rays' paths
+    scene = ProceduralScene(image_size=64, n_test=8)
+    views = scene.views("test")
+    shown = views.rgba[..., 3] > 0  # [N, H, W]: some object in the pixel
+    rays = [camera_rays(c2w, views.height, views.width, views.focal) for c2w in views.c2w]
+    origins, directions = (torch.stack(r).double() for r in zip(*rays))
+    assert ray_meets_box(origins, directions, scene.bounding_box().double())[shown].all()
+    assert not ray_meets_box(origins, directions, objects_box().double())[shown].all()  # the exact box cuts some
 
 
 @pytest.mark.slow

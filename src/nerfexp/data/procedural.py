@@ -269,15 +269,21 @@ class ProceduralScene:
     near: float = NEAR
     far: float = FAR
     background: str = "white"
-    aabb: list | None = None  # the occupancy grid's box; None: the objects' extent (``bounding_box``)
+    aabb: list | None = None  # the occupancy grid's box; None: the objects' extent and a pixel (``bounding_box``)
 
     def views(self, split: str) -> Views:
         n_views = {"train": self.n_train, "val": self.n_val, "test": self.n_test}[split]
         return load_procedural(split, n_views, self.image_size, self.image_size, self.supersample)
 
     def bounding_box(self) -> Tensor:
-        """[2, 3]: the smallest box holding every object (``objects_box``)."""
-        return objects_box()
+        """[2, 3]: the objects' box (``objects_box``) widened on every side by one pixel's footprint at
+        ``far`` (far / focal). An edge pixel is partly an object's colour, yet its ray (through the pixel's
+        centre) can pass outside the object by up to half that, and there the field must absorb some light:
+        with the objects' exact box the grid cut every silhouette (test PSNR 22.79 against 23.16 without
+        the grid after 1,000 steps; 23.37 with a margin)."""
+        box = objects_box()
+        pad = self.far / focal_from_fov(self.image_size, CAMERA_ANGLE_X)
+        return torch.stack([box[0] - pad, box[1] + pad])
 
 
 def _positive_int(text: str) -> int:
