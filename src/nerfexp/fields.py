@@ -114,8 +114,10 @@ class ViewMLPHead(nn.Module):
         super().__init__()
         self.direction_encoding = direction_encoding
         self.feature = nn.Linear(in_features, in_features)
-        # The hidden layer on [feature, gamma(d)], split in two: the direction's half is computed
-        # once per ray and broadcast over the ray's samples.
+        # The hidden layer on [feature, gamma(d)], split in two: with directions [..., 1, 3] the
+        # direction's half is computed once per ray and broadcast over the ray's samples. The renderer
+        # without a grid passes flat per-sample directions instead (one 2-D batch, fewer copies), so
+        # there it is computed per sample: a 27 x hidden product, a few percent of the step.
         self.hidden = nn.Linear(in_features, hidden)
         self.hidden_direction = nn.Linear(direction_encoding.out_dim, hidden, bias=False)
         self.rgb = nn.Linear(hidden, 3)
