@@ -48,6 +48,34 @@ def test_sample_pdf_recovers_piecewise_constant_density():
     assert _chi_square_pvalue_upper(stat, int(mask.sum()) - 1) > 1e-3, stat
 
 
+def test_sample_pdf_is_stratified_every_bin_gets_its_share_give_or_take_one():
+    # One u in each n-th of the CDF: a bin of mass w gets n w samples, give or take less than 2 (its two
+    # end strata may or may not land in it), on every ray; n sorted uniform u would give n w +- sqrt(n w),
+    # here +- 4 for the heaviest bin, far outside.
+    bins = torch.tensor([2.0, 2.5, 3.0, 4.0, 4.1, 6.0], dtype=torch.float64).expand(5000, 6)
+    weights = torch.tensor([0.05, 0.5, 0.0, 0.3, 0.15], dtype=torch.float64).expand(5000, 5)
+    n = 64
+    samples = sample_pdf(bins, weights, n, deterministic=False, generator=torch.Generator().manual_seed(2))
+    bin_of = torch.searchsorted(bins[0], samples, right=True) - 1  # [rays, n]
+    counts = torch.nn.functional.one_hot(bin_of, 5).sum(1).double()  # [rays, bins]
+    assert (counts - n * weights).abs().max() < 2
+    assert counts[:, 2].sum() == 0
+    # and a sample's position within its stratum is uniform: the mean sample is the mean of the PDF
+    torch.testing.assert_close(samples.mean(), (weights[0] * 0.5 * (bins[0, 1:] + bins[0, :-1])).sum(),
+                               atol=2e-3, rtol=0)
+
+
+def test_sample_pdf_u_rounding_to_one_stays_in_mass(monkeypatch):
+    # (n - 1 + xi) / n rounds to 1 in float32 for xi close to 1; such a u must still land in the bin
+    # with mass, not in the empty bins after it.
+    almost_one = 1 - 2.0**-24  # the largest float32 below 1
+    assert (31 + torch.tensor(almost_one)) / 32 == 1  # the rounding guarded against
+    monkeypatch.setattr(torch, "rand", lambda shape, **kw: torch.full(shape, almost_one, dtype=kw.get("dtype")))
+    samples = sample_pdf(torch.tensor([[0.0, 1.0, 2.0, 3.0]]), torch.tensor([[1.0, 0.0, 0.0]]), 32,
+                         deterministic=False)
+    assert samples.max() <= 1.0
+
+
 def test_sample_pdf_deterministic_quantiles_by_hand():
     # Two bins [0, 1], [1, 3] with masses 1 : 3. u = 1/8, 3/8, 5/8, 7/8.
     # CDF: 0 at 0, 1/4 at 1, 1 at 3. u = 1/8 -> 0.5; 3/8 -> 1 + 2 (1/8)/(3/4) = 4/3; 5/8 -> 2; 7/8 -> 8/3.

@@ -61,12 +61,20 @@ def sample_pdf(bins: Tensor, weights: Tensor, n_samples: int, deterministic: boo
         bins: [..., S+1] sorted interval edges.
         weights: [..., S] non-negative masses; all zero means uniform.
         n_samples: samples per ray.
-        deterministic: evenly spaced quantiles u = (k + 1/2) / n instead of sorted uniform u in [0, 1).
+        deterministic: evenly spaced quantiles u_k = (k + 1/2) / n instead of stratified ones.
     Returns: sorted samples [..., n_samples] inside [bins[..., 0], bins[..., -1]], detached (no
     gradient flows through sample positions).
 
+    Stratified quantiles: u_k = (k + xi_k) / n, xi_k uniform in [0, 1), one in each n-th of the CDF,
+    as ``stratified_samples`` does along the ray. Each u_k is still uniform over [0, 1) when k is
+    drawn at random, so the set of samples follows the PDF as n sorted uniform u (the paper's code)
+    would, but a bin of mass w always receives n w samples give or take one, where sorted uniform u
+    gives n w +- sqrt(n w): the fine samples cover the surface instead of clumping, and the rendered
+    colours vary less from step to step. On the built-in scene this raised the complete model's
+    test PSNR by 0.8 dB after 4500 steps (README, "Fine samples").
+
     Safe by construction: the CDF starts at exactly 0 and ends at exactly 1 (x / x == 1 in floating
-    point), so every u in [0, 1) finds a bin; intervals of zero mass are never selected
+    point), so every u in [0, 1) finds a bin (u is kept below 1 also where (k + xi) / n rounds up); intervals of zero mass are never selected
     (``searchsorted(right=True)`` skips them), so the in-bin fraction divides by a positive mass; the
     fraction is clamped to [0, 1] and ``lerp`` stays inside the bin, also a zero-width one. No epsilon
     is added to the weights (the common ``weights + 1e-5`` puts samples in empty space and biases every
@@ -83,7 +91,9 @@ def sample_pdf(bins: Tensor, weights: Tensor, n_samples: int, deterministic: boo
         u = (torch.arange(n_samples, dtype=cdf.dtype, device=cdf.device) + 0.5) / n_samples
         u = u.expand(shape).contiguous()
     else:
-        u = torch.rand(shape, dtype=cdf.dtype, device=cdf.device, generator=generator).sort(-1).values
+        jitter = torch.rand(shape, dtype=cdf.dtype, device=cdf.device, generator=generator)
+        u = (torch.arange(n_samples, dtype=cdf.dtype, device=cdf.device) + jitter) / n_samples
+        u = u.clamp(max=1 - torch.finfo(u.dtype).eps / 2)  # the float below 1: (n - 1 + xi) / n can round to 1
     n_bins = weights.shape[-1]
     index = torch.searchsorted(cdf, u, right=True).clamp(1, n_bins)  # cdf[index-1] <= u < cdf[index]
     cdf_lo, cdf_hi = cdf.gather(-1, index - 1), cdf.gather(-1, index)
