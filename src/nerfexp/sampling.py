@@ -68,18 +68,18 @@ def sample_pdf(bins: Tensor, weights: Tensor, n_samples: int, deterministic: boo
     Stratified quantiles: u_k = (k + xi_k) / n, xi_k uniform in [0, 1), one in each n-th of the CDF,
     as ``stratified_samples`` does along the ray. Each u_k is still uniform over [0, 1) when k is
     drawn at random, so the set of samples follows the PDF as n sorted uniform u (the paper's code)
-    would, but a bin of mass w always receives n w samples give or take one, where sorted uniform u
-    gives n w +- sqrt(n w): the fine samples cover the surface instead of clumping, and the rendered
+    would, but a bin of mass w always receives n w samples, less than 2 off, where sorted uniform u
+    give n w +- sqrt(n w): the fine samples cover the surface instead of clumping, and the rendered
     colours vary less from step to step. On the built-in scene this raised the complete model's
-    test PSNR by 0.8 dB after 4500 steps (README, "Fine samples").
+    test PSNR from 27.59 to 28.14 dB after 4500 steps (README, "Departures from the paper").
 
     Safe by construction: the CDF starts at exactly 0 and ends at exactly 1 (x / x == 1 in floating
-    point), so every u in [0, 1) finds a bin (u is kept below 1 also where (k + xi) / n rounds up); intervals of zero mass are never selected
-    (``searchsorted(right=True)`` skips them), so the in-bin fraction divides by a positive mass; the
-    fraction is clamped to [0, 1] and ``lerp`` stays inside the bin, also a zero-width one. No epsilon
-    is added to the weights (the common ``weights + 1e-5`` puts samples in empty space and biases every
-    PDF); all-zero weights are uniform by selection. A nan weight gives nan samples, so a failed coarse
-    pass is seen rather than silently resampled uniformly.
+    point), so every u in [0, 1) finds a bin (u is kept below 1 where (k + xi) / n rounds up to it);
+    intervals of zero mass are never selected (``searchsorted(right=True)`` skips them), so the in-bin
+    fraction divides by a positive mass; the fraction is clamped to [0, 1] and ``lerp`` stays inside
+    the bin, also a zero-width one. No epsilon is added to the weights (the common ``weights + 1e-5``
+    puts samples in empty space and biases every PDF); all-zero weights are uniform by selection. A nan
+    weight gives nan samples, so a failed coarse pass is seen rather than silently resampled uniformly.
     """
     bins, weights = bins.detach(), weights.detach()
     total = weights.sum(-1, keepdim=True)
