@@ -15,8 +15,8 @@ from pathlib import Path
 
 import torch
 
-from nerfexp.encodings import PositionalEncoding
 from nerfexp.files import atomic_write
+from nerfexp.nerf.encodings import PositionalEncoding
 
 OUT = Path(__file__).parent / "results"
 L_MAX = 24

@@ -1,6 +1,6 @@
 """Error against cost for the renderer: analytic fields rendered with stratified and hierarchical sampling.
 
-For each field of ``nerfexp.analytic`` (a slab, a thin shell, a Gaussian blob), a batch of rays aimed so
+For each field of ``nerfexp.nerf.analytic`` (a slab, a thin shell, a Gaussian blob), a batch of rays aimed so
 that its surfaces fall everywhere relative to the sample grid is rendered by ``VolumeRenderer`` with
 deterministic (test-time) sampling in float32, as in training, by:
 
@@ -8,7 +8,7 @@ deterministic (test-time) sampling in float32, as in training, by:
 - ``hierarchical 1:3``: N / 4 coarse and 3 N / 4 fine samples (1.25 N network evaluations per ray);
 - ``hierarchical, 16 coarse`` and ``hierarchical, 64 coarse``: a fixed coarse pass, growing fine samples.
 
-Each is scored against the float64 truth (``nerfexp.analytic.render_errors``: mean absolute opacity and
+Each is scored against the float64 truth (``nerfexp.nerf.analytic.render_errors``: mean absolute opacity and
 colour error, opacity-weighted mean absolute depth error) and timed: the wall time to render the batch,
 the median of ``--repeats`` repeats, every configuration once per repeat in a shuffled order, so that
 machine load affects all alike (torch threads as the machine sets them). Writes
@@ -30,14 +30,14 @@ from pathlib import Path
 import torch
 from matplotlib.figure import Figure
 
-from nerfexp.analytic import GaussianBlob, Shell, Slab, aimed_rays, cost_for_error, render_errors
 from nerfexp.files import atomic_write
-from nerfexp.outputs import machine
-from nerfexp.renderer import BACKGROUNDS, VolumeRenderer
+from nerfexp.nerf.analytic import GaussianBlob, Shell, Slab, aimed_rays, cost_for_error, render_errors
+from nerfexp.nerf.volume_renderer import BACKGROUNDS, VolumeRenderer
+from nerfexp.rundir import machine
 
 RESULTS = Path(__file__).parent / "results"
 NEAR, FAR, BACKGROUND = 2.0, 6.0, "white"
-FIELDS = {  # name: (field, how rays are aimed at it: see nerfexp.analytic.aimed_rays)
+FIELDS = {  # name: (field, how rays are aimed at it: see nerfexp.nerf.analytic.aimed_rays)
     "slab": (Slab(), dict(impact=0.0, distance=(3.5, 4.5), cone_degrees=60.0)),  # |z| < 0.5, density 3
     "shell": (Shell(), dict(impact=1.1, distance=(3.5, 4.5))),  # radius 1, 0.1 thick, density 10
     "blob": (GaussianBlob(), dict(impact=0.6, distance=(3.5, 4.5))),  # r = 0.3, peak density 5

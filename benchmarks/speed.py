@@ -35,7 +35,8 @@ from lightning.fabric.utilities import move_data_to_device
 from matplotlib.figure import Figure
 from torch.profiler import ProfilerActivity, profile
 
-from nerfexp.module import FlushDenormals, seeded_random
+from nerfexp.training.callbacks import FlushDenormals
+from nerfexp.training.module import seeded_random
 
 RESULTS = Path(__file__).parent / "results"
 VARIANTS = ("none", "occupancy")

@@ -1,15 +1,17 @@
 """The real config composes and builds every combination of components, at both scales."""
 
+import inspect
 import subprocess
 import sys
 
 import pytest
 import torch
 from hydra import compose, initialize_config_module
-from hydra.utils import instantiate
+from hydra.utils import get_class, instantiate
+from omegaconf import OmegaConf
 
-from nerfexp.encodings import IdentityEncoding, PositionalEncoding
-from nerfexp.fields import DiffuseHead, SphericalHarmonicsHead, ViewMLPHead
+from nerfexp.nerf.encodings import IdentityEncoding, PositionalEncoding
+from nerfexp.nerf.fields import DiffuseHead, SphericalHarmonicsHead, ViewMLPHead
 
 
 def build(*overrides):
@@ -63,3 +65,40 @@ def test_plain_install_finds_its_configs(tmp_path):
                          capture_output=True, text=True)
     assert out.returncode == 0, out.stderr
     assert str(target) in out.stdout and "nerfexp.data.blender.BlenderScene 256" in out.stdout
+
+
+def targets(node, path="cfg"):
+    """Every ``(path, config)`` in ``node`` that builds an object (has ``_target_``)."""
+    if isinstance(node, dict):
+        if "_target_" in node:
+            yield path, node
+        for key, value in node.items():
+            yield from targets(value, f"{path}.{key}")
+
+
+@pytest.mark.parametrize("overrides", [[], ["data=blender", "data.root=/x", "scale=paper"],
+                                       ["data=llff", "data.root=/x", "acceleration=occupancy"],
+                                       ["data=colmap", "data.root=/x", "view_dependence=sh", "trainer=ddp"]])
+def test_every_key_of_a_config_is_an_argument_of_the_class_it_builds(overrides):
+    # configs mirror what they build: a key that no argument takes is a typo or a setting nothing reads
+    with initialize_config_module("nerfexp.conf", version_base=None):
+        cfg = compose("config", overrides=overrides)
+    built = list(targets(OmegaConf.to_container(cfg, resolve=False)))
+    assert {path for path, _ in built} >= {"cfg.model", "cfg.model.renderer", "cfg.data", "cfg.datamodule",
+                                           "cfg.trainer", "cfg.logger", "cfg.callbacks.checkpoint",
+                                           "cfg.callbacks.flush_denormals", "cfg.callbacks.guard"}
+    for path, node in built:
+        parameters = inspect.signature(get_class(node["_target_"])).parameters
+        if any(p.kind == p.VAR_KEYWORD for p in parameters.values()):
+            continue
+        keys = {key for key in node if not (key.startswith("_") and key.endswith("_"))}
+        assert keys <= set(parameters), f"{path} ({node['_target_']}): {sorted(keys - set(parameters))}"
+
+
+def test_the_fields_training_noise_is_a_model_setting_that_llff_sets_to_the_papers():
+    cfg, model = build()
+    assert cfg.model.renderer.field.density_noise_std == 0 and model.renderer.coarse.density_noise_std == 0
+    cfg, model = build("data=llff", "data.root=/x")
+    assert "density_noise_std" not in cfg.data and model.renderer.fine.density_noise_std == 1.0
+    cfg, model = build("data=llff", "data.root=/x", "model.renderer.field.density_noise_std=0.5")
+    assert model.renderer.coarse.density_noise_std == 0.5

@@ -8,12 +8,12 @@ import pytest
 import torch
 from hydra.utils import instantiate
 
-from conftest import TINY, read_json, run_nerfexp
-from nerfexp.data.datamodule import RandomRays, rank_slice
+from nerfexp.data.rays import RandomRays, rank_slice
 from nerfexp.data.views import Views
 from nerfexp.errors import ConfigError
 from nerfexp.metrics import psnr, ssim
-from nerfexp.outputs import LAST_CHECKPOINT, load_module, run_config
+from nerfexp.rundir import LAST_CHECKPOINT, load_module, run_config
+from tests.helpers import TINY, read_json, run_nerfexp
 
 DDP = ["trainer=ddp", "trainer.accelerator=cpu", "trainer.devices=2"]
 RAYS = ("origins", "directions", "rgb")

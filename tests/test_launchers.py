@@ -11,8 +11,8 @@ from lightning.fabric.plugins.environments import SLURMEnvironment
 from lightning.fabric.utilities import rank_zero as fabric_rank_zero
 from omegaconf import OmegaConf
 
-import nerfexp.renderer as renderer_module
-from conftest import TINY, read_json, run_nerfexp
+import nerfexp.nerf.volume_renderer as renderer_module
+from tests.helpers import TINY, read_json, run_nerfexp
 
 
 def config(*overrides: str, hydra: bool = False):
@@ -34,7 +34,7 @@ def test_slurm_launcher_asks_for_a_task_and_a_gpu_per_device_on_every_node():
 SLURM_TASK = {  # what srun sets for task 3 of a job of 2 nodes x 2 tasks
     "SLURM_NTASKS": "4", "SLURM_NTASKS_PER_NODE": "2", "SLURM_NNODES": "2", "SLURM_PROCID": "3",
     "SLURM_LOCALID": "1", "SLURM_NODEID": "1", "SLURM_NODELIST": "gpu[07-08]", "SLURM_JOB_ID": "4242",
-    "SLURM_JOB_NAME": "cli",
+    "SLURM_JOB_NAME": "nerfexp",
 }
 
 

@@ -2,8 +2,8 @@
 and the command line on a trained run against direct renders of the same cameras."""
 
 import json
-import math
 from pathlib import Path
+from types import SimpleNamespace
 
 import imageio.v2 as imageio
 import numpy as np
@@ -13,57 +13,11 @@ from hydra import compose, initialize_config_module
 from hydra.utils import instantiate
 from omegaconf import OmegaConf
 
-from conftest import TINY, run_nerfexp
-from nerfexp.cameras import camera_rays, look_at
 from nerfexp.data.procedural import CAMERA_RADIUS
-from nerfexp.outputs import load_module, run_config
-from nerfexp.render import default_path, frame_size, llff_focus_depth, orbit_path, render_frame, spiral_path
-
-Z = torch.tensor([0.0, 0.0, 1.0], dtype=torch.float64)
-
-
-def cameras_at(distance: list[float], elevation_deg: list[float], azimuth_deg: list[float]) -> torch.Tensor:
-    """Cameras [N, 4, 4] at the given spherical coordinates (z up), looking at the origin."""
-    r, e, a = (torch.tensor(v, dtype=torch.float64) for v in (distance, elevation_deg, azimuth_deg))
-    e, a = torch.deg2rad(e), torch.deg2rad(a)
-    eye = r[:, None] * torch.stack([e.cos() * a.cos(), e.cos() * a.sin(), e.sin()], -1)
-    return look_at(eye, torch.zeros(3, dtype=torch.float64), Z)
-
-
-def test_an_orbit_circles_at_the_cameras_mean_distance_and_elevation():
-    # Distances 3, 5.5, 3, 4.5 (mean 4), elevations 30 and 50 degrees (mean 40), opposite azimuths in
-    # pairs of equal elevation (so the mean up is exactly z): the orbit is the circle of radius
-    # 4 cos 40deg = 3.064 at height 4 sin 40deg = 2.571.
-    cams = cameras_at([3, 5.5, 3, 4.5], [30, 50, 30, 50], [10, 100, 190, 280])
-    orbit = orbit_path(cams, 8)
-    eyes = orbit[:, :3, 3]
-    assert orbit.shape == (8, 4, 4)
-    torch.testing.assert_close(eyes[:, 2], torch.full((8,), 4 * math.sin(math.radians(40)), dtype=torch.float64))
-    torch.testing.assert_close(eyes[:, :2].norm(dim=-1), torch.full((8,), 4 * math.cos(math.radians(40)),
-                                                                     dtype=torch.float64))
-    # each camera looks at the origin (its back axis points from the origin to it), z up on screen
-    torch.testing.assert_close(orbit[:, :3, 2], eyes / eyes.norm(dim=-1, keepdim=True))
-    assert (orbit[:, 2, 1] > 0).all()
-    # evenly spaced, 45 degrees apart, counterclockwise about z, starting at the azimuth of the camera
-    # farthest from the axis: 100 degrees (5.5 cos 50deg = 3.54 from it; the others 2.89 and 2.60)
-    azimuth = torch.deg2rad(100 + 45 * torch.arange(8, dtype=torch.float64))
-    ring = torch.stack([azimuth.cos(), azimuth.sin()], -1)
-    torch.testing.assert_close(eyes[:, :2], 4 * math.cos(math.radians(40)) * ring)
-
-
-def test_a_spiral_looks_at_its_focus_point_in_front_of_the_mean_camera():
-    # Five forward-facing cameras near z = 0, all looking down -z: the mean camera is at the origin.
-    offsets = torch.tensor([[0, 0, 0], [1, 0, 0], [-1, 0, 0], [0, 0.5, 0.2], [0, -0.5, -0.2]], dtype=torch.float64)
-    cams = torch.eye(4, dtype=torch.float64).repeat(5, 1, 1)
-    cams[:, :3, 3] = offsets
-    spiral = spiral_path(cams, 16, focus_depth=10.0)
-    eyes, focus = spiral[:, :3, 3], torch.tensor([0, 0, -10.0], dtype=torch.float64)
-    torch.testing.assert_close(spiral[:, :3, 2], (eyes - focus) / (eyes - focus).norm(dim=-1, keepdim=True))
-    # radii: 90th percentiles of |offsets| per axis, (1, 0.5, 0.2); two turns in 16 frames, so frame 2 is a
-    # quarter turn: frame 0 at (r_x, 0, 0), frame 2 at (0, -r_y, -r_z sin(pi/4))
-    torch.testing.assert_close(eyes[0], torch.tensor([1.0, 0, 0], dtype=torch.float64))
-    torch.testing.assert_close(eyes[2], torch.tensor([0, -0.5, -0.2 * math.sin(math.pi / 4)], dtype=torch.float64))
-    assert (spiral[:, 1, 1] > 0.9).all()  # upright
+from nerfexp.geometry.cameras import camera_rays
+from nerfexp.render import default_path, frame_size, render_frame, scene_focus_depth
+from nerfexp.rundir import load_module, run_config
+from tests.helpers import TINY, cameras_at, run_nerfexp
 
 
 def test_path_defaults_focus_and_frame_size():
@@ -71,7 +25,6 @@ def test_path_defaults_focus_and_frame_size():
     assert default_path(OmegaConf.create({"_target_": "nerfexp.data.llff.LLFFScene", "ndc": True})) == "spiral"
     assert default_path(OmegaConf.create({"_target_": "some.Scene", "ndc": True})) == "spiral"
     assert default_path(OmegaConf.create({})) == "orbit"
-    assert llff_focus_depth(2.0, 6.0) == pytest.approx(1 / (0.25 / 1.8 + 0.75 / 30))  # 6.08
     assert frame_size(24, 24, 30.0, 32) == (32, 32, 40.0)
     assert frame_size(60, 100, 50.0, 50) == (30, 50, 25.0)
     assert frame_size(61, 100, 50.0, 10) == (6, 10, 5.0)  # 6.1 rounded to an even height
@@ -167,15 +120,11 @@ def test_rendering_a_missing_run_is_one_clear_line(tmp_path, make):
     assert lines[0].startswith("nerfexp-render: error: ") and expected in lines[0], lines
 
 
-def test_focus_depth_from_a_scene_whose_bounds_are_a_method_or_an_attribute():
-    # LLFF keeps per-view bounds as an attribute, COLMAP returns (near, far) from bounds(): near 2, far 6
-    # give 1 / (0.25 / 1.8 + 0.75 / 30) either way
-    from types import SimpleNamespace
-
-    from nerfexp.render import scene_focus_depth
-
+def test_the_spirals_focus_depth_comes_from_the_views_depth_bounds_else_the_ray_bounds():
+    # LLFF records per-view depth bounds (2 to 6 over its views); other scenes give their ray bounds
+    # (near 2, far 6): 1 / (0.25 / 1.8 + 0.75 / 30) either way
     expected = 1 / (0.25 / 1.8 + 0.75 / 30)
-    as_attribute = SimpleNamespace(bounds=torch.tensor([[2.0, 5.0], [3.0, 6.0]]))
-    as_method = SimpleNamespace(bounds=lambda: (2.0, 6.0))
-    for scene in (as_attribute, as_method):
-        assert scene_focus_depth(scene, OmegaConf.create({})) == pytest.approx(expected)
+    per_view = SimpleNamespace(depth_bounds=lambda: torch.tensor([[2.0, 5.0], [3.0, 6.0]]), ray_bounds=None)
+    ray_bounds_only = SimpleNamespace(depth_bounds=lambda: None, ray_bounds=lambda: (2.0, 6.0))
+    for scene in (per_view, ray_bounds_only):
+        assert scene_focus_depth(scene) == pytest.approx(expected)

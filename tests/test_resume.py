@@ -2,70 +2,13 @@
 where the same run left alone ends; ``nerfexp-eval`` reproduces a run's own test scores."""
 
 import json
-import os
 import signal
 from pathlib import Path
 
-import lightning as L
 import pytest
 import torch
 
-from conftest import TINY, read_json, run_nerfexp
-from nerfexp.data.datamodule import RandomRays
-from nerfexp.data.views import Views
-from nerfexp.module import seeded_random
-
-TESTS = Path(__file__).parent
-
-
-class KillAtStep(L.Callback):
-    """Kills its own process with SIGKILL (no clean-up, as a preempted or out-of-memory job dies) when
-    training is about to take step ``step + 1``: after the checkpoint and validation of step ``step``.
-    Injected from the command line as ``+callbacks.kill._target_=test_resume.KillAtStep``."""
-
-    def __init__(self, step: int):
-        self.step = step
-
-    def on_train_batch_start(self, trainer, pl_module, batch, batch_idx):
-        if trainer.global_step == self.step:
-            os.kill(os.getpid(), signal.SIGKILL)
-
-
-def test_a_ray_stream_started_at_batch_k_continues_the_stream_from_its_start():
-    views = Views(rgba=torch.rand(3, 4, 5, 4), c2w=torch.eye(4).expand(3, 4, 4), focal=3.0)
-    stream = iter(RandomRays(views, torch.ones(3), batch_rays=16, seed=7))
-    batches = [next(stream) for _ in range(5)]
-    resumed = next(iter(RandomRays(views, torch.ones(3), batch_rays=16, seed=7, start=3)))
-    assert resumed.keys() == batches[3].keys() == {"origins", "directions", "rgb", "seed"}
-    assert all(torch.equal(resumed[k], batches[3][k]) for k in ("origins", "directions", "rgb"))
-    assert resumed["seed"] == batches[3]["seed"]
-    # and the stream does not repeat itself: other batches, other seeds
-    assert len({b["seed"] for b in batches}) == 5 and not torch.equal(batches[3]["rgb"], batches[4]["rgb"])
-    other = next(iter(RandomRays(views, torch.ones(3), batch_rays=16, seed=8, start=3)))
-    assert other["seed"] != resumed["seed"] and not torch.equal(other["rgb"], resumed["rgb"])
-
-
-def test_a_seeded_block_repeats_its_numbers_and_leaves_the_global_stream_alone():
-    before = torch.get_rng_state()
-    with seeded_random(5, torch.device("cpu")):
-        first = torch.rand(4)
-    assert torch.equal(torch.get_rng_state(), before)
-    with seeded_random(5, torch.device("cpu")):
-        again = torch.rand(4)
-    with seeded_random(6, torch.device("cpu")):
-        other = torch.rand(4)
-    with seeded_random(None, torch.device("cpu")):  # no seed: the global stream itself
-        unseeded = torch.rand(4)
-    assert torch.equal(first, again) and not torch.equal(first, other)
-    torch.set_rng_state(before)
-    assert torch.equal(unseeded, torch.rand(4))
-
-
-def final_state(run_dir: Path) -> dict:
-    """What a run's last checkpoint holds: its step, learning rate, weights and Adam state."""
-    checkpoint = torch.load(run_dir / "checkpoints" / "last.ckpt", map_location="cpu", weights_only=True)
-    return {"step": checkpoint["global_step"], "lr": checkpoint["optimizer_states"][0]["param_groups"][0]["lr"],
-            "weights": checkpoint["state_dict"], "adam": checkpoint["optimizer_states"][0]["state"]}
+from tests.helpers import final_state, kill_at, read_json, run_nerfexp
 
 
 def records(run_dir: Path) -> list[tuple]:
@@ -74,10 +17,8 @@ def records(run_dir: Path) -> list[tuple]:
 
 
 @pytest.mark.slow
-def test_a_killed_run_resumed_ends_as_the_uninterrupted_run(tiny_run, tmp_path, tiny, monkeypatch):
-    monkeypatch.setenv("PYTHONPATH", os.pathsep.join([str(TESTS), os.environ.get("PYTHONPATH", "")]))
-    killed = run_nerfexp(*tiny, "+callbacks.kill._target_=test_resume.KillAtStep", "+callbacks.kill.step=30",
-                         f"hydra.run.dir={tmp_path}", cwd=tmp_path)
+def test_a_killed_run_resumed_ends_as_the_uninterrupted_run(tiny_run, tmp_path, tiny):
+    killed = run_nerfexp(*tiny, *kill_at(30), f"hydra.run.dir={tmp_path}", cwd=tmp_path)
     assert killed.returncode == -signal.SIGKILL, killed.stderr[-3000:]
     assert not (tmp_path / "results.json").exists() and final_state(tmp_path)["step"] == 30
     assert read_json(tmp_path / "status.json")["state"] == "running"  # as a killed job leaves it

@@ -12,7 +12,7 @@ from hydra.types import RunMode
 from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
 from tensorboard.plugins.hparams.plugin_data_pb2 import HParamsPluginData
 
-from conftest import TINY, read_json, run_nerfexp
+from tests.helpers import TINY, read_json, run_nerfexp
 
 # The paper's Table 4, written out independently of conf/ablation/: position L (None: raw xyz),
 # direction L (None: raw; the rows 7 and 8 values are ours, scaled in proportion), view dependence,

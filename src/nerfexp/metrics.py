@@ -5,10 +5,7 @@ import torch
 from skimage.metrics import structural_similarity
 from torch import Tensor
 
-
-def quantize(image: Tensor) -> Tensor:
-    """The image as an 8-bit PNG would store it, back in [0, 1]: round(clamp(x) * 255) / 255."""
-    return torch.round(image.clamp(0, 1) * 255) / 255
+from nerfexp.pixels import quantize
 
 
 def psnr(image: Tensor, target: Tensor) -> float:

@@ -18,7 +18,6 @@ default ``seed``), leaving out overrides every run shares.
 import argparse
 import csv
 import io
-import json
 import math
 import os
 import socket
@@ -34,7 +33,7 @@ from matplotlib.figure import Figure
 from omegaconf import OmegaConf
 
 from nerfexp.files import atomic_write
-from nerfexp.outputs import STATUS
+from nerfexp.rundir import RESULTS, STATUS, find_run_dirs, read_json, read_metrics
 
 # The paper's Table 4 (mean over the 8 Realistic Synthetic scenes): conf/ablation/NAME -> (row, PSNR, SSIM).
 PAPER_ABLATION = {
@@ -106,19 +105,14 @@ def _process_alive(pid: int) -> bool:
 def read_run(path: Path) -> Run:
     """What a run directory says about its job. A job whose status still says running but whose
     process is gone from this host was killed (out of memory, a time limit, a signal)."""
-    status = json.loads((path / STATUS).read_text()) if (path / STATUS).exists() else {}
-    results = json.loads((path / "results.json").read_text()) if (path / "results.json").exists() else None
+    status = read_json(path / STATUS) or {}
+    results = read_json(path / RESULTS)
     overrides = status.get("overrides", (results or {}).get("overrides", []))
-    curve = []
-    if (path / "metrics.jsonl").exists():
-        for line in (path / "metrics.jsonl").read_text().splitlines():
-            record = json.loads(line)
-            if record["split"] == "val":
-                curve.append((record["wall_time_s"], record["psnr"]))
+    curve = [(record["wall_time_s"], record["psnr"]) for record in read_metrics(path) if record["split"] == "val"]
     state = status.get("state", "finished" if results is not None else "unknown")
     detail = status.get("error", "")
     if state == "finished" and results is None:
-        state, detail = "failed", "status says finished but results.json is missing"
+        state, detail = "failed", f"status says finished but {RESULTS} is missing"
     if state == "running":
         here = status.get("host") == socket.gethostname()
         if here and not _process_alive(status["pid"]):
@@ -134,10 +128,9 @@ def find_runs(directories: list[Path]) -> list[Run]:
     for directory in directories:
         if not directory.is_dir():
             raise SystemExit(f"nerfexp-report: error: {directory} is not a directory")
-        for name in (STATUS, "results.json"):
-            paths.update(p.parent for p in directory.rglob(name))
+        paths.update(find_run_dirs(directory))
     if not paths:
-        raise SystemExit(f"nerfexp-report: error: no runs (no {STATUS} or results.json) under "
+        raise SystemExit(f"nerfexp-report: error: no runs (no {STATUS} or {RESULTS}) under "
                          f"{', '.join(map(str, directories))}")
     return [read_run(path) for path in sorted(paths)]
 

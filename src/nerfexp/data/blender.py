@@ -7,46 +7,37 @@ A dataset root holds, per split, ``transforms_{split}.json``::
 
 and the RGBA PNG images. ``file_path`` is relative to the root and usually has no extension
 (``./train/r_0`` means ``train/r_0.png``). Matrices use the OpenGL convention of
-``nerfexp.cameras``; images hold straight (not premultiplied) alpha.
+``nerfexp.geometry.cameras``; images hold straight (not premultiplied) alpha.
 """
 
-import io
 import json
 import math
 from dataclasses import dataclass
 from pathlib import Path, PurePosixPath
 
-import numpy as np
 import torch
-import torch.nn.functional as F
-from PIL import Image
 from torch import Tensor
 from tqdm import tqdm
 
-from nerfexp.cameras import focal_from_fov
+from nerfexp.data.base import Scene
+from nerfexp.data.images import downscale_rgba, fit_factor, read_image
 from nerfexp.data.views import Views
 from nerfexp.errors import DatasetError
 from nerfexp.files import atomic_write
+from nerfexp.geometry.cameras import focal_from_fov
+from nerfexp.pixels import png_bytes, to_uint8
 
 TRANSFORMS = "transforms_{split}.json"
 BLENDER_HALF_SIDE = 1.5  # the synthetic scenes' objects lie in [-1.5, 1.5]^3
-
-
-def _png(rgba: np.ndarray) -> bytes:
-    """PNG file contents of an 8-bit RGBA image [H, W, 4]."""
-    buffer = io.BytesIO()
-    Image.fromarray(rgba, "RGBA").save(buffer, format="PNG")
-    return buffer.getvalue()
 
 
 def write_blender(root: Path, split: str, views: Views, camera_angle_x: float) -> None:
     """Write ``views`` as ``root/transforms_{split}.json`` and 8-bit PNGs ``root/{split}/r_{i}.png``."""
     root = Path(root)
     (root / split).mkdir(parents=True, exist_ok=True)
-    pixels = torch.round(views.rgba.clamp(0, 1) * 255).to(torch.uint8).numpy()  # [N, H, W, 4]
     frames = []
-    for i, image in enumerate(pixels):
-        atomic_write(root / split / f"r_{i}.png", _png(image))
+    for i, image in enumerate(to_uint8(views.rgba)):  # [H, W, 4] each
+        atomic_write(root / split / f"r_{i}.png", png_bytes(image))
         frames.append({"file_path": f"./{split}/r_{i}", "transform_matrix": views.c2w[i].tolist()})
     text = json.dumps({"camera_angle_x": float(camera_angle_x), "frames": frames}, indent=2)
     atomic_write(root / TRANSFORMS.format(split=split), text.encode())
@@ -111,38 +102,6 @@ def image_path(root: Path, file_path: str) -> Path:
     return path if PurePosixPath(relative).suffix else path.with_name(path.name + ".png")
 
 
-def read_image(path: Path, source: str) -> Tensor:
-    """An image file as 8-bit RGBA [H, W, 4]; images without alpha get alpha 255."""
-    if not path.is_file():
-        raise DatasetError(f"image {path} does not exist (named by {source})")
-    try:
-        with Image.open(path) as image:
-            rgba = np.asarray(image.convert("RGBA"))
-    except OSError as error:
-        raise DatasetError(f"{path}: cannot read the image ({error})") from None
-    return torch.from_numpy(rgba.copy())
-
-
-def downscale_rgba(rgba: Tensor, factor: int) -> Tensor:
-    """Area-average straight-alpha images [N, H, W, 4] down to [N, H // factor, W // factor, 4].
-
-    Colour is averaged premultiplied by alpha (so transparent pixels' colours do not bleed into
-    edges), then divided by the averaged alpha where it is positive. Each output pixel averages
-    the input pixels under its footprint (adaptive average pooling): when ``factor`` divides H
-    and W these are exact factor x factor blocks, otherwise the whole image is still covered, so
-    a focal length computed from the new width stays right.
-    """
-    N, H, W, _ = rgba.shape  # views, rows, columns
-    if H // factor < 1 or W // factor < 1:
-        raise DatasetError(f"downscale {factor} is larger than the images ({W}x{H})")
-    rgb, alpha = rgba[..., :3], rgba[..., 3:]
-    premultiplied = torch.cat([rgb * alpha, alpha], -1).permute(0, 3, 1, 2)  # [N, 4, H, W]
-    pooled = F.adaptive_avg_pool2d(premultiplied, (H // factor, W // factor)).permute(0, 2, 3, 1)
-    alpha = pooled[..., 3:]
-    rgb = torch.where(alpha > 0, pooled[..., :3] / alpha.clamp_min(torch.finfo(alpha.dtype).tiny), 0.0)
-    return torch.cat([rgb.clamp(0, 1), alpha], -1)
-
-
 def load_blender(root, split: str, downscale: int = 1, max_views: int | None = None, stride: int = 1) -> Views:
     """Load one split of a Blender-format dataset as ``Views``.
 
@@ -180,7 +139,7 @@ def load_blender(root, split: str, downscale: int = 1, max_views: int | None = N
 
 
 @dataclass
-class BlenderScene:
+class BlenderScene(Scene):
     """A Blender-format dataset (``data=blender``): the training views, the first ``n_val``
     validation views, and every ``test_stride``-th test view, all shrunk by ``downscale`` and then,
     where ``max_side`` is set, by the smallest further integer factor that brings the longer image
@@ -205,8 +164,8 @@ class BlenderScene:
         options = {"train": {"max_views": self.n_train}, "val": {"max_views": self.n_val},
                    "test": {"stride": self.test_stride}}[split]
         views = load_blender(self.root, split, self.downscale, **options)
-        side = max(views.height, views.width)
-        if self.max_side is None or side <= self.max_side:
+        factor = fit_factor(max(views.height, views.width), self.max_side)
+        if factor == 1:
             return views
-        rgba = downscale_rgba(views.rgba, math.ceil(side / self.max_side))
+        rgba = downscale_rgba(views.rgba, factor)
         return Views(rgba=rgba, c2w=views.c2w, focal=views.focal * rgba.shape[2] / views.width)

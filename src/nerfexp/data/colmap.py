@@ -16,7 +16,7 @@ an interrupted run leaves no half-made cache; nothing outside ``DIR/colmap`` is 
 nothing is deleted but this run's own temporary folder.
 
 Conventions. COLMAP's poses are ``cam_from_world`` (x_cam = R x_world + t) for a camera that looks
-down +z with y down; nerfexp's ``c2w`` looks down -z with y up (``nerfexp.cameras``):
+down +z with y down; nerfexp's ``c2w`` looks down -z with y up (``nerfexp.geometry.cameras``):
 
     c2w = [[R^T, -R^T t], [0, 1]] @ diag(1, -1, -1, 1)
 
@@ -36,9 +36,6 @@ it centred) give this; a model that breaks it is refused with a DatasetError rat
 
 import contextlib
 import math
-import os
-import shutil
-import tempfile
 from collections.abc import Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -49,9 +46,11 @@ import torch
 from torch import Tensor
 from tqdm import tqdm
 
-from nerfexp.data.blender import downscale_rgba, read_image
+from nerfexp.data.base import Scene
+from nerfexp.data.images import downscale_rgba, fit_factor, read_image
 from nerfexp.data.views import IMAGE_SUFFIXES, Views, holdout_split
 from nerfexp.errors import DatasetError
+from nerfexp.files import atomic_directory
 
 CACHE = "colmap"  # DIR/colmap: nerfexp's own database, sparse model and undistorted images
 MODEL_FILES = ("cameras", "images", "points3D")
@@ -106,20 +105,6 @@ def _colmap_log_level(verbose: bool) -> Iterator[None]:
         pycolmap.logging.minloglevel = previous
 
 
-@contextlib.contextmanager
-def _building(final: Path) -> Iterator[Path]:
-    """A fresh temporary folder beside ``final``, renamed to ``final`` when the block succeeds and
-    removed when it fails (it is this run's own; nothing else is touched)."""
-    final.parent.mkdir(parents=True, exist_ok=True)
-    work = Path(tempfile.mkdtemp(prefix=f".{final.name}-", dir=final.parent))
-    try:
-        yield work
-        os.rename(work, final)  # atomic; fails rather than replace an existing non-empty folder
-    except BaseException:
-        shutil.rmtree(work, ignore_errors=True)
-        raise
-
-
 def check_camera_model(name: str) -> None:
     """A DatasetError unless ``name`` is a COLMAP perspective camera model (undistortable to PINHOLE)."""
     models = [m for m in pycolmap.CameraModelId.__members__ if m not in ("INVALID", "EQUIRECTANGULAR")]
@@ -159,7 +144,7 @@ def reconstruct(root, camera_model: str = "SIMPLE_RADIAL", matcher: str = "exhau
                            f"deletes it) to reconstruct the scene again")
     stages = ("features", "matching", "mapping")
     progress = tqdm(total=len(stages), desc="COLMAP", unit="stage")
-    with _colmap_log_level(verbose), _building(cache) as work, progress as bar:
+    with _colmap_log_level(verbose), atomic_directory(cache) as work, progress as bar:
         database = work / "database.db"
         bar.set_postfix_str(f"features of {len(names)} images")
         extraction = pycolmap.FeatureExtractionOptions(num_threads=threads, use_gpu=False)
@@ -194,7 +179,7 @@ def undistort(root: Path, model_dir: Path, image_dir: Path, verbose: bool = Fals
         raise DatasetError(f"{final} exists but holds no model in sparse/; move it away (nerfexp never deletes it) "
                            f"to undistort the images again")
     progress = tqdm(total=1, desc="COLMAP", unit="stage", postfix="undistortion to PINHOLE")
-    with _colmap_log_level(verbose), _building(final) as work, progress as bar:
+    with _colmap_log_level(verbose), atomic_directory(final) as work, progress as bar:
         pycolmap.undistort_images(work, model_dir, image_dir)
         bar.update()
     return final / "sparse", final / "images"
@@ -332,8 +317,7 @@ def read_views(data: ColmapData, index: Tensor, downscale: int = 1, max_side: in
     """The images ``index`` of ``data`` as opaque ``Views``, shrunk by ``downscale`` and then, where
     ``max_side`` is set, by the smallest further integer factor that brings the longer side to at most
     ``max_side``; the focal length follows the width."""
-    side = max(data.width, data.height) // downscale
-    shrink = downscale * (math.ceil(side / max_side) if max_side is not None and side > max_side else 1)
+    shrink = downscale * fit_factor(max(data.width, data.height) // downscale, max_side)
     images = []
     for i in tqdm(index.tolist(), desc="loading colmap", unit="image"):
         path = data.image_dir / data.names[i]
@@ -348,11 +332,11 @@ def read_views(data: ColmapData, index: Tensor, downscale: int = 1, max_side: in
 
 
 @dataclass
-class ColmapScene:
+class ColmapScene(Scene):
     """Photographs posed by COLMAP (``data=colmap``); see the module's docstring for the cache, the
     conventions and the normalization. Test views are every ``holdout``-th image in name order,
     training views the first ``n_train`` of the rest, validation views the first ``n_val`` test views.
-    ``near`` and ``far`` None: from the sparse points (``bounds()``)."""
+    ``near`` and ``far`` None: from the sparse points (``ray_bounds()``)."""
 
     root: str
     downscale: int = 1
@@ -364,6 +348,7 @@ class ColmapScene:
     near: float | None = None
     far: float | None = None
     background: str = "white"
+    aabb: list | None = None  # the occupancy grid's box; None: bound from the training cameras
     camera_model: str = "SIMPLE_RADIAL"
     matcher: str = "exhaustive"
     max_features: int = 4096
@@ -386,7 +371,7 @@ class ColmapScene:
                                      self.threads, self.min_registered, self.verbose)
         return self._data
 
-    def bounds(self) -> tuple[float, float]:
+    def ray_bounds(self) -> tuple[float, float]:
         """(near, far): the configured values where set, else the sparse points' (see ``near_far``)."""
         data = self.load()
         return (data.near if self.near is None else self.near), (data.far if self.far is None else self.far)

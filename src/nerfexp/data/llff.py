@@ -8,7 +8,7 @@ and [H, W, focal] (image height and width in pixels, focal length in pixels at t
 
 Loading (``load_llff``), as in the NeRF authors' code:
 
-1. axes to nerfexp's OpenGL convention ([right, up, backwards], ``nerfexp.cameras``):
+1. axes to nerfexp's OpenGL convention ([right, up, backwards], ``nerfexp.geometry.cameras``):
    [down, right, back] -> [right, -down, back];
 2. scale: translations and bounds times s = 1 / (0.75 min(bounds)), so the nearest depth is 4/3 and
    the near plane z = -1 of NDC (``NDC_NEAR``) lies in front of everything;
@@ -22,22 +22,22 @@ images are made ``Views``.
 """
 
 import io
-import math
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 import torch
-from PIL import Image
 from torch import Tensor
 from tqdm import tqdm
 
-from nerfexp.cameras import look_at, pixel_directions
-from nerfexp.data.blender import downscale_rgba, read_image
+from nerfexp.data.base import Scene
+from nerfexp.data.images import downscale_rgba, fit_factor, read_image
 from nerfexp.data.views import IMAGE_SUFFIXES, Views, holdout_split
 from nerfexp.errors import ConfigError, DatasetError
 from nerfexp.files import atomic_write
-from nerfexp.ndc import ndc_rays
+from nerfexp.geometry.cameras import look_at, pixel_directions
+from nerfexp.geometry.ndc import ndc_rays
+from nerfexp.pixels import png_bytes, to_uint8
 
 POSES_BOUNDS = "poses_bounds.npy"
 BOUNDS_MARGIN = 0.75  # the nearest bound is scaled to 1 / 0.75
@@ -161,8 +161,7 @@ def read_images(files: list[Path], poses_path: Path, size: tuple[float, float], 
             if abs(h * width - w * height) > max(width, height):  # aspect ratios differ by more than a pixel
                 raise DatasetError(f"{path}: image size {w}x{h} has not the aspect ratio of the size "
                                    f"{width:g}x{height:g} that {poses_path} records")
-            side = max(h, w) // factor
-            factor *= math.ceil(side / max_side) if max_side is not None and side > max_side else 1
+            factor *= fit_factor(max(h, w) // factor, max_side)
         elif image.shape != first[1]:
             (h, w), (h0, w0) = image.shape[:2], first[1][:2]
             raise DatasetError(f"{path}: image size {w}x{h} differs from {first[0]} ({w0}x{h0}); all images must match")
@@ -198,13 +197,6 @@ def load_llff(root, factor: int = 1, holdout: int = 8, n_val: int = 2, max_side:
     return LLFFData(views=views, bounds=bounds, scale=scale, splits=holdout_split(len(poses), holdout, n_val))
 
 
-def _png(rgb: np.ndarray) -> bytes:
-    """PNG file contents of an 8-bit RGB image [H, W, 3]."""
-    buffer = io.BytesIO()
-    Image.fromarray(rgb, "RGB").save(buffer, format="PNG")
-    return buffer.getvalue()
-
-
 def write_llff(root, images: Tensor, c2w: Tensor, focal: float, bounds: Tensor) -> None:
     """Write a scene in the LLFF format: ``root/images/{i:03d}.png`` and ``root/poses_bounds.npy``.
 
@@ -213,10 +205,9 @@ def write_llff(root, images: Tensor, c2w: Tensor, focal: float, bounds: Tensor) 
     """
     root = Path(root)
     N, H, W, _ = images.shape  # views, rows, columns, channels
-    pixels = torch.round(images.clamp(0, 1) * 255).to(torch.uint8).numpy()
     digits = max(3, len(str(N - 1)))
-    for i, image in enumerate(pixels):
-        atomic_write(root / "images" / f"{i:0{digits}d}.png", _png(image))
+    for i, image in enumerate(to_uint8(images)):  # [H, W, 3] each
+        atomic_write(root / "images" / f"{i:0{digits}d}.png", png_bytes(image))
     poses = c2w_to_llff(c2w.to(torch.float64), H, W, focal)  # [N, 3, 5]
     rows = torch.cat([poses.reshape(N, 15), bounds.to(torch.float64)], -1).numpy()
     buffer = io.BytesIO()
@@ -241,14 +232,13 @@ def check_forward_facing(views: Views) -> None:
 
 
 @dataclass
-class LLFFScene:
+class LLFFScene(Scene):
     """An LLFF-format scene (``data=llff``): test views every ``holdout``-th image, training views
     the rest, validation the first ``n_val`` test views.
 
-    With ``ndc`` the model renders NDC rays (``nerfexp.ndc``) with t in [near, far] = [0, 1], from
+    With ``ndc`` the model renders NDC rays (``nerfexp.geometry.ndc``) with t in [near, far] = [0, 1], from
     the near plane to infinity; without it, world rays with t in [near, far] in the scaled scene's
-    units, which must enclose the scaled depth bounds. ``density_noise_std`` is read by the field
-    (``model.renderer.field.density_noise_std``): the paper's 1 for real scenes.
+    units, which must enclose the scaled depth bounds.
     """
 
     root: str
@@ -260,7 +250,6 @@ class LLFFScene:
     near: float = 0.0
     far: float = 1.0
     background: str = "black"
-    density_noise_std: float = 1.0
     aabb: list | None = None  # the occupancy grid's box; None: ``bounding_box``
     _data: LLFFData | None = field(default=None, init=False, repr=False)
 
@@ -287,8 +276,7 @@ class LLFFScene:
         reference one, z in [-1, 1] (the near plane to infinity); without ``ndc`` None: bound from the cameras."""
         return torch.tensor([[-1.5, -1.5, -1.0], [1.5, 1.5, 1.0]]) if self.ndc else None
 
-    @property
-    def bounds(self) -> Tensor:
+    def depth_bounds(self) -> Tensor:
         """[N, 2]: each image's near and far depth, scaled as the poses are."""
         return self.load().bounds
 

@@ -12,18 +12,16 @@ first hit in front of the origin (``inf`` for a miss) and ``normal`` [..., 3] th
 normal there (zero for a miss).
 """
 
-import argparse
 import math
 from dataclasses import dataclass
-from pathlib import Path
 
 import torch
 from torch import Tensor
 from tqdm import tqdm
 
-from nerfexp.cameras import camera_rays, focal_from_fov, look_at
-from nerfexp.data.blender import write_blender
+from nerfexp.data.base import Scene
 from nerfexp.data.views import Views
+from nerfexp.geometry.cameras import camera_rays, focal_from_fov, look_at
 
 NEAR, FAR = 2.0, 6.0
 CAMERA_ANGLE_X = 0.6911112070083618
@@ -258,7 +256,7 @@ def load_procedural(split: str, n_views: int, height: int, width: int, supersamp
 
 
 @dataclass
-class ProceduralScene:
+class ProceduralScene(Scene):
     """The built-in scene as a dataset (``data=procedural``): ``views(split)`` renders that split."""
 
     image_size: int = 64
@@ -279,34 +277,7 @@ class ProceduralScene:
         """[2, 3]: the objects' box (``objects_box``) widened on every side by one pixel's footprint at
         ``far`` (far / focal). An edge pixel is partly an object's colour, yet its ray (through the pixel's
         centre) can pass outside the object by up to half that, and there the field must absorb some light:
-        with the objects' exact box the grid cut every silhouette (test PSNR 22.79 against 23.16 without
-        the grid after 1,000 steps; 23.37 with a margin)."""
+        with the objects' exact box the grid cut every silhouette (docs/acceleration.md)."""
         box = objects_box()
         pad = self.far / focal_from_fov(self.image_size, CAMERA_ANGLE_X)
         return torch.stack([box[0] - pad, box[1] + pad])
-
-
-def _positive_int(text: str) -> int:
-    value = int(text)
-    if value < 1:
-        raise argparse.ArgumentTypeError(f"expected a positive integer, got {text}")
-    return value
-
-
-def main(argv: list[str] | None = None) -> None:
-    """``nerfexp-scene OUT_DIR``: render the three splits in the NeRF Blender format."""
-    parser = argparse.ArgumentParser(prog="nerfexp-scene", description=main.__doc__)
-    parser.add_argument("out_dir", type=Path, help="folder to write transforms_*.json and the PNGs to")
-    parser.add_argument("--resolution", type=_positive_int, default=100, help="image width and height")
-    parser.add_argument("--n-train", type=_positive_int, default=100)
-    parser.add_argument("--n-val", type=_positive_int, default=10)
-    parser.add_argument("--n-test", type=_positive_int, default=20)
-    parser.add_argument("--supersample", type=_positive_int, default=2, help="sub-pixel rays per side")
-    args = parser.parse_args(argv)
-    for split, n in (("train", args.n_train), ("val", args.n_val), ("test", args.n_test)):
-        views = load_procedural(split, n, args.resolution, args.resolution, args.supersample)
-        write_blender(args.out_dir, split, views, CAMERA_ANGLE_X)
-
-
-if __name__ == "__main__":
-    main()

@@ -13,7 +13,7 @@ class Views:
     """Posed RGBA images of one split.
 
     rgba: [N, H, W, 4] float32 in [0, 1], straight (not premultiplied) alpha.
-    c2w: [N, 4, 4] float32 camera-to-world matrices, OpenGL convention (see ``nerfexp.cameras``).
+    c2w: [N, 4, 4] float32 camera-to-world matrices, OpenGL convention (see ``nerfexp.geometry.cameras``).
     focal: focal length in pixels, shared by all views.
     """
 

@@ -1,0 +1,36 @@
+"""Pieces of the console scripts' command lines: argument types, a run and its config changes, and
+nerfexp's errors reported as one line."""
+
+import argparse
+import contextlib
+import sys
+from collections.abc import Callable, Iterator
+from pathlib import Path
+
+from nerfexp.errors import NerfexpError
+
+
+def positive(kind: type) -> Callable[[str], int | float]:
+    """An argparse type: a number of ``kind`` (int or float) above zero."""
+    def parse(text: str):
+        value = kind(text)
+        if value <= 0:
+            raise argparse.ArgumentTypeError(f"expected a positive number, got {text}")
+        return value
+    return parse
+
+
+def add_run_arguments(parser: argparse.ArgumentParser) -> None:
+    """``RUN [KEY=VALUE ...]``: a run directory (or a checkpoint file in one) and changes to its config."""
+    parser.add_argument("run", type=Path, help="a run directory (its checkpoints/last.ckpt), or a checkpoint file")
+    parser.add_argument("overrides", nargs="*", metavar="KEY=VALUE",
+                        help="changes to the run's config, e.g. data.root=/new/place/of/the/scene")
+
+
+@contextlib.contextmanager
+def one_line_errors(prog: str) -> Iterator[None]:
+    """Inside the block, a ``NerfexpError`` ends the program with ``PROG: error: MESSAGE`` and exit status 1."""
+    try:
+        yield
+    except NerfexpError as error:
+        sys.exit(f"{prog}: error: {error}")

@@ -1,0 +1,61 @@
+"""The ``Scene``: what every dataset format provides (``data`` in the config builds one), each member
+the rest of nerfexp uses spelled out, with a default where a format may leave it out."""
+
+import abc
+
+from torch import Tensor
+
+from nerfexp.data.views import Views
+from nerfexp.errors import ConfigError
+from nerfexp.geometry.boxes import frustum_aabb, parse_aabb
+
+
+class Scene(abc.ABC):
+    """A dataset: posed views per split, and how the model sees the scene.
+
+    Members every format has (dataclass fields of the formats, keys of their configs):
+        background: the name of the colour where rays absorb nothing (``nerfexp.nerf.backgrounds``).
+        near, far: the ray parameter's bounds (None where the format finds them: ``ray_bounds``).
+        aabb: the occupancy grid's box from the config, ``[[x0, y0, z0], [x1, y1, z1]]``, or None.
+    Methods with a default: ``bounding_box``, ``ray_bounds``, ``depth_bounds``, ``model_rays``.
+    """
+
+    background: str
+    near: float | None
+    far: float | None
+    aabb: list | None = None
+
+    @abc.abstractmethod
+    def views(self, split: str) -> Views:
+        """The posed images of ``split``: "train", "val" or "test"."""
+
+    def bounding_box(self) -> Tensor | None:
+        """The box [2, 3] that holds the scene's content, where the format knows it; None: bound it from
+        the training cameras (``box``)."""
+        return None
+
+    def ray_bounds(self) -> tuple[float, float]:
+        """``(near, far)``, the bounds of the rays' parameter t: the configured ones."""
+        return self.near, self.far
+
+    def depth_bounds(self) -> Tensor | None:
+        """[N, 2]: each view's near and far depth, where the format records them (LLFF); else None."""
+        return None
+
+    def model_rays(self, origins: Tensor, directions: Tensor) -> tuple[Tensor, Tensor]:
+        """The rays the model renders, made from world rays [..., 3]: the world rays themselves, or (LLFF)
+        NDC rays."""
+        return origins, directions
+
+    def box(self, train_views: Views | None, near: float, far: float) -> Tensor:
+        """The occupancy grid's box [2, 3], first match wins: ``aabb`` from the config; the scene's own
+        ``bounding_box()``; else the box of everything the training cameras ``train_views`` see between
+        ``near`` and ``far`` (``frustum_aabb``)."""
+        if self.aabb is not None:
+            return parse_aabb(self.aabb)
+        own = self.bounding_box()
+        if own is not None:
+            return own
+        if train_views is None:
+            raise ConfigError("the scene has no bounding box and no training views to bound: set data.aabb")
+        return frustum_aabb(train_views.c2w, train_views.height, train_views.width, train_views.focal, near, far)

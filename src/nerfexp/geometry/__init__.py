@@ -1,0 +1,1 @@
+"""Geometry: pinhole cameras and their rays, normalized device coordinates, boxes, camera paths."""

@@ -1,0 +1,56 @@
+"""Axis-aligned boxes ``aabb`` [2, 3] (lower corner, upper corner): parsed from the config, or bounding
+what cameras see. The occupancy grid covers one (``nerfexp.data.base.Scene.box`` chooses which)."""
+
+import math
+
+import torch
+from torch import Tensor
+
+from nerfexp.errors import ConfigError
+from nerfexp.geometry.cameras import pixel_directions
+
+FRUSTUM_SAMPLES = 33  # directions per image side when bounding the cameras' frusta
+
+
+def parse_aabb(value, key: str = "data.aabb") -> Tensor:
+    """``[[x0, y0, z0], [x1, y1, z1]]`` (or the flat ``[x0, y0, z0, x1, y1, z1]``) as a float32 tensor
+    [2, 3] with finite x0 < x1, y0 < y1, z0 < z1; anything else is a ConfigError naming ``key``."""
+    try:
+        box = torch.as_tensor([float(v) for v in _flatten(value)], dtype=torch.float32)
+    except (TypeError, ValueError):
+        box = None
+    if box is None or box.numel() != 6 or not torch.isfinite(box).all() or not (box[:3] < box[3:]).all():
+        raise ConfigError(f"{key}: expected the scene's box as [[x0, y0, z0], [x1, y1, z1]] with finite "
+                          f"x0 < x1, y0 < y1, z0 < z1 (or null: from the scene or its cameras), got {value!r}")
+    return box.reshape(2, 3)
+
+
+def _flatten(value) -> list:
+    if isinstance(value, str | bytes) or not hasattr(value, "__iter__"):
+        raise TypeError(value)
+    flat = []
+    for item in value:
+        flat += _flatten(item) if hasattr(item, "__iter__") and not isinstance(item, str) else [item]
+    return flat
+
+
+def frustum_aabb(c2w: Tensor, height: int, width: int, focal: float, near: float, far: float) -> Tensor:
+    """The box [2, 3] of all points o + t d, t in [near, far], that cameras ``c2w`` [N, 4, 4] of
+    ``height`` x ``width`` pixels and focal length ``focal`` (pixels) see (d unit).
+
+    Bounded from ``FRUSTUM_SAMPLES``^2 directions per image, the borders included, at near and far, and
+    padded by far (1 - cos(h / 2)) on every side, h the largest angle between neighbouring samples: no
+    point of a frustum lies farther than that outside the sampled points' box.
+    """
+    d_cam = pixel_directions(height, width, focal, dtype=torch.float64)  # [H, W, 3]
+    rows = torch.linspace(0, height - 1, FRUSTUM_SAMPLES).round().long()
+    cols = torch.linspace(0, width - 1, FRUSTUM_SAMPLES).round().long()
+    d = d_cam[rows][:, cols].reshape(-1, 3)
+    d = d / torch.linalg.vector_norm(d, dim=-1, keepdim=True)
+    c2w = c2w.to(torch.float64)
+    world = torch.einsum("nij,kj->nki", c2w[:, :3, :3], d)  # [N, K, 3]
+    points = torch.cat([c2w[:, None, :3, 3] + t * world for t in (near, far)], 1).reshape(-1, 3)
+    spacing = max(math.atan(width / focal / 2), math.atan(height / focal / 2))
+    spacing = 2 * spacing / (FRUSTUM_SAMPLES - 1) * math.sqrt(2)  # the diagonal between neighbours
+    pad = far * (1 - math.cos(spacing / 2))
+    return torch.stack([points.amin(0) - pad, points.amax(0) + pad]).float()

@@ -1,0 +1,179 @@
+"""The radiance field F(x, d) -> (rgb, sigma): the paper's MLP with a swappable view-dependence head."""
+
+from collections.abc import Callable
+
+import torch
+import torch.nn.functional as F
+from torch import Tensor, nn
+
+TRUNC_EXP_GRADIENT_CLAMP = 15.0  # the gradient of trunc_exp is at most e^15 = 3.3e6 per unit of upstream gradient
+
+
+class _TruncatedExp(torch.autograd.Function):
+    """exp(x) that never overflows, with a bounded gradient (the "truncated exponential" of Instant-NGP).
+
+    Forward: min(exp(x), largest float), so sigma is finite whatever the network outputs (an overflow
+    to inf would make d sigma / dx inf and the loss gradient nan). Backward: exp(min(x, 15)), so one
+    huge pre-activation cannot send a huge update through the network; below 15 it is the exact gradient.
+    """
+
+    @staticmethod
+    def forward(ctx, x: Tensor) -> Tensor:
+        ctx.save_for_backward(x)
+        return torch.exp(x).clamp(max=torch.finfo(x.dtype).max)  # an overflow to inf becomes the largest float
+
+    @staticmethod
+    def backward(ctx, grad: Tensor) -> Tensor:
+        (x,) = ctx.saved_tensors
+        return grad * torch.exp(x.clamp(max=TRUNC_EXP_GRADIENT_CLAMP))
+
+
+def trunc_exp(x: Tensor) -> Tensor:
+    """Density exp(x), finite for any x, with gradients bounded by e^15 (see ``_TruncatedExp``)."""
+    return _TruncatedExp.apply(x)
+
+
+DENSITY_ACTIVATIONS: dict[str, Callable[[Tensor], Tensor]] = {
+    "relu": F.relu,  # the paper's; its gradient is zero wherever the field is empty, so it can die
+    "softplus": F.softplus,  # never has a zero gradient, so a field that went empty recovers; linear above 20
+    "trunc_exp": trunc_exp,  # exp (Instant-NGP, Plenoxels-style): densities span decades at equal step sizes
+}
+
+
+class NeRFField(nn.Module):
+    """sigma from the encoded position alone; rgb from a feature of it and the view direction.
+
+    Trunk: ``depth`` ReLU layers of ``width``; the encoded position is concatenated again to the
+    input of each layer listed in ``skips`` (0-based: the paper's 8 x 256 joins it to the fifth
+    layer's output, the sixth layer's input, so ``skips=[5]``). The density is
+    ``activation(raw + density_bias)`` of one linear unit on the trunk output; in training mode
+    (``self.training``) with ``density_noise_std`` > 0, noise ~ N(0, density_noise_std^2) is added to
+    the raw density before the activation, a regulariser against floaters (the paper: std 1 on real
+    scenes, none on synthetic ones). Evaluation is deterministic.
+
+    Args:
+        position_encoding: module with ``out_dim``, maps [..., 3] -> [..., out_dim].
+        view_head: builds the colour head from the trunk width (see ``ViewMLPHead``).
+        density_activation: a key of ``DENSITY_ACTIVATIONS``.
+    """
+
+    def __init__(self, position_encoding: nn.Module, view_head: Callable[[int], nn.Module], depth: int = 8,
+                 width: int = 256, skips: tuple[int, ...] = (5,), density_activation: str = "relu",
+                 density_bias: float = 0.0, density_noise_std: float = 0.0):
+        super().__init__()
+        if density_activation not in DENSITY_ACTIVATIONS:
+            raise ValueError(f"field.density_activation: expected one of {sorted(DENSITY_ACTIVATIONS)}, "
+                             f"got {density_activation!r}")
+        bad = [s for s in skips if not 0 < s < depth]
+        if bad:
+            raise ValueError(f"field.skips: layer indices must be in 1..{depth - 1} for depth {depth}, got {bad}")
+        if not density_noise_std >= 0:
+            raise ValueError(f"field.density_noise_std: expected a standard deviation >= 0, got {density_noise_std}")
+        self.position_encoding = position_encoding
+        self.skips = set(skips)
+        in_dim = position_encoding.out_dim
+        self.trunk = nn.ModuleList(
+            nn.Linear((0 if i == 0 else width) + (in_dim if i == 0 or i in self.skips else 0), width)
+            for i in range(depth))
+        self.sigma = nn.Linear(width, 1)
+        self.activation = DENSITY_ACTIVATIONS[density_activation]
+        self.density_bias = density_bias
+        self.density_noise_std = density_noise_std
+        self.view_head = view_head(width)
+
+    def _trunk(self, positions: Tensor) -> Tensor:
+        """positions [..., 3] -> the trunk's output features [..., width]."""
+        encoded = self.position_encoding(positions)
+        h = encoded
+        for i, layer in enumerate(self.trunk):
+            if i in self.skips:
+                h = torch.cat([h, encoded], -1)
+            h = F.relu(layer(h), inplace=True)  # in place: ReLU backward needs only its output
+        return h
+
+    def forward(self, positions: Tensor, directions: Tensor) -> tuple[Tensor, Tensor]:
+        """positions [..., S, 3] and unit directions [..., S or 1, 3] (one per ray broadcasts over
+        its samples) -> (rgb [..., S, 3] in [0, 1], sigma [..., S] >= 0)."""
+        h = self._trunk(positions)
+        raw = self.sigma(h).squeeze(-1) + self.density_bias
+        if self.training and self.density_noise_std > 0:
+            raw = raw + self.density_noise_std * torch.randn_like(raw)
+        sigma = self.activation(raw)
+        return self.view_head(h, directions), sigma
+
+    def density(self, positions: Tensor) -> Tensor:
+        """sigma [...] >= 0 at positions [..., 3], without the colour head and without training noise:
+        what the occupancy grid and early ray termination look at (``nerfexp.nerf.occupancy``)."""
+        return self.activation(self.sigma(self._trunk(positions)).squeeze(-1) + self.density_bias)
+
+
+class ViewMLPHead(nn.Module):
+    """The paper's head: a linear feature of the trunk, joined with gamma(d), one ReLU layer, rgb."""
+
+    def __init__(self, in_features: int, direction_encoding: nn.Module, hidden: int = 128):
+        super().__init__()
+        self.direction_encoding = direction_encoding
+        self.feature = nn.Linear(in_features, in_features)
+        # The hidden layer on [feature, gamma(d)], split in two: with directions [..., 1, 3] the
+        # direction's half is computed once per ray and broadcast over the ray's samples. The renderer
+        # without a grid passes flat per-sample directions instead (one 2-D batch, fewer copies), so
+        # there it is computed per sample: a 27 x hidden product, a few percent of the step.
+        self.hidden = nn.Linear(in_features, hidden)
+        self.hidden_direction = nn.Linear(direction_encoding.out_dim, hidden, bias=False)
+        self.rgb = nn.Linear(hidden, 3)
+
+    def forward(self, h: Tensor, directions: Tensor) -> Tensor:
+        """h [..., S, F], directions [..., S or 1, 3] -> rgb [..., S, 3]."""
+        x = self.hidden(self.feature(h)) + self.hidden_direction(self.direction_encoding(directions))
+        return torch.sigmoid(self.rgb(F.relu(x, inplace=True)))
+
+
+class DiffuseHead(nn.Module):
+    """rgb from the position alone, the view direction unused: the "No View Dependence" ablation."""
+
+    def __init__(self, in_features: int):
+        super().__init__()
+        self.rgb = nn.Linear(in_features, 3)
+
+    def forward(self, h: Tensor, directions: Tensor) -> Tensor:
+        """h [..., S, F] -> rgb [..., S, 3]; ``directions`` is ignored."""
+        return torch.sigmoid(self.rgb(h))
+
+
+def sh_basis(directions: Tensor, degree: int) -> Tensor:
+    """Real spherical harmonics up to ``degree`` (0..3) at unit ``directions`` [..., 3]: [..., (degree+1)^2].
+
+    Ordered by band l, then m = -l..l, with the standard orthonormal constants (as in PlenOctrees).
+    """
+    if not 0 <= degree <= 3:
+        raise ValueError(f"view_dependence.degree: expected 0..3, got {degree}")
+    x, y, z = directions.unbind(-1)
+    out = [torch.full_like(x, 0.28209479177387814)]
+    if degree >= 1:
+        c1 = 0.4886025119029199
+        out += [-c1 * y, c1 * z, -c1 * x]
+    if degree >= 2:
+        xx, yy, zz, xy, yz, xz = x * x, y * y, z * z, x * y, y * z, x * z
+        out += [1.0925484305920792 * xy, -1.0925484305920792 * yz, 0.31539156525252005 * (2 * zz - xx - yy),
+                -1.0925484305920792 * xz, 0.5462742152960396 * (xx - yy)]
+    if degree >= 3:
+        out += [-0.5900435899266435 * y * (3 * xx - yy), 2.890611442640554 * xy * z,
+                -0.4570457994644658 * y * (4 * zz - xx - yy), 0.3731763325901154 * z * (2 * zz - 3 * xx - 3 * yy),
+                -0.4570457994644658 * x * (4 * zz - xx - yy), 1.445305721320277 * z * (xx - yy),
+                -0.5900435899266435 * x * (xx - 3 * yy)]
+    return torch.stack(out, -1)
+
+
+class SphericalHarmonicsHead(nn.Module):
+    """rgb = sigmoid(sum_k c_k Y_k(d)): the field predicts SH coefficients per colour channel."""
+
+    def __init__(self, in_features: int, degree: int = 2):
+        super().__init__()
+        self.degree = degree
+        self.coefficients = nn.Linear(in_features, 3 * (degree + 1) ** 2)
+
+    def forward(self, h: Tensor, directions: Tensor) -> Tensor:
+        """h [..., S, F], unit directions [..., S or 1, 3] -> rgb [..., S, 3]."""
+        coefficients = self.coefficients(h).unflatten(-1, (3, -1))  # [..., 3, K]
+        basis = sh_basis(directions, self.degree)  # [..., K]
+        return torch.sigmoid((coefficients * basis[..., None, :]).sum(-1))

@@ -1,0 +1,179 @@
+"""Rays to pixels: sample, query the field(s), composite. The paper's coarse-to-fine pipeline."""
+
+from collections.abc import Callable
+
+import torch
+from torch import Tensor, nn
+
+from nerfexp.nerf.backgrounds import BACKGROUNDS
+from nerfexp.nerf.occupancy import OccupancyGrid
+from nerfexp.nerf.quadrature import composite, optical_depths, render_weights
+from nerfexp.nerf.sampling import dilate_weights, intervals, sample_pdf, stratified_samples
+
+
+def final_output(outputs: dict[str, dict[str, Tensor]]) -> dict[str, Tensor]:
+    """The output that is scored and shown: the fine network's, or the only network's without hierarchy."""
+    return outputs["fine"] if "fine" in outputs else outputs["coarse"]
+
+
+def query_packed(field: nn.Module, points: Tensor, viewdirs: Tensor, keep: Tensor) -> tuple[Tensor, Tensor]:
+    """Evaluate ``field`` only at the samples ``keep`` [B, S] (bool) of ``points`` [B, S, 3], rays' unit
+    ``viewdirs`` [B, 3], as one flat batch of N = keep.sum() points; the others get sigma = 0 and rgb = 0.
+
+    Returns (rgb [B, S, 3], sigma [B, S]) in the field's dtype. A skipped sample absorbs nothing, so its
+    colour never reaches a pixel (``render_weights`` gives it weight exactly 0).
+    """
+    index = keep.nonzero(as_tuple=True)  # (ray [N], sample [N])
+    rgb, sigma = field(points[index], viewdirs[index[0]])  # [N, 3], [N]
+    B, S = keep.shape  # rays, samples
+    rgbs = rgb.new_zeros(B, S, 3).index_put(index, rgb)
+    sigmas = sigma.new_zeros(B, S).index_put(index, sigma)
+    return rgbs, sigmas
+
+
+class VolumeRenderer(nn.Module):
+    """Renders rays with one field (``hierarchical=False``) or a coarse and a fine field.
+
+    Hierarchical: ``n_coarse`` stratified samples through the coarse field; its weights, dilated by
+    one interval (``dilate_weights``) as a piecewise-constant PDF over the coarse intervals, give
+    ``n_fine`` more samples by inverse-transform sampling; the fine field
+    evaluates all n_coarse + n_fine. Without it, one field evaluates ``n_single`` stratified samples
+    (the paper's "No Hierarchical" row: 256, the same network evaluations per ray as 64 + 192).
+
+    With an occupancy ``grid`` (``acceleration=occupancy``) the samples stay where they are, but the
+    networks evaluate only those in occupied cells of the grid, packed into one flat batch
+    (``query_packed``); the others absorb nothing. With ``grid.early_stop_transmittance`` = eps > 0
+    the rays are also marched in ``grid.segments`` consecutive runs of samples: a run is evaluated
+    only for the rays that still let through at least eps of the light after the runs before it, so
+    the colour a stopped ray loses is at most eps (what could still reach the samples left out), and
+    no sample is evaluated twice. ``stats`` holds the last call's samples per ray evaluated.
+
+    Args:
+        field: builds a field (called once per network), e.g. a partial ``NeRFField``.
+        near, far: ray distance bounds; background: a key of ``BACKGROUNDS``.
+        grid: an ``OccupancyGrid``, or None to evaluate every sample.
+    """
+
+    def __init__(self, field: Callable[[], nn.Module], hierarchical: bool, n_coarse: int, n_fine: int,
+                 n_single: int, near: float, far: float, background: str = "white",
+                 grid: OccupancyGrid | None = None):
+        super().__init__()
+        if background not in BACKGROUNDS:
+            raise ValueError(f"data.background: expected one of {sorted(BACKGROUNDS)}, got {background!r}")
+        self.hierarchical = hierarchical
+        self.n_coarse = n_coarse if hierarchical else n_single
+        self.n_fine = n_fine if hierarchical else 0
+        self.near, self.far = near, far
+        self.coarse = field()
+        self.fine = field() if hierarchical else None
+        self.register_buffer("background", torch.tensor(BACKGROUNDS[background]), persistent=False)
+        self.grid = grid
+        self.stats: dict[str, Tensor | float] = {}
+        self._trained = {"rays": 0, "evaluations": 0.0}  # training totals, for evaluations_per_ray
+
+    @property
+    def samples_per_ray(self) -> int:
+        """Samples per ray, all networks: n_coarse + (n_coarse + n_fine) hierarchical, else n_single."""
+        return self.n_coarse + (self.n_coarse + self.n_fine if self.hierarchical else 0)
+
+    @property
+    def evaluations_per_ray(self) -> float:
+        """Network evaluations per ray: ``samples_per_ray`` without a grid; with one, the mean over the
+        training rays so far of the samples evaluated."""
+        if self.grid is None or self._trained["rays"] == 0:
+            return self.samples_per_ray
+        return float(self._trained["evaluations"]) / self._trained["rays"]
+
+    def density_fns(self) -> list[Callable[[Tensor], Tensor]]:
+        """Each network's density (positions [N, 3] -> sigma [N]), for ``OccupancyGrid.update``."""
+        return [net.density for net in (self.coarse, self.fine) if net is not None]
+
+    def _query(self, field: nn.Module, points: Tensor, viewdirs: Tensor, starts: Tensor,
+               ends: Tensor) -> tuple[Tensor, Tensor, Tensor | float]:
+        """(rgb [B, S, 3], sigma [B, S], samples evaluated) of the points [B, S, 3], ``starts``, ``ends``
+        [B, S] their intervals in distance units: all of them without a grid, else those the grid keeps,
+        marched in segments for early termination (see the class docstring)."""
+        B, S, _ = points.shape  # rays, samples, xyz
+        if self.grid is None:  # one flat batch [B S, 3]: 2-D matrix products, no copies of 3-D activations
+            flat_dirs = viewdirs[:, None, :].expand(B, S, 3).reshape(B * S, 3)
+            rgbs, sigmas = field(points.reshape(B * S, 3), flat_dirs)
+            return rgbs.reshape(B, S, 3), sigmas.reshape(B, S), float(B * S)
+        keep = self.grid.occupied_at(points)
+        eps = self.grid.early_stop_transmittance
+        if eps == 0:
+            rgbs, sigmas = query_packed(field, points, viewdirs, keep)
+            return rgbs, sigmas, keep.sum()
+        parts, evaluated = [], 0
+        depth_before = starts.new_zeros(B)  # optical depth in front of the segment, no gradient
+        n_segments = min(self.grid.segments, S)
+        for k in range(n_segments):
+            segment = slice(k * S // n_segments, (k + 1) * S // n_segments)
+            alive = keep[:, segment] & (torch.exp(-depth_before) >= eps)[:, None]
+            rgb, sigma = query_packed(field, points[:, segment], viewdirs, alive)
+            depth_before = depth_before + optical_depths(sigma.detach().to(starts.dtype), starts[:, segment],
+                                                         ends[:, segment]).sum(-1)
+            parts.append((rgb, sigma))
+            evaluated = evaluated + alive.sum()
+        return torch.cat([rgb for rgb, _ in parts], 1), torch.cat([sigma for _, sigma in parts], 1), evaluated
+
+    def _render(self, field: nn.Module, origins: Tensor, directions: Tensor, viewdirs: Tensor, t: Tensor,
+                far: Tensor) -> dict[str, Tensor]:
+        """Query ``field`` at samples t [B, S] of rays [B, 3]; each sample stands for its interval.
+
+        The field sees the unit ``viewdirs`` [B, 3]; an interval [t_i, t_{i+1}] is (t_{i+1} - t_i) |d| long.
+        """
+        t_starts, t_ends = intervals(t, far)
+        points = origins[:, None, :] + directions[:, None, :] * t[..., None]  # [B, S, 3]
+        lengths = torch.linalg.vector_norm(directions, dim=-1, keepdim=True)  # [B, 1]: distance per unit of t
+        starts, ends = t_starts * lengths, t_ends * lengths
+        rgbs, sigmas, evaluated = self._query(field, points, viewdirs, starts, ends)
+        # Rendering runs in the rays' precision whatever the network's: under bf16 autocast the field
+        # answers in bf16 (8 significant bits), too coarse for exp/cumsum of optical depths.
+        rgbs, sigmas = rgbs.to(t.dtype), sigmas.to(t.dtype)
+        weights, _ = render_weights(sigmas, starts, ends)
+        out = composite(weights, rgbs, t, self.background, self.far)
+        out.update(weights=weights, t_starts=t_starts, t_ends=t_ends, evaluated=evaluated)
+        return out
+
+    def forward(self, origins: Tensor, directions: Tensor, deterministic: bool,
+                viewdirs: Tensor | None = None) -> dict[str, dict[str, Tensor]]:
+        """Render rays o + t d, ``origins``, ``directions`` [B, 3], for t in [near, far].
+
+        Directions need not be unit vectors (NDC rays' are not): densities are integrated over the
+        length t |d| in the space the points o + t d live in (NDC space for NDC rays, as in the
+        paper's code). The field's view direction is ``viewdirs`` [B, 3] (unit; for NDC rays the
+        world direction), by default the unit ``directions``.
+
+        Returns {"coarse": out, "fine": out} (only "coarse" without hierarchy), each out holding
+        ``rgb`` [B, 3], ``depth`` [B] (in units of t), ``opacity`` [B], ``weights``, ``t_starts``,
+        ``t_ends`` [B, S].
+        """
+        B, _ = origins.shape  # rays, xyz
+        if viewdirs is None:
+            lengths = torch.linalg.vector_norm(directions, dim=-1, keepdim=True)
+            viewdirs = directions / lengths.clamp_min(torch.finfo(lengths.dtype).tiny)
+        near = torch.full((B,), self.near, dtype=origins.dtype, device=origins.device)
+        far = torch.full_like(near, self.far)
+        t_coarse = stratified_samples(near, far, self.n_coarse, deterministic)
+        coarse = self._render(self.coarse, origins, directions, viewdirs, t_coarse, far)
+        if not self.hierarchical:
+            self._count({"coarse": coarse}, B)
+            return {"coarse": coarse}
+        # PDF bins [B, Nc + 1]: the coarse intervals, the first one reaching back to near, since the
+        # coarse render's first sample lies up to one spacing past near and what lies before it must
+        # still be reachable by fine samples (else a density at near is lost however many are drawn)
+        bins = torch.cat([near[:, None], coarse["t_starts"][:, 1:], far[:, None]], -1)
+        t_fine = sample_pdf(bins, dilate_weights(coarse["weights"]), self.n_fine, deterministic)
+        t_all = torch.sort(torch.cat([t_coarse, t_fine], -1), -1).values
+        outputs = {"coarse": coarse, "fine": self._render(self.fine, origins, directions, viewdirs, t_all, far)}
+        self._count(outputs, B)
+        return outputs
+
+    def _count(self, outputs: dict[str, dict], n_rays: int) -> None:
+        """``stats`` of the call (samples per ray evaluated, all networks), pulled out of ``outputs`` (left
+        on the device: no host copy), and the training totals."""
+        evaluated = sum(out.pop("evaluated") for out in outputs.values()) / n_rays
+        self.stats = {"samples_per_ray": evaluated}
+        if self.training and self.grid is not None:
+            self._trained["rays"] += n_rays
+            self._trained["evaluations"] = self._trained["evaluations"] + evaluated * n_rays

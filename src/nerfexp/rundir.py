@@ -1,0 +1,159 @@
+"""The run directory: the one place that knows the names of the files a run leaves, and how a run is
+found and read back.
+
+A run's directory holds (every file written atomically):
+
+- ``status.json``: ``running`` (with host and process id), ``finished`` or ``failed`` (with the error),
+  and the run's command-line overrides, so a report can list jobs that crashed or still run.
+- ``metrics.jsonl``: one JSON object per evaluation: step, wall_time_s, split, psnr, ssim (means).
+- ``results.json``: final test means, last validation PSNR, training time, throughput, parameters,
+  the machine, the resolved choices and overrides (``nerfexp.training.recorders.RunRecorder``).
+- ``test/``: rendered test views (``r_{i}.png``) and their depth (``r_{i}_depth.png``).
+- ``checkpoints/last.ckpt``, ``.hydra/config.yaml`` (the composed config, as Hydra saves it).
+- ``eval.json`` (``nerfexp-eval``), ``render/`` (``nerfexp-render``), ``debug/`` (the training guards).
+
+A finished (or interrupted) run is read back by ``find_run``, ``run_config`` and ``load_module``.
+"""
+
+import json
+import os
+import pickle
+import socket
+import time
+from pathlib import Path
+
+import lightning as L
+import torch
+from hydra.utils import instantiate
+from lightning.pytorch.utilities.rank_zero import rank_zero_only
+from omegaconf import DictConfig, OmegaConf, open_dict
+from omegaconf.errors import OmegaConfBaseException
+
+from nerfexp.data.datamodule import fill_ray_bounds
+from nerfexp.errors import ConfigError, NerfexpError
+from nerfexp.files import atomic_write
+
+STATUS = "status.json"
+RESULTS = "results.json"
+METRICS = "metrics.jsonl"
+EVAL = "eval.json"
+TEST_DIR = "test"
+RENDER_DIR = "render"
+RUN_CONFIG = Path(".hydra", "config.yaml")  # the composed config, as Hydra saves it in every run directory
+LAST_CHECKPOINT = Path("checkpoints", "last.ckpt")
+
+# Where the classes of a run's config lived before the package was split into layers (and the data group
+# held the field's density noise): a run made by an earlier nerfexp is read as if made by this one.
+MOVED_TARGETS = {  # the first match of a target wins
+    "nerfexp.module.FlushDenormals": "nerfexp.training.callbacks.FlushDenormals",
+    "nerfexp.module.": "nerfexp.training.module.",
+    "nerfexp.guards.": "nerfexp.training.guards.",
+    "nerfexp.renderer.": "nerfexp.nerf.volume_renderer.",
+    "nerfexp.fields.": "nerfexp.nerf.fields.",
+    "nerfexp.encodings.": "nerfexp.nerf.encodings.",
+    "nerfexp.occupancy.": "nerfexp.nerf.occupancy.",
+}
+
+
+def is_global_zero() -> bool:
+    """Whether this process is global rank 0, the one that writes a run's files: always in a run of one
+    process; known before any trainer exists from the environment a launcher sets (``RANK``,
+    ``LOCAL_RANK``, ``SLURM_PROCID``), and kept up to date by Lightning's strategies."""
+    return rank_zero_only.rank == 0
+
+
+def write_status(output_dir: str | Path, state: str, overrides: list[str], **details) -> None:
+    """Record a run's ``state`` (running, finished, failed) with its host, process id and ``details``."""
+    record = {"state": state, "overrides": list(overrides), "host": socket.gethostname(), "pid": os.getpid(),
+              "time_unix": time.time(), **details}
+    atomic_write(Path(output_dir) / STATUS, json.dumps(record, indent=2).encode())
+
+
+def write_json(path: Path, record: dict) -> None:
+    """A run's JSON file (results, evaluation), indented, written atomically."""
+    atomic_write(path, json.dumps(record, indent=2).encode())
+
+
+def read_json(path: Path) -> dict | None:
+    """The JSON file ``path``; None where it does not exist."""
+    return json.loads(path.read_text()) if path.exists() else None
+
+
+def append_metrics(output_dir: str | Path, record: dict) -> None:
+    """Add one evaluation's ``record`` as a line of the run's ``metrics.jsonl``."""
+    path = Path(output_dir) / METRICS
+    previous = path.read_bytes() if path.exists() else b""
+    atomic_write(path, previous + (json.dumps(record) + "\n").encode())
+
+
+def read_metrics(run_dir: Path) -> list[dict]:
+    """The records of a run's ``metrics.jsonl``, in order; none where it has none."""
+    path = Path(run_dir) / METRICS
+    return [json.loads(line) for line in path.read_text().splitlines()] if path.exists() else []
+
+
+def find_run_dirs(directory: Path) -> set[Path]:
+    """Every run directory under ``directory`` (itself included): a folder holding ``status.json`` or
+    ``results.json``."""
+    return {p.parent for name in (STATUS, RESULTS) for p in Path(directory).rglob(name)}
+
+
+def machine() -> dict:
+    """Where a run's times were measured: host name and compute device."""
+    if torch.cuda.is_available():
+        device = f"{torch.cuda.get_device_name()} (CUDA {torch.version.cuda})"
+    else:
+        device = f"CPU ({os.cpu_count()} cores, {torch.get_num_threads()} torch threads)"
+    return {"host": socket.gethostname(), "device": device}
+
+
+def find_run(path: str | Path) -> tuple[Path, Path]:
+    """``(run directory, checkpoint)`` of ``path``: a run directory (its ``checkpoints/last.ckpt``) or a
+    checkpoint file in one (``RUN_DIR/checkpoints/NAME.ckpt``: the run directory two levels up)."""
+    path = Path(path)
+    if not path.exists():
+        raise NerfexpError(f"{path} does not exist: expected a run directory or a checkpoint file in one")
+    run_dir, checkpoint = (path, path / LAST_CHECKPOINT) if path.is_dir() else (path.parent.parent, path)
+    if not (run_dir / RUN_CONFIG).is_file():
+        raise NerfexpError(f"{run_dir} is not a run directory: it has no {RUN_CONFIG}")
+    if not checkpoint.is_file():
+        raise NerfexpError(f"{checkpoint} does not exist: the run in {run_dir} has saved no checkpoint")
+    return run_dir, checkpoint
+
+
+def _current(text: str) -> DictConfig:
+    """A run config's text read as this version's config: ``MOVED_TARGETS`` paths made current, and
+    ``data.density_noise_std`` moved to ``model.renderer.field``."""
+    for old, new in MOVED_TARGETS.items():
+        text = text.replace(f"_target_: {old}", f"_target_: {new}")  # a replaced target matches no later old
+    cfg = OmegaConf.create(text)
+    if "density_noise_std" in cfg.get("data", {}):
+        with open_dict(cfg):
+            cfg.model.renderer.field.density_noise_std = cfg.data.pop("density_noise_std")
+    return cfg
+
+
+def run_config(run_dir: Path, overrides: list[str] = ()) -> DictConfig:
+    """The config a run used (its ``RUN_CONFIG``), with ``KEY=VALUE`` ``overrides`` of existing keys
+    (e.g. ``data.root=...`` for a scene that moved)."""
+    cfg = _current((Path(run_dir) / RUN_CONFIG).read_text())
+    OmegaConf.set_struct(cfg, True)  # an override of a key the run does not have is a typo, not a new key
+    try:
+        return OmegaConf.merge(cfg, OmegaConf.from_dotlist(list(overrides)))
+    except OmegaConfBaseException as error:
+        raise ConfigError(f"cannot apply {' '.join(overrides)} to {Path(run_dir) / RUN_CONFIG}: "
+                          f"{str(error).splitlines()[0]}") from None
+
+
+def load_module(cfg: DictConfig, checkpoint: Path) -> tuple[L.LightningModule, int]:
+    """The run's model (``cfg.model``) with the weights of ``checkpoint``, on the CPU, and the number of
+    optimizer steps it had taken."""
+    fill_ray_bounds(cfg)  # a run's saved config holds null where the scene chose near and far
+    module = instantiate(cfg.model)
+    try:
+        state = torch.load(checkpoint, map_location="cpu", weights_only=True)
+        module.load_state_dict(state["state_dict"])
+    except (OSError, RuntimeError, KeyError, EOFError, pickle.UnpicklingError) as error:
+        raise NerfexpError(f"{checkpoint}: not a checkpoint of this run's model "
+                           f"({type(error).__name__}: {str(error).splitlines()[0]})") from None
+    return module, state["global_step"]

@@ -1,0 +1,82 @@
+"""``nerfexp``: build everything from the config, train, test with the last checkpoint; nothing else."""
+
+import logging
+import sys
+from pathlib import Path
+
+import hydra
+import lightning as L
+from hydra.core.hydra_config import HydraConfig
+from hydra.types import RunMode
+from hydra.utils import instantiate
+from omegaconf import DictConfig, OmegaConf
+
+from nerfexp.data.datamodule import fill_ray_bounds
+from nerfexp.data.rays import rank_slice
+from nerfexp.errors import ConfigError, NerfexpError
+from nerfexp.rundir import LAST_CHECKPOINT, RESULTS, is_global_zero, read_json, write_status
+from nerfexp.training.recorders import RunRecorder
+
+log = logging.getLogger("nerfexp")
+
+
+def train(cfg: DictConfig) -> dict | None:
+    """Train on ``cfg.data``, then score the test split with the last checkpoint; everything is written
+    to the run's directory. Returns the run's results (see ``RunRecorder``) in global rank 0, else None.
+
+    The test loads the checkpoint because under ``trainer=ddp`` (Lightning's ``ddp_spawn``) ``fit`` and
+    ``test`` each run in new processes, and this one gets back only the weights: the checkpoint carries
+    the step, the training time and the last validation, and rank 0 leaves the results in ``results.json``."""
+    missing = sorted(OmegaConf.missing_keys(cfg))
+    if missing:
+        raise ConfigError(f"missing mandatory value: {', '.join(missing)} (set it on the command line, "
+                          f"e.g. {missing[0]}=...)")
+    fill_ray_bounds(cfg)
+    L.seed_everything(cfg.seed, workers=True)
+    runtime = HydraConfig.get().runtime
+    choices = {k: v for k, v in runtime.choices.items() if not k.startswith("hydra") and v is not None}
+    choices.update(hierarchical=cfg.hierarchical, seed=cfg.seed)
+    datamodule = instantiate(cfg.datamodule)
+    model = instantiate(cfg.model)
+    overrides = list(HydraConfig.get().overrides.task)
+    recorder = RunRecorder(runtime.output_dir, choices, OmegaConf.to_container(cfg, resolve=True), overrides)
+    callbacks = [instantiate(c) for c in cfg.callbacks.values()] + [recorder]
+    trainer = instantiate(cfg.trainer, logger=instantiate(cfg.logger), callbacks=callbacks)
+    rank_slice(datamodule.batch_rays, 0, trainer.world_size)  # a batch that the processes cannot share: an error now
+    trainer.fit(model, datamodule=datamodule, ckpt_path=cfg.resume)
+    trainer.test(model, datamodule=datamodule, ckpt_path=Path(runtime.output_dir) / LAST_CHECKPOINT, verbose=False)
+    if not trainer.is_global_zero:
+        return None
+    results = read_json(recorder.output_dir / RESULTS)
+    log.info("test PSNR %.2f dB, SSIM %.4f after %d steps in %.0f s; outputs in %s", results["test_psnr"],
+             results["test_ssim"], results["steps"], results["train_time_s"], recorder.output_dir)
+    return results
+
+
+@hydra.main(version_base=None, config_path="pkg://nerfexp.conf", config_name="config")
+def main(cfg: DictConfig) -> float | None:
+    """Run one job; its status goes to ``status.json``. Returns the last validation PSNR, which a
+    hyper-parameter sweeper (``+sweeps=optuna``) maximizes.
+
+    A single run with bad input ends with one line on stderr and exit status 1. In a multirun the
+    error is raised instead, so that Hydra records this job as failed and goes on with the others
+    (the sweep then ends with the first job's error; ``nerfexp-report`` lists the failed jobs)."""
+    hydra_config = HydraConfig.get()
+    output_dir, overrides = hydra_config.runtime.output_dir, list(hydra_config.overrides.task)
+    writes = is_global_zero()  # under SLURM every process of a distributed job runs this; rank 0 records
+    if writes:
+        write_status(output_dir, "running", overrides)
+    try:
+        results = train(cfg)
+    except BaseException as error:  # an interrupt too: the job did not finish
+        if writes:
+            write_status(output_dir, "failed", overrides, error=f"{type(error).__name__}: {error}")
+        if isinstance(error, NerfexpError):
+            if hydra_config.mode == RunMode.RUN:
+                sys.exit(f"nerfexp: error: {error}")
+            log.error("job failed: %s", error)
+        raise
+    if results is None:  # not global rank 0
+        return None
+    write_status(output_dir, "finished", overrides)
+    return results["val_psnr"]

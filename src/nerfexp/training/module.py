@@ -1,0 +1,163 @@
+"""The LightningModule: trains a ``VolumeRenderer`` on ray batches and scores whole images."""
+
+import contextlib
+import logging
+import os
+import shutil
+import time
+from collections.abc import Callable, Iterator
+
+import lightning as L
+import torch
+import torch.nn.functional as F
+from torch import Tensor, nn
+
+from nerfexp.errors import ConfigError
+from nerfexp.metrics import psnr, ssim
+from nerfexp.nerf.volume_renderer import VolumeRenderer, final_output
+
+log = logging.getLogger(__name__)
+
+
+class NeRFModule(L.LightningModule):
+    """Loss = sum over networks of the MSE of their colours (coarse + fine); Adam whose learning
+    rate decays exponentially from the optimizer's ``lr`` to ``lr_final`` over ``trainer.max_steps``,
+    ramped up linearly over the first ``lr_warmup_steps`` (0: none, as in the paper).
+
+    Evaluation renders whole images in chunks of ``chunk`` rays (memory bounded at any resolution)
+    and scores the fine network's image (the only one without hierarchy).
+
+    ``diagnostics`` holds what the latest training batch showed of each network, detached (no graph,
+    no copy): ``{"coarse": {"loss": [], "opacity": [B]}, "fine": {...}}`` (only "coarse" without
+    hierarchy), the colour loss and the rendered opacity of each of the B rays. Callbacks read it
+    between the backward pass and the optimizer step (``nerfexp.training.guards.TrainingGuard``), which
+    ``training_step``'s return value does not reach, and at no cost of extra rendering.
+
+    With an occupancy grid (``renderer.grid``) the module updates it after each training step's
+    rendering, from the same seeded random stream (so a step stays a function of the batch and the
+    state), and gives it the scene's box when training starts if it has none (the datamodule's
+    ``scene_box``, ``nerfexp.data.datamodule.RayDataModule``).
+    Each step logs ``train/samples_per_ray`` (evaluated by the networks, all of them together) and
+    ``train/rays_per_s`` (rays over the step's host wall-clock time).
+    ``compile``: each network is compiled with ``torch.compile`` (in place, so checkpoints keep their keys).
+    """
+
+    def __init__(self, renderer: VolumeRenderer, optimizer: Callable[..., torch.optim.Optimizer],
+                 lr_final: float, chunk: int = 8192, lr_warmup_steps: int = 0, compile: bool = False):
+        super().__init__()
+        self.renderer, self.optimizer, self.lr_final, self.chunk = renderer, optimizer, lr_final, chunk
+        self.lr_warmup_steps = lr_warmup_steps
+        self.diagnostics: dict[str, dict[str, Tensor]] = {}
+        self._step_started: float | None = None
+        if compile:
+            check_compiler()
+            for net in self.networks.values():
+                net.compile(dynamic=True)  # packed batches change size every step
+
+    @property
+    def networks(self) -> dict[str, nn.Module]:
+        """The renderer's networks under the names its outputs use: coarse and fine, or coarse alone."""
+        return {name: net for name in ("coarse", "fine") if (net := getattr(self.renderer, name)) is not None}
+
+    def training_step(self, batch: dict[str, Tensor], batch_idx: int) -> Tensor:
+        """One step on ``batch``; its stratified jitter is drawn from ``batch["seed"]`` where the batch
+        has one (``RandomRays``), so that the step is a function of the batch and the weights alone."""
+        with seeded_random(batch.get("seed"), self.device):
+            outputs = self.renderer(batch["origins"], batch["directions"], deterministic=False,
+                                    viewdirs=batch.get("viewdirs"))
+            if self.renderer.grid is not None:  # after rendering: the jitter above is that of a run without grid
+                self.renderer.grid.update(self.global_step, self.renderer.density_fns())
+        losses = {name: F.mse_loss(out["rgb"], batch["rgb"]) for name, out in outputs.items()}
+        self.diagnostics = {name: {"loss": losses[name].detach(), "opacity": out["opacity"].detach()}
+                            for name, out in outputs.items()}
+        loss = sum(losses.values())
+        final = final_output(losses)
+        self.log("train/loss", loss, prog_bar=True)
+        self.log("train/psnr", -10 * torch.log10(final.detach()), prog_bar=True)
+        self.log("train/lr", self.optimizers().param_groups[0]["lr"])
+        for key, value in self.renderer.stats.items():
+            self.log(f"train/{key}", value)
+        return loss
+
+    def on_train_start(self) -> None:
+        grid = self.renderer.grid
+        if grid is not None and not grid.has_bounds:
+            box = self.trainer.datamodule.scene_box(self.renderer.near, self.renderer.far)
+            grid.set_bounds(box.to(grid.aabb.device))
+            log.info("occupancy grid over %s", [[round(v, 3) for v in row] for row in box.tolist()])
+
+    def on_train_batch_start(self, batch: dict, batch_idx: int) -> None:
+        self._step_started = time.perf_counter()
+
+    def on_train_batch_end(self, outputs, batch: dict, batch_idx: int) -> None:
+        if self._step_started is not None:
+            self.log("train/rays_per_s", len(batch["origins"]) / (time.perf_counter() - self._step_started))
+
+    @torch.no_grad()
+    def render_image(self, origins: Tensor, directions: Tensor, viewdirs: Tensor | None = None) -> dict[str, Tensor]:
+        """Deterministic render of rays [H, W, 3] (``viewdirs`` [H, W, 3] optional, see ``VolumeRenderer``)
+        in chunks: ``rgb`` [H, W, 3], ``depth``, ``opacity`` [H, W]."""
+        H, W, _ = origins.shape
+        flat_o, flat_d = origins.reshape(-1, 3), directions.reshape(-1, 3)
+        flat_v = None if viewdirs is None else viewdirs.reshape(-1, 3)
+        parts = []
+        for start in range(0, H * W, self.chunk):
+            chunk = slice(start, start + self.chunk)
+            outputs = self.renderer(flat_o[chunk], flat_d[chunk], deterministic=True,
+                                    viewdirs=None if flat_v is None else flat_v[chunk])
+            final = final_output(outputs)
+            parts.append({key: final[key] for key in ("rgb", "depth", "opacity")})
+        return {key: torch.cat([p[key] for p in parts]).reshape(H, W, *parts[0][key].shape[1:])
+                for key in parts[0]}
+
+    def _evaluate(self, batch: dict) -> dict:
+        """One whole image scored: its "index", "psnr", "ssim", the render ("rgb", "depth", "opacity") and
+        the "target". The means over images are logged by ``nerfexp.training.recorders.RunRecorder``, which gathers
+        the images of all processes in a distributed run (a mean per process would weigh them wrongly)."""
+        image = self.render_image(batch["origins"], batch["directions"], batch.get("viewdirs"))
+        scores = {"psnr": psnr(image["rgb"], batch["rgb"]), "ssim": ssim(image["rgb"], batch["rgb"])}
+        return {"index": int(batch["index"]), "target": batch["rgb"], **image, **scores}
+
+    def validation_step(self, batch: dict, batch_idx: int) -> dict:
+        return self._evaluate(batch)
+
+    def test_step(self, batch: dict, batch_idx: int) -> dict:
+        return self._evaluate(batch)
+
+    def configure_optimizers(self):
+        optimizer = self.optimizer(self.parameters())
+        base_lr = optimizer.param_groups[0]["lr"]
+        max_steps = self.trainer.max_steps
+        if max_steps is None or max_steps < 1:
+            raise ValueError("trainer.max_steps: expected a positive number of steps (the learning-rate "
+                             f"schedule spans them), got {max_steps}")
+        ratio, warmup = self.lr_final / base_lr, self.lr_warmup_steps
+
+        def factor(step: int) -> float:
+            ramp = min((step + 1) / warmup, 1.0) if warmup > 0 else 1.0
+            return ramp * ratio ** min(step / max_steps, 1.0)
+
+        schedule = torch.optim.lr_scheduler.LambdaLR(optimizer, factor)
+        return {"optimizer": optimizer, "lr_scheduler": {"scheduler": schedule, "interval": "step"}}
+
+
+def check_compiler() -> None:
+    """A ConfigError unless torch.compile can build kernels here: on a machine without a GPU its
+    inductor backend compiles C++, which needs a compiler (``$CXX``, g++ or clang++) on the PATH."""
+    if torch.cuda.is_available() or any(shutil.which(c) for c in (os.environ.get("CXX", "g++"), "g++", "clang++")):
+        return
+    raise ConfigError("model.compile=true: torch.compile builds C++ kernels on CPUs and no C++ compiler (g++, "
+                      "clang++ or $CXX) is on the PATH; install one or set model.compile=false")
+
+
+@contextlib.contextmanager
+def seeded_random(seed: int | None, device: torch.device) -> Iterator[None]:
+    """Inside the block torch's global random numbers (CPU, and ``device`` if it is a CUDA device) come
+    from a stream seeded with ``seed``; the previous states are restored after it. ``None``: the global
+    stream, untouched."""
+    if seed is None:
+        yield
+        return
+    with torch.random.fork_rng(devices=[device] if device.type == "cuda" else []):
+        torch.manual_seed(seed)
+        yield

@@ -1,0 +1,47 @@
+"""The Scene base class: the defaults a format may leave out, and where the occupancy grid's box comes from."""
+
+import math
+
+import pytest
+import torch
+
+from nerfexp.data.base import Scene
+from nerfexp.data.procedural import CAMERA_ANGLE_X, ProceduralScene, objects_box, scene_cameras
+from nerfexp.data.views import Views
+from nerfexp.errors import ConfigError
+from nerfexp.geometry.boxes import frustum_aabb
+
+NEAR, FAR = 2.0, 6.0
+
+
+class BoxlessScene(Scene):
+    """A format that knows no box of its own (as COLMAP's): the grid bounds it by the training cameras."""
+
+    background, near, far = "white", NEAR, FAR
+
+    def views(self, split: str) -> Views:
+        raise AssertionError("the box is made from the views it is given")
+
+
+def test_a_scene_that_leaves_the_optional_members_out_gets_their_defaults():
+    scene = BoxlessScene()
+    origins, directions = torch.rand(4, 3), torch.rand(4, 3)
+    assert scene.model_rays(origins, directions) == (origins, directions)  # world rays, the same tensors
+    assert scene.ray_bounds() == (NEAR, FAR) and scene.depth_bounds() is None
+    assert scene.aabb is None and scene.bounding_box() is None
+
+
+def test_the_box_comes_from_the_config_then_the_scene_then_the_cameras():
+    box = objects_box()  # slab [-0.75, 0.75]^2 x [-0.7, -0.5], the rods reach z = 0.6
+    torch.testing.assert_close(box, torch.tensor([[-0.75, -0.75, -0.7], [0.75, 0.75, 0.6]]))
+    footprint = FAR * 2 * math.tan(CAMERA_ANGLE_X / 2) / 64  # one pixel at the far bound, 64 x 64 views
+    padded = torch.stack([box[0] - footprint, box[1] + footprint])
+    torch.testing.assert_close(ProceduralScene(image_size=64).box(None, NEAR, FAR), padded)
+    explicit = ProceduralScene(aabb=[[-1, -2, -3], [1, 2, 3]])
+    assert explicit.box(None, NEAR, FAR).tolist() == [[-1, -2, -3], [1, 2, 3]]
+    with pytest.raises(ConfigError, match="data.aabb: expected"):
+        ProceduralScene(aabb=[[0, 0, 0], [1, -1, 1]]).box(None, NEAR, FAR)
+    views = Views(rgba=torch.zeros(20, 8, 8, 4), c2w=scene_cameras("train", 20).float(), focal=10.0)
+    assert torch.equal(BoxlessScene().box(views, NEAR, FAR), frustum_aabb(views.c2w, 8, 8, 10.0, NEAR, FAR))
+    with pytest.raises(ConfigError, match="set data.aabb"):
+        BoxlessScene().box(None, NEAR, FAR)

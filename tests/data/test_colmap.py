@@ -1,0 +1,329 @@
+"""COLMAP scenes: the whole pycolmap pipeline on renders of the built-in scene against their true
+cameras, models written as text (today's and COLMAP 3's layout) and binary, the conventions against
+hand-worked poses, the ray bounds, and the errors."""
+
+import hashlib
+import math
+import time
+
+import numpy as np
+import pycolmap
+import pytest
+import torch
+import torch.nn.functional as F
+from hydra import compose, initialize_config_module
+from hydra.utils import instantiate
+from PIL import Image
+
+from nerfexp.data import procedural
+from nerfexp.data.colmap import ColmapScene, colmap_to_c2w, read_model
+from nerfexp.data.datamodule import fill_ray_bounds
+from nerfexp.errors import DatasetError
+from nerfexp.geometry.cameras import camera_rays, focal_from_fov, look_at
+
+UP = torch.tensor([0.0, 0.0, 1.0], dtype=torch.float64)
+
+
+def umeyama(src: torch.Tensor, dst: torch.Tensor) -> tuple[float, torch.Tensor, torch.Tensor]:
+    """The similarity (s, R [3, 3], t [3]) minimizing sum |dst - (s R src + t)|^2, src and dst [N, 3]
+    (Umeyama 1991): with the centred points' covariance dst^T src / N = U D V^T and S = diag(1, 1,
+    det(U V^T)), R = U S V^T, s = tr(D S) / var(src), t = mean(dst) - s R mean(src)."""
+    src, dst = src.double(), dst.double()
+    mu_src, mu_dst = src.mean(0), dst.mean(0)
+    a, b = src - mu_src, dst - mu_dst
+    U, D, Vt = torch.linalg.svd(b.T @ a / len(src))
+    S = torch.ones(3, dtype=torch.float64)
+    S[2] = torch.sign(torch.linalg.det(U @ Vt))
+    R = U @ torch.diag(S) @ Vt
+    s = (D * S).sum() / (a * a).sum(-1).mean()
+    return s.item(), R, mu_dst - s * R @ mu_src
+
+
+def rotation_degrees(R: torch.Tensor) -> torch.Tensor:
+    """Rotation angles in degrees of rotation matrices [..., 3, 3]: acos((tr R - 1) / 2)."""
+    cos = ((R.diagonal(dim1=-2, dim2=-1).sum(-1) - 1) / 2).clamp(-1, 1)
+    return torch.rad2deg(torch.acos(cos))
+
+
+def test_umeyama_recovers_a_known_similarity():
+    g = torch.Generator().manual_seed(0)
+    src = torch.randn(10, 3, generator=g, dtype=torch.float64)
+    R, _ = torch.linalg.qr(torch.randn(3, 3, generator=g, dtype=torch.float64))
+    R = R * torch.sign(torch.linalg.det(R))  # a rotation, not a reflection
+    t = torch.tensor([1.0, -2.0, 0.5], dtype=torch.float64)
+    s, R_found, t_found = umeyama(src, 2.5 * src @ R.T + t)
+    assert s == pytest.approx(2.5)
+    torch.testing.assert_close(R_found, R)
+    torch.testing.assert_close(t_found, t)
+
+
+# ---------------------------------------------------------------- the whole pipeline, end to end
+
+N_VIEWS, SIZE = 30, 384
+FLOOR_Z, FLOOR_HALF, FLOOR_CELLS = -0.7, 2.0, 40  # a square floor under the slab (its bottom plane), 0.1 cells
+DOME_RADIUS, DOME_CELLS = 8.0, 256  # a sphere around everything, seen from inside; 1.4 by 0.7 degree cells
+
+
+def true_cameras() -> torch.Tensor:
+    """c2w [30, 4, 4] float64 at radius 4 looking at the origin, 12 degrees apart in azimuth, on a
+    wavy ring: elevation 30 + 8 sin(3 azimuth) degrees (camera centres not all in one plane)."""
+    azimuth = 2 * math.pi * torch.arange(N_VIEWS, dtype=torch.float64) / N_VIEWS
+    elevation = torch.deg2rad(30 + 8 * torch.sin(3 * azimuth))
+    eye = procedural.CAMERA_RADIUS * torch.stack(
+        [elevation.cos() * azimuth.cos(), elevation.cos() * azimuth.sin(), elevation.sin()], -1)
+    return look_at(eye, torch.zeros(3, dtype=torch.float64), UP)
+
+
+def texture(uv: torch.Tensor, cells: int, seed: int) -> torch.Tensor:
+    """Colours [..., 3] at texture coordinates uv [..., 2] in [-1, 1]^2 of a random image of cells^2
+    colours, bilinearly interpolated."""
+    image = torch.rand(1, 3, cells, cells, generator=torch.Generator().manual_seed(seed), dtype=uv.dtype)
+    colour = F.grid_sample(image, uv.reshape(1, -1, 1, 2), mode="bilinear", align_corners=False)  # [1, 3, M, 1]
+    return colour[0, :, :, 0].T.reshape(*uv.shape[:-1], 3)
+
+
+def render_photographs(c2w: torch.Tensor, focal: float) -> tuple[np.ndarray, torch.Tensor]:
+    """8-bit RGB images [N, H, W, 3] and the true ray distances [N, H, W] of the built-in scene in a
+    textured room: a floor and a dome of random colours behind it. The built-in scene alone has too
+    few distinct features (smooth spheres, a repeating checker), and a floor alone is a plane, whose
+    matches COLMAP (rightly) refuses to start a reconstruction from. The floor is the slab's bottom
+    plane and the dome surrounds everything, so the scene occludes them by its alpha (2 x 2 rays per
+    pixel: anti-aliased edges, which SIFT locates more precisely than one ray's staircase; at 256 px
+    and one ray the centre error was 0.013-0.014, at the 1% limit), and the floor occludes the dome
+    where it is hit. Distances are the scene's wherever any of a pixel's rays hits it."""
+    rgba = procedural.render_rgba(c2w, SIZE, SIZE, focal, supersample=2).double()  # [N, H, W, 4]
+    origins, directions = camera_rays(c2w, SIZE, SIZE, focal)  # [N, H, W, 3]
+    t_floor = (FLOOR_Z - origins[..., 2]) / directions[..., 2]
+    floor_xy = (origins + t_floor[..., None] * directions)[..., :2]
+    on_floor = (t_floor > 0) & (floor_xy.abs() < FLOOR_HALF).all(-1)
+    b = (origins * directions).sum(-1)  # inside the dome: the far root of |o + t d| = R
+    t_dome = -b + torch.sqrt(b * b - ((origins * origins).sum(-1) - DOME_RADIUS**2))
+    x, y, z = (origins + t_dome[..., None] * directions).unbind(-1)
+    dome_uv = torch.stack([torch.atan2(y, x) / math.pi, torch.asin(z / DOME_RADIUS) / (math.pi / 2)], -1)
+    backdrop = torch.where(on_floor[..., None], texture(floor_xy / FLOOR_HALF, FLOOR_CELLS, 0),
+                           texture(dome_uv, DOME_CELLS, 1))
+    alpha = rgba[..., 3:]
+    rgb = rgba[..., :3] * alpha + backdrop * (1 - alpha)
+    t_scene, _, _ = procedural.intersect_scene(origins, directions)
+    distance = torch.where(alpha[..., 0] > 0, t_scene, torch.where(on_floor, t_floor, t_dome))
+    return (rgb * 255).round().to(torch.uint8).numpy(), distance
+
+
+def digest(folder) -> dict[str, tuple[str, int]]:
+    """Each file below ``folder``: its content hash and modification time (ns)."""
+    return {p.relative_to(folder).as_posix(): (hashlib.sha256(p.read_bytes()).hexdigest(), p.stat().st_mtime_ns)
+            for p in sorted(folder.rglob("*")) if p.is_file()}
+
+
+@pytest.mark.slow
+def test_pipeline_recovers_the_true_cameras_up_to_a_similarity(tmp_path):
+    c2w_true = true_cameras()
+    focal_true = focal_from_fov(SIZE, procedural.CAMERA_ANGLE_X)
+    (tmp_path / "images").mkdir()
+    images, distance = render_photographs(c2w_true, focal_true)
+    for i, image in enumerate(images):
+        Image.fromarray(image).save(tmp_path / "images" / f"{i:03d}.png")
+    images_before = digest(tmp_path / "images")
+
+    scene = ColmapScene(root=str(tmp_path), threads=2)
+    data = scene.load()
+    assert data.names == [f"{i:03d}.png" for i in range(N_VIEWS)]  # every view registered, in name order
+    # SIMPLE_RADIAL (the default) estimated a small distortion: the images were undistorted to PINHOLE
+    assert (tmp_path / "colmap" / "undistorted" / "images").is_dir() and data.image_dir.parent.name == "undistorted"
+    assert data.focal == pytest.approx(focal_true, rel=0.01)
+
+    s, R, t = umeyama(data.c2w[:, :3, 3], c2w_true[:, :3, 3])  # recovered world -> true world
+    centres = s * data.c2w[:, :3, 3] @ R.T + t
+    centre_error = torch.linalg.vector_norm(centres - c2w_true[:, :3, 3], dim=-1)
+    rotation_error = rotation_degrees(c2w_true[:, :3, :3].transpose(1, 2) @ R @ data.c2w[:, :3, :3])
+    assert centre_error.max() < 0.01 * procedural.SCENE_RADIUS, centre_error
+    assert rotation_error.max() < 1.0, rotation_error
+    # normalized: camera centres within `bound` of the origin, the farthest on it
+    assert torch.linalg.vector_norm(data.c2w[:, :3, 3], dim=-1).max().item() == pytest.approx(scene.bound)
+    # near/far, in true units, enclose the true distance of (nearly) every pixel, and are not absurdly wide
+    near, far = (bound / s for bound in scene.ray_bounds())
+    inside = ((distance >= near) & (distance <= far)).double().mean().item()
+    assert inside > 0.99 and near > 0.5 * distance.min() and far < 2 * distance.max(), (near, far, inside)
+
+    test, train = scene.views("test"), scene.views("train")
+    assert len(test) == 4 and len(train) == 26 and len(scene.views("val")) == 2  # every 8th image is a test view
+    assert test.rgba.shape[1:] == (data.height, data.width, 4) and test.focal == pytest.approx(data.focal)
+    torch.testing.assert_close(test.c2w, data.c2w[::8].float())
+
+    # a second load reads the cache: nothing reconstructed or rewritten, and images/ untouched
+    cache_before = digest(tmp_path / "colmap")
+    start = time.perf_counter()
+    again = ColmapScene(root=str(tmp_path), threads=2).load()
+    assert time.perf_counter() - start < 5.0
+    torch.testing.assert_close(again.c2w, data.c2w)
+    assert digest(tmp_path / "colmap") == cache_before
+    assert digest(tmp_path / "images") == images_before
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["colmap", "images"]  # no temporary folder left
+
+
+# ---------------------------------------------------------------- reading existing models
+
+WIDTH, HEIGHT, FOCAL = 8, 6, 10.0
+RING = [(4.0, 0.0, 0.0), (0.0, 4.0, 0.0), (-4.0, 0.0, 0.0), (0.0, -4.0, 0.0)]  # cameras looking at the origin
+POINTS = [(0.0, 0.0, 0.0), (0.0, 0.0, 1.0)]  # seen by every camera, at distances 4 and sqrt(17)
+# near and far of RING and POINTS: each image sees distances {4, sqrt(17)}, and a percentile q of two values
+# interpolates linearly, 4 + q (sqrt(17) - 4); near = 0.9 x the 0.1th, far = 1.1 x the 99.9th
+RING_BOUNDS = (0.9 * (4 + 0.001 * (math.sqrt(17) - 4)), 1.1 * (4 + 0.999 * (math.sqrt(17) - 4)))
+
+
+def colmap_pose(eye, target=(0.0, 0.0, 0.0), up=(0.0, 0.0, 1.0)) -> pycolmap.Rigid3d:
+    """COLMAP's cam_from_world of a camera at ``eye`` looking at ``target``, written from COLMAP's own
+    definition (x_cam = R x + t; rows of R: x right, y down, z forward), not from nerfexp's."""
+    eye, target, up = (np.array(v, dtype=np.float64) for v in (eye, target, up))
+    z = (target - eye) / np.linalg.norm(target - eye)
+    x = np.cross(z, up)
+    x /= np.linalg.norm(x)
+    R = np.stack([x, np.cross(z, x), z])
+    return pycolmap.Rigid3d(pycolmap.Rotation3d(R), -R @ eye)
+
+
+def hand_made_model(principal_point=(WIDTH / 2, HEIGHT / 2), ring=RING) -> pycolmap.Reconstruction:
+    """Pinhole cameras on ``ring`` and the two POINTS, each point observed by every camera."""
+    reconstruction = pycolmap.Reconstruction()
+    reconstruction.add_camera_with_trivial_rig(pycolmap.Camera(
+        model="SIMPLE_PINHOLE", width=WIDTH, height=HEIGHT, params=[FOCAL, *principal_point], camera_id=1))
+    camera = reconstruction.cameras[1]
+    for i, eye in enumerate(ring, start=1):
+        pose = colmap_pose(eye)
+        keypoints = np.array([camera.img_from_cam(pose * np.array(p)) for p in POINTS])
+        image = pycolmap.Image(name=f"view_{i}.png", keypoints=keypoints, camera_id=1, image_id=i)
+        reconstruction.add_image_with_trivial_frame(image, pose)
+    for k, point in enumerate(POINTS):
+        track = pycolmap.Track([pycolmap.TrackElement(i, k) for i in range(1, len(ring) + 1)])
+        reconstruction.add_point3D(np.array(point), track)
+    return reconstruction
+
+
+def write_images(root, names, size=(WIDTH, HEIGHT)):
+    (root / "images").mkdir(parents=True, exist_ok=True)
+    for i, name in enumerate(names):
+        Image.fromarray(np.full((size[1], size[0], 3), 10 * i % 256, dtype=np.uint8)).save(root / "images" / name)
+
+
+@pytest.mark.parametrize("form", ["text", "binary"])
+def test_reads_a_model_written_as_text_or_binary(tmp_path, form):
+    model = tmp_path / "sparse" / "0"
+    model.mkdir(parents=True)
+    getattr(hand_made_model(), f"write_{form}")(model)
+    assert {p.suffix for p in model.iterdir()} == {".bin" if form == "binary" else ".txt"}
+    write_images(tmp_path, [f"view_{i}.png" for i in range(1, 5)])
+
+    scene = ColmapScene(root=str(tmp_path), holdout=2, n_val=1)
+    data = scene.load()
+    assert data.names == [f"view_{i}.png" for i in range(1, 5)] and data.focal == FOCAL
+    # the mean camera centre is the origin and the cameras are 4 from it: with bound 4 the scale is 1
+    assert data.scale == pytest.approx(1.0) and torch.allclose(data.centre, torch.zeros(3, dtype=torch.float64))
+    expected = look_at(torch.tensor(RING, dtype=torch.float64), torch.zeros(3, dtype=torch.float64), UP)
+    torch.testing.assert_close(data.c2w, expected)
+    assert scene.ray_bounds() == pytest.approx(RING_BOUNDS)
+    assert ColmapScene(root=str(tmp_path), near=2.0, far=6.0).ray_bounds() == (2.0, 6.0)  # configured values win
+
+    views = scene.views("test")  # views 1 and 3 (indices 0 and 2)
+    torch.testing.assert_close(views.c2w, expected[[0, 2]].float())
+    assert views.rgba.shape == (2, HEIGHT, WIDTH, 4) and (views.rgba[1, ..., :3] == 20 / 255).all()
+    assert (views.rgba[..., 3] == 1).all()
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["images", "sparse"]  # a pinhole model: nothing written
+
+
+def test_the_conventions_by_hand_on_a_colmap_3_text_model(tmp_path):
+    # A camera at (4, 0, 0) looking at the origin, z up. COLMAP's R has rows x = (0, 1, 0) (right),
+    # y = (0, 0, -1) (down), z = (-1, 0, 0) (forward); t = -R eye = (0, 0, 4). Its quaternion
+    # (w, x, y, z): w = sqrt(1 + tr R) / 2 = 0.5, x = (R21 - R12) / 4w = 0.5, y = (R02 - R20) / 4w = 0.5,
+    # z = (R10 - R01) / 4w = -0.5. nerfexp's c2w: right (0, 1, 0), up (0, 0, 1), back (1, 0, 0), centre (4, 0, 0).
+    (tmp_path / "cameras.txt").write_text("1 SIMPLE_PINHOLE 8 6 10 4 3\n")
+    (tmp_path / "images.txt").write_text("1 0.5 0.5 0.5 -0.5 0 0 4 1 a.png\n4 3 1\n")
+    (tmp_path / "points3D.txt").write_text("1 0 0 0 255 255 255 0 1 0\n")
+    reconstruction = read_model(tmp_path)
+    image = reconstruction.images[1]
+    c2w = colmap_to_c2w(torch.tensor(image.cam_from_world().matrix())[None])[0]
+    expected = torch.tensor([[0.0, 0, 1, 4], [1, 0, 0, 0], [0, 1, 0, 0], [0, 0, 0, 1]], dtype=torch.float64)
+    torch.testing.assert_close(c2w, expected)
+    # the origin is in front of the camera, on its axis: pycolmap projects it to the image centre
+    assert image.project_point(np.zeros(3)) == pytest.approx([4.0, 3.0])
+    origin, direction = camera_rays(c2w, 2, 2, 10.0)  # the ray through the centre is the mean of the four
+    assert torch.nn.functional.normalize(direction.sum((0, 1)), dim=-1).tolist() == pytest.approx([-1.0, 0, 0])
+
+
+def test_colmap_to_c2w_of_the_identity_rotation():
+    # R = I, t = (0, 0, 4): the camera sits at -t = (0, 0, -4) and looks down COLMAP's +z, which is
+    # OpenGL's -z axis, so c2w[:3, 2] = (0, 0, -1); COLMAP's y (down) is OpenGL's -y.
+    c2w = colmap_to_c2w(torch.tensor([[[1.0, 0, 0, 0], [0, 1, 0, 0], [0, 0, 1, 4]]], dtype=torch.float64))[0]
+    expected = torch.tensor([[1.0, 0, 0, 0], [0, -1, 0, 0], [0, 0, -1, -4], [0, 0, 0, 1]], dtype=torch.float64)
+    torch.testing.assert_close(c2w, expected)
+
+
+def test_the_real_config_builds_the_scene(tmp_path):
+    (tmp_path / "sparse" / "0").mkdir(parents=True)
+    hand_made_model().write_binary(tmp_path / "sparse" / "0")
+    write_images(tmp_path, [f"view_{i}.png" for i in range(1, 5)])
+    with initialize_config_module("nerfexp.conf", version_base=None):
+        cfg = compose("config", overrides=["data=colmap", f"data.root={tmp_path}", "data.holdout=2"])
+    scene = instantiate(cfg.data)
+    assert isinstance(scene, ColmapScene) and scene.max_side == cfg.scale.max_side and scene.near is None
+    assert len(scene.views("train")) == 2 and scene.ray_bounds() == pytest.approx(RING_BOUNDS)
+    # the renderer is built from data.near/far: a run fills them in from the sparse points first
+    fill_ray_bounds(cfg)
+    assert (cfg.data.near, cfg.data.far) == pytest.approx(RING_BOUNDS)
+    renderer = instantiate(cfg.model.renderer)
+    assert (renderer.near, renderer.far) == pytest.approx(RING_BOUNDS)
+
+
+# ---------------------------------------------------------------- errors
+
+def test_no_images_folder(tmp_path):
+    with pytest.raises(DatasetError, match=r"images does not exist: data.root must be a folder holding images/"):
+        ColmapScene(root=str(tmp_path)).load()
+
+
+def test_blank_images_register_nothing_and_leave_the_folder_as_it_was(tmp_path):
+    (tmp_path / "images").mkdir()
+    for i in range(3):
+        Image.fromarray(np.full((64, 64, 3), 128, dtype=np.uint8)).save(tmp_path / "images" / f"{i}.png")
+    before = digest(tmp_path)
+    with pytest.raises(DatasetError, match=r"COLMAP registered 0 of 3 images of .*images .*try more overlap"):
+        ColmapScene(root=str(tmp_path), threads=2).load()
+    assert digest(tmp_path) == before  # nothing added (no cache, no temporary folder), nothing changed
+
+
+def test_too_few_registered_images(tmp_path, monkeypatch):
+    write_images(tmp_path, [f"{i:02d}.png" for i in range(30)])
+
+    def two_registered(database_path, image_path, output_path, options):
+        return {0: hand_made_model(ring=RING[:2])}
+
+    monkeypatch.setattr(pycolmap, "extract_features", lambda *args, **kwargs: None)
+    monkeypatch.setattr(pycolmap, "match_exhaustive", lambda *args, **kwargs: None)
+    monkeypatch.setattr(pycolmap, "incremental_mapping", two_registered)
+    message = (r"COLMAP registered 2 of 30 images of .*images \(at least 24 needed, data.min_registered=0.8\); "
+               r"try more overlap between neighbouring views")
+    with pytest.raises(DatasetError, match=message):
+        ColmapScene(root=str(tmp_path)).load()
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["images"]
+
+
+def test_unsupported_camera_model(tmp_path):
+    write_images(tmp_path, ["a.png"])
+    with pytest.raises(DatasetError, match=r"unsupported camera model 'EQUIRECTANGULAR' \(data.camera_model\)"):
+        ColmapScene(root=str(tmp_path), camera_model="EQUIRECTANGULAR").load()
+
+
+def test_off_centre_principal_point(tmp_path):
+    (tmp_path / "sparse").mkdir()
+    hand_made_model(principal_point=(5.0, 3.0)).write_binary(tmp_path / "sparse")
+    write_images(tmp_path, [f"view_{i}.png" for i in range(1, 5)])
+    with pytest.raises(DatasetError, match=r"principal point \(5, 3\) is off the image centre \(4, 3\)"):
+        ColmapScene(root=str(tmp_path)).load()
+
+
+def test_a_cache_folder_without_a_model_is_left_alone(tmp_path):
+    write_images(tmp_path, ["a.png"])
+    (tmp_path / "colmap").mkdir()
+    (tmp_path / "colmap" / "notes.txt").write_text("mine")
+    with pytest.raises(DatasetError, match=r"colmap exists but holds no sparse model in sparse/0; move it away"):
+        ColmapScene(root=str(tmp_path)).load()
+    assert (tmp_path / "colmap" / "notes.txt").read_text() == "mine"

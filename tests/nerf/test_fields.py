@@ -1,0 +1,97 @@
+import functools
+import math
+
+import pytest
+import torch
+
+from nerfexp.nerf.encodings import IdentityEncoding, PositionalEncoding
+from nerfexp.nerf.fields import DiffuseHead, NeRFField, SphericalHarmonicsHead, ViewMLPHead, sh_basis
+
+
+def paper_field(view_head=None):
+    head = view_head or functools.partial(ViewMLPHead, direction_encoding=PositionalEncoding(4), hidden=128)
+    return NeRFField(PositionalEncoding(10), head, depth=8, width=256, skips=(5,))
+
+
+def test_paper_mlp_parameter_count_by_hand():
+    # Trunk inputs: 63, then 256 x 4, then 256 + 63 (the skip), then 256 x 2; sigma 256 -> 1;
+    # feature 256 -> 256; hidden 256 + 27 -> 128; rgb 128 -> 3.
+    trunk = (63 * 256 + 256) + 4 * (256 * 256 + 256) + ((256 + 63) * 256 + 256) + 2 * (256 * 256 + 256)
+    head = (256 * 256 + 256) + ((256 + 27) * 128 + 128) + (128 * 3 + 3)
+    assert sum(p.numel() for p in paper_field().parameters()) == trunk + (256 + 1) + head
+
+
+def test_density_depends_on_position_only_and_colour_on_direction():
+    torch.manual_seed(0)
+    field = paper_field()
+    x = torch.randn(64, 3)
+    d1 = torch.nn.functional.normalize(torch.randn(64, 3), dim=-1)
+    d2 = torch.nn.functional.normalize(torch.randn(64, 3), dim=-1)
+    rgb1, sigma1 = field(x, d1)
+    rgb2, sigma2 = field(x, d2)
+    assert rgb1.shape == (64, 3) and sigma1.shape == (64,)
+    assert torch.equal(sigma1, sigma2)
+    assert not torch.allclose(rgb1, rgb2)
+    assert ((rgb1 >= 0) & (rgb1 <= 1)).all() and (sigma1 >= 0).all()
+
+
+@pytest.mark.parametrize("head", [DiffuseHead, functools.partial(SphericalHarmonicsHead, degree=0)])
+def test_view_independent_heads_ignore_the_direction(head):
+    field = NeRFField(IdentityEncoding(), head, depth=3, width=32, skips=(2,))
+    x = torch.randn(16, 3)
+    d = torch.nn.functional.normalize(torch.randn(16, 3), dim=-1)
+    torch.testing.assert_close(field(x, d)[0], field(x, -d)[0])
+
+
+def test_spherical_harmonics_head_is_view_dependent():
+    torch.manual_seed(0)
+    field = NeRFField(IdentityEncoding(), functools.partial(SphericalHarmonicsHead, degree=2), depth=2, width=16,
+                      skips=())
+    x = torch.randn(16, 3)
+    d = torch.nn.functional.normalize(torch.randn(16, 3), dim=-1)
+    assert not torch.allclose(field(x, d)[0], field(x, -d)[0])
+
+
+@pytest.mark.parametrize("degree", [0, 1, 2, 3])
+def test_sh_basis_is_orthonormal_on_the_sphere(degree):
+    # Integrate Y_i Y_j over the sphere with a Fibonacci lattice (equal-area points): 4 pi mean = delta_ij.
+    n = 200_000
+    k = torch.arange(n, dtype=torch.float64) + 0.5
+    z = 1 - 2 * k / n
+    phi = torch.pi * (1 + 5 ** 0.5) * k
+    r = torch.sqrt(1 - z * z)
+    d = torch.stack([r * torch.cos(phi), r * torch.sin(phi), z], -1)
+    Y = sh_basis(d, degree)
+    gram = 4 * torch.pi * (Y.T @ Y) / n
+    torch.testing.assert_close(gram, torch.eye((degree + 1) ** 2, dtype=torch.float64), atol=1e-4, rtol=0)
+
+
+def test_bad_field_config_is_named():
+    with pytest.raises(ValueError, match="density_activation"):
+        NeRFField(IdentityEncoding(), DiffuseHead, depth=2, width=8, skips=(), density_activation="exp")
+    with pytest.raises(ValueError, match="skips"):
+        NeRFField(IdentityEncoding(), DiffuseHead, depth=2, width=8, skips=(5,))
+
+
+def test_truncated_exp_is_exp_finite_everywhere_with_bounded_gradient():
+    from nerfexp.nerf.fields import TRUNC_EXP_GRADIENT_CLAMP, trunc_exp
+
+    x = torch.tensor([-50.0, 0.0, 3.0, 14.0, 20.0, 88.0, 1e4], requires_grad=True)
+    y = trunc_exp(x)
+    torch.testing.assert_close(y[:6], torch.exp(x[:6].detach()))  # exp itself wherever float32 holds it
+    assert torch.isfinite(y).all() and y[-1] > 1e38  # exp(1e4) clamped just below float32's largest value
+    y.sum().backward()
+    cap = math.exp(TRUNC_EXP_GRADIENT_CLAMP)
+    torch.testing.assert_close(x.grad[:4], torch.exp(x[:4].detach()))  # the exact gradient below the clamp
+    torch.testing.assert_close(x.grad[4:], torch.full((3,), cap))
+    # the exact derivative where it is not truncated, by finite differences in float64
+    assert torch.autograd.gradcheck(trunc_exp, torch.tensor([-3.0, 0.5, 9.0], dtype=torch.float64, requires_grad=True))
+
+
+@pytest.mark.parametrize("activation", ["relu", "softplus", "trunc_exp"])
+def test_density_activations_are_config_choices(activation):
+    field = NeRFField(IdentityEncoding(), DiffuseHead, depth=2, width=16, skips=(), density_activation=activation)
+    rgb, sigma = field(torch.randn(32, 3) * 100, torch.zeros(32, 3))
+    assert torch.isfinite(sigma).all() and (sigma >= 0).all()
+    with pytest.raises(ValueError, match="field.density_activation: expected one of .*'trunc_exp'.*got 'exp'"):
+        NeRFField(IdentityEncoding(), DiffuseHead, depth=2, width=16, skips=(), density_activation="exp")

@@ -1,0 +1,149 @@
+"""The occupancy grid (``nerfexp.nerf.occupancy``), and skipping and early termination in the renderer,
+against analytic density fields whose densities are known everywhere."""
+
+import math
+
+import pytest
+import torch
+
+from nerfexp.nerf.analytic import GaussianBlob, Slab, aimed_rays
+from nerfexp.nerf.occupancy import OccupancyGrid, cell_corners, cell_indices, density_threshold
+from nerfexp.nerf.volume_renderer import VolumeRenderer
+
+BOX = [[-1.0, -1.0, -1.0], [1.0, 1.0, 1.0]]
+NEAR, FAR = 2.0, 6.0
+
+
+def trained_grid(field, resolution=16, updates=4, **options) -> OccupancyGrid:
+    """A grid over BOX after ``updates`` warm-up updates (every cell each time) from ``field.density``."""
+    grid = OccupancyGrid(resolution=resolution, update_every=1, warmup_steps=updates, aabb=BOX, **options)
+    torch.manual_seed(0)
+    for step in range(updates):
+        grid.update(step, [field.density])
+    return grid
+
+
+def blob_density_range(blob: GaussianBlob, grid: OccupancyGrid) -> tuple[torch.Tensor, torch.Tensor]:
+    """The exact smallest and largest density [R^3] of the blob in each cell: it falls off with the
+    distance to the centre, largest at the cell's point nearest the centre, smallest at its farthest corner."""
+    lower = grid.aabb[0] + cell_corners(grid.resolution) * grid.cell_size  # [R^3, 3]
+    upper = lower + grid.cell_size
+    centre = torch.tensor(blob.centre)
+    nearest = torch.maximum(lower, torch.minimum(centre, upper))
+    farthest = torch.where((centre - lower).abs() > (centre - upper).abs(), lower, upper)
+    return blob.density(farthest), blob.density(nearest)
+
+
+def test_cells_are_indexed_in_flat_order_and_outside_the_box_is_empty():
+    # R = 4 over [-1, 1]^3: cells are 0.5 wide; (-0.9, 0.1, 0.6) is in cell (0, 2, 3) = (0 * 4 + 2) * 4 + 3 = 11
+    index, inside = cell_indices(torch.tensor([[-0.9, 0.1, 0.6], [1.0, 0.0, 0.0], [0.0, -1.2, 0.0]]),
+                                 torch.tensor(BOX), 4)
+    assert index[0] == 11 and inside.tolist() == [True, False, False]  # the box is half-open: x = 1 is out
+    grid = OccupancyGrid(resolution=4, aabb=BOX)
+    assert grid.occupied_at(torch.tensor([[0.0, 0.0, 0.0], [0.0, 0.0, 2.0]])).tolist() == [True, False]
+
+
+def test_the_grid_marks_known_empty_cells_empty_and_known_solid_cells_occupied():
+    blob = GaussianBlob(peak=5.0, radius=0.3)
+    grid = trained_grid(blob)
+    # sigma_t: 1 - exp(-sigma_t * diagonal) = 0.01 across a cell 2/16 wide: 0.0464; the mean estimate
+    # (0.27: the blob's mass 5 (2 pi)^1.5 0.3^3 = 2.13 over the box's volume 8) is above it, so sigma_t decides
+    sigma_t = density_threshold(0.01, math.sqrt(3) * 2 / 16)
+    assert grid.density.mean() > sigma_t
+    smallest, largest = blob_density_range(blob, grid)
+    empty, solid = largest < sigma_t, smallest > sigma_t
+    assert empty.sum() > 1500 and solid.sum() > 100  # of 4096 cells: both kinds are well represented
+    assert not grid.occupied[empty].any() and grid.occupied[solid].all()
+
+    slab = Slab(normal=(0.0, 0.0, 1.0), lower=-0.3, upper=0.2, density=3.0)
+    grid = trained_grid(slab)
+    z_lower = grid.aabb[0, 2] + cell_corners(16)[:, 2] * grid.cell_size[2]  # each cell's z extent
+    z_upper = z_lower + grid.cell_size[2]
+    inside, outside = (z_lower >= -0.3) & (z_upper <= 0.2), (z_upper <= -0.3) | (z_lower >= 0.2)
+    assert grid.occupied[inside].all() and not grid.occupied[outside].any()
+
+
+def test_a_new_grid_is_all_occupied_and_faint_fields_fall_back_to_the_mean():
+    assert OccupancyGrid(resolution=8).occupied.all()  # nothing is skipped before the first update
+    faint = GaussianBlob(peak=1e-3, radius=0.3)  # everywhere below sigma_t: the mean decides
+    grid = trained_grid(faint, resolution=8)
+    assert grid.occupied.any() and not grid.occupied.all()
+
+
+def test_after_warm_up_a_quarter_of_the_cells_is_re_evaluated_and_decays():
+    blob = GaussianBlob(peak=5.0, radius=0.3)
+    grid = OccupancyGrid(resolution=8, update_every=2, warmup_steps=2, decay=0.5, aabb=BOX)
+    grid.update(0, [blob.density])
+    before = grid.density.clone()
+    grid.update(1, [blob.density])  # not due
+    assert torch.equal(grid.density, before)
+    grid.update(2, [lambda x: torch.zeros(len(x))])  # the density went away: a quarter halves
+    halved = torch.isclose(grid.density, before / 2) & (before > 0)
+    assert halved.sum() == (before > 0).sum() // 4 or abs(int(halved.sum()) - int((before > 0).sum()) // 4) < 40
+    assert (grid.density <= before).all()
+
+
+def render_pair(field, grid, hierarchical=False, n=2048):
+    """The same rays through ``field`` rendered without and with ``grid``, deterministic samples, float32."""
+    origins, directions = aimed_rays(n, torch.Generator().manual_seed(1), impact=1.2, distance=(3.5, 4.5))
+    origins, directions = origins.float(), directions.float()
+    options = dict(hierarchical=hierarchical, n_coarse=64, n_fine=64, n_single=128, near=NEAR, far=FAR)
+    plain = VolumeRenderer(lambda: field, **options)
+    fast = VolumeRenderer(lambda: field, **options, grid=grid)
+    out = plain(origins, directions, deterministic=True), fast(origins, directions, deterministic=True)
+    return out[0], out[1], fast.stats
+
+
+@pytest.mark.parametrize("hierarchical", [False, True])
+def test_skipping_empty_cells_changes_no_pixel_by_more_than_the_stated_tolerance(hierarchical):
+    # The blob (peak 5, radius 0.3) absorbs 1 - exp(-5 * 0.3 sqrt(2 pi)) = 0.98 through its centre.
+    # A cell is left out when its density estimate is below sigma_t, the density at which light crossing
+    # it loses threshold = 1%. Stated tolerance: five such cells' worth, 1 - 0.99^5 = 0.049: a ray
+    # meets the blob's faint edge (density sigma_t at 0.85 from the centre, 20x less at 1.15) on a few
+    # cells on each side, and within one cell there the density varies up to 7.7x
+    # (exp(2 * 0.85 * 0.2165 / (2 * 0.3^2)), the cell's diagonal 0.2165), which a jittered point
+    # can underestimate.
+    tolerance = 1 - 0.99**5
+    blob = GaussianBlob(peak=5.0, radius=0.3)
+    grid = trained_grid(blob, early_stop_transmittance=0.0)
+    plain, fast, stats = render_pair(blob, grid, hierarchical)
+    for name in plain:
+        opacity = (plain[name]["opacity"] - fast[name]["opacity"]).abs()
+        assert opacity.max() <= tolerance and opacity.mean() < 0.01, name  # on average under one cell's worth
+        assert (plain[name]["rgb"] - fast[name]["rgb"]).abs().max() <= tolerance
+    total = 128 if not hierarchical else 64 + 128
+    assert stats["samples_per_ray"] < total / 3
+
+
+def test_a_skipped_sample_is_a_sample_that_absorbs_nothing():
+    # Independent of the grid's estimates: the accelerated render equals the plain render of a field
+    # whose density is zeroed wherever the grid says empty (float32 rounding apart).
+    blob = GaussianBlob(peak=5.0, radius=0.3)
+    grid = trained_grid(blob, early_stop_transmittance=0.0)
+
+    class Masked(GaussianBlob):
+        def density(self, positions):
+            return torch.where(grid.occupied_at(positions), super().density(positions), 0)
+
+    plain, _, _ = render_pair(Masked(peak=5.0, radius=0.3), grid)
+    _, fast, _ = render_pair(blob, grid)
+    torch.testing.assert_close(fast["coarse"]["rgb"], plain["coarse"]["rgb"], atol=1e-6, rtol=0)
+
+
+@pytest.mark.parametrize("eps", [1e-4, 1e-2, 0.1])
+def test_early_termination_drops_at_most_the_threshold_of_colour(eps):
+    # An opaque slab (density 50 over 0.5: T behind it is exp(-25)) seen from above: without
+    # termination every sample behind it is evaluated for nothing. Leaving out the runs of samples in
+    # front of which T < eps removes at most eps of absorbed light, so colour and opacity move by <= eps.
+    slab = Slab(normal=(0.0, 0.0, 1.0), lower=-0.25, upper=0.25, density=50.0, colour=(0.1, 0.2, 0.9))
+    grid = OccupancyGrid(resolution=8, early_stop_transmittance=eps, segments=8, aabb=[[-4.0] * 3, [4.0] * 3])
+    without = OccupancyGrid(resolution=8, early_stop_transmittance=0.0, aabb=[[-4.0] * 3, [4.0] * 3])
+    _, reference, all_stats = render_pair(slab, without)
+    _, stopped, stats = render_pair(slab, grid)
+    colour = (reference["coarse"]["rgb"] - stopped["coarse"]["rgb"]).abs().max().item()
+    opacity = (reference["coarse"]["opacity"] - stopped["coarse"]["opacity"]).abs().max().item()
+    assert colour <= eps and opacity <= eps
+    assert all_stats["samples_per_ray"] == 128  # the grid is all occupied: only termination leaves out
+    assert stats["samples_per_ray"] < 0.8 * all_stats["samples_per_ray"]  # many samples lie behind the slab
+
+

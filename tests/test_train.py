@@ -1,0 +1,97 @@
+"""The command line as a user runs it: a whole training run, the README's multirun, bad input."""
+
+import json
+import math
+
+import pytest
+import torch
+
+from nerfexp.data.procedural import load_procedural
+from nerfexp.metrics import psnr
+from tests.helpers import read_json, run_nerfexp
+
+
+def blank_psnr(n_test: int, size: int) -> float:
+    """PSNR of an all-white (empty scene) prediction on the built-in scene's test views."""
+    views = load_procedural("test", n_test, size, size)
+    targets = views.rgb_on(torch.ones(3))
+    return sum(psnr(torch.ones_like(t), t) for t in targets) / len(targets)
+
+
+@pytest.mark.slow
+def test_a_short_run_learns_the_scene_and_writes_every_output(tmp_path):
+    overrides = ["scale.steps=400", "scale.val_every=200", "scale.batch_rays=512", "scale.depth=3",
+                 "scale.width=64", "scale.skips=[2]", "scale.view_hidden=32", "scale.n_coarse=24",
+                 "scale.n_fine=24", "scale.image_size=32", "data.n_train=40", "data.n_test=2",
+                 "trainer.enable_progress_bar=false", f"hydra.run.dir={tmp_path}"]
+    result = run_nerfexp(*overrides, cwd=tmp_path)
+    assert result.returncode == 0, result.stderr[-3000:]
+    results = read_json(tmp_path / "results.json")
+    # Not an empty scene: an all-white image scores about 9 dB here; the threshold asks for +6 dB.
+    baseline = blank_psnr(2, 32)
+    assert results["test_psnr"] > baseline + 6, (results["test_psnr"], baseline)
+    assert 0 < results["test_ssim"] <= 1 and results["steps"] == 400 and results["n_params"] > 0
+    assert results["choices"] == {"encoding": "posenc", "view_dependence": "mlp", "data": "procedural",
+                                  "scale": "cpu", "trainer": "default", "acceleration": "none",
+                                  "hierarchical": True, "seed": 0}
+    records = [json.loads(line) for line in (tmp_path / "metrics.jsonl").read_text().splitlines()]
+    assert [(r["split"], r["step"]) for r in records] == [("val", 200), ("val", 400), ("test", 400)]
+    assert all(math.isfinite(r["psnr"]) and math.isfinite(r["ssim"]) and r["wall_time_s"] > 0 for r in records)
+    assert records[1]["wall_time_s"] > records[0]["wall_time_s"]
+    for name in ("r_0.png", "r_0_depth.png", "r_1.png"):
+        assert (tmp_path / "test" / name).stat().st_size > 0
+    assert list((tmp_path / "tensorboard").glob("events.out.tfevents.*"))
+    assert (tmp_path / "checkpoints" / "last.ckpt").exists()
+
+
+@pytest.mark.slow
+def test_readme_multirun_trains_four_variants(tmp_path, tiny):
+    result = run_nerfexp("-m", "encoding=none,posenc", "hierarchical=true,false", *tiny,
+                         f"hydra.sweep.dir={tmp_path}", cwd=tmp_path)
+    assert result.returncode == 0, result.stderr[-3000:]
+    results = [read_json(p) for p in sorted(tmp_path.glob("*/results.json"))]
+    assert len(results) == 4
+    combos = {(r["choices"]["encoding"], r["choices"]["hierarchical"]) for r in results}
+    assert combos == {("none", True), ("none", False), ("posenc", True), ("posenc", False)}
+    for r in results:
+        assert math.isfinite(r["test_psnr"]) and math.isfinite(r["test_ssim"])
+        assert r["evaluations_per_ray"] == 48  # 16 + (16 + 16) with hierarchy, n_single = 48 without
+
+
+def test_unknown_component_is_named(tmp_path):
+    result = run_nerfexp("encoding=posenk", cwd=tmp_path)
+    assert result.returncode != 0
+    assert "Could not find 'encoding/posenk'" in result.stderr and "posenc" in result.stderr
+
+
+def test_config_typo_is_named(tmp_path):
+    result = run_nerfexp("trainer.max_step=3", cwd=tmp_path)
+    assert result.returncode != 0 and "trainer.max_step" in result.stderr
+
+
+def test_blender_without_root_says_which_key(tmp_path):
+    result = run_nerfexp("data=blender", f"hydra.run.dir={tmp_path}", cwd=tmp_path)
+    assert result.returncode != 0 and "data.root" in result.stderr
+    assert "Traceback" not in result.stderr
+
+
+def test_missing_dataset_folder_is_one_clear_line(tmp_path):
+    missing = tmp_path / "no_such_scene"
+    result = run_nerfexp("data=blender", f"data.root={missing}", f"hydra.run.dir={tmp_path / 'run'}", cwd=tmp_path)
+    assert result.returncode != 0
+    assert str(missing) in result.stderr and "Traceback" not in result.stderr
+
+
+@pytest.mark.slow
+def test_a_blender_format_scene_written_by_the_exporter_trains(tmp_path, tiny):
+    scene = tmp_path / "scene"
+    exported = run_nerfexp(str(scene), "--resolution", "24", "--n-train", "10", "--n-val", "1", "--n-test", "2",
+                           cwd=tmp_path, script="nerfexp-scene")
+    assert exported.returncode == 0, exported.stderr[-2000:]
+    overrides = [o for o in tiny if not o.startswith(("data.", "scale.image_size"))]
+    result = run_nerfexp("data=blender", f"data.root={scene}", "data.downscale=2", "data.n_val=1", "data.test_stride=1",
+                         *overrides, f"hydra.run.dir={tmp_path / 'run'}", cwd=tmp_path)
+    assert result.returncode == 0, result.stderr[-3000:]
+    results = read_json(tmp_path / "run" / "results.json")
+    assert results["choices"]["data"] == "blender" and math.isfinite(results["test_psnr"])
+    assert sorted(p.name for p in (tmp_path / "run" / "test").glob("r_?.png")) == ["r_0.png", "r_1.png"]

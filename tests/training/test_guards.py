@@ -1,0 +1,276 @@
+"""TrainingGuard in real Lightning training: NaNs and infinities at known steps, skipped batches, collapsed fields."""
+
+import functools
+import logging
+import math
+
+import lightning as L
+import pytest
+import torch
+import torch.nn.functional as F
+from lightning.pytorch.plugins.precision import MixedPrecision
+from torch import nn
+from torch.utils.data import DataLoader
+
+from nerfexp.errors import FieldCollapseError, NonFiniteError
+from nerfexp.nerf.volume_renderer import VolumeRenderer
+from nerfexp.training.guards import TrainingGuard
+from nerfexp.training.module import NeRFModule
+from tests.helpers import run_nerfexp
+
+
+class LinearField(nn.Module):
+    """rgb and sigma from one linear map of the position: parameters layer.weight [4, 3], layer.bias [4]."""
+
+    def __init__(self, activation=F.softplus, density_bias=0.0):
+        super().__init__()
+        self.layer = nn.Linear(3, 4)
+        self.activation, self.density_bias = activation, density_bias
+        self.calls = 0
+
+    def forward(self, positions, directions):
+        self.calls += 1
+        out = self.layer(positions)
+        return torch.sigmoid(out[..., :3]), self.activation(out[..., 3] + self.density_bias)
+
+
+class NaNFrom(LinearField):
+    """A LinearField whose density is NaN from call ``first`` on, counting from 0: the renderer calls a
+    network once per training step, so from step ``first``."""
+
+    def __init__(self, first: int):
+        super().__init__()
+        self.first = first
+
+    def forward(self, positions, directions):
+        rgb, sigma = super().forward(positions, directions)
+        return rgb, sigma * (math.nan if self.calls > self.first else 1.0)
+
+
+class EmptyBut(nn.Module):
+    """Density exactly 0 except on every ``period``-th call (1 there): a field that is not collapsed."""
+
+    def __init__(self, period: int):
+        super().__init__()
+        self.raw = nn.Parameter(torch.zeros(()))
+        self.period, self.calls = period, 0
+
+    def forward(self, positions, directions):
+        self.calls += 1
+        sigma = torch.full(positions.shape[:-1], float(self.calls % self.period == 0))
+        return torch.sigmoid(self.raw).expand(*positions.shape[:-1], 3), sigma
+
+
+def module(coarse: nn.Module, fine: nn.Module) -> NeRFModule:
+    fields = iter([coarse, fine])
+    renderer = VolumeRenderer(lambda: next(fields), hierarchical=True, n_coarse=4, n_fine=4, n_single=8,
+                              near=2.0, far=6.0)
+    return NeRFModule(renderer, functools.partial(torch.optim.Adam, lr=1e-2), lr_final=1e-2)
+
+
+def batches(n: int) -> list[dict]:
+    generator = torch.Generator().manual_seed(0)
+    out = []
+    for _ in range(n):
+        directions = F.normalize(torch.randn(8, 3, generator=generator), dim=-1)
+        out.append({"origins": -4 * directions, "directions": directions, "rgb": torch.rand(8, 3, generator=generator)})
+    return out
+
+
+def fit(m: NeRFModule, guard: TrainingGuard, steps: int, root, callbacks=(), **trainer_args) -> L.Trainer:
+    torch.manual_seed(0)
+    trainer = L.Trainer(max_steps=steps, accelerator="cpu", logger=False, enable_checkpointing=False,
+                        enable_progress_bar=False, enable_model_summary=False, default_root_dir=root,
+                        callbacks=[guard, *callbacks], **trainer_args)
+    trainer.fit(m, train_dataloaders=DataLoader(batches(steps + 2), batch_size=None))
+    return trainer
+
+
+def poison(parameter: nn.Parameter, trainer_of, steps: set[int]) -> None:
+    """At ``steps``, the gradient of ``parameter`` gets nan in its first row and inf at [1, 0] (or nan
+    everywhere for a vector)."""
+    def hook(grad):
+        if trainer_of().global_step not in steps:
+            return grad
+        grad = grad.clone()
+        if grad.ndim == 2:
+            grad[0], grad[1, 0] = math.nan, math.inf
+        else:
+            grad[:] = math.nan
+        return grad
+    parameter.register_hook(hook)
+
+
+class Snapshots(L.Callback):
+    """Every parameter before and after each step: {step: (before, after)}."""
+
+    def __init__(self):
+        self.steps = {}
+
+    def on_train_batch_start(self, trainer, pl_module, batch, batch_idx):
+        self._before = {k: v.detach().clone() for k, v in pl_module.named_parameters()}
+
+    def on_train_batch_end(self, trainer, pl_module, outputs, batch, batch_idx):
+        after = {k: v.detach().clone() for k, v in pl_module.named_parameters()}
+        self.steps[trainer.global_step - 1] = (self._before, after)
+
+
+def unchanged(before: dict, after: dict) -> bool:
+    return all(torch.equal(before[k], after[k]) for k in before)
+
+
+def test_a_nan_gradient_stops_naming_step_parameter_network_and_counts(tmp_path):
+    torch.manual_seed(0)
+    m = module(LinearField(), LinearField())
+    initial = {k: v.clone() for k, v in m.state_dict().items()}
+    poison(m.renderer.fine.layer.weight, lambda: m.trainer, {3})
+    with pytest.raises(NonFiniteError) as error:
+        fit(m, TrainingGuard(), 8, tmp_path)  # no dirpath: the trainer's default_root_dir/debug
+    path = tmp_path / "debug" / "nonfinite_step3.pt"
+    assert str(error.value) == (f"step 3: the gradient of renderer.fine.layer.weight (fine network) is nan in 3 "
+                                f"and infinite in 1 of 12 entries; batch and weights saved to {path}; "
+                                "the run stopped here")
+    saved = torch.load(path, weights_only=True)
+    assert saved["step"] == 3 and saved["message"] == str(error.value)
+    for key, value in batches(10)[3].items():  # the fourth batch, the one of step 3
+        assert torch.equal(saved["batch"][key], value)
+    state = m.state_dict()  # stopped before the update: the weights the step would have changed
+    assert saved["state_dict"].keys() == state.keys()
+    assert all(torch.equal(saved["state_dict"][k], state[k]) for k in state)
+    assert not all(torch.equal(saved["state_dict"][k], initial[k]) for k in state)  # three updates were made
+    grad = saved["gradients"]["renderer.fine.layer.weight"]
+    assert int(grad.isnan().sum()) == 3 and int(grad.isinf().sum()) == 1
+    assert torch.isfinite(saved["gradients"]["renderer.coarse.layer.weight"]).all()
+
+
+def test_several_bad_gradients_name_the_first_and_count_the_rest(tmp_path):
+    torch.manual_seed(0)
+    m = module(LinearField(), LinearField())
+    poison(m.renderer.coarse.layer.bias, lambda: m.trainer, {1})
+    poison(m.renderer.fine.layer.weight, lambda: m.trainer, {1})
+    with pytest.raises(NonFiniteError, match=r"^step 1: the gradient of renderer\.coarse\.layer\.bias \(coarse "
+                       r"network\) is nan in 4 of 4 entries; so are the gradients of 1 more parameter \(in the "
+                       r"fine network\); batch and weights saved to .*nonfinite_step1\.pt; the run stopped here$"):
+        fit(m, TrainingGuard(dirpath=str(tmp_path / "elsewhere")), 4, tmp_path)
+    assert (tmp_path / "elsewhere" / "nonfinite_step1.pt").exists()
+
+
+def test_a_nan_loss_is_named_by_network_before_its_gradients(tmp_path):
+    torch.manual_seed(0)
+    m = module(LinearField(), NaNFrom(2))  # the fine network's density is nan from step 2 on
+    with pytest.raises(NonFiniteError, match=r"^step 2: the fine network's colour loss is nan; batch and weights "
+                       r"saved to .*nonfinite_step2\.pt; the run stopped here$"):
+        fit(m, TrainingGuard(), 6, tmp_path)
+    saved = torch.load(tmp_path / "debug" / "nonfinite_step2.pt", weights_only=True)
+    assert not torch.isfinite(saved["gradients"]["renderer.fine.layer.weight"]).all()
+
+
+def test_skip_drops_exactly_the_bad_batches_and_counts_them(tmp_path):
+    torch.manual_seed(0)
+    m = module(LinearField(), LinearField())
+    poison(m.renderer.fine.layer.weight, lambda: m.trainer, {2, 4})
+    snapshots, guard = Snapshots(), TrainingGuard(on_nonfinite="skip", max_skips=2)
+    trainer = fit(m, guard, 7, tmp_path, callbacks=[snapshots])
+    assert trainer.global_step == 7 and guard.skipped_batches == 2
+    assert trainer.callback_metrics["train/skipped_batches"] == 2
+    assert [step for step, (before, after) in sorted(snapshots.steps.items()) if unchanged(before, after)] == [2, 4]
+    adam = trainer.optimizers[0]
+    assert adam.state[m.renderer.fine.layer.weight]["step"] == 5  # Adam's moments skipped the two batches too
+    assert sorted(p.name for p in (tmp_path / "debug").iterdir()) == ["nonfinite_step2.pt", "nonfinite_step4.pt"]
+
+
+def test_skip_stops_after_max_skips(tmp_path):
+    torch.manual_seed(0)
+    m = module(LinearField(), LinearField())
+    poison(m.renderer.fine.layer.weight, lambda: m.trainer, {1, 2, 3})
+    with pytest.raises(NonFiniteError, match=r"^step 3: the gradient of renderer\.fine\.layer\.weight .*; 2 batches "
+                       r"skipped already, the most allowed \(max_skips=2\): the run stopped here$"):
+        fit(m, TrainingGuard(on_nonfinite="skip", max_skips=2), 6, tmp_path)
+
+
+def test_a_gradient_scaler_owns_infinite_gradients(tmp_path):
+    # With a scaler (16-mixed on GPUs) infinite gradients are routine: the scaler skips the step.
+    torch.manual_seed(0)
+    m = module(LinearField(), LinearField())
+    poison(m.renderer.fine.layer.weight, lambda: m.trainer, {1})
+    snapshots = Snapshots()
+    amp = MixedPrecision("16-mixed", "cpu", scaler=torch.amp.GradScaler("cpu"))
+    trainer = fit(m, TrainingGuard(), 3, tmp_path, callbacks=[snapshots], plugins=[amp])
+    assert trainer.global_step == 3 and unchanged(*snapshots.steps[1]) and not unchanged(*snapshots.steps[2])
+
+
+COLLAPSE = r"the coarse and fine networks rendered nothing \(opacity below 0.0001 on every ray\) for 5 consecutive"
+
+
+def dead_relu() -> LinearField:
+    return LinearField(F.relu, density_bias=-1000.0)  # sigma = relu(raw - 1000): exactly 0, zero gradient
+
+
+def test_a_collapsed_field_stops_after_patience_batches(tmp_path):
+    torch.manual_seed(0)
+    m = module(dead_relu(), dead_relu())
+    with pytest.raises(FieldCollapseError, match=rf"^step 4: {COLLAPSE} batches: .* Try "
+                       r"model\.renderer\.field\.density_activation=softplus"):
+        fit(m, TrainingGuard(collapse_patience=5), 20, tmp_path)
+    assert m.trainer.global_step == 4
+
+
+def test_a_collapsed_field_warns_once_and_trains_on(tmp_path, caplog):
+    torch.manual_seed(0)
+    m = module(dead_relu(), dead_relu())
+    with caplog.at_level(logging.WARNING, logger="nerfexp.training.guards"):
+        trainer = fit(m, TrainingGuard(on_collapse="warn", collapse_patience=5), 12, tmp_path)
+    assert trainer.global_step == 12
+    warnings = [r.getMessage() for r in caplog.records if r.name == "nerfexp.training.guards"]
+    assert len(warnings) == 1 and warnings[0].startswith("step 4: the coarse and fine networks rendered nothing")
+
+
+@pytest.mark.parametrize("period, patience, flagged", [(3, 3, False), (3, 2, True)])
+def test_collapse_needs_consecutive_empty_batches(tmp_path, period, patience, flagged):
+    # EmptyBut(3): empty at steps 0, 1, then opaque at 2, empty at 3, 4, ...: two empty batches in a row at most
+    m = module(EmptyBut(period), EmptyBut(period))
+    guard = TrainingGuard(collapse_patience=patience)
+    if flagged:
+        with pytest.raises(FieldCollapseError, match=r"^step 1: the coarse and fine networks rendered nothing"):
+            fit(m, guard, 9, tmp_path)
+    else:
+        assert fit(m, guard, 9, tmp_path).global_step == 9
+
+
+def test_a_healthy_field_is_not_flagged(tmp_path):
+    torch.manual_seed(0)
+    m = module(LinearField(), LinearField())
+    guard = TrainingGuard(collapse_patience=1)  # one batch with every ray empty would be enough
+    assert fit(m, guard, 6, tmp_path).global_step == 6
+    assert guard.empty_batches == {"coarse": 0, "fine": 0} and guard.skipped_batches == 0
+
+
+def test_options_are_checked():
+    with pytest.raises(ValueError, match="on_nonfinite"):
+        TrainingGuard(on_nonfinite="ignore")
+    with pytest.raises(ValueError, match="on_collapse"):
+        TrainingGuard(on_collapse="skip")
+
+
+def test_a_nan_run_ends_with_one_line_naming_step_and_network(tmp_path, tiny):
+    result = run_nerfexp(*tiny, "model.renderer.field.density_bias=nan", f"hydra.run.dir={tmp_path}", cwd=tmp_path)
+    path = tmp_path / "debug" / "nonfinite_step0.pt"
+    assert result.returncode == 1 and "Traceback" not in result.stderr
+    errors = [line for line in result.stderr.splitlines() if line.startswith("nerfexp: error:")]
+    assert errors == [f"nerfexp: error: step 0: the coarse network's colour loss is nan (the fine network's too); "
+                      f"batch and weights saved to {path}; the run stopped here"]
+    saved = torch.load(path, weights_only=True)
+    assert saved["step"] == 0 and saved["batch"]["rgb"].shape == (256, 3)  # scale.batch_rays=256
+    weights = saved["state_dict"]  # finite: the nan comes from the density bias, a setting, not a weight
+    assert any(k.startswith("renderer.fine.") for k in weights) and all(v.isfinite().all() for v in weights.values())
+
+
+def test_a_collapsed_relu_run_ends_with_the_collapse_message(tmp_path, tiny):
+    result = run_nerfexp(*tiny, "model.renderer.field.density_activation=relu",
+                         "model.renderer.field.density_bias=-1000", "callbacks.guard.collapse_patience=10",
+                         f"hydra.run.dir={tmp_path}", cwd=tmp_path)
+    assert result.returncode == 1 and "Traceback" not in result.stderr
+    last = result.stderr.strip().splitlines()[-1]
+    assert last.startswith("nerfexp: error: step 9: the coarse and fine networks rendered nothing (opacity below "
+                           "0.0001 on every ray) for 10 consecutive batches")
+    assert "density_activation=softplus" in last

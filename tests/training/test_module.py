@@ -1,0 +1,195 @@
+import functools
+
+import lightning as L
+import pytest
+import torch
+from torch import nn
+from torch.utils.data import DataLoader
+
+from nerfexp.nerf.volume_renderer import VolumeRenderer
+from nerfexp.training.module import NeRFModule, seeded_random
+
+
+class OpaqueField(nn.Module):
+    """Of one colour, opaque from the first sample on: sigma 1e6 over the ray's length of at least 3 gives an
+    optical depth of 3e6, and exp(-3e6) is 0 in float32, so the ray's opacity is 1 and its colour the field's."""
+
+    def __init__(self, colour: float):
+        super().__init__()
+        self.colour = nn.Parameter(torch.tensor(colour))
+
+    def forward(self, positions, directions):
+        return self.colour.expand(*positions.shape[:-1], 3), torch.full(positions.shape[:-1], 1e6)
+
+
+class ConstantField(nn.Module):
+    def __init__(self):
+        super().__init__()
+        self.raw = nn.Parameter(torch.zeros(()))
+
+    def forward(self, positions, directions):
+        sigma = nn.functional.softplus(self.raw).expand(positions.shape[:-1])
+        return torch.sigmoid(self.raw).expand(*positions.shape[:-1], 3), sigma
+
+
+def module(field, lr=1e-3, lr_final=1e-4, lr_warmup_steps=0):
+    renderer = VolumeRenderer(field, hierarchical=True, n_coarse=4, n_fine=4, n_single=12, near=2.0, far=6.0)
+    return NeRFModule(renderer, functools.partial(torch.optim.Adam, lr=lr), lr_final=lr_final, chunk=7,
+                      lr_warmup_steps=lr_warmup_steps)
+
+
+def batch(n=8):
+    directions = torch.nn.functional.normalize(torch.randn(n, 3), dim=-1)
+    return {"origins": -4 * directions, "directions": directions, "rgb": torch.rand(n, 3)}
+
+
+def test_training_exposes_each_networks_loss_and_opacity_detached():
+    torch.manual_seed(0)
+    fields = iter([OpaqueField(0.25), OpaqueField(0.75)])
+    m, b = module(lambda: next(fields)), batch(8)
+    trainer = L.Trainer(max_steps=1, accelerator="cpu", logger=False, enable_checkpointing=False,
+                        enable_progress_bar=False, enable_model_summary=False)
+    trainer.fit(m, train_dataloaders=DataLoader([b], batch_size=None))
+    # Every ray renders its network's colour (the weights before the step's update): MSE against the target.
+    for name, colour in (("coarse", 0.25), ("fine", 0.75)):
+        figures = m.diagnostics[name]
+        torch.testing.assert_close(figures["loss"], ((colour - b["rgb"]) ** 2).mean())
+        torch.testing.assert_close(figures["opacity"], torch.ones(8))
+        assert not figures["loss"].requires_grad and not figures["opacity"].requires_grad
+
+
+def test_networks_are_named_as_the_renderer_outputs():
+    m = module(ConstantField)
+    assert m.networks == {"coarse": m.renderer.coarse, "fine": m.renderer.fine}
+    flat = NeRFModule(VolumeRenderer(ConstantField, hierarchical=False, n_coarse=4, n_fine=4, n_single=8, near=2.0,
+                                     far=6.0), functools.partial(torch.optim.Adam, lr=1e-3), lr_final=1e-4)
+    assert flat.networks == {"coarse": flat.renderer.coarse}
+
+
+def learning_rates(m: NeRFModule, steps: int) -> list[float]:
+    m.trainer = L.Trainer(max_steps=steps, logger=False, enable_checkpointing=False, enable_progress_bar=False)
+    config = m.configure_optimizers()
+    optimizer, schedule = config["optimizer"], config["lr_scheduler"]["scheduler"]
+    lrs = []
+    for _ in range(steps + 1):
+        lrs.append(optimizer.param_groups[0]["lr"])
+        optimizer.step()
+        schedule.step()
+    return lrs
+
+
+def test_learning_rate_decays_exponentially_to_lr_final_over_max_steps():
+    lrs = learning_rates(module(ConstantField, lr=5e-4, lr_final=5e-5), 100)
+    assert lrs[0] == pytest.approx(5e-4) and lrs[50] == pytest.approx(5e-4 * 0.1 ** 0.5)
+    assert lrs[100] == pytest.approx(5e-5)
+
+
+def test_warmup_ramps_linearly_then_follows_the_decay():
+    # step s < 10: (s + 1) / 10 of the decayed rate 5e-3 * 0.1^(s / 100); from step 9 on, the decay alone
+    lrs = learning_rates(module(ConstantField, lr=5e-3, lr_final=5e-4, lr_warmup_steps=10), 100)
+    assert lrs[0] == pytest.approx(5e-4) and lrs[4] == pytest.approx(0.5 * 5e-3 * 0.1 ** 0.04)
+    assert lrs[50] == pytest.approx(5e-3 * 0.1 ** 0.5) and lrs[100] == pytest.approx(5e-4)
+
+
+def test_image_rendering_in_chunks_equals_rendering_at_once():
+    torch.manual_seed(0)
+    m = module(ConstantField)
+    with torch.no_grad():
+        m.renderer.coarse.raw.fill_(0.3)
+        m.renderer.fine.raw.fill_(-0.2)
+    b = batch(15)
+    image = m.render_image(b["origins"].reshape(3, 5, 3), b["directions"].reshape(3, 5, 3))  # chunks of 7
+    whole = m.renderer(b["origins"], b["directions"], deterministic=True)["fine"]
+    torch.testing.assert_close(image["rgb"].reshape(15, 3), whole["rgb"])
+    torch.testing.assert_close(image["depth"].reshape(15), whole["depth"])
+
+
+def test_denormals_are_flushed_during_fit_only_and_restored_after_a_failure():
+    from torch.utils.data import DataLoader
+
+    from nerfexp.training.callbacks import FlushDenormals, flushes_denormals
+
+    class Probe(L.Callback):
+        def __init__(self, fail: bool):
+            self.fail, self.seen = fail, []
+
+        def on_train_batch_end(self, trainer, pl_module, outputs, batch, batch_idx):
+            self.seen.append(flushes_denormals())
+            if self.fail:
+                raise RuntimeError("stop here")
+
+    assert not flushes_denormals()  # IEEE arithmetic: tiny / 2 is a denormal, not 0
+    for fail in (False, True):
+        probe = Probe(fail)
+        trainer = L.Trainer(max_steps=2, logger=False, enable_checkpointing=False, enable_progress_bar=False,
+                            enable_model_summary=False, limit_val_batches=0, callbacks=[FlushDenormals(), probe])
+        loader = DataLoader([batch()] * 2, batch_size=None)
+        if fail:
+            with pytest.raises(RuntimeError, match="stop here"):
+                trainer.fit(module(ConstantField), train_dataloaders=loader)
+        else:
+            trainer.fit(module(ConstantField), train_dataloaders=loader)
+        assert probe.seen and all(probe.seen)  # flushed while training
+        assert not flushes_denormals()  # and restored afterwards
+
+
+def test_a_seeded_block_repeats_its_numbers_and_leaves_the_global_stream_alone():
+    before = torch.get_rng_state()
+    with seeded_random(5, torch.device("cpu")):
+        first = torch.rand(4)
+    assert torch.equal(torch.get_rng_state(), before)
+    with seeded_random(5, torch.device("cpu")):
+        again = torch.rand(4)
+    with seeded_random(6, torch.device("cpu")):
+        other = torch.rand(4)
+    with seeded_random(None, torch.device("cpu")):  # no seed: the global stream itself
+        unseeded = torch.rand(4)
+    assert torch.equal(first, again) and not torch.equal(first, other)
+    torch.set_rng_state(before)
+    assert torch.equal(unseeded, torch.rand(4))
+
+
+def test_bf16_mixed_training_keeps_rendering_in_float32(monkeypatch):
+    # A real training run under Lightning's bf16-mixed precision on the CPU: the network's matrix
+    # products run in bf16, yet every rendering call gets float32 densities, and training stays finite.
+    import lightning as L
+    from torch.utils.data import DataLoader
+
+    import nerfexp.nerf.volume_renderer as renderer_module
+    from nerfexp.nerf.encodings import PositionalEncoding
+    from nerfexp.nerf.fields import NeRFField, ViewMLPHead
+    from nerfexp.training.module import NeRFModule
+
+    rendered_dtypes = []
+    original = renderer_module.render_weights
+
+    def recording_render_weights(sigmas, t_starts, t_ends):
+        rendered_dtypes.append(sigmas.dtype)
+        return original(sigmas, t_starts, t_ends)
+
+    monkeypatch.setattr(renderer_module, "render_weights", recording_render_weights)
+    head = functools.partial(ViewMLPHead, direction_encoding=PositionalEncoding(2), hidden=16)
+    field = functools.partial(NeRFField, PositionalEncoding(4), head, depth=3, width=32, skips=(1,),
+                              density_activation="softplus", density_bias=-1.0)
+    torch.manual_seed(0)
+    renderer = VolumeRenderer(field, hierarchical=True, n_coarse=8, n_fine=8, n_single=16, near=2.0, far=6.0)
+    network_dtypes = set()
+    renderer.coarse.trunk[0].register_forward_hook(lambda m, i, out: network_dtypes.add(out.dtype))
+    module = NeRFModule(renderer, functools.partial(torch.optim.Adam, lr=1e-3), lr_final=1e-4)
+    directions = torch.nn.functional.normalize(torch.randn(64, 3), dim=-1)
+    batch = {"origins": -4 * directions, "directions": directions, "rgb": torch.rand(64, 3)}
+    trainer = L.Trainer(accelerator="cpu", precision="bf16-mixed", max_steps=5, logger=False,
+                        enable_checkpointing=False, enable_progress_bar=False, enable_model_summary=False,
+                        limit_val_batches=0)
+    trainer.fit(module, train_dataloaders=DataLoader([batch] * 5, batch_size=None))
+    assert trainer.global_step == 5
+    assert torch.bfloat16 in network_dtypes  # autocast was on for the network
+    assert rendered_dtypes and set(rendered_dtypes) == {torch.float32}
+    assert all(torch.isfinite(p).all() for p in module.parameters())
+    # the bf16 render is the float32 render to bf16's precision (8 significant bits)
+    with torch.no_grad():
+        exact = renderer(batch["origins"], directions, deterministic=True)["fine"]
+        with torch.autocast("cpu", dtype=torch.bfloat16):
+            mixed = renderer(batch["origins"], directions, deterministic=True)["fine"]
+    assert mixed["rgb"].dtype == torch.float32 and mixed["depth"].dtype == torch.float32
+    torch.testing.assert_close(mixed["rgb"], exact["rgb"], atol=0.03, rtol=0)
