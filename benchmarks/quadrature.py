@@ -32,7 +32,8 @@ from matplotlib.figure import Figure
 
 from nerfexp.files import atomic_write
 from nerfexp.nerf.analytic import GaussianBlob, Shell, Slab, aimed_rays, cost_for_error, render_errors
-from nerfexp.nerf.volume_renderer import BACKGROUNDS, VolumeRenderer
+from nerfexp.nerf.backgrounds import BACKGROUNDS
+from nerfexp.nerf.volume_renderer import VolumeRenderer
 from nerfexp.rundir import machine
 
 RESULTS = Path(__file__).parent / "results"

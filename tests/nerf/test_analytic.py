@@ -37,7 +37,8 @@ import pytest
 import torch
 
 from nerfexp.nerf.analytic import GaussianBlob, Shell, Slab, aimed_rays, cost_for_error, render_errors, segments_truth
-from nerfexp.nerf.volume_renderer import BACKGROUNDS, VolumeRenderer
+from nerfexp.nerf.backgrounds import BACKGROUNDS
+from nerfexp.nerf.volume_renderer import VolumeRenderer
 
 NEAR, FAR = 2.0, 6.0
 WHITE = BACKGROUNDS["white"]

@@ -14,7 +14,7 @@ class FlushDenormals(L.Callback):
     also when it fails.
 
     exp(-optical depth) behind surfaces and the densities of empty space produce float32 denormals
-    (below 1.2e-38), which slow the CPU's backward pass severalfold (measured in docs/acceleration.md);
+    (below 1.2e-38), which slow the CPU's backward pass down (measured in docs/results/default_run.md);
     flushing them costs nothing in accuracy at these magnitudes. The setting is process-wide, so it is
     scoped to training: other code in the process (a notebook, the test suite's float64 references)
     keeps IEEE denormals.
