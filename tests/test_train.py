@@ -33,7 +33,7 @@ def test_a_short_run_learns_the_scene_and_writes_every_output(tmp_path):
     assert 0 < results["test_ssim"] <= 1 and results["steps"] == 400 and results["n_params"] > 0
     assert results["choices"] == {"encoding": "posenc", "view_dependence": "mlp", "data": "procedural",
                                   "scale": "cpu", "trainer": "default", "acceleration": "none",
-                                  "hierarchical": True, "seed": 0}
+                                  "callbacks": "default", "logger": "tensorboard", "hierarchical": True, "seed": 0}
     records = [json.loads(line) for line in (tmp_path / "metrics.jsonl").read_text().splitlines()]
     assert [(r["split"], r["step"]) for r in records] == [("val", 200), ("val", 400), ("test", 400)]
     assert all(math.isfinite(r["psnr"]) and math.isfinite(r["ssim"]) and r["wall_time_s"] > 0 for r in records)
