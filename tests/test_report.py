@@ -13,6 +13,7 @@ import imageio.v3 as iio
 import pytest
 
 from nerfexp.report import PAPER_ABLATION, find_runs, group_variants, kendall_tau, main, write_report
+from nerfexp.rundir import process_start
 
 
 def dead_pid() -> int:
@@ -169,3 +170,15 @@ def test_the_order_of_overrides_does_not_split_a_variant(tmp_path):
     variants = group_variants(find_runs([tmp_path]))
     assert [(v.label, v.mean("test_psnr")) for v in variants] == [("ablation=complete", 21.0),
                                                                   ("ablation=no_posenc", 18.0)]
+
+
+def test_a_running_job_whose_pid_now_belongs_to_another_process_was_killed(tmp_path):
+    # the status names this test's own pid, but a process started at another time: the system reused
+    # the pid of the job's process, which is gone
+    run = make_run(tmp_path, "0", ["seed=0"], state="running", pid=os.getpid())
+    status = json.loads((run / "status.json").read_text())
+    (run / "status.json").write_text(json.dumps({**status, "process_start": process_start(os.getpid()) + 1}))
+    (job,) = find_runs([tmp_path])
+    assert job.state == "killed" and f"process {os.getpid()} is gone" in job.detail
+    (run / "status.json").write_text(json.dumps({**status, "process_start": process_start(os.getpid())}))
+    assert find_runs([tmp_path])[0].state == "running"

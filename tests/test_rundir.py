@@ -1,12 +1,27 @@
-"""The run directory: finding a run, and reading the config of a run made before the package's layers
-(``nerfexp.rundir.run_config``)."""
+"""The run directory: finding a run, reading the config of a run made before the package's layers,
+metrics appended by several processes at once, and telling a run's process from a reused pid."""
+
+import os
+import subprocess
+import sys
+import time
+from pathlib import Path
 
 import pytest
 from hydra.utils import get_class, instantiate
 from omegaconf import OmegaConf
 
 from nerfexp.errors import NerfexpError
-from nerfexp.rundir import LAST_CHECKPOINT, RUN_CONFIG, find_run, run_config
+from nerfexp.rundir import (
+    LAST_CHECKPOINT,
+    RUN_CONFIG,
+    append_metrics,
+    find_run,
+    process_alive,
+    process_start,
+    read_metrics,
+    run_config,
+)
 
 # The config an LLFF run saved before the layers (as nerfexp wrote it then, abridged to what builds
 # objects): the old module paths of every class, and the field's noise read from the data group.
@@ -83,3 +98,50 @@ def test_a_run_is_found_by_its_directory_or_a_checkpoint_in_it(tmp_path):
     assert find_run(tmp_path) == find_run(tmp_path / LAST_CHECKPOINT) == (tmp_path, tmp_path / LAST_CHECKPOINT)
     with pytest.raises(NerfexpError, match="is not a run directory"):
         find_run(tmp_path / "checkpoints")
+
+
+APPENDER = """
+import sys, time
+from pathlib import Path
+from nerfexp.rundir import append_metrics
+run_dir, writer, go = Path(sys.argv[1]), int(sys.argv[2]), Path(sys.argv[3])
+while not go.exists():  # start together
+    time.sleep(0.01)
+for line in range(150):
+    append_metrics(run_dir, {"writer": writer, "line": line, "padding": "x" * 200})
+"""
+
+
+def test_several_processes_appending_metrics_keep_every_line_whole(tmp_path):
+    # 4 processes x 150 lines at once: read-then-replace kept about half; appends must keep all 600
+    go = tmp_path / "go"
+    writers = [subprocess.Popen([sys.executable, "-c", APPENDER, str(tmp_path), str(w), str(go)]) for w in range(4)]
+    time.sleep(0.5)
+    go.touch()
+    assert all(w.wait(timeout=300) == 0 for w in writers)
+    records = read_metrics(tmp_path)  # every line parses: none torn
+    assert sorted((r["writer"], r["line"]) for r in records) == [(w, i) for w in range(4) for i in range(150)]
+    for w in range(4):  # each writer's lines in its own order
+        assert [r["line"] for r in records if r["writer"] == w] == list(range(150))
+
+
+def test_a_line_still_being_written_is_not_read(tmp_path):
+    append_metrics(tmp_path, {"step": 1})
+    with open(tmp_path / "metrics.jsonl", "a") as file:
+        file.write('{"step": 2, "ps')  # a writer's line, half there
+    assert read_metrics(tmp_path) == [{"step": 1}]
+
+
+@pytest.mark.skipif(not Path("/proc/self/stat").exists(), reason="process start times come from Linux's /proc")
+def test_a_process_is_its_pid_and_its_start_and_a_reused_pid_is_another_process():
+    started = process_start(os.getpid())
+    child = subprocess.Popen([sys.executable, "-c", "import time; time.sleep(30)"])
+    try:
+        child_started = process_start(child.pid)
+        assert isinstance(started, int) and child_started >= started  # clock ticks since boot: later
+        assert process_alive(child.pid, child_started) and process_alive(child.pid, None)
+        assert not process_alive(child.pid, child_started + 1)  # the pid, but not the process recorded
+    finally:
+        child.kill()
+        child.wait()
+    assert process_start(child.pid) is None and not process_alive(child.pid, child_started)

@@ -19,7 +19,6 @@ import argparse
 import csv
 import io
 import math
-import os
 import socket
 import statistics
 import sys
@@ -33,7 +32,7 @@ from matplotlib.figure import Figure
 from omegaconf import OmegaConf
 
 from nerfexp.files import atomic_write
-from nerfexp.rundir import RESULTS, STATUS, find_run_dirs, read_json, read_metrics
+from nerfexp.rundir import RESULTS, STATUS, find_run_dirs, process_alive, read_json, read_metrics
 
 # The paper's Table 4 (mean over the 8 Realistic Synthetic scenes): conf/ablation/NAME -> (row, PSNR, SSIM).
 PAPER_ABLATION = {
@@ -92,16 +91,6 @@ class Variant:
         return PAPER_ABLATION.get(self.choice("ablation"))
 
 
-def _process_alive(pid: int) -> bool:
-    try:
-        os.kill(pid, 0)
-    except ProcessLookupError:
-        return False
-    except PermissionError:
-        return True
-    return True
-
-
 def read_run(path: Path) -> Run:
     """What a run directory says about its job. A job whose status still says running but whose
     process is gone from this host was killed (out of memory, a time limit, a signal)."""
@@ -115,7 +104,7 @@ def read_run(path: Path) -> Run:
         state, detail = "failed", f"status says finished but {RESULTS} is missing"
     if state == "running":
         here = status.get("host") == socket.gethostname()
-        if here and not _process_alive(status["pid"]):
+        if here and not process_alive(status["pid"], status.get("process_start")):
             state, detail = "killed", f"process {status['pid']} is gone (killed before it finished)"
         else:
             detail = f"on {status.get('host')}, process {status.get('pid')}" + ("" if here else " (not checked)")

@@ -3,8 +3,9 @@ found and read back.
 
 A run's directory holds (every file written atomically):
 
-- ``status.json``: ``running`` (with host and process id), ``finished`` or ``failed`` (with the error),
-  and the run's command-line overrides, so a report can list jobs that crashed or still run.
+- ``status.json``: ``running`` (with host, process id and the process's start), ``finished`` or
+  ``failed`` (with the error), and the run's command-line overrides, so a report can list jobs that
+  crashed or still run.
 - ``metrics.jsonl``: one JSON object per evaluation: step, wall_time_s, split, psnr, ssim (means).
 - ``results.json``: final test means, last validation PSNR, training time, throughput, parameters,
   the machine, the resolved choices and overrides (``nerfexp.training.recorders.RunRecorder``).
@@ -62,10 +63,36 @@ def is_global_zero() -> bool:
     return rank_zero_only.rank == 0
 
 
+def process_start(pid: int) -> int | None:
+    """When process ``pid`` started, in clock ticks after the machine booted (field 22 of Linux's
+    ``/proc/PID/stat``): with the pid it identifies a process, since the system reuses pids. None where
+    no such process runs, or the system has no ``/proc``."""
+    try:
+        stat = Path(f"/proc/{pid}/stat").read_text()
+    except OSError:
+        return None
+    return int(stat.rsplit(")", 1)[1].split()[19])  # fields from the third on follow the command's ")"
+
+
+def process_alive(pid: int, started: int | None) -> bool:
+    """Whether the process ``pid`` that started at ``started`` (``process_start``; None: not recorded)
+    still runs on this host. A pid that now belongs to a process started at another time is not it."""
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:  # another user's process: the pid is taken
+        pass
+    now = process_start(pid)
+    return started is None or now is None or now == started
+
+
 def write_status(output_dir: str | Path, state: str, overrides: list[str], **details) -> None:
-    """Record a run's ``state`` (running, finished, failed) with its host, process id and ``details``."""
-    record = {"state": state, "overrides": list(overrides), "host": socket.gethostname(), "pid": os.getpid(),
-              "time_unix": time.time(), **details}
+    """Record a run's ``state`` (running, finished, failed) with its host, process id (and start, see
+    ``process_start``) and ``details``."""
+    pid = os.getpid()
+    record = {"state": state, "overrides": list(overrides), "host": socket.gethostname(), "pid": pid,
+              "process_start": process_start(pid), "time_unix": time.time(), **details}
     atomic_write(Path(output_dir) / STATUS, json.dumps(record, indent=2).encode())
 
 
@@ -80,16 +107,26 @@ def read_json(path: Path) -> dict | None:
 
 
 def append_metrics(output_dir: str | Path, record: dict) -> None:
-    """Add one evaluation's ``record`` as a line of the run's ``metrics.jsonl``."""
+    """Add one evaluation's ``record`` as a line of the run's ``metrics.jsonl``: one ``write`` of the
+    whole line to the file opened for appending, which the kernel places at the end of the file as one
+    piece, so the lines of several processes never overwrite or cut into each other."""
     path = Path(output_dir) / METRICS
-    previous = path.read_bytes() if path.exists() else b""
-    atomic_write(path, previous + (json.dumps(record) + "\n").encode())
+    path.parent.mkdir(parents=True, exist_ok=True)
+    line = (json.dumps(record) + "\n").encode()
+    fd = os.open(path, os.O_WRONLY | os.O_APPEND | os.O_CREAT, 0o644)
+    try:
+        written = os.write(fd, line)
+    finally:
+        os.close(fd)
+    if written != len(line):  # a full disk: say so rather than leave a line that reads as another
+        raise OSError(f"{path}: wrote {written} of the {len(line)} bytes of a metrics line")
 
 
 def read_metrics(run_dir: Path) -> list[dict]:
-    """The records of a run's ``metrics.jsonl``, in order; none where it has none."""
+    """The records of a run's ``metrics.jsonl``, in order; none where it has none. A last line still
+    being written (no newline yet) is left out."""
     path = Path(run_dir) / METRICS
-    return [json.loads(line) for line in path.read_text().splitlines()] if path.exists() else []
+    return [json.loads(line) for line in path.read_text().split("\n")[:-1]] if path.exists() else []
 
 
 def find_run_dirs(directory: Path) -> set[Path]:
