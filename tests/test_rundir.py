@@ -1,6 +1,7 @@
 """The run directory: finding a run, reading the config of a run made before the package's layers,
 metrics appended by several processes at once, and telling a run's process from a reused pid."""
 
+import json
 import os
 import subprocess
 import sys
@@ -16,7 +17,9 @@ from nerfexp.rundir import (
     LAST_CHECKPOINT,
     RUN_CONFIG,
     append_metrics,
+    claim,
     find_run,
+    held_run,
     process_alive,
     process_start,
     read_metrics,
@@ -145,3 +148,15 @@ def test_a_process_is_its_pid_and_its_start_and_a_reused_pid_is_another_process(
         child.kill()
         child.wait()
     assert process_start(child.pid) is None and not process_alive(child.pid, child_started)
+
+
+def test_a_directory_is_claimed_once_and_then_holds_a_run(tmp_path):
+    run_dir = tmp_path / "run"
+    assert held_run(run_dir) is None
+    assert claim(run_dir, ["seed=1"]) and not claim(run_dir, ["seed=2"])  # the second run finds it taken
+    assert held_run(run_dir) == "a running run (seed=1)"
+    status = json.loads((run_dir / "status.json").read_text())
+    assert (status["pid"], status["process_start"]) == (os.getpid(), process_start(os.getpid()))
+    results_only = tmp_path / "old"  # a run's results without a status (a run's files copied elsewhere)
+    (results_only / "checkpoints").mkdir(parents=True)
+    assert held_run(results_only) == "a run's results"

@@ -2,6 +2,7 @@
 
 import json
 import math
+from concurrent.futures import ThreadPoolExecutor
 
 import pytest
 import torch
@@ -95,3 +96,40 @@ def test_a_blender_format_scene_written_by_the_exporter_trains(tmp_path, tiny):
     results = read_json(tmp_path / "run" / "results.json")
     assert results["choices"]["data"] == "blender" and math.isfinite(results["test_psnr"])
     assert sorted(p.name for p in (tmp_path / "run" / "test").glob("r_?.png")) == ["r_0.png", "r_1.png"]
+
+
+def test_a_run_into_a_directory_that_holds_another_run_stops_before_any_work(tiny_run, tmp_path, tiny):
+    kept = {name: (tiny_run / name).read_bytes() for name in (".hydra/config.yaml", "status.json", "results.json")}
+    result = run_nerfexp(*tiny, "seed=1", f"hydra.run.dir={tiny_run}", cwd=tmp_path)
+    lines = result.stderr.strip().splitlines()
+    assert result.returncode == 1 and len(lines) == 1, result.stderr[-2000:]
+    assert lines[0].startswith(f"nerfexp: error: {tiny_run} holds a finished run (") and "resume=" in lines[0]
+    assert {name: (tiny_run / name).read_bytes() for name in kept} == kept  # nothing of that run touched
+    assert not (tiny_run / "checkpoints" / "last-v1.ckpt").exists()
+
+
+def test_a_sweep_into_a_directory_that_holds_an_earlier_sweep_stops(tiny_run, tmp_path, tiny):
+    sweep = tmp_path / "sweep"
+    (sweep / "0").mkdir(parents=True)
+    (sweep / "0" / "status.json").write_bytes((tiny_run / "status.json").read_bytes())
+    result = run_nerfexp("-m", *tiny, "seed=0,1", f"hydra.sweep.dir={sweep}", cwd=tmp_path)
+    assert result.returncode == 1 and result.stderr.strip() == (
+        f"nerfexp: error: {sweep} holds the runs of an earlier sweep (1): choose another directory "
+        "(hydra.sweep.dir=...)"), result.stderr[-2000:]
+    assert sorted(p.name for p in sweep.iterdir()) == ["0"]
+
+
+def test_default_run_directories_of_runs_started_at_once_differ(tmp_path):
+    # two commands started together (most often in the same second): their default directories
+    # (outputs/DATE/HH-MM-SS-MICROSECONDS) differ
+    def default_dir(_) -> str:
+        shown = run_nerfexp("--cfg", "hydra", "--resolve", cwd=tmp_path)
+        lines = shown.stdout.splitlines()
+        return next(line.split("dir: ")[1] for line in lines if line.startswith("    dir: outputs/"))
+
+    with ThreadPoolExecutor(2) as pool:
+        first, second = pool.map(default_dir, range(2))
+    assert first != second
+    for shown in (first, second):
+        date, time_of_day = shown.split("/")[1:]
+        assert len(date) == len("2026-11-23") and len(time_of_day) == len("10-00-00-123456")

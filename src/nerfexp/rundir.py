@@ -13,6 +13,9 @@ A run's directory holds (every file written atomically):
 - ``checkpoints/last.ckpt``, ``.hydra/config.yaml`` (the composed config, as Hydra saves it).
 - ``eval.json`` (``nerfexp-eval``), ``render/`` (``nerfexp-render``), ``debug/`` (the training guards).
 
+A directory belongs to one run: ``RunDirectoryGuard`` refuses to start a run in a directory that
+holds another one (or a sweep in one that holds an earlier sweep's runs), before Hydra writes into it.
+
 A finished (or interrupted) run is read back by ``find_run``, ``run_config`` and ``load_module``.
 """
 
@@ -25,6 +28,7 @@ from pathlib import Path
 
 import lightning as L
 import torch
+from hydra.experimental.callback import Callback
 from hydra.utils import instantiate
 from lightning.pytorch.utilities.rank_zero import rank_zero_only
 from omegaconf import DictConfig, OmegaConf, open_dict
@@ -133,6 +137,67 @@ def find_run_dirs(directory: Path) -> set[Path]:
     """Every run directory under ``directory`` (itself included): a folder holding ``status.json`` or
     ``results.json``."""
     return {p.parent for name in (STATUS, RESULTS) for p in Path(directory).rglob(name)}
+
+
+def held_run(run_dir: Path) -> str | None:
+    """What run ``run_dir`` holds, described (its state and overrides, from ``status.json``), or None
+    where it holds none (no status, results, metrics or checkpoints)."""
+    status = read_json(run_dir / STATUS)
+    if status is not None:
+        return f"a {status.get('state')} run ({' '.join(status.get('overrides', [])) or 'no overrides'})"
+    if any((run_dir / name).exists() for name in (RESULTS, METRICS, LAST_CHECKPOINT.parent)):
+        return "a run's results"
+    return None
+
+
+def claim(run_dir: Path, overrides: list[str]) -> bool:
+    """Make ``run_dir`` this run's, atomically: its ``status.json`` is created here (``running``), and
+    only where it does not exist, so that of two runs started into one directory at once one gets it.
+    Returns whether this run did."""
+    run_dir.mkdir(parents=True, exist_ok=True)
+    pid = os.getpid()
+    record = {"state": "running", "overrides": list(overrides), "host": socket.gethostname(), "pid": pid,
+              "process_start": process_start(pid), "time_unix": time.time()}
+    try:
+        fd = os.open(run_dir / STATUS, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o644)
+    except FileExistsError:
+        return False
+    with os.fdopen(fd, "w") as file:
+        json.dump(record, file, indent=2)
+    return True
+
+
+class RunDirectoryGuard(Callback):
+    """Hydra callback: a run starts only in a directory of its own, checked before Hydra writes its
+    config there (``hydra.callbacks.run_directory``).
+
+    A single run stops with one line (exit status 1) where ``hydra.run.dir`` holds another run
+    (``held_run``), unless ``resume`` names a checkpoint inside it (the run continued); otherwise it
+    claims the directory (``claim``). A multirun stops where ``hydra.sweep.dir`` holds runs already.
+    In a distributed job started by SLURM every process runs this; global rank 0 checks and claims.
+    It stops with ``SystemExit``: Hydra turns a callback's exceptions into warnings and goes on."""
+
+    def on_run_start(self, config: DictConfig, **kwargs) -> None:
+        if not is_global_zero():
+            return
+        run_dir = Path(config.hydra.run.dir)
+        resume = config.get("resume")
+        if resume is not None and run_dir.resolve() in Path(resume).resolve().parents:
+            return
+        held = held_run(run_dir)
+        if held is None and not claim(run_dir, list(config.hydra.overrides.task)):
+            held = "a run that started at the same time"
+        if held is not None:
+            raise SystemExit(f"nerfexp: error: {run_dir} holds {held}: continue it with "
+                             f"resume={run_dir / LAST_CHECKPOINT} hydra.run.dir={run_dir}, or choose another "
+                             f"directory (hydra.run.dir=...)")
+
+    def on_multirun_start(self, config: DictConfig, **kwargs) -> None:
+        sweep_dir = Path(config.hydra.sweep.dir)
+        runs = find_run_dirs(sweep_dir) if sweep_dir.is_dir() else set()
+        if runs:
+            raise SystemExit(f"nerfexp: error: {sweep_dir} holds the runs of an earlier sweep ({len(runs)}): choose "
+                             f"another directory (hydra.sweep.dir=...)")
 
 
 def machine() -> dict:

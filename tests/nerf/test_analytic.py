@@ -118,7 +118,8 @@ def test_truth_matches_brute_force_integration_of_the_fields_own_density(name):
 
 def test_segment_truth_hand_worked_cases():
     s = 3.0
-    # One segment [3.5, 4.5]: an exponential entering at 3.5, cut at length 1 (the form of tests/nerf/test_volume_renderer.py).
+    # One segment [3.5, 4.5]: an exponential entering at 3.5, cut at length 1 (as in
+    # tests/nerf/test_volume_renderer.py).
     opacity, depth = segments_truth(torch.tensor([[3.5]]).double(), torch.tensor([[4.5]]).double(), s, NEAR, FAR)
     assert math.isclose(opacity.item(), -math.expm1(-s), rel_tol=1e-15)
     assert math.isclose(depth.item(), 3.5 + 1 / s - math.exp(-s) / -math.expm1(-s), rel_tol=1e-15)
