@@ -1,6 +1,7 @@
 """The run directory: finding a run, reading the config of a run made before the package's layers,
 metrics appended by several processes at once, and telling a run's process from a reused pid."""
 
+import hashlib
 import json
 import os
 import subprocess
@@ -160,3 +161,20 @@ def test_a_directory_is_claimed_once_and_then_holds_a_run(tmp_path):
     results_only = tmp_path / "old"  # a run's results without a status (a run's files copied elsewhere)
     (results_only / "checkpoints").mkdir(parents=True)
     assert held_run(results_only) == "a run's results"
+
+
+def test_a_run_directory_leads_to_the_checkpoint_its_test_scored(tmp_path):
+    (tmp_path / RUN_CONFIG).parent.mkdir()
+    (tmp_path / RUN_CONFIG).write_text(OLD_CONFIG)
+    (tmp_path / "checkpoints").mkdir()
+    (tmp_path / LAST_CHECKPOINT).write_bytes(b"another run's weights")
+    scored = tmp_path / "checkpoints" / "last-v1.ckpt"
+    scored.write_bytes(b"the weights the test scored")
+    digest = hashlib.sha256(b"the weights the test scored").hexdigest()
+    (tmp_path / "results.json").write_text(json.dumps({"checkpoint": {"path": "checkpoints/last-v1.ckpt",
+                                                                      "sha256": digest}}))
+    assert find_run(tmp_path) == (tmp_path, scored)
+    assert find_run(tmp_path / LAST_CHECKPOINT) == (tmp_path, tmp_path / LAST_CHECKPOINT)  # named: used as is
+    scored.write_bytes(b"weights written over it since")
+    with pytest.raises(NerfexpError, match="is not the checkpoint the run's test scored"):
+        find_run(tmp_path)

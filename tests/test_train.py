@@ -1,5 +1,6 @@
 """The command line as a user runs it: a whole training run, the README's multirun, bad input."""
 
+import hashlib
 import json
 import math
 from concurrent.futures import ThreadPoolExecutor
@@ -35,6 +36,10 @@ def test_a_short_run_learns_the_scene_and_writes_every_output(tmp_path):
     assert results["choices"] == {"encoding": "posenc", "view_dependence": "mlp", "data": "procedural",
                                   "scale": "cpu", "trainer": "default", "acceleration": "none",
                                   "callbacks": "default", "logger": "tensorboard", "hierarchical": True, "seed": 0}
+    # the test scored the checkpoint this run wrote, and says which, by path and content
+    written = tmp_path / "checkpoints" / "last.ckpt"
+    assert results["checkpoint"] == {"path": "checkpoints/last.ckpt",
+                                     "sha256": hashlib.sha256(written.read_bytes()).hexdigest()}
     records = [json.loads(line) for line in (tmp_path / "metrics.jsonl").read_text().splitlines()]
     assert [(r["split"], r["step"]) for r in records] == [("val", 200), ("val", 400), ("test", 400)]
     assert all(math.isfinite(r["psnr"]) and math.isfinite(r["ssim"]) and r["wall_time_s"] > 0 for r in records)

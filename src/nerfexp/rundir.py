@@ -19,6 +19,7 @@ holds another one (or a sweep in one that holds an earlier sweep's runs), before
 A finished (or interrupted) run is read back by ``find_run``, ``run_config`` and ``load_module``.
 """
 
+import hashlib
 import json
 import os
 import pickle
@@ -209,8 +210,29 @@ def machine() -> dict:
     return {"host": socket.gethostname(), "device": device}
 
 
+def sha256(path: Path) -> str:
+    """The SHA-256 of a file's bytes, hexadecimal."""
+    digest = hashlib.sha256()
+    with open(path, "rb") as file:
+        for block in iter(lambda: file.read(1 << 20), b""):
+            digest.update(block)
+    return digest.hexdigest()
+
+
+def checkpoint_record(run_dir: Path, checkpoint: Path) -> dict:
+    """What ``results.json`` says of the checkpoint its test scored: ``path`` (relative to the run
+    directory where it lies inside it) and ``sha256``."""
+    checkpoint = Path(checkpoint)
+    try:
+        path = checkpoint.resolve().relative_to(Path(run_dir).resolve())
+    except ValueError:  # elsewhere
+        path = checkpoint.resolve()
+    return {"path": str(path), "sha256": sha256(checkpoint)}
+
+
 def find_run(path: str | Path) -> tuple[Path, Path]:
-    """``(run directory, checkpoint)`` of ``path``: a run directory (its ``checkpoints/last.ckpt``) or a
+    """``(run directory, checkpoint)`` of ``path``: a run directory (the checkpoint its final test scored,
+    as ``results.json`` records it, checked against its SHA-256; else ``checkpoints/last.ckpt``) or a
     checkpoint file in one (``RUN_DIR/checkpoints/NAME.ckpt``: the run directory two levels up)."""
     path = Path(path)
     if not path.exists():
@@ -218,6 +240,12 @@ def find_run(path: str | Path) -> tuple[Path, Path]:
     run_dir, checkpoint = (path, path / LAST_CHECKPOINT) if path.is_dir() else (path.parent.parent, path)
     if not (run_dir / RUN_CONFIG).is_file():
         raise NerfexpError(f"{run_dir} is not a run directory: it has no {RUN_CONFIG}")
+    tested = (read_json(run_dir / RESULTS) or {}).get("checkpoint") if path.is_dir() else None
+    if tested is not None:
+        checkpoint = run_dir / tested["path"]
+        if checkpoint.is_file() and sha256(checkpoint) != tested["sha256"]:
+            raise NerfexpError(f"{checkpoint} is not the checkpoint the run's test scored (its SHA-256 differs "
+                               f"from {run_dir / RESULTS}'s): name a checkpoint file to use it anyway")
     if not checkpoint.is_file():
         raise NerfexpError(f"{checkpoint} does not exist: the run in {run_dir} has saved no checkpoint")
     return run_dir, checkpoint

@@ -44,7 +44,9 @@ def train(cfg: DictConfig) -> dict | None:
     trainer = instantiate(cfg.trainer, logger=instantiate(cfg.logger), callbacks=callbacks)
     rank_slice(datamodule.batch_rays, 0, trainer.world_size)  # a batch that the processes cannot share: an error now
     trainer.fit(model, datamodule=datamodule, ckpt_path=cfg.resume)
-    trainer.test(model, datamodule=datamodule, ckpt_path=Path(runtime.output_dir) / LAST_CHECKPOINT, verbose=False)
+    # the checkpoint this run wrote: ModelCheckpoint's own record of it where fit ran in this process
+    written = getattr(trainer.checkpoint_callback, "last_model_path", "") or Path(runtime.output_dir) / LAST_CHECKPOINT
+    trainer.test(model, datamodule=datamodule, ckpt_path=written, verbose=False)
     if not trainer.is_global_zero:
         return None
     results = read_json(recorder.output_dir / RESULTS)

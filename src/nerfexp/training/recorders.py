@@ -18,7 +18,7 @@ from torch.utils.tensorboard.summary import hparams as hparams_summaries
 
 from nerfexp.files import atomic_write
 from nerfexp.pixels import depth_image, png_bytes, quantize, to_uint8
-from nerfexp.rundir import EVAL, RESULTS, TEST_DIR, append_metrics, machine, write_json
+from nerfexp.rundir import EVAL, RESULTS, TEST_DIR, append_metrics, checkpoint_record, machine, write_json
 
 HPARAM_METRICS = ("val/psnr", "val/ssim", "test/psnr", "test/ssim")  # the HPARAMS view's metric columns
 
@@ -172,6 +172,8 @@ class RunRecorder(L.Callback):
             "machine": machine(), "choices": self.choices, "overrides": self.overrides,
             "config": self.run_config,
         }
+        if trainer.ckpt_path is not None:  # the weights scored: the checkpoint the test loaded
+            results["checkpoint"] = checkpoint_record(self.output_dir, Path(trainer.ckpt_path))
         write_json(self.output_dir / RESULTS, results)
 
 
