@@ -156,6 +156,7 @@ def test_a_directory_is_claimed_once_and_then_holds_a_run(tmp_path):
     assert held_run(run_dir) is None
     assert claim(run_dir, ["seed=1"]) and not claim(run_dir, ["seed=2"])  # the second run finds it taken
     assert held_run(run_dir) == "a running run (seed=1)"
+    assert [p.name for p in run_dir.iterdir()] == ["status.json"]  # whole, and no draft left beside it
     status = json.loads((run_dir / "status.json").read_text())
     assert (status["pid"], status["process_start"]) == (os.getpid(), process_start(os.getpid()))
     results_only = tmp_path / "old"  # a run's results without a status (a run's files copied elsewhere)

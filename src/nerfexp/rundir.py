@@ -24,6 +24,7 @@ import json
 import os
 import pickle
 import socket
+import tempfile
 import time
 from pathlib import Path
 
@@ -92,13 +93,18 @@ def process_alive(pid: int, started: int | None) -> bool:
     return started is None or now is None or now == started
 
 
-def write_status(output_dir: str | Path, state: str, overrides: list[str], **details) -> None:
-    """Record a run's ``state`` (running, finished, failed) with its host, process id (and start, see
-    ``process_start``) and ``details``."""
+def status_bytes(state: str, overrides: list[str], **details) -> bytes:
+    """A ``status.json``: the run's ``state`` (running, finished, failed) with this host, process id (and
+    start, see ``process_start``), the time and ``details``."""
     pid = os.getpid()
     record = {"state": state, "overrides": list(overrides), "host": socket.gethostname(), "pid": pid,
               "process_start": process_start(pid), "time_unix": time.time(), **details}
-    atomic_write(Path(output_dir) / STATUS, json.dumps(record, indent=2).encode())
+    return json.dumps(record, indent=2).encode()
+
+
+def write_status(output_dir: str | Path, state: str, overrides: list[str], **details) -> None:
+    """Record a run's ``state`` in its ``status.json`` (``status_bytes``), replacing the last one."""
+    atomic_write(Path(output_dir) / STATUS, status_bytes(state, overrides, **details))
 
 
 def write_json(path: Path, record: dict) -> None:
@@ -152,19 +158,21 @@ def held_run(run_dir: Path) -> str | None:
 
 
 def claim(run_dir: Path, overrides: list[str]) -> bool:
-    """Make ``run_dir`` this run's, atomically: its ``status.json`` is created here (``running``), and
-    only where it does not exist, so that of two runs started into one directory at once one gets it.
-    Returns whether this run did."""
+    """Make ``run_dir`` this run's: its ``status.json`` (``running``) is created only where none exists,
+    whole (written beside it, then hard-linked into place, which fails where the name is taken), so of
+    two runs started into one directory at once one gets it, and no reader sees half a status. Returns
+    whether this run did."""
     run_dir.mkdir(parents=True, exist_ok=True)
-    pid = os.getpid()
-    record = {"state": "running", "overrides": list(overrides), "host": socket.gethostname(), "pid": pid,
-              "process_start": process_start(pid), "time_unix": time.time()}
+    fd, draft = tempfile.mkstemp(dir=run_dir, prefix=f".{STATUS}.", suffix=".tmp")
     try:
-        fd = os.open(run_dir / STATUS, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o644)
+        with os.fdopen(fd, "wb") as file:
+            file.write(status_bytes("running", overrides))
+        os.chmod(draft, 0o644)
+        os.link(draft, run_dir / STATUS)
     except FileExistsError:
         return False
-    with os.fdopen(fd, "w") as file:
-        json.dump(record, file, indent=2)
+    finally:
+        os.unlink(draft)
     return True
 
 
