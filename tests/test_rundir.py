@@ -179,3 +179,13 @@ def test_a_run_directory_leads_to_the_checkpoint_its_test_scored(tmp_path):
     scored.write_bytes(b"weights written over it since")
     with pytest.raises(NerfexpError, match="is not the checkpoint the run's test scored"):
         find_run(tmp_path)
+
+
+def test_a_directory_is_claimed_once_where_the_file_system_has_no_hard_links(tmp_path, monkeypatch):
+    def no_links(source, target):
+        raise PermissionError(f"{target}: no hard links here")
+
+    monkeypatch.setattr(os, "link", no_links)
+    assert claim(tmp_path / "run", ["seed=1"]) and not claim(tmp_path / "run", ["seed=2"])
+    assert [p.name for p in (tmp_path / "run").iterdir()] == ["status.json"]
+    assert held_run(tmp_path / "run") == "a running run (seed=1)"

@@ -163,14 +163,22 @@ def claim(run_dir: Path, overrides: list[str]) -> bool:
     two runs started into one directory at once one gets it, and no reader sees half a status. Returns
     whether this run did."""
     run_dir.mkdir(parents=True, exist_ok=True)
+    status = status_bytes("running", overrides)
     fd, draft = tempfile.mkstemp(dir=run_dir, prefix=f".{STATUS}.", suffix=".tmp")
     try:
         with os.fdopen(fd, "wb") as file:
-            file.write(status_bytes("running", overrides))
+            file.write(status)
         os.chmod(draft, 0o644)
         os.link(draft, run_dir / STATUS)
     except FileExistsError:
         return False
+    except OSError:  # a file system without hard links: create the name exclusively, then write it
+        try:
+            fd = os.open(run_dir / STATUS, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o644)
+        except FileExistsError:
+            return False
+        with os.fdopen(fd, "wb") as file:
+            file.write(status)
     finally:
         os.unlink(draft)
     return True
