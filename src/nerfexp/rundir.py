@@ -19,6 +19,7 @@ holds another one (or a sweep in one that holds an earlier sweep's runs), before
 A finished (or interrupted) run is read back by ``find_run``, ``run_config`` and ``load_module``.
 """
 
+import contextlib
 import hashlib
 import json
 import os
@@ -84,11 +85,10 @@ def process_alive(pid: int, started: int | None) -> bool:
     """Whether the process ``pid`` that started at ``started`` (``process_start``; None: not recorded)
     still runs on this host. A pid that now belongs to a process started at another time is not it."""
     try:
-        os.kill(pid, 0)
+        with contextlib.suppress(PermissionError):  # another user's process: the pid is taken
+            os.kill(pid, 0)
     except ProcessLookupError:
         return False
-    except PermissionError:  # another user's process: the pid is taken
-        pass
     now = process_start(pid)
     return started is None or now is None or now == started
 
