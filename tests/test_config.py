@@ -76,9 +76,10 @@ def targets(node, path="cfg"):
             yield from targets(value, f"{path}.{key}")
 
 
-@pytest.mark.parametrize("overrides", [[], ["data=blender", "data.root=/x", "scale=paper"],
-                                       ["data=llff", "data.root=/x", "acceleration=occupancy"],
-                                       ["data=colmap", "data.root=/x", "view_dependence=sh", "trainer=ddp"]])
+@pytest.mark.parametrize("overrides", [[], ["data=blender", "data.root=/x", "scale=paper", "logger=csv"],
+                                       ["data=llff", "data.root=/x", "acceleration=occupancy", "logger=mlflow"],
+                                       ["data=colmap", "data.root=/x", "view_dependence=sh", "trainer=ddp",
+                                        "logger=wandb"]])
 def test_every_key_of_a_config_is_an_argument_of_the_class_it_builds(overrides):
     # configs mirror what they build: a key that no argument takes is a typo or a setting nothing reads
     with initialize_config_module("nerfexp.conf", version_base=None):

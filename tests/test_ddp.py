@@ -113,8 +113,8 @@ def test_two_cpu_processes_train_and_record_once(ddp_sweep):
     run_dir = ddp_sweep / "0"
     results = read_json(run_dir / "results.json")
     assert (results["processes"], results["steps"], results["batch_rays"]) == (2, 20, 256)
-    assert sorted(p.name for p in (run_dir / "test").iterdir()) == [
-        f"r_{i}{suffix}.png" for i in range(3) for suffix in ("", "_depth")]
+    assert sorted(p.name for p in (run_dir / "test").iterdir()) == sorted(
+        f"r_{i}{suffix}.png" for i in range(3) for suffix in ("", "_depth", "_error", "_target"))
     # each evaluation recorded once, by rank 0, with the step of the weights it scored
     records = [json.loads(line) for line in (run_dir / "metrics.jsonl").read_text().splitlines()]
     assert [(r["split"], r["step"]) for r in records] == [("val", 10), ("val", 20), ("test", 20)]
@@ -136,6 +136,8 @@ def test_distributed_evaluation_of_a_checkpoint_scores_as_one_process(ddp_sweep,
     assert scored.returncode == 0, scored.stderr[-3000:]
     evaluation = read_json(run_dir / "eval.json")
     assert evaluation["processes"] == 2 and evaluation["step"] == 20
-    assert evaluation["psnr"] == pytest.approx([p for p, _ in truth], abs=1e-6)
-    assert evaluation["ssim"] == pytest.approx([s for _, s in truth], abs=1e-6)
+    assert evaluation["test_views"] == results["test_views"] == [0, 1, 2]
+    assert evaluation["test_psnr_per_view"] == pytest.approx([p for p, _ in truth], abs=1e-6)
+    assert evaluation["test_ssim_per_view"] == pytest.approx([s for _, s in truth], abs=1e-6)
+    assert results["test_psnr_per_view"] == pytest.approx([p for p, _ in truth], abs=1e-6)
     assert (evaluation["test_psnr"], evaluation["test_ssim"]) == (results["test_psnr"], results["test_ssim"])

@@ -50,8 +50,10 @@ def test_an_evaluation_reproduces_the_runs_test_scores(tiny_run, tmp_path):
     scores, results = read_json(tiny_run / "eval.json"), read_json(tiny_run / "results.json")
     # the same weights, views and chunking as the run's own final test: the same numbers exactly
     assert (scores["test_psnr"], scores["test_ssim"]) == (results["test_psnr"], results["test_ssim"])
-    assert scores["step"] == 60 and len(scores["psnr"]) == len(scores["ssim"]) == 2  # data.n_test=2
-    assert sum(scores["psnr"]) / 2 == pytest.approx(scores["test_psnr"], abs=1e-12)
+    assert scores["step"] == 60 and scores["test_views"] == results["test_views"] == [0, 1]  # data.n_test=2
+    for name in ("test_psnr_per_view", "test_ssim_per_view"):
+        assert scores[name] == results[name]
+    assert sum(scores["test_psnr_per_view"]) / 2 == pytest.approx(scores["test_psnr"], abs=1e-12)
     assert "test PSNR" in result.stdout and str(tiny_run / "eval.json") in result.stdout
 
     (tiny_run / "eval.json").unlink()  # a checkpoint path works as well as the run directory

@@ -5,11 +5,14 @@ import json
 import math
 from concurrent.futures import ThreadPoolExecutor
 
+import numpy as np
 import pytest
 import torch
+from PIL import Image
 
 from nerfexp.data.procedural import load_procedural
 from nerfexp.metrics import psnr
+from nerfexp.pixels import to_uint8
 from tests.helpers import read_json, run_nerfexp
 
 
@@ -44,10 +47,38 @@ def test_a_short_run_learns_the_scene_and_writes_every_output(tmp_path):
     assert [(r["split"], r["step"]) for r in records] == [("val", 200), ("val", 400), ("test", 400)]
     assert all(math.isfinite(r["psnr"]) and math.isfinite(r["ssim"]) and r["wall_time_s"] > 0 for r in records)
     assert records[1]["wall_time_s"] > records[0]["wall_time_s"]
-    for name in ("r_0.png", "r_0_depth.png", "r_1.png"):
+    for name in ("r_0.png", "r_0_depth.png", "r_0_target.png", "r_0_error.png", "r_1.png"):
         assert (tmp_path / "test" / name).stat().st_size > 0
     assert list((tmp_path / "tensorboard").glob("events.out.tfevents.*"))
     assert (tmp_path / "checkpoints" / "last.ckpt").exists()
+
+
+def test_the_last_step_is_validated_and_each_test_view_is_saved_with_its_target_and_error(tmp_path, tiny):
+    # 40 steps, validation every 30: Lightning alone would validate at step 30 only
+    result = run_nerfexp(*tiny, "scale.steps=40", "scale.val_every=30", f"hydra.run.dir={tmp_path}", cwd=tmp_path)
+    assert result.returncode == 0, result.stderr[-3000:]
+    records = [json.loads(line) for line in (tmp_path / "metrics.jsonl").read_text().splitlines()]
+    assert [(r["split"], r["step"]) for r in records] == [("val", 30), ("val", 40), ("test", 40)]
+    results = read_json(tmp_path / "results.json")
+    assert results["val_psnr"] == records[1]["psnr"] and results["steps"] == 40
+    # one log line per validation: its step, PSNR and SSIM
+    lines = [line for line in (tmp_path / "nerfexp.log").read_text().splitlines() if "validation PSNR" in line]
+    assert [line.split("step ")[1].split(":")[0] for line in lines] == ["30/40", "40/40"]
+    assert f"{records[1]['psnr']:.2f} dB, SSIM {records[1]['ssim']:.4f}" in lines[1]
+
+    # per view: the scores in view order, whose mean is the reported mean
+    assert results["test_views"] == [0, 1]  # data.n_test=2
+    assert np.mean(results["test_psnr_per_view"]) == pytest.approx(results["test_psnr"], abs=1e-12)
+    assert np.mean(results["test_ssim_per_view"]) == pytest.approx(results["test_ssim"], abs=1e-12)
+    # the saved target is the scene's own test view; the error image is |render - target| (8-bit rounding apart)
+    truth = load_procedural("test", 2, 24, 24).rgb_on(torch.ones(3))  # TINY: 24 x 24, white background
+    for view, score in zip(results["test_views"], results["test_psnr_per_view"], strict=True):
+        read = {suffix: np.asarray(Image.open(tmp_path / "test" / f"r_{view}{suffix}.png"), dtype=np.int16)
+                for suffix in ("", "_target", "_error")}
+        assert np.array_equal(read["_target"], to_uint8(truth[view]))
+        assert np.abs(read["_error"] - np.abs(read[""] - read["_target"])).max() <= 1
+        mse = np.mean(((read[""] - read["_target"]) / 255.0) ** 2)
+        assert -10 * np.log10(mse) == pytest.approx(score, abs=0.3)  # from the 8-bit files: rounding apart
 
 
 @pytest.mark.slow

@@ -7,14 +7,17 @@ from pathlib import Path
 import hydra
 import lightning as L
 from hydra.core.hydra_config import HydraConfig
+from hydra.errors import InstantiationException
 from hydra.types import RunMode
 from hydra.utils import instantiate
+from lightning.pytorch.loggers import Logger
 from omegaconf import DictConfig, OmegaConf
 
 from nerfexp.data.datamodule import fill_ray_bounds
 from nerfexp.data.rays import rank_slice
 from nerfexp.errors import ConfigError, NerfexpError
 from nerfexp.rundir import LAST_CHECKPOINT, RESULTS, is_global_zero, read_json, write_status
+from nerfexp.training.loggers import finish
 from nerfexp.training.recorders import RunRecorder
 
 log = logging.getLogger("nerfexp")
@@ -36,23 +39,45 @@ def train(cfg: DictConfig) -> dict | None:
     runtime = HydraConfig.get().runtime
     choices = {k: v for k, v in runtime.choices.items() if not k.startswith("hydra") and v is not None}
     choices.update(hierarchical=cfg.hierarchical, seed=cfg.seed)
+    logger = build_logger(cfg.get("logger"))
     datamodule = instantiate(cfg.datamodule)
     model = instantiate(cfg.model)
     overrides = list(HydraConfig.get().overrides.task)
     recorder = RunRecorder(runtime.output_dir, choices, OmegaConf.to_container(cfg, resolve=True), overrides)
     callbacks = [instantiate(c) for c in cfg.callbacks.values()] + [recorder]
-    trainer = instantiate(cfg.trainer, logger=instantiate(cfg.logger), callbacks=callbacks)
+    trainer = instantiate(cfg.trainer, logger=logger, callbacks=callbacks)
     rank_slice(datamodule.batch_rays, 0, trainer.world_size)  # a batch that the processes cannot share: an error now
-    trainer.fit(model, datamodule=datamodule, ckpt_path=cfg.resume)
-    # the checkpoint this run wrote: ModelCheckpoint's own record of it where fit ran in this process
-    written = getattr(trainer.checkpoint_callback, "last_model_path", "") or Path(runtime.output_dir) / LAST_CHECKPOINT
-    trainer.test(model, datamodule=datamodule, ckpt_path=written, verbose=False)
+    succeeded = False
+    try:
+        trainer.fit(model, datamodule=datamodule, ckpt_path=cfg.resume)
+        # the checkpoint this run wrote: ModelCheckpoint's own record of it where fit ran in this process
+        written = (getattr(trainer.checkpoint_callback, "last_model_path", "")
+                   or Path(runtime.output_dir) / LAST_CHECKPOINT)
+        trainer.test(model, datamodule=datamodule, ckpt_path=written, verbose=False)
+        succeeded = True
+    finally:
+        finish(logger, succeeded)
     if not trainer.is_global_zero:
         return None
     results = read_json(recorder.output_dir / RESULTS)
     log.info("test PSNR %.2f dB, SSIM %.4f after %d steps in %.0f s; outputs in %s", results["test_psnr"],
              results["test_ssim"], results["steps"], results["train_time_s"], recorder.output_dir)
     return results
+
+
+def build_logger(cfg: DictConfig | None) -> Logger | bool:
+    """The run's Lightning logger (``conf/logger/``), or False for none; a ConfigError where the logger's
+    package is not installed."""
+    if not cfg:
+        return False
+    try:
+        return instantiate(cfg)
+    except InstantiationException as error:
+        if not isinstance(error.__cause__, ModuleNotFoundError):
+            raise
+        raise ConfigError(f"logger._target_={cfg._target_} needs a package that is not installed ({error.__cause__}); "
+                          'pip install -e ".[mlflow]" or ".[wandb]" installs those of logger=mlflow and logger=wandb, '
+                          "and logger=tensorboard, csv or none need nothing more") from error
 
 
 @hydra.main(version_base=None, config_path="pkg://nerfexp.conf", config_name="config")

@@ -73,7 +73,7 @@ def test_encoding_gradient_is_the_derivative_of_the_formula():
 
 
 def test_input_scale_moves_every_frequency_down():
-    # gamma(x / 8) with L = 4: sin(2^k pi x / 8); the raw input stays x. At x = 2: sin(pi/4), sin(pi/2), sin(pi), sin(2 pi)
+    # gamma(x / 8), L = 4: sin(2^k pi x / 8), raw input x; at x = 2: sin(pi/4), sin(pi/2), sin(pi), sin(2 pi)
     enc = PositionalEncoding(n_freqs=4, in_dim=1, input_scale=0.125).double()
     out = enc(torch.tensor([[2.0]], dtype=torch.float64))[0]
     r = math.sqrt(0.5)

@@ -6,27 +6,20 @@ gather every image's scores and renders to all processes (``gather_evaluations``
 rank 0 writes files and logs, so the numbers are those of one process scoring every image.
 """
 
-import json
+import logging
 import time
 from pathlib import Path
 
 import lightning as L
 import numpy as np
 import torch
-from lightning.pytorch.loggers import TensorBoardLogger
-from torch.utils.tensorboard.summary import hparams as hparams_summaries
 
 from nerfexp.files import atomic_write
-from nerfexp.pixels import depth_image, png_bytes, quantize, to_uint8
+from nerfexp.pixels import depth_image, png_bytes, to_uint8
 from nerfexp.rundir import EVAL, RESULTS, TEST_DIR, append_metrics, checkpoint_record, machine, write_json
+from nerfexp.training.loggers import log_hyperparams, log_image
 
-HPARAM_METRICS = ("val/psnr", "val/ssim", "test/psnr", "test/ssim")  # the HPARAMS view's metric columns
-
-
-def hparam_value(value):
-    """A value TensorBoard's HPARAMS view accepts (bool, number or string)."""
-    return value if isinstance(value, bool | int | float | str) else json.dumps(value)
-
+log = logging.getLogger("nerfexp")
 
 IMAGES = ("rgb", "depth", "opacity", "target")  # what an evaluation step returns per image, besides its scores
 
@@ -55,9 +48,23 @@ def image_means(scores: dict[int, dict[str, float]]) -> dict[str, float]:
     return {name: float(np.mean([s[name] for s in ordered])) for name in ("psnr", "ssim")}
 
 
+def scores_record(scores: dict[int, dict[str, float]]) -> dict:
+    """What ``results.json`` and ``eval.json`` say of the test views scored ``{index: {"psnr", "ssim"}}``:
+    the means ``test_psnr``, ``test_ssim`` and, in view order, ``test_views`` (the indices, which name the
+    renders ``test/r_{i}.png``), ``test_psnr_per_view`` and ``test_ssim_per_view``."""
+    views, means = sorted(scores), image_means(scores)
+    return {"test_psnr": means["psnr"], "test_ssim": means["ssim"], "test_views": views,
+            **{f"test_{name}_per_view": [scores[i][name] for i in views] for name in ("psnr", "ssim")}}
+
+
 class RunRecorder(L.Callback):
     """Writes a run's metrics, results and test renders; times the training in wall-clock seconds;
     logs ``val/psnr``, ``val/ssim``, ``test/psnr``, ``test/ssim`` (means over the images).
+
+    The last step is always validated (``val_psnr`` of a run shorter than ``scale.val_every`` too), and
+    each validation logs one line: step, PSNR, SSIM and the training's wall-clock seconds so far. Each
+    test view's render, its ground truth and their absolute difference (per channel, in [0, 1]) are
+    saved as ``test/r_{i}.png``, ``r_{i}_target.png``, ``r_{i}_error.png``, with ``r_{i}_depth.png``.
 
     The elapsed time and the last validation PSNR are part of the checkpoint, so a resumed run keeps
     counting from where it stopped, and a test in processes that did not train (``trainer=ddp`` spawns
@@ -79,22 +86,23 @@ class RunRecorder(L.Callback):
         return self.elapsed_s + (time.perf_counter() - self._started if self._started is not None else 0.0)
 
     def on_fit_start(self, trainer, pl_module):
-        """Declare the run's hyper-parameters (its choices and overrides) for TensorBoard's HPARAMS view.
-
-        The summaries are written directly rather than through ``TensorBoardLogger.log_hyperparams``,
-        which would also log the metrics' placeholder values as scalars at step 0."""
-        if isinstance(trainer.logger, TensorBoardLogger) and trainer.is_global_zero:
+        """Declare the run's hyper-parameters (its choices and overrides) to each logger
+        (``nerfexp.training.loggers``: TensorBoard's HPARAMS view, MLflow's parameters, ...)."""
+        if trainer.is_global_zero:
             params = {**self.choices, **dict(o.lstrip("+~").split("=", 1) for o in self.overrides if "=" in o)}
-            params = {key: hparam_value(value) for key, value in params.items()}
-            writer = trainer.logger.experiment
-            for summary in hparams_summaries(params, dict.fromkeys(HPARAM_METRICS, 0.0)):
-                writer.file_writer.add_summary(summary)
+            for logger in trainer.loggers:
+                log_hyperparams(logger, params)
 
     def on_train_start(self, trainer, pl_module):
         self._started = time.perf_counter()
 
     def on_train_batch_end(self, trainer, pl_module, outputs, batch, batch_idx):
         self.steps = trainer.global_step  # the step of the weights that the evaluations score
+        if trainer.max_steps > 0 and self.steps >= trainer.max_steps:
+            # Lightning validates every val_check_interval steps, and also after the step that asks the
+            # loop to stop: so the last weights are validated whatever scale.val_every is (once, where
+            # it is also a multiple of val_every)
+            trainer.should_stop = True
 
     def on_train_end(self, trainer, pl_module):
         self.elapsed_s, self._started, self.steps = self.wall_time_s(), None, trainer.global_step
@@ -127,23 +135,30 @@ class RunRecorder(L.Callback):
         index, renderer = item["index"], pl_module.renderer
         depth = depth_image(item["depth"], item["opacity"], renderer.near, renderer.far)
         if split == "test":
-            atomic_write(self.output_dir / TEST_DIR / f"r_{index}.png", png_bytes(to_uint8(item["rgb"])))
-            atomic_write(self.output_dir / TEST_DIR / f"r_{index}_depth.png", png_bytes(to_uint8(depth)))
-        if index < 4 and trainer.logger is not None and not trainer.sanity_checking:
+            images = {"": item["rgb"], "_target": item["target"], "_depth": depth,
+                      "_error": (item["rgb"] - item["target"]).abs()}
+            for suffix, image in images.items():
+                atomic_write(self.output_dir / TEST_DIR / f"r_{index}{suffix}.png", png_bytes(to_uint8(image)))
+        if index < 4 and trainer.loggers and not trainer.sanity_checking:
             side_by_side = torch.cat([item["rgb"], item["target"], depth[..., None].expand(-1, -1, 3)], 1)
-            trainer.logger.experiment.add_image(f"{split}/render_target_depth/{index}", quantize(side_by_side),
-                                                self.steps, dataformats="HWC")
+            for logger in trainer.loggers:
+                log_image(logger, f"{split}/render_target_depth/{index}", to_uint8(side_by_side), self.steps,
+                          self.output_dir)
 
-    def _flush(self, trainer, split: str) -> dict:
-        """The means of the images scored since the last flush; rank 0 appends them to ``metrics.jsonl``
-        and logs them at the step of the weights scored."""
-        means, self._scores = image_means(self._scores), {}
+    def _flush(self, trainer, split: str) -> dict[int, dict[str, float]]:
+        """The scores of the images scored since the last flush; rank 0 appends their means to
+        ``metrics.jsonl`` and logs them at the step of the weights scored."""
+        scores, self._scores = self._scores, {}
+        means = image_means(scores)
         if trainer.is_global_zero:
             record = {"step": self.steps, "wall_time_s": self.wall_time_s(), "split": split, **means}
             append_metrics(self.output_dir, record)
-            if trainer.logger is not None:
-                trainer.logger.log_metrics({f"{split}/{name}": value for name, value in means.items()}, self.steps)
-        return means
+            if split == "val":
+                log.info("step %d/%d: validation PSNR %.2f dB, SSIM %.4f after %.0f s of training", self.steps,
+                         trainer.max_steps, means["psnr"], means["ssim"], record["wall_time_s"])
+            for logger in trainer.loggers:
+                logger.log_metrics({f"{split}/{name}": value for name, value in means.items()}, self.steps)
+        return scores
 
     def on_validation_batch_end(self, trainer, pl_module, outputs, batch, batch_idx, dataloader_idx=0):
         if not trainer.sanity_checking:
@@ -151,18 +166,18 @@ class RunRecorder(L.Callback):
 
     def on_validation_epoch_end(self, trainer, pl_module):
         if not trainer.sanity_checking:
-            self.last_val_psnr = self._flush(trainer, "val")["psnr"]
+            self.last_val_psnr = image_means(self._flush(trainer, "val"))["psnr"]
 
     def on_test_batch_end(self, trainer, pl_module, outputs, batch, batch_idx, dataloader_idx=0):
         self._collect(trainer, pl_module, outputs, "test")
 
     def on_test_epoch_end(self, trainer, pl_module):
-        means, steps = self._flush(trainer, "test"), self.steps
+        scores, steps = self._flush(trainer, "test"), self.steps
         if not trainer.is_global_zero:
             return
         renderer, batch_rays = pl_module.renderer, getattr(trainer.datamodule, "batch_rays", None)
         results = {
-            "test_psnr": means["psnr"], "test_ssim": means["ssim"], "val_psnr": self.last_val_psnr,
+            **scores_record(scores), "val_psnr": self.last_val_psnr,
             "train_time_s": self.elapsed_s, "steps": steps,
             "time_per_step_s": self.elapsed_s / max(steps, 1),
             "rays_per_s": batch_rays * steps / self.elapsed_s if batch_rays and self.elapsed_s > 0 else None,
@@ -178,9 +193,9 @@ class RunRecorder(L.Callback):
 
 
 class EvalRecorder(L.Callback):
-    """Scores a checkpoint on the test split: ``eval.json`` in ``output_dir`` holds ``test_psnr``,
-    ``test_ssim`` (means over the test views, as in ``results.json``), ``psnr`` and ``ssim`` per view,
-    the ``checkpoint``, its ``step`` and the ``machine``."""
+    """Scores a checkpoint on the test split: ``eval.json`` in ``output_dir`` holds the test scores as
+    ``results.json`` does (``scores_record``: means and per view), the ``checkpoint``, its ``step`` and the
+    ``machine``."""
 
     def __init__(self, output_dir: str | Path, checkpoint: str | Path, step: int):
         self.output_dir, self.checkpoint, self.step = Path(output_dir), Path(checkpoint), step
@@ -193,9 +208,6 @@ class EvalRecorder(L.Callback):
     def on_test_epoch_end(self, trainer, pl_module):
         if not trainer.is_global_zero:
             return
-        means, views = image_means(self._scores), sorted(self._scores)
-        results = {"test_psnr": means["psnr"], "test_ssim": means["ssim"],
-                   **{name: [self._scores[i][name] for i in views] for name in ("psnr", "ssim")},
-                   "checkpoint": str(self.checkpoint.resolve()), "step": self.step,
+        results = {**scores_record(self._scores), "checkpoint": str(self.checkpoint.resolve()), "step": self.step,
                    "processes": trainer.world_size, "machine": machine()}
         write_json(self.output_dir / EVAL, results)
