@@ -17,6 +17,11 @@ from scipy.stats import t as student_t
 LEVEL = 0.95  # the confidence level of every interval
 
 
+def seeds(n: int) -> str:
+    """"1 seed", "3 seeds"."""
+    return f"{n} seed{'' if n == 1 else 's'}"
+
+
 def t_interval(values: Sequence[float], level: float = LEVEL) -> tuple[float, float] | None:
     """The two-sided ``level`` confidence interval (low, high) of the mean of ``values`` from Student's t:
     mean -/+ t_{(1 + level) / 2, n - 1} * s / sqrt(n), s the sample standard deviation; None for n < 2."""
@@ -54,7 +59,7 @@ class Difference:
         if self.n == 0:
             return "no seeds in common"
         if self.interval is None:
-            return f"{self.n} seed: no interval"
+            return f"{seeds(self.n)}: no interval"
         low, high = self.interval
         return f"{self.mean:+.{digits}f} [{low:+.{digits}f}, {high:+.{digits}f}]"
 
@@ -62,7 +67,7 @@ class Difference:
         """The verdict, with the number of seeds where it is not resolved."""
         if self.resolved:
             return self.verdict
-        return f"not resolved with {self.n} seed{'s' if self.n != 1 else ''}"
+        return f"not resolved with {seeds(self.n)}"
 
 
 def paired_difference(a: Mapping[Hashable, float], b: Mapping[Hashable, float]) -> Difference:

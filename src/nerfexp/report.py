@@ -4,12 +4,19 @@ Reads every run under the given directories (a run is a folder holding ``status.
 ``results.json``, as ``nerfexp`` writes them), groups runs into variants and writes
 
 - ``report.md`` / ``report.csv``: one row per variant: test PSNR and SSIM (mean and sample standard
-  deviation over the runs of the variant, usually its seeds), training time, time per step, rays/s,
-  parameters, network evaluations per ray, and for rows of the paper's ablation table the paper's
-  numbers beside ours; then the ranking and whether it agrees with the paper's; then every job that
-  did not finish (failed, or running / killed) with its reason;
-- ``psnr_vs_time.png``: validation PSNR against training wall-clock seconds, one colour per variant;
-- ``pareto.png``: final test PSNR against total training time, the Pareto front drawn through it.
+  deviation over the runs of the variant, usually its seeds), the difference to a reference variant
+  paired by seed with its 95% interval and verdict (``nerfexp.comparison``), training time, time per
+  step, rays/s, parameters, network evaluations per ray, and for rows of the paper's ablation table
+  the paper's numbers beside ours; then the ranking in groups the seeds cannot tell apart, and which
+  pairs of ablation rows agree with the paper's order, are reversed, or are not resolved; then every
+  job that did not finish (failed, or running / killed) with its reason;
+- ``psnr_vs_time.png``: validation PSNR against training wall-clock seconds: each variant's mean over
+  seeds with a band from the lowest to the highest seed, single runs faint;
+- ``pareto.png``: final test PSNR against total training time (bars: one standard deviation over
+  seeds), the Pareto front drawn through the means.
+
+The reference is the paper's complete model (``ablation=complete``) where the sweep has it, else the
+variant named by ``--reference``; without either the report has no differences.
 
 A variant is the set of a run's command-line overrides without the keys averaged over (``--over``,
 default ``seed``), leaving out overrides every run shares.
@@ -23,7 +30,6 @@ import socket
 import statistics
 import sys
 from dataclasses import dataclass, field
-from itertools import combinations
 from pathlib import Path
 
 from hydra._internal.core_plugins.basic_sweeper import BasicSweeper
@@ -31,6 +37,7 @@ from hydra.core.override_parser.overrides_parser import OverridesParser
 from matplotlib.figure import Figure
 from omegaconf import OmegaConf
 
+from nerfexp.comparison import Difference, compare_order, paired_difference, seeds, tiers
 from nerfexp.files import atomic_write
 from nerfexp.rundir import RESULTS, STATUS, find_run_dirs, process_alive, read_json, read_metrics
 
@@ -57,13 +64,17 @@ class Run:
     overrides: list[str]
     detail: str = ""
     results: dict | None = None
-    curve: list[tuple[float, float]] = field(default_factory=list)  # (wall seconds, validation PSNR)
+    curve: list[tuple[int, float, float]] = field(default_factory=list)  # (step, wall seconds, validation PSNR)
 
 
 @dataclass
 class Variant:
+    """Runs that differ only in the override keys ``over`` (their seeds): ``by_seed`` pairs them with
+    another variant's runs."""
+
     label: str
     runs: list[Run]
+    over: tuple[str, ...] = ("seed",)
 
     @property
     def finished(self) -> list[Run]:
@@ -81,6 +92,11 @@ class Variant:
         values = self.values(key)
         return statistics.stdev(values) if len(values) > 1 else math.nan
 
+    def by_seed(self, key: str) -> dict[tuple[str, ...], float]:
+        """``results[key]`` of each finished run, keyed by the run's overrides of the ``over`` keys."""
+        return {tuple(sorted(o for o in run.overrides if _key(o) in self.over)): run.results[key]
+                for run in self.finished if run.results.get(key) is not None}
+
     def choice(self, key: str):
         """The variant's choice of a config group, where all its finished runs agree."""
         values = {run.results["choices"].get(key) for run in self.finished}
@@ -97,7 +113,8 @@ def read_run(path: Path) -> Run:
     status = read_json(path / STATUS) or {}
     results = read_json(path / RESULTS)
     overrides = status.get("overrides", (results or {}).get("overrides", []))
-    curve = [(record["wall_time_s"], record["psnr"]) for record in read_metrics(path) if record["split"] == "val"]
+    curve = [(record["step"], record["wall_time_s"], record["psnr"])
+             for record in read_metrics(path) if record["split"] == "val"]
     state = status.get("state", "finished" if results is not None else "unknown")
     detail = status.get("error", "")
     if state == "finished" and results is None:
@@ -154,17 +171,27 @@ def group_variants(runs: list[Run], over: tuple[str, ...] = ("seed",)) -> list[V
     variants = []
     for key, members in groups.values():
         label = ", ".join(o for o in key if o not in shared) or ", ".join(key) or "default"
-        variants.append(Variant(label, members))
+        variants.append(Variant(label, members, tuple(over)))
     return sorted(variants, key=lambda v: (-v.mean("test_psnr") if v.finished else math.inf, v.label))
 
 
-def kendall_tau(ours: list[str], theirs: list[str]) -> tuple[float, list[tuple[str, str]]]:
-    """Kendall's rank correlation of two orderings of the same items, and the pairs they order
-    differently (each as (ranked higher by us, ranked higher by them))."""
-    position = {item: i for i, item in enumerate(theirs)}
-    discordant = [(a, b) for a, b in combinations(ours, 2) if position[a] > position[b]]
-    pairs = len(ours) * (len(ours) - 1) // 2
-    return (1 - 2 * len(discordant) / pairs if pairs else 1.0), discordant
+def reference_variant(variants: list[Variant], name: str | None = None) -> Variant | None:
+    """The variant the others are compared with: the one named ``name`` (its label, or its overrides in
+    any order), else the paper's complete model (``ablation=complete``) if one variant is, else None."""
+    if name is not None:
+        wanted = frozenset(part.strip() for part in name.split(","))
+        for variant in variants:
+            if frozenset(part.strip() for part in variant.label.split(",")) == wanted:
+                return variant
+        raise SystemExit(f"nerfexp-report: error: --reference {name!r}: no such variant; the variants are "
+                         + "; ".join(repr(v.label) for v in variants))
+    complete = [v for v in variants if v.finished and v.choice("ablation") == "complete"]
+    return complete[0] if len(complete) == 1 else None
+
+
+def difference(a: Variant, b: Variant, key: str = "test_psnr") -> Difference:
+    """a - b in ``key``, paired by seed (``nerfexp.comparison.paired_difference``)."""
+    return paired_difference(a.by_seed(key), b.by_seed(key))
 
 
 def _fmt(value: float, digits: int) -> str:
@@ -177,11 +204,29 @@ def _pm(variant: Variant, key: str, digits: int) -> str:
 
 
 COLUMNS = ("variant", "runs", "finished", "test_psnr_mean", "test_psnr_std", "test_ssim_mean", "test_ssim_std",
+           "reference", "paired_seeds", "psnr_diff", "psnr_diff_low", "psnr_diff_high",
+           "ssim_diff", "ssim_diff_low", "ssim_diff_high", "verdict",
            "train_time_s", "time_per_step_s", "rays_per_s", "n_params", "evaluations_per_ray",
            "paper_row", "paper_psnr", "paper_ssim", "psnr_minus_paper")
 
 
-def table_rows(variants: list[Variant]) -> list[dict]:
+def reference_columns(variant: Variant, reference: Variant | None) -> dict:
+    """The CSV's columns of ``variant`` against ``reference``: PSNR and SSIM differences paired by seed,
+    their 95% intervals (NaN for fewer than two seeds) and the PSNR verdict."""
+    if reference is None or variant is reference:
+        return {"reference": "" if reference is None else "reference", "paired_seeds": "", "verdict": "",
+                **{f"{m}_diff{end}": math.nan for m in ("psnr", "ssim") for end in ("", "_low", "_high")}}
+    columns = {"reference": reference.label}
+    for metric in ("psnr", "ssim"):
+        d = difference(variant, reference, f"test_{metric}")
+        low, high = d.interval or (math.nan, math.nan)
+        columns.update({f"{metric}_diff": d.mean, f"{metric}_diff_low": low, f"{metric}_diff_high": high})
+        if metric == "psnr":
+            columns.update(paired_seeds=d.n, verdict=d.verdict_text())
+    return columns
+
+
+def table_rows(variants: list[Variant], reference: Variant | None = None) -> list[dict]:
     """One dict per variant with the ``COLUMNS``; the difference to the paper only on Blender data
     (the paper's numbers are means over its 8 Blender scenes; other scenes are not comparable)."""
     rows = []
@@ -190,6 +235,7 @@ def table_rows(variants: list[Variant]) -> list[dict]:
         row = {"variant": v.label, "runs": len(v.runs), "finished": len(v.finished),
                "test_psnr_mean": v.mean("test_psnr"), "test_psnr_std": v.std("test_psnr"),
                "test_ssim_mean": v.mean("test_ssim"), "test_ssim_std": v.std("test_ssim"),
+               **reference_columns(v, reference),
                "train_time_s": v.mean("train_time_s"), "time_per_step_s": v.mean("time_per_step_s"),
                "rays_per_s": v.mean("rays_per_s"), "n_params": v.mean("n_params"),
                "evaluations_per_ray": v.mean("evaluations_per_ray"),
@@ -202,27 +248,47 @@ def table_rows(variants: list[Variant]) -> list[dict]:
 
 
 def ranking_text(variants: list[Variant]) -> list[str]:
+    """The ranking by mean test PSNR, cut into groups whose members the seeds do not resolve from the
+    group's best (``nerfexp.comparison.tiers``), then the pairs of ablation rows against the paper's order."""
     ranked = [v for v in variants if v.finished]
-    lines = ["## Ranking by mean test PSNR", ""]
-    lines += [f"{i}. {v.label}: {v.mean('test_psnr'):.2f} dB" for i, v in enumerate(ranked, 1)]
-    rows = [v for v in ranked if v.paper]
-    names = [v.choice("ablation") for v in rows]
-    lines.append("")
-    if len(rows) < 2 or len(set(names)) != len(names):
-        lines.append("No comparison with the paper's ordering: it needs at least two finished variants "
-                     "that are distinct rows of the paper's ablation table (`ablation=...`).")
-        return lines
-    paper_order = sorted(names, key=lambda n: -PAPER_ABLATION[n][1])
-    tau, discordant = kendall_tau(names, paper_order)
-    if not discordant:
-        lines.append(f"The ordering of these {len(names)} ablation rows agrees with the paper's Table 4.")
-    else:
-        lines.append(f"The ordering of these {len(names)} ablation rows differs from the paper's Table 4 "
-                     f"in {len(discordant)} of {len(names) * (len(names) - 1) // 2} pairs "
-                     f"(Kendall's tau {tau:.2f}):")
-        lines += [f"- we rank {PAPER_ABLATION[a][0]} above {PAPER_ABLATION[b][0]}; the paper the reverse"
-                  for a, b in discordant]
-    return lines
+    by_label = {v.label: v for v in ranked}
+    groups = tiers([v.label for v in ranked], lambda a, b: difference(by_label[a], by_label[b]))
+    lines = ["## Ranking by mean test PSNR", "",
+             "Variants on one line are not resolved from the first of the line: the 95% interval of their "
+             "difference in test PSNR, paired by seed, includes zero (or there is no interval, with one "
+             "seed). The next line starts at the first variant resolved below it.", ""]
+    lines += [f"{i}. " + ", ".join(f"{label} ({by_label[label].mean('test_psnr'):.2f} dB)" for label in group)
+              for i, group in enumerate(groups, 1)]
+    return lines + [""] + paper_order_text(ranked)
+
+
+def paper_order_text(ranked: list[Variant]) -> list[str]:
+    """Each pair of the paper's ablation rows in the sweep: resolved in the paper's order, resolved in
+    the other, or not resolved with the seeds there are; each pair named with our difference."""
+    rows = {v.choice("ablation"): v for v in ranked if v.paper}
+    if len(rows) < 2 or sum(bool(v.paper) for v in ranked) != len(rows):
+        return ["No comparison with the paper's order: it needs at least two finished variants that are "
+                "distinct rows of the paper's ablation table (`ablation=...`)."]
+    paper_order = sorted(rows, key=lambda n: -PAPER_ABLATION[n][1])
+
+    def measured(higher: str, lower: str) -> Difference:
+        return difference(rows[higher], rows[lower])
+
+    order = compare_order(paper_order, measured)
+    n_pairs = len(rows) * (len(rows) - 1) // 2
+    lines = [f"## Against the paper's order ({len(rows)} ablation rows, {n_pairs} pairs)", "",
+             f"Of the {n_pairs} pairs the paper orders: {len(order.agree)} resolved in the paper's order, "
+             f"{len(order.reversed)} resolved in the other order, {len(order.unresolved)} not resolved by "
+             "these seeds. Each pair: the paper's higher row first, then our mean difference (higher - lower) "
+             "in test PSNR, paired by seed, with its 95% interval.", ""]
+    for title, pairs in (("Resolved in the paper's order", order.agree),
+                         ("Resolved in the other order", order.reversed),
+                         ("Not resolved", order.unresolved)):
+        lines += [f"**{title}** ({len(pairs)}):", ""]
+        lines += [f"- {PAPER_ABLATION[a][0]} above {PAPER_ABLATION[b][0]}: {measured(a, b).describe(2)} dB"
+                  for a, b in pairs] or ["- none"]
+        lines.append("")
+    return lines[:-1]
 
 
 def machines_text(runs: list[Run]) -> str:
@@ -235,29 +301,37 @@ def machines_text(runs: list[Run]) -> str:
             f"preparing the data and the final test not), on {where}.{note}")
 
 
-def markdown(variants: list[Variant], runs: list[Run], sources: list[Path]) -> str:
+def markdown(variants: list[Variant], runs: list[Run], sources: list[Path], reference: Variant | None = None) -> str:
     planned = [(source, planned_jobs(source)) for source in sources]
     started = {source: sum(source in run.path.parents for run in runs) for source in sources}
     not_started = [f"`{source}` plans {n} jobs, {started[source]} started" for source, n in planned
                    if n is not None and n > started[source]]
-    rows = table_rows(variants)
+    rows = table_rows(variants, reference)
     order = ["finished", "failed", "killed", "running", "unknown"]
     states = {state: n for state in order if (n := sum(run.state == state for run in runs))}
     has_paper = any(row["paper_row"] for row in rows)
-    header = ["variant", "runs", "test PSNR (dB)", "test SSIM", "train time (s)", "s / step", "rays / s",
-              "params", "evals / ray"]
+    header = ["variant", "runs", "test PSNR (dB)", "test SSIM"]
+    if reference is not None:
+        header += ["PSNR - reference (95% CI)", "SSIM - reference (95% CI)", "verdict (PSNR)"]
+    header += ["train time (s)", "s / step", "rays / s", "params", "evals / ray"]
     if has_paper:
         header += ["paper row", "paper PSNR", "paper SSIM", "PSNR - paper"]
     lines = [
         "# nerfexp report", "",
         f"Runs: {len(runs)} ({', '.join(f'{n} {s}' for s, n in states.items())}) from "
         f"{', '.join(f'`{s}`' for s in sources)}. Means ± sample standard deviation over each variant's "
-        "finished runs. " + machines_text(runs), "",
+        "finished runs. " + machines_text(runs), "", reference_text(reference), "",
         "| " + " | ".join(header) + " |", "|" + "---|" * len(header),
     ]
     for v, row in zip(variants, rows):
-        cells = [row["variant"], f"{row['finished']}/{row['runs']}", _pm(v, "test_psnr", 2), _pm(v, "test_ssim", 3),
-                 _fmt(row["train_time_s"], 0), _fmt(row["time_per_step_s"], 4), _fmt(row["rays_per_s"], 0),
+        cells = [row["variant"], f"{row['finished']}/{row['runs']}", _pm(v, "test_psnr", 2), _pm(v, "test_ssim", 3)]
+        if reference is not None:
+            if v is reference or not v.finished:
+                cells += ["reference" if v is reference else "–"] * 3
+            else:
+                cells += [difference(v, reference, "test_psnr").describe(2),
+                          difference(v, reference, "test_ssim").describe(3), row["verdict"]]
+        cells += [_fmt(row["train_time_s"], 0), _fmt(row["time_per_step_s"], 4), _fmt(row["rays_per_s"], 0),
                  _fmt(row["n_params"], 0), _fmt(row["evaluations_per_ray"], 0)]
         if has_paper:
             cells += [row["paper_row"], _fmt(row["paper_psnr"], 2), _fmt(row["paper_ssim"], 3),
@@ -274,16 +348,28 @@ def markdown(variants: list[Variant], runs: list[Run], sources: list[Path]) -> s
     lines += [f"- {text}: the rest never started (the sweep stopped or is still going)" for text in not_started]
     if not unfinished and not not_started:
         lines.append("None.")
-    lines += ["", "Plots: `psnr_vs_time.png` (validation PSNR against training seconds), `pareto.png` "
-              "(test PSNR against total training time)."]
+    lines += ["", "Plots: `psnr_vs_time.png` (validation PSNR against training seconds: each variant's mean "
+              "over seeds, its band from the lowest to the highest seed, single runs faint), `pareto.png` "
+              "(test PSNR against total training time, bars one standard deviation over seeds)."]
     return "\n".join(lines) + "\n"
 
 
-def csv_text(variants: list[Variant]) -> str:
+def reference_text(reference: Variant | None) -> str:
+    if reference is None:
+        return ("No reference variant (the sweep has no `ablation=complete`; name one with `--reference "
+                "VARIANT`), so no differences between variants are given beside the table.")
+    return (f"Differences are to the reference, `{reference.label}`: the mean over seeds of (variant - reference), "
+            "each run paired with the reference's run of the same seed, with its 95% confidence interval "
+            "(Student's t, n - 1 degrees of freedom). Verdict: better or worse where the interval excludes "
+            "zero, else not resolved with this many seeds; one seed gives no interval. Intervals are per "
+            "comparison, not corrected for making many.")
+
+
+def csv_text(variants: list[Variant], reference: Variant | None = None) -> str:
     out = io.StringIO()
     writer = csv.DictWriter(out, fieldnames=COLUMNS, lineterminator="\n")
     writer.writeheader()
-    writer.writerows(table_rows(variants))
+    writer.writerows(table_rows(variants, reference))
     return out.getvalue()
 
 
@@ -296,18 +382,38 @@ def _save(figure: Figure) -> bytes:
     return out.getvalue()
 
 
+def mean_curve(runs: list[Run]) -> list[tuple[float, float, float, float]]:
+    """The runs' validation curves averaged at each step that every one of them reached: (mean seconds,
+    mean PSNR, lowest PSNR, highest PSNR) per step, in step order."""
+    by_step = [{step: (seconds, psnr) for step, seconds, psnr in run.curve} for run in runs]
+    steps = sorted(set.intersection(*(set(curve) for curve in by_step))) if by_step else []
+    points = []
+    for step in steps:
+        seconds, psnrs = zip(*(curve[step] for curve in by_step))
+        points.append((statistics.fmean(seconds), statistics.fmean(psnrs), min(psnrs), max(psnrs)))
+    return points
+
+
 def psnr_vs_time_png(variants: list[Variant]) -> bytes:
-    """Validation PSNR against training seconds: each run a thin line, a variant's colour shared."""
+    """Validation PSNR against training seconds: a variant's mean over its finished runs (at the steps
+    they all reached) with a band from the lowest to the highest run; every run faint in the same colour."""
     figure = Figure(figsize=FIGSIZE, layout="constrained")
     axes = figure.add_subplot()
     for i, variant in enumerate(variants):
         colour = f"C{i % 10}"
-        for j, run in enumerate(r for r in variant.runs if r.curve):
-            seconds, psnrs = zip(*run.curve)
-            axes.plot(seconds, psnrs, color=colour, marker=".", linewidth=1.2, alpha=0.8,
-                      label=variant.label if j == 0 else None)
+        for run in variant.runs:
+            if run.curve:
+                axes.plot(*zip(*[(t, p) for _, t, p in run.curve]), color=colour, linewidth=0.8, alpha=0.25)
+        points = mean_curve([run for run in variant.finished if run.curve])
+        if points:
+            seconds, mean, low, high = zip(*points)
+            axes.plot(seconds, mean, color=colour, marker=".", linewidth=1.6,
+                      label=f"{variant.label} ({seeds(len(variant.finished))})")
+            if len(variant.finished) > 1:
+                axes.fill_between(seconds, low, high, color=colour, alpha=0.15, linewidth=0)
     axes.set(xlabel="training wall-clock time (s)", ylabel="validation PSNR (dB)",
-             title="Quality against run time (one line per run)")
+             title="Validation PSNR against training time\nline: mean over seeds; band: lowest to highest seed; "
+                   "faint: single runs")
     axes.grid(alpha=0.3)
     if axes.get_legend_handles_labels()[0]:
         axes.legend(fontsize="small")
@@ -315,7 +421,8 @@ def psnr_vs_time_png(variants: list[Variant]) -> bytes:
 
 
 def pareto_png(variants: list[Variant]) -> bytes:
-    """Mean test PSNR against mean training time (bars: standard deviation), Pareto front dashed."""
+    """Mean test PSNR against mean training time (bars: one sample standard deviation over seeds, none
+    for one seed), the Pareto front of the means dashed."""
     figure = Figure(figsize=FIGSIZE, layout="constrained")
     axes = figure.add_subplot()
     points = []
@@ -334,18 +441,23 @@ def pareto_png(variants: list[Variant]) -> bytes:
     if len(front) > 1:
         axes.plot(*zip(*front), "k--", linewidth=1, label="Pareto front")
     axes.set(xlabel="training wall-clock time (s)", ylabel="test PSNR (dB)",
-             title="Final quality against total training time")
+             title="Final quality against total training time\npoints: means over seeds; bars: ± 1 sample "
+                   "standard deviation over seeds")
     axes.grid(alpha=0.3)
     if points:
         axes.legend(fontsize="small")
     return _save(figure)
 
 
-def write_report(directories: list[Path], out: Path, over: tuple[str, ...] = ("seed",)) -> list[Variant]:
+def write_report(directories: list[Path], out: Path, over: tuple[str, ...] = ("seed",),
+                 reference: str | None = None) -> list[Variant]:
+    """The report of the runs under ``directories`` in ``out``; ``reference``: the variant the others are
+    compared with (see ``reference_variant``)."""
     runs = find_runs(directories)
     variants = group_variants(runs, over)
-    atomic_write(out / "report.md", markdown(variants, runs, directories).encode())
-    atomic_write(out / "report.csv", csv_text(variants).encode())
+    base = reference_variant(variants, reference)
+    atomic_write(out / "report.md", markdown(variants, runs, directories, base).encode())
+    atomic_write(out / "report.csv", csv_text(variants, base).encode())
     atomic_write(out / "psnr_vs_time.png", psnr_vs_time_png(variants))
     atomic_write(out / "pareto.png", pareto_png(variants))
     return variants
@@ -357,7 +469,10 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--out", type=Path, help="where to write the report (default: the first directory)")
     parser.add_argument("--over", nargs="+", default=["seed"],
                         help="override keys averaged over within a variant (default: seed)")
+    parser.add_argument("--reference", metavar="VARIANT",
+                        help="the variant the others are compared with, by its label in the report (e.g. "
+                             "'encoding=posenc, hierarchical=true'); default: ablation=complete if in the sweep")
     args = parser.parse_args(argv)
     out = args.out or args.dirs[0]
-    variants = write_report(args.dirs, out, tuple(args.over))
+    variants = write_report(args.dirs, out, tuple(args.over), args.reference)
     print(f"{len(variants)} variants; report in {out / 'report.md'}", file=sys.stderr)
