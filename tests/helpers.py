@@ -23,12 +23,23 @@ TINY = [
 ]
 
 
-def run_nerfexp(*args: str, cwd: Path, script: str = "nerfexp") -> subprocess.CompletedProcess:
-    """Run a console script as a user would; ``cwd`` receives anything written to relative paths."""
-    exe = Path(sys.executable).with_name(script)
+def command(script: str, *args: str) -> tuple[list[str], dict]:
+    """The command line of a console script and the environment to run it in as a user would."""
     pythonpath = os.pathsep.join(filter(None, [str(REPO), os.environ.get("PYTHONPATH")]))
     env = {**os.environ, "HYDRA_FULL_ERROR": "0", "PYTHONWARNINGS": "ignore", "PYTHONPATH": pythonpath}
-    return subprocess.run([str(exe), *args], cwd=cwd, capture_output=True, text=True, env=env, timeout=900)
+    return [str(Path(sys.executable).with_name(script)), *args], env
+
+
+def run_nerfexp(*args: str, cwd: Path, script: str = "nerfexp") -> subprocess.CompletedProcess:
+    """Run a console script as a user would; ``cwd`` receives anything written to relative paths."""
+    argv, env = command(script, *args)
+    return subprocess.run(argv, cwd=cwd, capture_output=True, text=True, env=env, timeout=900)
+
+
+def start_nerfexp(*args: str, cwd: Path) -> subprocess.Popen:
+    """Start ``nerfexp`` as ``run_nerfexp`` runs it, without waiting for it (stdout and stderr: pipes)."""
+    argv, env = command("nerfexp", *args)
+    return subprocess.Popen(argv, cwd=cwd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env)
 
 
 def read_json(path: Path) -> dict:

@@ -238,3 +238,19 @@ def test_a_running_job_whose_pid_now_belongs_to_another_process_was_killed(tmp_p
     assert job.state == "killed" and f"process {os.getpid()} is gone" in job.detail
     (run / "status.json").write_text(json.dumps({**status, "process_start": process_start(os.getpid())}))
     assert find_runs([tmp_path])[0].state == "running"
+
+
+def test_damaged_runs_are_listed_with_the_file_and_the_reason_and_the_rest_is_reported(sweep):
+    (sweep / "0" / "results.json").write_text('{"test_psnr": 20.0, "test_ss')  # truncated
+    metrics = (sweep / "1" / "metrics.jsonl").read_text().splitlines()
+    (sweep / "1" / "metrics.jsonl").write_text("\n".join([metrics[0][:15], *metrics[1:]]) + "\n")  # a torn line
+    (sweep / "3" / "status.json").write_text("")  # empty
+    write_report([sweep], sweep)
+    report = (sweep / "report.md").read_text()
+    assert "Runs: 7 (1 finished, 1 failed, 1 killed, 1 running, 3 damaged)" in report
+    assert f"- `{sweep / '0'}` (no overrides): damaged: results.json: not readable as JSON (" in report
+    assert f"- `{sweep / '1'}` (no overrides): damaged: metrics.jsonl: line 1 is not JSON (" in report
+    assert f"- `{sweep / '3'}` (no overrides): damaged: status.json: not readable as JSON (" in report
+    rows = {row["variant"]: row for row in read_csv(sweep / "report.csv")}
+    assert float(rows["hierarchical=true"]["test_psnr_mean"]) == 24.0  # seed 2 alone is counted
+    assert set(rows) == {"hierarchical=true", "hierarchical=false", "encoding=none"}  # damaged runs: no variant

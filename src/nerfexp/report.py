@@ -9,7 +9,8 @@ Reads every run under the given directories (a run is a folder holding ``status.
   step, rays/s, parameters, network evaluations per ray, and for rows of the paper's ablation table
   the paper's numbers beside ours; then the ranking in groups the seeds cannot tell apart, and which
   pairs of ablation rows agree with the paper's order, are reversed, or are not resolved; then every
-  job that did not finish (failed, or running / killed) with its reason;
+  job that did not finish (failed, or running / killed) with its reason, and every run whose files
+  cannot be read (damaged: the file and why), none of whose numbers is used;
 - ``psnr_vs_time.png``: validation PSNR against training wall-clock seconds: each variant's mean over
   seeds with a band from the lowest to the highest seed, single runs faint;
 - ``pareto.png``: final test PSNR against total training time (bars: one standard deviation over
@@ -39,7 +40,7 @@ from omegaconf import OmegaConf
 
 from nerfexp.comparison import Difference, compare_order, paired_difference, seeds, tiers
 from nerfexp.files import atomic_write
-from nerfexp.rundir import RESULTS, STATUS, find_run_dirs, process_alive, read_json, read_metrics
+from nerfexp.rundir import METRICS, RESULTS, STATUS, find_run_dirs, process_alive, read_json, read_metrics
 
 # The paper's Table 4 (mean over the 8 Realistic Synthetic scenes): conf/ablation/NAME -> (row, PSNR, SSIM).
 PAPER_ABLATION = {
@@ -107,24 +108,54 @@ class Variant:
         return PAPER_ABLATION.get(self.choice("ablation"))
 
 
+class Damaged(Exception):
+    """A run's file that cannot be read as nerfexp writes it; the message names the file and why."""
+
+
+def read_record(path: Path, required: tuple[str, ...]) -> dict | None:
+    """A run's JSON file (None where there is none) holding the keys ``required``, else ``Damaged``."""
+    try:
+        record = read_json(path)
+    except (ValueError, OSError) as error:  # truncated, empty, not UTF-8, unreadable
+        raise Damaged(f"{path.name}: not readable as JSON ({error})") from None
+    if record is not None and not (isinstance(record, dict) and all(key in record for key in required)):
+        raise Damaged(f"{path.name}: not a record with {', '.join(required)}")
+    return record
+
+
+def read_curve(path: Path) -> list[tuple[int, float, float]]:
+    """(step, wall seconds, validation PSNR) of each validation in a run's ``metrics.jsonl``, else ``Damaged``."""
+    try:
+        return [(record["step"], record["wall_time_s"], record["psnr"])
+                for record in read_metrics(path) if record["split"] == "val"]
+    except (ValueError, OSError) as error:
+        raise Damaged(f"{METRICS}: {error}") from None
+    except (KeyError, TypeError):
+        raise Damaged(f"{METRICS}: a record without step, wall_time_s, split and psnr") from None
+
+
 def read_run(path: Path) -> Run:
     """What a run directory says about its job. A job whose status still says running but whose
-    process is gone from this host was killed (out of memory, a time limit, a signal)."""
-    status = read_json(path / STATUS) or {}
-    results = read_json(path / RESULTS)
+    process is gone from this host was killed (out of memory, a time limit, a signal). A run with a file
+    that cannot be read as nerfexp writes it (``Damaged``) is listed as damaged, and none of its numbers
+    is used."""
+    try:
+        status = read_record(path / STATUS, ("state",)) or {}
+        results = read_record(path / RESULTS, ("test_psnr", "test_ssim", "choices"))
+        curve = read_curve(path)
+    except Damaged as damage:
+        return Run(path, "damaged", [], str(damage))
     overrides = status.get("overrides", (results or {}).get("overrides", []))
-    curve = [(record["step"], record["wall_time_s"], record["psnr"])
-             for record in read_metrics(path) if record["split"] == "val"]
     state = status.get("state", "finished" if results is not None else "unknown")
     detail = status.get("error", "")
     if state == "finished" and results is None:
         state, detail = "failed", f"status says finished but {RESULTS} is missing"
     if state == "running":
-        here = status.get("host") == socket.gethostname()
-        if here and not process_alive(status["pid"], status.get("process_start")):
-            state, detail = "killed", f"process {status['pid']} is gone (killed before it finished)"
+        here, pid = status.get("host") == socket.gethostname(), status.get("pid")
+        if here and pid is not None and not process_alive(pid, status.get("process_start")):
+            state, detail = "killed", f"process {pid} is gone (killed before it finished)"
         else:
-            detail = f"on {status.get('host')}, process {status.get('pid')}" + ("" if here else " (not checked)")
+            detail = f"on {status.get('host')}, process {pid}" + ("" if here else " (not checked)")
     return Run(path, state, list(overrides), detail, results if state == "finished" else None, curve)
 
 
@@ -307,7 +338,7 @@ def markdown(variants: list[Variant], runs: list[Run], sources: list[Path], refe
     not_started = [f"`{source}` plans {n} jobs, {started[source]} started" for source, n in planned
                    if n is not None and n > started[source]]
     rows = table_rows(variants, reference)
-    order = ["finished", "failed", "killed", "running", "unknown"]
+    order = ["finished", "failed", "killed", "running", "damaged", "unknown"]
     states = {state: n for state in order if (n := sum(run.state == state for run in runs))}
     has_paper = any(row["paper_row"] for row in rows)
     header = ["variant", "runs", "test PSNR (dB)", "test SSIM"]
@@ -342,7 +373,7 @@ def markdown(variants: list[Variant], runs: list[Run], sources: list[Path], refe
                   "difference is given only for runs on Blender data."]
     lines += [""] + ranking_text(variants)
     unfinished = [run for run in runs if run.state != "finished"]
-    lines += ["", "## Jobs that did not finish", ""]
+    lines += ["", "## Jobs that did not finish, or whose files are damaged (not counted)", ""]
     lines += [f"- `{run.path}` ({', '.join(run.overrides) or 'no overrides'}): {run.state}"
               + (f": {run.detail}" if run.detail else "") for run in unfinished]
     lines += [f"- {text}: the rest never started (the sweep stopped or is still going)" for text in not_started]
@@ -454,7 +485,7 @@ def write_report(directories: list[Path], out: Path, over: tuple[str, ...] = ("s
     """The report of the runs under ``directories`` in ``out``; ``reference``: the variant the others are
     compared with (see ``reference_variant``)."""
     runs = find_runs(directories)
-    variants = group_variants(runs, over)
+    variants = group_variants([run for run in runs if run.state != "damaged"], over)
     base = reference_variant(variants, reference)
     atomic_write(out / "report.md", markdown(variants, runs, directories, base).encode())
     atomic_write(out / "report.csv", csv_text(variants, base).encode())

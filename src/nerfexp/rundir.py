@@ -33,6 +33,7 @@ from pathlib import Path
 
 import lightning as L
 import torch
+import yaml
 from hydra.experimental.callback import Callback
 from hydra.utils import instantiate
 from lightning.pytorch.utilities.rank_zero import rank_zero_only
@@ -42,6 +43,7 @@ from omegaconf.errors import OmegaConfBaseException
 from nerfexp.data.datamodule import fill_ray_bounds
 from nerfexp.errors import ConfigError, NerfexpError
 from nerfexp.files import atomic_write
+from nerfexp.saved_configs import check_saved_config
 
 STATUS = "status.json"
 RESULTS = "results.json"
@@ -137,9 +139,15 @@ def append_metrics(output_dir: str | Path, record: dict) -> None:
 
 def read_metrics(run_dir: Path) -> list[dict]:
     """The records of a run's ``metrics.jsonl``, in order; none where it has none. A last line still
-    being written (no newline yet) is left out."""
+    being written (no newline yet) is left out; a line that is not JSON is a ValueError naming it."""
     path = Path(run_dir) / METRICS
-    return [json.loads(line) for line in path.read_text().split("\n")[:-1]] if path.exists() else []
+    records = []
+    for number, line in enumerate(path.read_text().split("\n")[:-1] if path.exists() else [], 1):
+        try:
+            records.append(json.loads(line))
+        except ValueError as error:
+            raise ValueError(f"line {number} is not JSON ({error})") from None
+    return records
 
 
 def find_run_dirs(directory: Path) -> set[Path]:
@@ -204,8 +212,12 @@ class RunDirectoryGuard(Callback):
         if resume is not None and run_dir.resolve() in Path(resume).resolve().parents:
             return
         held = held_run(run_dir)
-        if held is None and not claim(run_dir, list(config.hydra.overrides.task)):
-            held = "a run that started at the same time"
+        try:
+            if held is None and not claim(run_dir, list(config.hydra.overrides.task)):
+                held = "a run that started at the same time"
+        except OSError as error:
+            raise SystemExit(f"nerfexp: error: cannot write the run directory {run_dir}: {error.strerror} "
+                             "(choose another with hydra.run.dir=...)") from None
         if held is not None:
             raise SystemExit(f"nerfexp: error: {run_dir} holds {held}: continue it with "
                              f"resume={run_dir / LAST_CHECKPOINT} hydra.run.dir={run_dir}, or choose another "
@@ -213,7 +225,14 @@ class RunDirectoryGuard(Callback):
 
     def on_multirun_start(self, config: DictConfig, **kwargs) -> None:
         sweep_dir = Path(config.hydra.sweep.dir)
-        runs = find_run_dirs(sweep_dir) if sweep_dir.is_dir() else set()
+        try:
+            sweep_dir.mkdir(parents=True, exist_ok=True)
+            with tempfile.TemporaryFile(dir=sweep_dir):  # writable, before any job starts
+                pass
+        except OSError as error:
+            raise SystemExit(f"nerfexp: error: cannot write the sweep directory {sweep_dir}: {error.strerror} "
+                             "(choose another with hydra.sweep.dir=...)") from None
+        runs = find_run_dirs(sweep_dir)
         if runs:
             raise SystemExit(f"nerfexp: error: {sweep_dir} holds the runs of an earlier sweep ({len(runs)}): choose "
                              f"another directory (hydra.sweep.dir=...)")
@@ -283,8 +302,16 @@ def _current(text: str) -> DictConfig:
 
 def run_config(run_dir: Path, overrides: list[str] = ()) -> DictConfig:
     """The config a run used (its ``RUN_CONFIG``), with ``KEY=VALUE`` ``overrides`` of existing keys
-    (e.g. ``data.root=...`` for a scene that moved)."""
-    cfg = _current((Path(run_dir) / RUN_CONFIG).read_text())
+    (e.g. ``data.root=...`` for a scene that moved). The file is read as data: a ``_target_`` in it that
+    is not one of the classes nerfexp builds is a ConfigError (``nerfexp.saved_configs``)."""
+    source = Path(run_dir) / RUN_CONFIG
+    try:
+        cfg = _current(source.read_text())
+    except (OmegaConfBaseException, yaml.YAMLError, UnicodeDecodeError) as error:
+        raise ConfigError(f"{source}: not a config nerfexp can read ({str(error).splitlines()[0]})") from None
+    if not isinstance(cfg, DictConfig):
+        raise ConfigError(f"{source}: not a config nerfexp can read (a mapping of keys was expected)")
+    check_saved_config(cfg, source)
     OmegaConf.set_struct(cfg, True)  # an override of a key the run does not have is a typo, not a new key
     try:
         return OmegaConf.merge(cfg, OmegaConf.from_dotlist(list(overrides)))
@@ -293,15 +320,28 @@ def run_config(run_dir: Path, overrides: list[str] = ()) -> DictConfig:
                           f"{str(error).splitlines()[0]}") from None
 
 
+def read_checkpoint(path: Path) -> dict:
+    """A Lightning checkpoint's contents read as data (``weights_only``: tensors and plain containers;
+    a pickle that would run code is refused), on the CPU; a NerfexpError naming the file otherwise."""
+    try:
+        state = torch.load(path, map_location="cpu", weights_only=True)
+    except (OSError, RuntimeError, EOFError, pickle.UnpicklingError) as error:
+        raise NerfexpError(f"{path}: not a checkpoint nerfexp can read as data "
+                           f"({type(error).__name__}: {str(error).splitlines()[0]})") from None
+    if not isinstance(state, dict) or not isinstance(state.get("state_dict"), dict) or "global_step" not in state:
+        raise NerfexpError(f"{path}: not a Lightning checkpoint (expected a state_dict and a global_step)")
+    return state
+
+
 def load_module(cfg: DictConfig, checkpoint: Path) -> tuple[L.LightningModule, int]:
-    """The run's model (``cfg.model``) with the weights of ``checkpoint``, on the CPU, and the number of
-    optimizer steps it had taken."""
+    """The run's model (``cfg.model``) with the weights of ``checkpoint`` (``read_checkpoint``), on the
+    CPU, and the number of optimizer steps it had taken."""
     fill_ray_bounds(cfg)  # a run's saved config holds null where the scene chose near and far
     module = instantiate(cfg.model)
+    state = read_checkpoint(checkpoint)
     try:
-        state = torch.load(checkpoint, map_location="cpu", weights_only=True)
         module.load_state_dict(state["state_dict"])
-    except (OSError, RuntimeError, KeyError, EOFError, pickle.UnpicklingError) as error:
+    except RuntimeError as error:
         raise NerfexpError(f"{checkpoint}: not a checkpoint of this run's model "
                            f"({type(error).__name__}: {str(error).splitlines()[0]})") from None
     return module, state["global_step"]

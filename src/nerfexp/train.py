@@ -11,12 +11,15 @@ from hydra.errors import InstantiationException
 from hydra.types import RunMode
 from hydra.utils import instantiate
 from lightning.pytorch.loggers import Logger
+from lightning.pytorch.utilities.exceptions import SIGTERMException
 from omegaconf import DictConfig, OmegaConf
 
 from nerfexp.data.datamodule import fill_ray_bounds
 from nerfexp.data.rays import rank_slice
 from nerfexp.errors import ConfigError, NerfexpError
-from nerfexp.rundir import LAST_CHECKPOINT, RESULTS, is_global_zero, read_json, write_status
+from nerfexp.rundir import LAST_CHECKPOINT, RESULTS, is_global_zero, read_checkpoint, read_json, write_status
+from nerfexp.settings import check_settings
+from nerfexp.signals import ending_signals, received_signal
 from nerfexp.training.loggers import finish
 from nerfexp.training.recorders import RunRecorder
 
@@ -34,11 +37,14 @@ def train(cfg: DictConfig) -> dict | None:
     if missing:
         raise ConfigError(f"missing mandatory value: {', '.join(missing)} (set it on the command line, "
                           f"e.g. {missing[0]}=...)")
+    check_settings(cfg)
     fill_ray_bounds(cfg)
     L.seed_everything(cfg.seed, workers=True)
     runtime = HydraConfig.get().runtime
     choices = {k: v for k, v in runtime.choices.items() if not k.startswith("hydra") and v is not None}
     choices.update(hierarchical=cfg.hierarchical, seed=cfg.seed)
+    if cfg.resume is not None:  # a checkpoint that cannot be read as data: an error before any work
+        read_checkpoint(Path(cfg.resume))
     logger = build_logger(cfg.get("logger"))
     datamodule = instantiate(cfg.datamodule)
     model = instantiate(cfg.model)
@@ -49,11 +55,12 @@ def train(cfg: DictConfig) -> dict | None:
     rank_slice(datamodule.batch_rays, 0, trainer.world_size)  # a batch that the processes cannot share: an error now
     succeeded = False
     try:
-        trainer.fit(model, datamodule=datamodule, ckpt_path=cfg.resume)
+        # checkpoints are read as data (weights_only), whoever wrote them
+        trainer.fit(model, datamodule=datamodule, ckpt_path=cfg.resume, weights_only=True)
         # the checkpoint this run wrote: ModelCheckpoint's own record of it where fit ran in this process
         written = (getattr(trainer.checkpoint_callback, "last_model_path", "")
                    or Path(runtime.output_dir) / LAST_CHECKPOINT)
-        trainer.test(model, datamodule=datamodule, ckpt_path=written, verbose=False)
+        trainer.test(model, datamodule=datamodule, ckpt_path=written, verbose=False, weights_only=True)
         succeeded = True
     finally:
         finish(logger, succeeded)
@@ -97,7 +104,11 @@ def main(cfg: DictConfig) -> float | None:
         results = train(cfg)
     except BaseException as error:  # an interrupt too: the job did not finish
         if writes:
-            write_status(output_dir, "failed", overrides, error=f"{type(error).__name__}: {error}")
+            # the signal: from nerfexp's handler (cli), else Lightning's SIGTERM handling (a job under submitit)
+            ended_by = received_signal() or ("SIGTERM" if isinstance(error, SIGTERMException) else None)
+            details = {"signal": ended_by, "error": f"ended by {ended_by}"} if ended_by else {
+                "error": f"{type(error).__name__}: {error}"}
+            write_status(output_dir, "failed", overrides, **details)
         if isinstance(error, NerfexpError):
             if hydra_config.mode == RunMode.RUN:
                 sys.exit(f"nerfexp: error: {error}")
@@ -107,3 +118,11 @@ def main(cfg: DictConfig) -> float | None:
         return None
     write_status(output_dir, "finished", overrides)
     return results["val_psnr"]
+
+
+def cli() -> None:
+    """The ``nerfexp`` command: ``main``, where SIGTERM or SIGINT (a SLURM time limit, ``kill``, Ctrl-C)
+    ends a run or a sweep with exit status 128 + the signal, after the job's ``status.json`` says
+    which signal ended it (``nerfexp.signals``)."""
+    with ending_signals():
+        main()

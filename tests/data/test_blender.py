@@ -21,6 +21,7 @@ def make_views(n=6, height=6, width=8, seed=0) -> Views:
     rgba = torch.rand(n, height, width, 4, generator=g)
     rgba[..., 3] = torch.where(rgba[..., 3] < 0.3, 0.0, rgba[..., 3])  # some fully transparent pixels
     q, _ = torch.linalg.qr(torch.randn(n, 3, 3, generator=g, dtype=torch.float64))
+    q = q * torch.linalg.det(q).sign()[:, None, None]  # rotations (det +1), not reflections: camera poses
     c2w = torch.eye(4).repeat(n, 1, 1)
     c2w[:, :3, :3], c2w[:, :3, 3] = q.float(), torch.randn(n, 3, generator=g)
     return Views(rgba=rgba, c2w=c2w, focal=1.0)
@@ -174,6 +175,12 @@ def argument(**options):
     (set_matrix([[1, 0, 0, 0]] * 3), "frame 4: 'transform_matrix' must be a 4x4"),
     (set_matrix([[1, 0, 0, "x"]] * 4), "frame 4: 'transform_matrix' must be a 4x4"),
     (set_matrix(7), "frame 4: 'transform_matrix' must be a 4x4"),
+    (set_matrix([[0] * 4] * 4), re.escape("frame 4: 'transform_matrix' must be a rigid camera pose, but its last "
+                                          "row is [0.0, 0.0, 0.0, 0.0], not [0, 0, 0, 1]")),
+    (set_matrix([[2, 0, 0, 0], [0, 2, 0, 0], [0, 0, 2, 0], [0, 0, 0, 1]]),
+     "frame 4: .* but its rotation is not orthonormal \\(R\\^T R differs from the identity by 3\\)"),
+    (set_matrix([[-1, 0, 0, 0], [0, 1, 0, 0], [0, 0, 1, 0], [0, 0, 0, 1]]), "a reflection \\(determinant -1\\)"),
+    (set_matrix([[float("nan"), 0, 0, 0], [0, 1, 0, 0], [0, 0, 1, 0], [0, 0, 0, 1]]), "frame 4: .* it is not finite"),
     (remove_image, re.escape("r_3.png does not exist")),
     (resize_image, "r_2.png: image size 9x6 differs from .*r_0.png \\(8x6\\)"),
     (empty_frames, "'frames' must be a non-empty list"),

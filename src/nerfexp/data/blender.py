@@ -24,7 +24,7 @@ from nerfexp.data.images import downscale_rgba, fit_factor, read_image
 from nerfexp.data.views import Views
 from nerfexp.errors import DatasetError
 from nerfexp.files import atomic_write
-from nerfexp.geometry.cameras import focal_from_fov
+from nerfexp.geometry.cameras import focal_from_fov, pose_problem
 from nerfexp.pixels import png_bytes, to_uint8
 
 TRANSFORMS = "transforms_{split}.json"
@@ -48,14 +48,15 @@ def _is_number(value) -> bool:
 
 
 def _matrix(value, where: str) -> Tensor:
-    """A 4x4 list of finite numbers as a float64 tensor [4, 4], or a DatasetError naming ``where``."""
+    """A 4x4 list of numbers that is a rigid camera pose (``pose_problem``) as a float64 tensor [4, 4], or a
+    DatasetError naming ``where``."""
     is_4x4 = isinstance(value, list) and len(value) == 4
     is_4x4 = is_4x4 and all(isinstance(row, list) and len(row) == 4 and all(map(_is_number, row)) for row in value)
     if not is_4x4:
         raise DatasetError(f"{where}: 'transform_matrix' must be a 4x4 list of numbers, got {str(value)[:80]}")
     matrix = torch.tensor(value, dtype=torch.float64)
-    if not torch.isfinite(matrix).all():
-        raise DatasetError(f"{where}: 'transform_matrix' must be finite, got {value}")
+    if (problem := pose_problem(matrix)) is not None:
+        raise DatasetError(f"{where}: 'transform_matrix' must be a rigid camera pose, but {problem}")
     return matrix
 
 
@@ -164,6 +165,9 @@ class BlenderScene(Scene):
         options = {"train": {"max_views": self.n_train}, "val": {"max_views": self.n_val},
                    "test": {"stride": self.test_stride}}[split]
         views = load_blender(self.root, split, self.downscale, **options)
+        if split == "train" and self.n_train is not None and len(views.rgba) < self.n_train:
+            raise DatasetError(f"data.n_train={self.n_train}: {Path(self.root) / TRANSFORMS.format(split=split)} "
+                               f"has only {len(views.rgba)} views")
         factor = fit_factor(max(views.height, views.width), self.max_side)
         if factor == 1:
             return views

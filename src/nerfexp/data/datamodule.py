@@ -49,6 +49,14 @@ class RayDataModule(L.LightningDataModule):
             self.splits[split] = self.scene.views(split)
         return self.splits[split]
 
+    def setup(self, stage: str) -> None:
+        """Before training, every split is loaded (and checked, as each format's loader checks it), so that
+        bad data anywhere (a NaN pose in the test split, a missing image) stops a run before its first
+        step rather than after it."""
+        if stage == "fit":
+            for split in ("train", "val", "test"):
+                self._views(split)
+
     def train_dataloader(self) -> DataLoader:
         trainer = self.trainer
         rank, world_size, step = ((trainer.global_rank, trainer.world_size, trainer.global_step)

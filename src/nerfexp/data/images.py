@@ -1,6 +1,9 @@
 """Image files as the dataset formats read them: 8-bit RGBA tensors, shrunk by area averaging."""
 
+import io
 import math
+import warnings
+import zlib
 from pathlib import Path
 
 import numpy as np
@@ -11,16 +14,54 @@ from torch import Tensor
 
 from nerfexp.errors import DatasetError
 
+PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
+MAX_PIXELS = Image.MAX_IMAGE_PIXELS  # Pillow's limit (about 89 million): larger images are refused, not decoded
+
+
+def png_damage(data: bytes) -> str | None:
+    """Why the bytes of a PNG file are damaged, or None: PNG stores a CRC-32 with every chunk (Pillow
+    skips the check on image data, so a flipped byte there would decode to wrong pixels)."""
+    position = len(PNG_SIGNATURE)
+    while position + 12 <= len(data):
+        length, kind = int.from_bytes(data[position:position + 4], "big"), data[position + 4:position + 8]
+        end = position + 12 + length
+        if end > len(data):
+            return f"its {kind.decode('latin-1')!r} chunk at byte {position} is cut off"
+        if zlib.crc32(data[position + 4:end - 4]) != int.from_bytes(data[end - 4:end], "big"):
+            return f"the checksum of its {kind.decode('latin-1')!r} chunk at byte {position} does not match its data"
+        if kind == b"IEND":
+            return None
+        position = end
+    return "it ends before its 'IEND' chunk"
+
+
+def to_rgba8(image: Image.Image) -> np.ndarray:
+    """8-bit RGBA [H, W, 4] of a decoded image; 16-bit greyscale (Pillow's modes I;16 and I) is scaled
+    from [0, 65535] (Pillow's own conversion would clip it to [0, 255])."""
+    if image.mode.startswith("I"):
+        grey = np.round(np.asarray(image, dtype=np.float64) / 257).clip(0, 255).astype(np.uint8)
+        return np.dstack([grey, grey, grey, np.full_like(grey, 255)])
+    return np.asarray(image.convert("RGBA"))
+
 
 def read_image(path: Path, source: str) -> Tensor:
     """An image file as 8-bit RGBA [H, W, 4]; images without alpha get alpha 255. ``source`` names what
-    pointed to the file, for the error when it is missing."""
+    pointed to the file, for the error when it is missing. A PNG file whose checksums do not match
+    (``png_damage``) and an image of more than ``MAX_PIXELS`` pixels are DatasetErrors, never decoded."""
     if not path.is_file():
         raise DatasetError(f"image {path} does not exist (named by {source})")
+    data = path.read_bytes()
+    if data.startswith(PNG_SIGNATURE) and (damage := png_damage(data)) is not None:
+        raise DatasetError(f"{path}: a damaged PNG file: {damage}")
     try:
-        with Image.open(path) as image:
-            rgba = np.asarray(image.convert("RGBA"))
-    except OSError as error:
+        with warnings.catch_warnings():
+            warnings.simplefilter("error", Image.DecompressionBombWarning)
+            with Image.open(io.BytesIO(data)) as image:
+                rgba = to_rgba8(image)
+    except (Image.DecompressionBombError, Image.DecompressionBombWarning):
+        raise DatasetError(f"{path}: more than {MAX_PIXELS} pixels, which nerfexp does not decode (a "
+                           "decompression bomb, or an image to shrink before use)") from None
+    except (OSError, ValueError, SyntaxError) as error:
         raise DatasetError(f"{path}: cannot read the image ({error})") from None
     return torch.from_numpy(rgba.copy())
 

@@ -35,7 +35,7 @@ from nerfexp.data.images import downscale_rgba, fit_factor, read_image
 from nerfexp.data.views import IMAGE_SUFFIXES, Views, holdout_split
 from nerfexp.errors import ConfigError, DatasetError
 from nerfexp.files import atomic_write
-from nerfexp.geometry.cameras import look_at, pixel_directions
+from nerfexp.geometry.cameras import look_at, pixel_directions, pose_problem
 from nerfexp.geometry.ndc import ndc_rays
 from nerfexp.pixels import png_bytes, to_uint8
 
@@ -49,8 +49,8 @@ LAYOUT = (f"an LLFF scene holds {POSES_BOUNDS} (N x 17: per image a 3x5 matrix [
 def read_poses_bounds(path: Path) -> tuple[Tensor, Tensor]:
     """The rows of a ``poses_bounds.npy``: (poses [N, 3, 5], bounds [N, 2]), float64, as stored.
 
-    Raises a DatasetError naming the file unless it is a finite N x 17 array with 0 < near < far
-    and positive H, W and focal in every row, the same in all.
+    Raises a DatasetError naming the file unless it is a finite N x 17 array with 0 < near < far,
+    positive H, W and focal in every row, the same in all, and a rigid pose in every row.
     """
     path = Path(path)
     if not path.is_file():
@@ -79,6 +79,9 @@ def read_poses_bounds(path: Path) -> tuple[Tensor, Tensor]:
     if not (hwf == hwf[0]).all():  # one camera: nerfexp's Views share one focal length
         raise DatasetError(f"{path}: every row must record the same height, width and focal (one camera), "
                            f"got {hwf.unique(dim=0).tolist()[:3]}")
+    for i, c2w in enumerate(llff_to_c2w(poses)):
+        if (problem := pose_problem(c2w)) is not None:
+            raise DatasetError(f"{path}: row {i}: the pose must be a rigid camera pose, but {problem}")
     return poses, bounds
 
 

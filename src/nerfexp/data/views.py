@@ -5,6 +5,8 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
+from nerfexp.errors import DatasetError
+
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".tif", ".tiff", ".bmp")  # what a folder of photographs may hold
 
 
@@ -40,7 +42,11 @@ class Views:
 
 def holdout_split(n: int, holdout: int, n_val: int, n_train: int | None = None) -> dict[str, Tensor]:
     """Image indices per split of ``n`` images: test every ``holdout``-th (i % holdout == 0, the LLFF
-    convention), train the first ``n_train`` of the rest (None: all), val the first ``n_val`` test ones."""
+    convention), train the first ``n_train`` of the rest (None: all; more than there are is a DatasetError),
+    val the first ``n_val`` test ones (all of them where there are fewer)."""
     index = torch.arange(n)
-    test = index[index % holdout == 0]
-    return {"train": index[index % holdout != 0][:n_train], "val": test[:n_val], "test": test}
+    train, test = index[index % holdout != 0], index[index % holdout == 0]
+    if n_train is not None and n_train > len(train):  # a cut would leave fewer views than the run records
+        raise DatasetError(f"data.n_train={n_train}: only {len(train)} of the {n} images are training images "
+                           f"(every {holdout}th is held out for testing)")
+    return {"train": train[:n_train], "val": test[:n_val], "test": test}

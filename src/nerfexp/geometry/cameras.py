@@ -50,3 +50,31 @@ def look_at(eye: Tensor, target: Tensor, up: Tensor) -> Tensor:
     c2w[..., :3, 0], c2w[..., :3, 1], c2w[..., :3, 2], c2w[..., :3, 3] = right, cam_up, back, eye
     c2w[..., 3, 3] = 1
     return c2w
+
+
+RIGID_TOLERANCE = 1e-3  # how far a stored rotation may be from orthonormal (float32 poses are ~1e-7 off)
+
+
+def rotation_problem(rotation: Tensor, tolerance: float = RIGID_TOLERANCE) -> str | None:
+    """Why a matrix [3, 3] is not a rotation (orthonormal columns, determinant +1, within ``tolerance``
+    elementwise of R^T R = I and of det R = 1), or None; a camera pose must be rigid."""
+    rotation = rotation.double()
+    if not torch.isfinite(rotation).all():
+        return "its rotation is not finite"
+    error = (rotation.T @ rotation - torch.eye(3, dtype=rotation.dtype)).abs().max()
+    if error > tolerance:
+        return f"its rotation is not orthonormal (R^T R differs from the identity by {float(error):.3g})"
+    if torch.linalg.det(rotation) < 0:
+        return "its rotation is a reflection (determinant -1)"
+    return None
+
+
+def pose_problem(c2w: Tensor, tolerance: float = RIGID_TOLERANCE) -> str | None:
+    """Why a camera-to-world matrix [4, 4] is not a rigid transform (finite, a rotation by
+    ``rotation_problem``, last row 0 0 0 1), or None."""
+    c2w = c2w.double()
+    if not torch.isfinite(c2w).all():
+        return "it is not finite"
+    if not torch.equal(c2w[3], torch.tensor([0.0, 0.0, 0.0, 1.0], dtype=c2w.dtype)):
+        return f"its last row is {c2w[3].tolist()}, not [0, 0, 0, 1]"
+    return rotation_problem(c2w[:3, :3], tolerance)

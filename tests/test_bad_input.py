@@ -1,0 +1,87 @@
+"""Bad settings and bad data through the command line: exit status 1, one line on stderr naming the key
+the user set (or the file) and what was expected, no traceback, and nothing written that should not be."""
+
+import json
+
+import pytest
+
+from nerfexp.settings import FLOAT32_TOP_OCTAVE
+from tests.helpers import run_nerfexp
+
+
+def one_error_line(result, prog: str = "nerfexp") -> str:
+    assert result.returncode == 1 and "Traceback" not in result.stderr, result.stderr[-3000:]
+    (line,) = [line for line in result.stderr.splitlines() if line.startswith(f"{prog}: error:")]
+    return line
+
+
+@pytest.mark.parametrize(("overrides", "message"), [
+    (["scale.lr=-1"], "scale.lr=-1 (which sets model.optimizer.lr): expected a finite number > 0"),
+    (["scale.batch_rays=0"], "scale.batch_rays=0 (which sets datamodule.batch_rays): expected a whole number >= 1"),
+    (["trainer.max_steps=0"], "trainer.max_steps=0: expected a whole number >= 1"),
+    (["scale.val_every=0"], "scale.val_every=0 (which sets trainer.val_check_interval): expected a whole number >= 1"),
+    (["scale.n_coarse=0"], "scale.n_coarse=0 (which sets model.renderer.n_coarse): expected a whole number >= 1"),
+    (["encoding.position.n_freqs=-1"], "encoding.position.n_freqs=-1: expected a whole number >= 0 (0: the raw "
+                                       "input alone)"),
+    (["encoding.position.n_freqs=60"], f"encoding.position.n_freqs=60: frequencies above 2^{FLOAT32_TOP_OCTAVE} pi "
+                                       "are noise for float32 positions (docs/numerics.md); use at most 19 with "
+                                       "input_scale 1"),
+    (["scale.position_input_scale=0"], "scale.position_input_scale=0 (which sets encoding.position.input_scale): "
+                                       "expected a finite number > 0"),
+    (["data.n_train=0"], "data.n_train=0: expected a whole number >= 1, or null for all"),
+    (["data.n_val=0"], "data.n_val=0: expected a whole number >= 1"),
+])
+def test_a_bad_setting_is_one_line_before_the_run_directory_is_made(tmp_path, overrides, message):
+    result = run_nerfexp(*overrides, f"hydra.run.dir={tmp_path / 'run'}", cwd=tmp_path)
+    assert one_error_line(result) == f"nerfexp: error: {message}"
+    assert not (tmp_path / "run").exists()
+
+
+def test_eight_times_lower_positions_allow_three_more_octaves(tmp_path):
+    # gamma(x / 8): L = 22 puts its top frequency 2^21 pi x / 8 = 2^18 pi x at the limit; L = 23 is past it
+    result = run_nerfexp("encoding.position.n_freqs=23", "scale.position_input_scale=0.125",
+                         f"hydra.run.dir={tmp_path / 'run'}", cwd=tmp_path)
+    assert "use at most 22 with input_scale 0.125" in one_error_line(result)
+
+
+def blender_scene(tmp_path, tiny) -> tuple:
+    """A Blender-format scene of 10 training, 1 validation and 2 test views written by nerfexp-scene, and
+    the tiny run's overrides for it."""
+    scene = tmp_path / "scene"
+    exported = run_nerfexp(str(scene), "--resolution", "24", "--n-train", "10", "--n-val", "1", "--n-test", "2",
+                           cwd=tmp_path, script="nerfexp-scene")
+    assert exported.returncode == 0, exported.stderr[-2000:]
+    overrides = [o for o in tiny if not o.startswith(("data.", "scale.image_size"))]
+    return scene, ["data=blender", f"data.root={scene}", "data.n_val=1", *overrides]
+
+
+def test_more_training_views_than_a_scene_has_is_one_line(tmp_path, tiny):
+    scene, overrides = blender_scene(tmp_path, tiny)
+    result = run_nerfexp(*overrides, "data.n_train=11", f"hydra.run.dir={tmp_path / 'run'}", cwd=tmp_path)
+    line = one_error_line(result)
+    assert line == f"nerfexp: error: data.n_train=11: {scene / 'transforms_train.json'} has only 10 views"
+    assert not (tmp_path / "run" / "metrics.jsonl").exists()
+
+
+def test_a_bad_pose_in_the_test_split_stops_the_run_before_its_first_step(tmp_path, tiny):
+    scene, overrides = blender_scene(tmp_path, tiny)
+    transforms = scene / "transforms_test.json"
+    content = json.loads(transforms.read_text())
+    content["frames"][1]["transform_matrix"][0][3] = float("nan")
+    transforms.write_text(json.dumps(content))  # Python writes NaN, which JSON readers accept
+    result = run_nerfexp(*overrides, f"hydra.run.dir={tmp_path / 'run'}", cwd=tmp_path)
+    line = one_error_line(result)
+    assert line.startswith(f"nerfexp: error: {transforms}: frame 1: 'transform_matrix' must be a rigid camera pose")
+    assert not (tmp_path / "run" / "metrics.jsonl").exists() and not (tmp_path / "run" / "checkpoints").exists()
+
+
+@pytest.mark.parametrize("mode", ["run", "sweep"])
+def test_a_run_or_sweep_directory_that_cannot_be_written_is_one_line(tmp_path, tiny, mode):
+    blocker = tmp_path / "a_file"
+    blocker.write_text("not a directory")
+    if mode == "run":
+        result = run_nerfexp(*tiny, f"hydra.run.dir={blocker / 'run'}", cwd=tmp_path)
+    else:
+        result = run_nerfexp("-m", *tiny, "seed=0,1", f"hydra.sweep.dir={blocker / 'sweep'}", cwd=tmp_path)
+    assert one_error_line(result) == (f"nerfexp: error: cannot write the {mode} directory {blocker / mode}: "
+                                      f"Not a directory (choose another with hydra.{mode}.dir=...)")
