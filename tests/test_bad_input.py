@@ -2,6 +2,8 @@
 the user set (or the file) and what was expected, no traceback, and nothing written that should not be."""
 
 import json
+import struct
+import zlib
 
 import pytest
 
@@ -85,3 +87,41 @@ def test_a_run_or_sweep_directory_that_cannot_be_written_is_one_line(tmp_path, t
         result = run_nerfexp("-m", *tiny, "seed=0,1", f"hydra.sweep.dir={blocker / 'sweep'}", cwd=tmp_path)
     assert one_error_line(result) == (f"nerfexp: error: cannot write the {mode} directory {blocker / mode}: "
                                       f"Not a directory (choose another with hydra.{mode}.dir=...)")
+
+
+def flip_a_byte_of_image_data(scene) -> tuple:
+    path = scene / "train" / "r_3.png"
+    data = bytearray(path.read_bytes())
+    data[data.index(b"IDAT") + 12] ^= 0x20
+    path.write_bytes(bytes(data))
+    return path, "a damaged PNG file: the checksum of its 'IDAT' chunk"
+
+
+def oversized_image(scene) -> tuple:
+    def chunk(kind: bytes, data: bytes) -> bytes:
+        return struct.pack(">I", len(data)) + kind + data + struct.pack(">I", zlib.crc32(kind + data))
+
+    path = scene / "test" / "r_0.png"
+    header = struct.pack(">IIBBBBB", 20_000, 20_000, 8, 6, 0, 0, 0)  # 400 million RGBA pixels
+    path.write_bytes(b"\x89PNG\r\n\x1a\n" + chunk(b"IHDR", header) + chunk(b"IDAT", zlib.compress(b"\0"))
+                     + chunk(b"IEND", b""))
+    return path, "pixels, which nerfexp does not decode"
+
+
+def zero_pose(scene) -> tuple:
+    path = scene / "transforms_val.json"
+    content = json.loads(path.read_text())
+    content["frames"][0]["transform_matrix"] = [[0] * 4] * 4
+    path.write_text(json.dumps(content))
+    return path, "frame 0: 'transform_matrix' must be a rigid camera pose, but its last row is [0.0, 0.0, 0.0, 0.0]"
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("damage", [flip_a_byte_of_image_data, oversized_image, zero_pose])
+def test_bad_data_in_any_split_stops_the_run_before_its_first_step(tmp_path, tiny, damage):
+    scene, overrides = blender_scene(tmp_path, tiny)
+    path, message = damage(scene)
+    result = run_nerfexp(*overrides, f"hydra.run.dir={tmp_path / 'run'}", cwd=tmp_path)
+    line = one_error_line(result)
+    assert line.startswith(f"nerfexp: error: {path}") and message in line, line
+    assert not (tmp_path / "run" / "metrics.jsonl").exists() and not (tmp_path / "run" / "checkpoints").exists()

@@ -253,4 +253,10 @@ def test_damaged_runs_are_listed_with_the_file_and_the_reason_and_the_rest_is_re
     assert f"- `{sweep / '3'}` (no overrides): damaged: status.json: not readable as JSON (" in report
     rows = {row["variant"]: row for row in read_csv(sweep / "report.csv")}
     assert float(rows["hierarchical=true"]["test_psnr_mean"]) == 24.0  # seed 2 alone is counted
+    # the same through the command line: exit status 0 and the report written
+    (sweep / "report.md").unlink()
+    result = subprocess.run([str(Path(sys.executable).with_name("nerfexp-report")), str(sweep)],
+                            capture_output=True, text=True, timeout=300)
+    assert result.returncode == 0 and "Traceback" not in result.stderr, result.stderr[-2000:]
+    assert "3 damaged" in (sweep / "report.md").read_text()
     assert set(rows) == {"hierarchical=true", "hierarchical=false", "encoding=none"}  # damaged runs: no variant
