@@ -94,7 +94,7 @@ def flip_a_byte_of_image_data(scene) -> tuple:
     data = bytearray(path.read_bytes())
     data[data.index(b"IDAT") + 12] ^= 0x20
     path.write_bytes(bytes(data))
-    return path, "a damaged PNG file: the checksum of its 'IDAT' chunk"
+    return path, "a damaged or unreadable image file (broken PNG file (bad header checksum in b'IDAT'))"
 
 
 def oversized_image(scene) -> tuple:

@@ -227,8 +227,7 @@ class RunDirectoryGuard(Callback):
         sweep_dir = Path(config.hydra.sweep.dir)
         try:
             sweep_dir.mkdir(parents=True, exist_ok=True)
-            with tempfile.TemporaryFile(dir=sweep_dir):  # writable, before any job starts
-                pass
+            tempfile.TemporaryFile(dir=sweep_dir).close()  # writable, before any job starts
         except OSError as error:
             raise SystemExit(f"nerfexp: error: cannot write the sweep directory {sweep_dir}: {error.strerror} "
                              "(choose another with hydra.sweep.dir=...)") from None

@@ -2,8 +2,8 @@
 
 import io
 import math
+import struct
 import warnings
-import zlib
 from pathlib import Path
 
 import numpy as np
@@ -14,25 +14,7 @@ from torch import Tensor
 
 from nerfexp.errors import DatasetError
 
-PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
 MAX_PIXELS = Image.MAX_IMAGE_PIXELS  # Pillow's limit (about 89 million): larger images are refused, not decoded
-
-
-def png_damage(data: bytes) -> str | None:
-    """Why the bytes of a PNG file are damaged, or None: PNG stores a CRC-32 with every chunk (Pillow
-    skips the check on image data, so a flipped byte there would decode to wrong pixels)."""
-    position = len(PNG_SIGNATURE)
-    while position + 12 <= len(data):
-        length, kind = int.from_bytes(data[position:position + 4], "big"), data[position + 4:position + 8]
-        end = position + 12 + length
-        if end > len(data):
-            return f"its {kind.decode('latin-1')!r} chunk at byte {position} is cut off"
-        if zlib.crc32(data[position + 4:end - 4]) != int.from_bytes(data[end - 4:end], "big"):
-            return f"the checksum of its {kind.decode('latin-1')!r} chunk at byte {position} does not match its data"
-        if kind == b"IEND":
-            return None
-        position = end
-    return "it ends before its 'IEND' chunk"
 
 
 def to_rgba8(image: Image.Image) -> np.ndarray:
@@ -46,23 +28,25 @@ def to_rgba8(image: Image.Image) -> np.ndarray:
 
 def read_image(path: Path, source: str) -> Tensor:
     """An image file as 8-bit RGBA [H, W, 4]; images without alpha get alpha 255. ``source`` names what
-    pointed to the file, for the error when it is missing. A PNG file whose checksums do not match
-    (``png_damage``) and an image of more than ``MAX_PIXELS`` pixels are DatasetErrors, never decoded."""
+    pointed to the file, for the error when it is missing. The file is first checked with Pillow's
+    ``verify`` (for PNG: every chunk's CRC-32, the image data's too, which decoding alone skips, so a
+    flipped byte would otherwise decode to wrong pixels); a damaged file and an image of more than
+    ``MAX_PIXELS`` pixels are DatasetErrors, never decoded."""
     if not path.is_file():
         raise DatasetError(f"image {path} does not exist (named by {source})")
     data = path.read_bytes()
-    if data.startswith(PNG_SIGNATURE) and (damage := png_damage(data)) is not None:
-        raise DatasetError(f"{path}: a damaged PNG file: {damage}")
     try:
         with warnings.catch_warnings():
             warnings.simplefilter("error", Image.DecompressionBombWarning)
             with Image.open(io.BytesIO(data)) as image:
+                image.verify()
+            with Image.open(io.BytesIO(data)) as image:  # verify leaves an image that cannot be decoded
                 rgba = to_rgba8(image)
     except (Image.DecompressionBombError, Image.DecompressionBombWarning):
         raise DatasetError(f"{path}: more than {MAX_PIXELS} pixels, which nerfexp does not decode (a "
                            "decompression bomb, or an image to shrink before use)") from None
-    except (OSError, ValueError, SyntaxError) as error:
-        raise DatasetError(f"{path}: cannot read the image ({error})") from None
+    except (OSError, ValueError, SyntaxError, struct.error) as error:  # Pillow's errors for damaged files
+        raise DatasetError(f"{path}: a damaged or unreadable image file ({error})") from None
     return torch.from_numpy(rgba.copy())
 
 

@@ -147,9 +147,12 @@ class RunRecorder(L.Callback):
 
     def _flush(self, trainer, split: str) -> dict[int, dict[str, float]]:
         """The scores of the images scored since the last flush; rank 0 appends their means to
-        ``metrics.jsonl`` and logs them at the step of the weights scored."""
+        ``metrics.jsonl`` and logs them at the step of the weights scored. A validation's mean PSNR
+        becomes ``last_val_psnr``."""
         scores, self._scores = self._scores, {}
         means = image_means(scores)
+        if split == "val":
+            self.last_val_psnr = means["psnr"]
         if trainer.is_global_zero:
             record = {"step": self.steps, "wall_time_s": self.wall_time_s(), "split": split, **means}
             append_metrics(self.output_dir, record)
@@ -166,7 +169,7 @@ class RunRecorder(L.Callback):
 
     def on_validation_epoch_end(self, trainer, pl_module):
         if not trainer.sanity_checking:
-            self.last_val_psnr = image_means(self._flush(trainer, "val"))["psnr"]
+            self._flush(trainer, "val")
 
     def on_test_batch_end(self, trainer, pl_module, outputs, batch, batch_idx, dataloader_idx=0):
         self._collect(trainer, pl_module, outputs, "test")
