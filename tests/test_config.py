@@ -4,13 +4,15 @@ import inspect
 import subprocess
 import sys
 
+import lightning as L
 import pytest
 import torch
 from hydra import compose, initialize_config_module
 from hydra.utils import get_class, instantiate
 from omegaconf import OmegaConf
 
-from nerfexp.nerf.encodings import IdentityEncoding, PositionalEncoding
+from nerfexp.nerf.bounds import Bounded
+from nerfexp.nerf.encodings import HashGridEncoding, IdentityEncoding, PositionalEncoding
 from nerfexp.nerf.fields import DiffuseHead, SphericalHarmonicsHead, ViewMLPHead
 
 
@@ -20,7 +22,7 @@ def build(*overrides):
     return cfg, instantiate(cfg.model)
 
 
-@pytest.mark.parametrize("encoding", ["none", "posenc"])
+@pytest.mark.parametrize("encoding", ["none", "posenc", "hashgrid"])
 @pytest.mark.parametrize("view", ["mlp", "none", "sh"])
 @pytest.mark.parametrize("hierarchical", [True, False])
 def test_every_combination_builds_and_renders(encoding, view, hierarchical):
@@ -28,7 +30,10 @@ def test_every_combination_builds_and_renders(encoding, view, hierarchical):
     renderer = model.renderer
     assert (renderer.fine is not None) == hierarchical
     field = renderer.coarse
-    assert isinstance(field.position_encoding, PositionalEncoding if encoding == "posenc" else IdentityEncoding)
+    kind = {"none": IdentityEncoding, "posenc": PositionalEncoding, "hashgrid": HashGridEncoding}[encoding]
+    assert isinstance(field.position_encoding, kind)
+    for bounded in (m for m in renderer.modules() if isinstance(m, Bounded)):
+        bounded.set_bounds(torch.tensor([[-1.5] * 3, [1.5] * 3]))  # what training does from the scene
     head = {"mlp": ViewMLPHead, "none": DiffuseHead, "sh": SphericalHarmonicsHead}[view]
     assert isinstance(field.view_head, head)
     if hierarchical:  # separate networks, not one shared
@@ -36,6 +41,26 @@ def test_every_combination_builds_and_renders(encoding, view, hierarchical):
     directions = torch.nn.functional.normalize(torch.randn(4, 3), dim=-1)
     out = renderer(-4 * directions, directions, deterministic=True)
     assert torch.isfinite(out["fine" if hierarchical else "coarse"]["rgb"]).all()
+
+
+def test_hashgrid_has_instant_ngps_field_and_optimizer_and_no_decay_on_its_tables():
+    cfg, model = build("encoding=hashgrid")
+    enc = model.renderer.coarse.position_encoding
+    assert (len(enc.resolutions), enc.features_per_level, enc.table_size) == (16, 2, 2**16)
+    assert enc.resolutions[0] == 16 and enc.resolutions[-1] == cfg.scale.hash_finest == 256
+    assert len(model.renderer.coarse.trunk) == 1 and model.renderer.coarse.trunk[0].out_features == 64
+    model.trainer = L.Trainer(max_steps=10, logger=False, enable_checkpointing=False, enable_progress_bar=False)
+    optimizer = model.configure_optimizers()["optimizer"]
+    assert optimizer.defaults["eps"] == 1e-15 and optimizer.defaults["betas"] == (0.9, 0.99)
+    networks, tables = optimizer.param_groups
+    assert networks["weight_decay"] == 1e-6 and tables["weight_decay"] == 0
+    table_ids = {id(p) for net in (model.renderer.coarse, model.renderer.fine)
+                 for p in net.position_encoding.parameters()}
+    assert {id(p) for p in tables["params"]} == table_ids
+    assert len(networks["params"]) + len(tables["params"]) == len(list(model.parameters()))
+    _, paper = build("encoding=hashgrid", "scale=paper")  # Instant-NGP's sizes for the Blender scenes
+    enc = paper.renderer.coarse.position_encoding
+    assert (enc.table_size, enc.resolutions[-1]) == (2**19, 2048)
 
 
 def test_paper_scale_is_the_papers_network():
@@ -77,7 +102,8 @@ def targets(node, path="cfg"):
 
 
 @pytest.mark.parametrize("overrides", [[], ["data=blender", "data.root=/x", "scale=paper", "logger=csv"],
-                                       ["data=llff", "data.root=/x", "acceleration=occupancy", "logger=mlflow"],
+                                       ["data=llff", "data.root=/x", "acceleration=occupancy", "logger=mlflow",
+                                        "encoding=hashgrid"],
                                        ["data=colmap", "data.root=/x", "view_dependence=sh", "trainer=ddp",
                                         "logger=wandb"]])
 def test_every_key_of_a_config_is_an_argument_of_the_class_it_builds(overrides):

@@ -1,7 +1,15 @@
 """Input encodings for the field: each maps [..., in_dim] to [..., out_dim] and reports ``out_dim``."""
 
+import math
+from collections.abc import Sequence
+
 import torch
+import torch.nn.functional as F
 from torch import Tensor, nn
+
+from nerfexp.nerf.bounds import Bounded
+
+HASH_PRIMES = (1, 2654435761, 805459861)  # Instant-NGP's, one per axis; 1 keeps neighbours along x together
 
 
 class IdentityEncoding(nn.Module):
@@ -47,3 +55,127 @@ class PositionalEncoding(nn.Module):
         phase = torch.pi * torch.fmod(scaled, 2)  # same sine and cosine, |phase| < 2 pi
         parts = [x] if self.include_input else []
         return torch.cat(parts + [torch.sin(phase), torch.cos(phase)], dim=-1)
+
+
+class _GatherRows(torch.autograd.Function):
+    """rows [M] of a table [R, F] -> [M, F], whose backward sums the gradients of repeated rows with one
+    ``bincount`` per feature: on a CPU several times faster than ``index_select``'s scatter-add backward."""
+
+    @staticmethod
+    def forward(ctx, table: Tensor, rows: Tensor) -> Tensor:
+        ctx.save_for_backward(rows)
+        ctx.n_rows = table.shape[0]
+        return table.index_select(0, rows)
+
+    @staticmethod
+    def backward(ctx, grad: Tensor) -> tuple[Tensor, None]:
+        (rows,) = ctx.saved_tensors
+        columns = grad.T.contiguous()  # [F, M]
+        sums = [torch.bincount(rows, weights=column, minlength=ctx.n_rows) for column in columns]
+        return torch.stack(sums, -1).to(grad.dtype), None
+
+
+def gather_rows(table: Tensor, rows: Tensor) -> Tensor:
+    """table [R, F] at rows [M] (int64) -> [M, F], differentiable in ``table`` (``_GatherRows``)."""
+    return _GatherRows.apply(table, rows)
+
+
+def level_resolutions(n_levels: int, coarsest: int, finest: int) -> list[int]:
+    """Cells per side of each level: N_l = floor(N_min b^l) with b = exp((ln N_max - ln N_min) / (L - 1)),
+    so that level 0 has ``coarsest`` and level L - 1 ``finest`` (Instant-NGP, eq. 2 and 3).
+
+    >>> level_resolutions(3, 16, 64)
+    [16, 32, 64]
+    """
+    if n_levels == 1:
+        return [coarsest]
+    growth = math.exp((math.log(finest) - math.log(coarsest)) / (n_levels - 1))
+    # rounding up what is within float error of an integer: 16 * 2^2 computes as 63.99999999999999
+    return [math.floor(coarsest * growth**level * (1 + 1e-12)) for level in range(n_levels)]
+
+
+class HashGridEncoding(Bounded):
+    """The multiresolution hash encoding of Instant-NGP (Mueller et al. 2022): positions [..., 3] ->
+    trainable features [..., L F] (and the raw position first, with ``include_input``).
+
+    Level l is a grid of N_l cells per side over the box ``aabb`` (``level_resolutions``: ``coarsest`` to
+    ``finest`` in ``n_levels`` geometric steps); its (N_l + 1)^3 vertices hold ``features_per_level`` (F)
+    features each. A level whose vertices fit the table, (N_l + 1)^3 <= T = 2^``log2_table_size``, stores
+    them densely, one entry per vertex; a finer level maps them into a table of T entries with
+    Instant-NGP's spatial hash, (i p_1 xor j p_2 xor k p_3) mod T with ``HASH_PRIMES``, colliding
+    vertices sharing an entry. A position's features at a level are the
+    trilinear interpolation of its cell's 8 vertices. Positions are mapped into the box and clamped to it:
+    a point outside takes the features of the nearest point on the box (the raw input, with
+    ``include_input``, lets the network tell them apart). Entries start uniform in +-``init_range``.
+
+    The fast formulation on a CPU (``benchmarks/hashgrid.py`` says what was tried): dense levels are
+    ``F.grid_sample`` volumes [1, F, N+1, N+1, N+1] (trilinear, fused forward and backward kernels);
+    the hashed levels share one [L_h, T, F] table, read with one gather of all 8 corners of every level
+    (``gather_rows``: its backward sums repeated rows by ``bincount``), and interpolated by one batched
+    product of the weights [.., 1, 8] with the corners [.., 8, F].
+
+    Layout: ``dense`` is a ParameterList of the dense levels (coarsest first), ``hashed`` the [L_h, T, F]
+    table of the others; the output follows the levels in order.
+    """
+
+    def __init__(self, n_levels: int = 16, features_per_level: int = 2, log2_table_size: int = 19,
+                 coarsest: int = 16, finest: int = 2048, include_input: bool = False, init_range: float = 1e-4,
+                 aabb: Sequence[Sequence[float]] | None = None):
+        values = {"n_levels": n_levels, "features_per_level": features_per_level, "log2_table_size": log2_table_size,
+                  "coarsest": coarsest, "finest": finest, "init_range": init_range}
+        checks = {"n_levels": n_levels >= 1, "features_per_level": features_per_level >= 1,
+                  "log2_table_size": 1 <= log2_table_size <= 30, "coarsest": coarsest >= 1,
+                  "finest": coarsest <= finest < 2**20, "init_range": init_range > 0}
+        bad = [key for key, ok in checks.items() if not ok]
+        if bad:
+            raise ValueError(f"encoding.position.{bad[0]}: expected n_levels >= 1, features_per_level >= 1, "
+                             "1 <= log2_table_size <= 30, coarsest >= 1, coarsest <= finest < 2^20, init_range > 0; "
+                             f"got {bad[0]}={values[bad[0]]}")
+        super().__init__(aabb)
+        self.in_dim = 3
+        self.include_input = include_input
+        self.features_per_level = features_per_level
+        self.table_size = 2**log2_table_size
+        self.resolutions = level_resolutions(n_levels, coarsest, finest)
+        self.out_dim = 3 * int(include_input) + n_levels * features_per_level
+        dense = [n for n in self.resolutions if (n + 1) ** 3 <= self.table_size]
+        hashed = self.resolutions[len(dense):]
+        self.dense = nn.ParameterList(
+            nn.Parameter(torch.empty(1, features_per_level, n + 1, n + 1, n + 1).uniform_(-init_range, init_range))
+            for n in dense)
+        self.hashed = nn.Parameter(torch.empty(len(hashed), self.table_size, features_per_level)
+                                   .uniform_(-init_range, init_range))
+        self.register_buffer("hashed_resolutions", torch.tensor(hashed, dtype=torch.float32), persistent=False)
+
+    def forward(self, x: Tensor) -> Tensor:
+        """x [..., 3] -> [..., out_dim]."""
+        self.require_bounds()
+        points = x.reshape(-1, 3)
+        unit = ((points - self.aabb[0]) / (self.aabb[1] - self.aabb[0])).clamp(0, 1)  # [N, 3]
+        parts = [points] if self.include_input else []
+        grid = (2 * unit - 1).view(1, -1, 1, 1, 3).flip(-1)  # grid_sample reads (x, y, z) as (k, j, i)
+        for volume in self.dense:  # [1, F, N+1, N+1, N+1], indexed [i, j, k]
+            parts.append(F.grid_sample(volume, grid, mode="bilinear", align_corners=True).view(volume.shape[1], -1).T)
+        if len(self.hashed):
+            parts.append(self._hashed_features(unit).flatten(1))
+        return torch.cat(parts, -1).view(*x.shape[:-1], self.out_dim)
+
+    def _hashed_features(self, unit: Tensor) -> Tensor:
+        """unit positions [N, 3] in [0, 1] -> interpolated features of the hashed levels [N, L_h, F]."""
+        levels, table_size, n_features = self.hashed.shape
+        scaled = unit[:, None, :] * self.hashed_resolutions[:, None].to(unit.dtype)  # [N, L_h, 3]
+        lower = scaled.floor().clamp(max=self.hashed_resolutions[:, None].to(unit.dtype) - 1)  # 1 -> the last cell
+        frac = scaled - lower
+        vertices = lower.long()
+        primes = torch.tensor(HASH_PRIMES, device=unit.device)
+        # hashed per axis, then combined: (a xor b) mod 2^n = (a mod 2^n) xor (b mod 2^n); int64 products of
+        # vertices below 2^20 cannot overflow
+        rows = (torch.stack([vertices, vertices + 1], -1) * primes[:, None]) & (table_size - 1)  # [N, L_h, 3, 2]
+        rx, ry, rz = rows.unbind(-2)  # [N, L_h, 2]: the lower and upper vertex along each axis
+        corners = (rx[..., :, None, None] ^ ry[..., None, :, None] ^ rz[..., None, None, :]).flatten(-3)  # [N, L_h, 8]
+        corners = corners + table_size * torch.arange(levels, device=unit.device)[:, None]  # rows of the flat table
+        linear = torch.stack([1 - frac, frac], -1)  # [N, L_h, 3, 2]: weights of the lower and upper vertex
+        wx, wy, wz = linear.unbind(-2)
+        weights = (wx[..., :, None, None] * wy[..., None, :, None] * wz[..., None, None, :]).flatten(-3)
+        values = gather_rows(self.hashed.view(-1, n_features), corners.flatten())
+        return (weights[..., None, :] @ values.view(*corners.shape, n_features)).squeeze(-2)  # [N, L_h, F]

@@ -1,5 +1,6 @@
 """The radiance field F(x, d) -> (rgb, sigma): the paper's MLP with a swappable view-dependence head."""
 
+import copy
 from collections.abc import Callable
 
 import torch
@@ -69,7 +70,9 @@ class NeRFField(nn.Module):
             raise ValueError(f"field.skips: layer indices must be in 1..{depth - 1} for depth {depth}, got {bad}")
         if not density_noise_std >= 0:
             raise ValueError(f"field.density_noise_std: expected a standard deviation >= 0, got {density_noise_std}")
-        self.position_encoding = position_encoding
+        # a copy: the renderer builds coarse and fine fields from one config, and trainable encodings
+        # (hash tables) must not be shared between them
+        self.position_encoding = copy.deepcopy(position_encoding)
         self.skips = set(skips)
         in_dim = position_encoding.out_dim
         self.trunk = nn.ModuleList(

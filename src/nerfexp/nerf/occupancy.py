@@ -14,7 +14,9 @@ import math
 from collections.abc import Callable, Sequence
 
 import torch
-from torch import Tensor, nn
+from torch import Tensor
+
+from nerfexp.nerf.bounds import Bounded
 
 log = logging.getLogger(__name__)
 
@@ -44,7 +46,7 @@ def density_threshold(opacity: float, cell_diagonal: float) -> float:
     return -math.log1p(-opacity) / cell_diagonal
 
 
-class OccupancyGrid(nn.Module):
+class OccupancyGrid(Bounded):
     """A binary grid of occupied cells over the box ``aabb``, kept up to date from the density field.
 
     Every ``update_every`` training steps (``update``), the density of the networks is evaluated at one
@@ -69,7 +71,7 @@ class OccupancyGrid(nn.Module):
     def __init__(self, resolution: int = 32, threshold: float = 0.01, decay: float = 0.95, warmup_steps: int = 256,
                  update_every: int = 16, early_stop_transmittance: float = 1e-4, segments: int = 4,
                  aabb: Sequence[Sequence[float]] | None = None):
-        super().__init__()
+        super().__init__(aabb)
         checks = {"resolution": resolution >= 1, "threshold": 0 < threshold < 1, "decay": 0 <= decay <= 1,
                   "warmup_steps": warmup_steps >= 0, "update_every": update_every >= 1,
                   "early_stop_transmittance": 0 <= early_stop_transmittance < 1, "segments": segments >= 1}
@@ -85,29 +87,8 @@ class OccupancyGrid(nn.Module):
         self.warmup_steps, self.update_every = warmup_steps, update_every
         self.early_stop_transmittance, self.segments = early_stop_transmittance, segments
         n_cells = resolution**3
-        self.register_buffer("aabb", torch.full((2, 3), torch.nan))
         self.register_buffer("density", torch.zeros(n_cells))
         self.register_buffer("occupied", torch.ones(n_cells, dtype=torch.bool))
-        self._bounded = False  # known on the host, so that rendering never waits for the device to say
-        self.register_load_state_dict_post_hook(OccupancyGrid._after_load)
-        if aabb is not None:
-            self.set_bounds(torch.as_tensor(aabb, dtype=torch.float32))
-
-    @property
-    def has_bounds(self) -> bool:
-        return self._bounded
-
-    @staticmethod
-    def _after_load(module: "OccupancyGrid", incompatible_keys) -> None:
-        module._bounded = bool(torch.isfinite(module.aabb).all())  # the checkpoint's box, if it had one
-
-    def set_bounds(self, aabb: Tensor) -> None:
-        """Set the box [2, 3] (lower, upper corner), lower < upper on every axis."""
-        if aabb.shape != (2, 3) or not torch.isfinite(aabb).all() or not (aabb[0] < aabb[1]).all():
-            raise ValueError(f"occupancy grid bounds: expected [[x0, y0, z0], [x1, y1, z1]] with finite x0 < x1, "
-                             f"y0 < y1, z0 < z1, got {aabb.tolist()}")
-        self.aabb.copy_(aabb)
-        self._bounded = True
 
     @property
     def cell_size(self) -> Tensor:
@@ -116,9 +97,7 @@ class OccupancyGrid(nn.Module):
 
     def occupied_at(self, points: Tensor) -> Tensor:
         """Whether each point [..., 3] lies in an occupied cell inside the box: bool [...]."""
-        if not self.has_bounds:
-            raise RuntimeError("the occupancy grid has no bounds: set data.aabb, or train (the module sets them "
-                               "from the scene when training starts)")
+        self.require_bounds()
         index, inside = cell_indices(points, self.aabb.to(points.dtype), self.resolution)
         return inside & self.occupied[index]
 

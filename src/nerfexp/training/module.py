@@ -14,6 +14,7 @@ from torch import Tensor, nn
 
 from nerfexp.errors import ConfigError
 from nerfexp.metrics import psnr, ssim
+from nerfexp.nerf.bounds import Bounded
 from nerfexp.nerf.volume_renderer import VolumeRenderer, final_output
 
 log = logging.getLogger(__name__)
@@ -35,8 +36,9 @@ class NeRFModule(L.LightningModule):
 
     With an occupancy grid (``renderer.grid``) the module updates it after each training step's
     rendering, from the same seeded random stream (so a step stays a function of the batch and the
-    state), and gives it the scene's box when training starts if it has none (the datamodule's
-    ``scene_box``, ``nerfexp.data.datamodule.RayDataModule``).
+    state). The grid and the hash grid encoding work inside the scene's box (``nerfexp.nerf.bounds``):
+    the module gives it to them when training starts if they have none (the datamodule's ``scene_box``,
+    ``nerfexp.data.datamodule.RayDataModule``).
     Each step logs ``train/samples_per_ray`` (evaluated by the networks, all of them together) and
     ``train/rays_per_s`` (rays over the step's host wall-clock time).
     ``compile``: each network is compiled with ``torch.compile`` (in place, so checkpoints keep their keys).
@@ -80,11 +82,13 @@ class NeRFModule(L.LightningModule):
         return loss
 
     def on_train_start(self) -> None:
-        grid = self.renderer.grid
-        if grid is not None and not grid.has_bounds:
+        unbounded = [m for m in self.renderer.modules() if isinstance(m, Bounded) and not m.has_bounds]
+        if unbounded:
             box = self.trainer.datamodule.scene_box(self.renderer.near, self.renderer.far)
-            grid.set_bounds(box.to(grid.aabb.device))
-            log.info("occupancy grid over %s", [[round(v, 3) for v in row] for row in box.tolist()])
+            for module in unbounded:
+                module.set_bounds(box.to(module.aabb.device))
+            names = sorted({type(m).__name__ for m in unbounded})
+            log.info("%s over %s", " and ".join(names), [[round(v, 3) for v in row] for row in box.tolist()])
 
     def on_train_batch_start(self, batch: dict, batch_idx: int) -> None:
         self._step_started = time.perf_counter()
@@ -124,8 +128,17 @@ class NeRFModule(L.LightningModule):
     def test_step(self, batch: dict, batch_idx: int) -> dict:
         return self._evaluate(batch)
 
+    def parameter_groups(self) -> list[dict]:
+        """The networks' parameters, and those of their encodings (modules named ``*_encoding``: the hash
+        tables) in a group of their own without weight decay. Instant-NGP decays the MLPs' weights only:
+        most steps leave most table entries untouched, and decay would wipe out the ones rarely seen."""
+        named = list(self.named_parameters())
+        tables = [p for name, p in named if "_encoding." in name]
+        others = [p for name, p in named if "_encoding." not in name]
+        return [{"params": others}] + ([{"params": tables, "weight_decay": 0.0}] if tables else [])
+
     def configure_optimizers(self):
-        optimizer = self.optimizer(self.parameters())
+        optimizer = self.optimizer(self.parameter_groups())
         base_lr = optimizer.param_groups[0]["lr"]
         max_steps = self.trainer.max_steps
         if max_steps is None or max_steps < 1:

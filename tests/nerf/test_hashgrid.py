@@ -1,0 +1,166 @@
+"""The hash grid encoding against independent truth: a float64 reference written from the paper's
+definition (Python integers for the hash, explicit loops over the 8 corners), functions that trilinear
+interpolation reproduces exactly, gradcheck in float64, and where collisions can and cannot happen."""
+
+import functools
+import itertools
+import math
+
+import pytest
+import torch
+
+from nerfexp.nerf.encodings import HASH_PRIMES, HashGridEncoding, PositionalEncoding, level_resolutions
+from nerfexp.nerf.fields import NeRFField, ViewMLPHead
+
+BOX = [[-1.0, -0.5, 0.0], [1.0, 1.5, 3.0]]  # unequal sides: the axes must not be mixed up
+
+
+def reference_features(enc: HashGridEncoding, points: torch.Tensor) -> torch.Tensor:
+    """The encoding of points [N, 3] computed one point, one level, one corner at a time in float64."""
+    lo, hi = torch.tensor(BOX, dtype=torch.float64)
+    out = []
+    for p in points.double():
+        unit = ((p - lo) / (hi - lo)).clamp(0, 1).tolist()
+        features = []
+        for level, n in enumerate(enc.resolutions):
+            cell = [min(math.floor(u * n), n - 1) for u in unit]
+            frac = [u * n - c for u, c in zip(unit, cell, strict=True)]
+            value = torch.zeros(enc.features_per_level, dtype=torch.float64)
+            for corner in itertools.product((0, 1), repeat=3):
+                vertex = [c + o for c, o in zip(cell, corner, strict=True)]
+                weight = math.prod(f if o else 1 - f for f, o in zip(frac, corner, strict=True))
+                value += weight * entry(enc, level, vertex)
+            features.append(value)
+        out.append(torch.cat(features))
+    return torch.stack(out)
+
+
+def entry(enc: HashGridEncoding, level: int, vertex: list[int]) -> torch.Tensor:
+    """The features [F] the encoding stores for integer ``vertex`` (i, j, k) of ``level``."""
+    if level < len(enc.dense):
+        i, j, k = vertex
+        return enc.dense[level][0, :, i, j, k].double()
+    row = 0
+    for v, prime in zip(vertex, HASH_PRIMES, strict=True):
+        row ^= v * prime  # Python integers: no overflow, no masking before the end
+    return enc.hashed[level - len(enc.dense), row % enc.table_size].double()
+
+
+def small_encoding(**kwargs) -> HashGridEncoding:
+    torch.manual_seed(0)
+    settings = dict(n_levels=4, features_per_level=2, log2_table_size=10, coarsest=3, finest=24, aabb=BOX,
+                    init_range=1.0)
+    return HashGridEncoding(**(settings | kwargs))
+
+
+def test_level_resolutions_grow_geometrically_from_coarsest_to_finest():
+    assert level_resolutions(3, 16, 64) == [16, 32, 64]
+    assert level_resolutions(1, 16, 2048) == [16]
+    resolutions = level_resolutions(16, 16, 2048)  # Instant-NGP's: b = exp(ln(128) / 15) = 1.3819
+    assert resolutions[0] == 16 and resolutions[-1] == 2048
+    assert resolutions[1] == math.floor(16 * 128 ** (1 / 15))  # 22
+
+
+def test_dense_and_hashed_levels_split_where_the_vertices_fit_the_table():
+    enc = small_encoding()  # resolutions 3, 6, 12, 24; T = 1024: 4^3 and 7^3 fit, 13^3 = 2197 does not
+    assert enc.resolutions == [3, 6, 12, 24]
+    assert [tuple(v.shape) for v in enc.dense] == [(1, 2, 4, 4, 4), (1, 2, 7, 7, 7)]
+    assert tuple(enc.hashed.shape) == (2, 1024, 2)
+    assert enc.out_dim == 8 and small_encoding(include_input=True).out_dim == 11
+
+
+@pytest.mark.parametrize("log2_table_size", [10, 4, 20])  # mixed; every level hashed; every level dense
+def test_matches_the_float64_reference(log2_table_size):
+    enc = small_encoding(log2_table_size=log2_table_size).double()
+    generator = torch.Generator().manual_seed(1)
+    inside = torch.rand(200, 3, generator=generator, dtype=torch.float64)
+    lo, hi = torch.tensor(BOX, dtype=torch.float64)
+    points = torch.cat([lo + inside * (hi - lo),
+                        torch.stack([lo, hi, (lo + hi) / 2]),  # corners of the box, its centre
+                        lo + torch.tensor([[1.5, 0.5, 0.5], [-0.2, 0.3, 1.0]], dtype=torch.float64) * (hi - lo)])
+    torch.testing.assert_close(enc(points), reference_features(enc, points), atol=1e-12, rtol=0)
+
+
+def test_linear_functions_are_interpolated_exactly_at_every_level():
+    # Entries set to a*i + b*j + c*k at vertex (i, j, k): trilinear interpolation returns a linear function
+    # exactly, a*u_x*N + b*u_y*N + c*u_z*N at unit position u, whatever the vertex layout.
+    enc = small_encoding(log2_table_size=20, features_per_level=1).double()  # all levels dense
+    a, b, c = 0.3, -1.1, 2.0
+    with torch.no_grad():
+        for volume in enc.dense:
+            n = volume.shape[-1]
+            i, j, k = torch.meshgrid(*[torch.arange(n, dtype=torch.float64)] * 3, indexing="ij")
+            volume[0, 0] = a * i + b * j + c * k
+    lo, hi = torch.tensor(BOX, dtype=torch.float64)
+    unit = torch.rand(100, 3, generator=torch.Generator().manual_seed(2), dtype=torch.float64)
+    expected = torch.stack([(unit * n) @ torch.tensor([a, b, c], dtype=torch.float64) for n in enc.resolutions], -1)
+    torch.testing.assert_close(enc(lo + unit * (hi - lo)), expected, atol=1e-12, rtol=0)
+
+
+def test_no_collisions_in_dense_levels_and_collisions_above_them():
+    enc = small_encoding(log2_table_size=10)
+    for level, n in enumerate(enc.resolutions):
+        vertices = list(itertools.product(range(n + 1), repeat=3))
+        if level < len(enc.dense):  # every vertex its own entry: exactly one at each position of the volume
+            assert (n + 1) ** 3 <= enc.table_size
+            continue
+        rows = set()
+        for vertex in vertices:
+            row = 0
+            for v, prime in zip(vertex, HASH_PRIMES, strict=True):
+                row ^= v * prime
+            rows.add(row % enc.table_size)
+        assert len(vertices) > enc.table_size and len(rows) <= enc.table_size  # more vertices than entries
+    # a dense level's entry changes the encoding at its own vertex only
+    with torch.no_grad():
+        volume = enc.dense[1]
+        volume.zero_()
+        volume[0, :, 2, 5, 1] = torch.tensor([1.0, -2.0])
+        lo, hi = torch.tensor(BOX)
+        vertices = torch.tensor(list(itertools.product(range(7), repeat=3)), dtype=torch.float32)
+        features = enc(lo + vertices / 6 * (hi - lo))[:, 2:4]  # level 1's features at every vertex
+    hit = (vertices == torch.tensor([2.0, 5.0, 1.0])).all(-1)
+    torch.testing.assert_close(features[hit], torch.tensor([[1.0, -2.0]]))
+    assert features[~hit].abs().max() < 1e-6
+
+
+def test_gradcheck_in_float64():
+    enc = small_encoding(log2_table_size=8, n_levels=3, finest=12).double()  # levels dense and hashed
+    lo, hi = torch.tensor(BOX, dtype=torch.float64)
+    points = lo + torch.rand(6, 3, generator=torch.Generator().manual_seed(3), dtype=torch.float64) * (hi - lo)
+    points.requires_grad_(True)
+    parameters = [enc.hashed] + list(enc.dense)
+
+    # the tables enter as arguments (functional_call), so that gradcheck perturbs them too
+    def functional(x, *tables):
+        return torch.func.functional_call(enc, {"hashed": tables[0], **{f"dense.{i}": t for i, t in
+                                                                         enumerate(tables[1:])}}, (x,))
+
+    tables = [p.detach().clone().requires_grad_(True) for p in parameters]
+    assert torch.autograd.gradcheck(functional, (points, *tables), eps=1e-6, atol=1e-8, rtol=1e-6)
+
+
+def test_points_outside_the_box_take_the_features_of_the_nearest_point_on_it():
+    enc = small_encoding()
+    lo, hi = torch.tensor(BOX)
+    outside = torch.tensor([[-3.0, 0.0, 1.0], [0.5, 9.0, -4.0]])
+    nearest = torch.maximum(torch.minimum(outside, hi), lo)
+    torch.testing.assert_close(enc(outside), enc(nearest))
+
+
+def test_needs_bounds_and_rejects_bad_settings():
+    with pytest.raises(RuntimeError, match="HashGridEncoding has no bounds"):
+        HashGridEncoding(n_levels=2, log2_table_size=8, finest=32)(torch.zeros(1, 3))
+    with pytest.raises(ValueError, match=r"encoding.position.finest: .* got finest=8"):
+        HashGridEncoding(coarsest=16, finest=8)
+    with pytest.raises(ValueError, match=r"encoding.position.log2_table_size: .* got log2_table_size=0"):
+        HashGridEncoding(log2_table_size=0)
+
+
+def test_coarse_and_fine_fields_get_tables_of_their_own():
+    enc = small_encoding()
+    field = functools.partial(NeRFField, enc, functools.partial(ViewMLPHead, direction_encoding=PositionalEncoding(4),
+                                                                 hidden=16), depth=1, width=16, skips=())
+    coarse, fine = field(), field()
+    assert coarse.position_encoding.hashed is not fine.position_encoding.hashed
+    assert not set(map(id, coarse.parameters())) & set(map(id, fine.parameters()))
