@@ -1,25 +1,37 @@
-"""``nerfexp-scene OUT_DIR``: the built-in scene written as a Blender-format dataset."""
+"""``nerfexp-scene OUT_DIR [--scene {builtin,glossy}]``: an analytic scene written as a Blender-format dataset.
+
+``builtin`` is the built-in still life (``data/procedural.py``, ``data=procedural``); ``glossy`` a
+strongly view-dependent one (``data/glossy.py``): a mirror sphere, a glossy torus and a clear-coated
+checker base reflecting a procedural sky. Both use the same cameras.
+"""
 
 import argparse
 from pathlib import Path
 
 from nerfexp.arguments import positive
 from nerfexp.data.blender import write_blender
+from nerfexp.data.glossy import load_glossy
 from nerfexp.data.procedural import CAMERA_ANGLE_X, load_procedural
+
+LOADERS = {"builtin": load_procedural, "glossy": load_glossy}  # --scene: the function rendering a split
 
 
 def main(argv: list[str] | None = None) -> None:
-    """``nerfexp-scene OUT_DIR``: render the three splits in the NeRF Blender format."""
+    """``nerfexp-scene OUT_DIR``: render the three splits of an analytic scene in the NeRF Blender format."""
     parser = argparse.ArgumentParser(prog="nerfexp-scene", description=main.__doc__)
     parser.add_argument("out_dir", type=Path, help="folder to write transforms_*.json and the PNGs to")
+    parser.add_argument("--scene", choices=sorted(LOADERS), default="builtin",
+                        help="builtin: the built-in still life (data=procedural); glossy: a mirror sphere, a "
+                             "glossy torus and a clear-coated base reflecting a sky")
     parser.add_argument("--resolution", type=positive(int), default=100, help="image width and height")
     parser.add_argument("--n-train", type=positive(int), default=100)
     parser.add_argument("--n-val", type=positive(int), default=10)
     parser.add_argument("--n-test", type=positive(int), default=20)
     parser.add_argument("--supersample", type=positive(int), default=2, help="sub-pixel rays per side")
     args = parser.parse_args(argv)
+    load = LOADERS[args.scene]
     for split, n in (("train", args.n_train), ("val", args.n_val), ("test", args.n_test)):
-        views = load_procedural(split, n, args.resolution, args.resolution, args.supersample)
+        views = load(split, n, args.resolution, args.resolution, args.supersample)
         write_blender(args.out_dir, split, views, CAMERA_ANGLE_X)
 
 

@@ -14,11 +14,12 @@ BOX = [[-1.0, -1.0, -1.0], [1.0, 1.0, 1.0]]
 NEAR, FAR = 2.0, 6.0
 
 
-def trained_grid(field, resolution=16, updates=4, **options) -> OccupancyGrid:
-    """A grid over BOX after ``updates`` warm-up updates (every cell each time) from ``field.density``."""
-    grid = OccupancyGrid(resolution=resolution, update_every=1, warmup_steps=updates, aabb=BOX, **options)
+def trained_grid(field, resolution=16, updates=16, **options) -> OccupancyGrid:
+    """A grid over BOX from ``field.density``: one warm-up update (every cell), then ``updates`` more,
+    each re-evaluating a random quarter of the cells with the decaying memory of training's later steps."""
+    grid = OccupancyGrid(resolution=resolution, update_every=1, warmup_steps=1, aabb=BOX, **options)
     torch.manual_seed(0)
-    for step in range(updates):
+    for step in range(updates + 1):
         grid.update(step, [field.density])
     return grid
 
@@ -147,3 +148,19 @@ def test_early_termination_drops_at_most_the_threshold_of_colour(eps):
     assert stats["samples_per_ray"] < 0.8 * all_stats["samples_per_ray"]  # many samples lie behind the slab
 
 
+
+
+def test_the_warm_up_follows_a_falling_density_at_once_and_then_remembers():
+    # An untrained field is dense everywhere (softplus(-1) = 0.31 with the default field), a trained one
+    # empty: during the warm-up the estimate is the latest evaluation, so the grid empties as the field
+    # does; afterwards max(decay * old, new) keeps what it saw.
+    grid = OccupancyGrid(resolution=4, update_every=1, warmup_steps=2, decay=0.5, aabb=BOX)
+    grid.update(0, [lambda x: torch.full((len(x),), 0.31)])
+    assert grid.occupied.all()
+    grid.update(1, [lambda x: torch.zeros(len(x))])  # still warming up: every cell empty at once
+    assert torch.equal(grid.density, torch.zeros(64)) and not grid.occupied.any()
+    grid.update(2, [lambda x: torch.full((len(x),), 8.0)])  # after the warm-up: a quarter of the cells, at 8
+    seen = grid.density == 8.0
+    assert seen.sum() == 16
+    grid.update(3, [lambda x: torch.zeros(len(x))])  # those re-evaluated now halve, the others keep theirs
+    assert set(grid.density[seen].tolist()) <= {8.0, 4.0} and (grid.density[seen] == 4.0).any()

@@ -13,6 +13,7 @@ normal there (zero for a miss).
 """
 
 import math
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import torch
@@ -200,11 +201,17 @@ def trace(origins: Tensor, directions: Tensor) -> tuple[Tensor, Tensor]:
     return torch.where(hit[..., None], rgb, 0.0), hit
 
 
-def render_rgba(c2w: Tensor, height: int, width: int, focal: float, supersample: int = 2) -> Tensor:
+Tracer = Callable[[Tensor, Tensor], tuple[Tensor, Tensor]]  # rays [R, 3] x 2 -> (rgb [R, 3], hit or alpha [R])
+
+
+def render_rgba(c2w: Tensor, height: int, width: int, focal: float, supersample: int = 2,
+                tracer: Tracer = trace) -> Tensor:
     """Straight-alpha images [N, H, W, 4] float32 of the scene seen by cameras ``c2w`` [N, 4, 4].
 
     Each pixel averages ``supersample`` x ``supersample`` rays through the centres of its
     sub-pixels: alpha is the covered fraction, rgb the mean colour of the covered sub-pixels.
+    ``tracer`` (rays -> (rgb, hit)) is the scene: this module's ``trace``, or another analytic one
+    (``nerfexp.data.glossy``).
     """
     if supersample < 1:
         raise ValueError(f"supersample must be >= 1, got {supersample}")
@@ -212,7 +219,7 @@ def render_rgba(c2w: Tensor, height: int, width: int, focal: float, supersample:
     origins, directions = camera_rays(c2w.to(torch.float64), height * s, width * s, focal * s)
     N = c2w.shape[0]
     chunks = zip(origins.reshape(-1, 3).split(RAY_CHUNK), directions.reshape(-1, 3).split(RAY_CHUNK))
-    traced = [trace(o, d) for o, d in chunks]
+    traced = [tracer(o, d) for o, d in chunks]
     rgb = torch.cat([c for c, _ in traced]).reshape(N, height, s, width, s, 3).sum((2, 4))
     hits = torch.cat([h for _, h in traced]).reshape(N, height, s, width, s).sum((2, 4))[..., None]
     rgb = torch.where(hits > 0, rgb / hits.clamp_min(1), 0.0)
@@ -242,15 +249,17 @@ def scene_cameras(split: str, n: int) -> Tensor:
     return look_at(eye, torch.zeros(3, dtype=torch.float64), up)
 
 
-def load_procedural(split: str, n_views: int, height: int, width: int, supersample: int = 2) -> Views:
-    """``n_views`` rendered views of ``split``, with a progress bar, as ``Views``."""
+def load_procedural(split: str, n_views: int, height: int, width: int, supersample: int = 2,
+                    tracer: Tracer = trace) -> Views:
+    """``n_views`` rendered views of ``split`` of the scene ``tracer`` (see ``render_rgba``), with a
+    progress bar, as ``Views``."""
     c2w = scene_cameras(split, n_views)
     focal = focal_from_fov(width, CAMERA_ANGLE_X)
     group = max(1, RAYS_PER_GROUP // (height * width * supersample**2))
     images = []
     with tqdm(total=n_views, desc=f"rendering {split}", unit="view") as bar:
         for cameras in c2w.split(group):
-            images.append(render_rgba(cameras, height, width, focal, supersample))
+            images.append(render_rgba(cameras, height, width, focal, supersample, tracer))
             bar.update(len(cameras))
     return Views(rgba=torch.cat(images), c2w=c2w.float(), focal=focal)
 

@@ -51,9 +51,13 @@ class OccupancyGrid(Bounded):
 
     Every ``update_every`` training steps (``update``), the density of the networks is evaluated at one
     uniformly jittered point in each of a set of cells: all cells during the first ``warmup_steps``
-    steps, afterwards a random quarter of them (each cell on average every fourth update). A cell's
-    estimate becomes max(decay * old, new): it remembers a density it has seen (a jittered point can miss
-    a thin surface once) and forgets it at rate ``decay`` per evaluation when the density goes away. A
+    steps, afterwards a random quarter of them (each cell on average every fourth update). During the
+    warm-up a cell's estimate is its latest evaluation; afterwards it becomes max(decay * old, new): it
+    remembers a density it has seen (a jittered point can miss a thin surface once) and forgets it at rate
+    ``decay`` per evaluation when the density goes away. The warm-up keeps no memory because what it would
+    remember is the untrained field: its density everywhere (softplus(-1) = 0.31 with the default field)
+    lies above the threshold of a cell a few hundredths of the box wide, and forgetting it at ``decay``
+    per evaluation, one evaluation every ``4 update_every`` steps, takes longer than a short run. A
     cell is occupied when its estimate exceeds min(sigma_t, mean of all estimates), where sigma_t is the
     density at which light crossing the cell along its diagonal loses the fraction ``threshold``
     (``density_threshold``); the mean guards the first updates, when the whole field is faint.
@@ -122,7 +126,10 @@ class OccupancyGrid(Bounded):
         jitter = torch.rand(corners.shape, device=corners.device)
         points = self.aabb[0] + (corners + jitter) * self.cell_size  # [N, 3]
         sigma = torch.stack([fn(points).float() for fn in density_fns]).amax(0)
-        self.density[cells] = torch.maximum(self.density[cells] * self.decay, sigma)
+        if step < self.warmup_steps:  # every cell was just evaluated: no memory of the untrained field
+            self.density[cells] = sigma
+        else:
+            self.density[cells] = torch.maximum(self.density[cells] * self.decay, sigma)
         diagonal = float(torch.linalg.vector_norm(self.cell_size))
         limit = torch.clamp(self.density.mean(), max=density_threshold(self.threshold, diagonal))
         self.occupied.copy_(self.density > limit)
