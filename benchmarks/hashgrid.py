@@ -1,7 +1,7 @@
 """The hash grid encoding on a CPU: which formulation of its gathers is fast, against the positional
 encoding's MLP that it replaces. Writes benchmarks/results/hashgrid.{json,md}.
 
-One forward and backward pass (to the tables and the positions) of the encoding at ``--points`` points (the
+One forward and backward pass (to the tables; sample positions need none) of the encoding at ``--points`` points (the
 default is a ``scale=cpu`` training batch: 256 rays x 96 samples), with the sizes of ``encoding=hashgrid``
 at ``scale=cpu`` (16 levels of 2 features, 2^16 entries, 16 to 256 cells), the median of ``--repeats``
 after a warm-up, for each formulation:
@@ -47,8 +47,10 @@ def flat_table(enc: HashGridEncoding) -> tuple[nn.Parameter, list[int]]:
     return nn.Parameter(torch.cat(parts).detach().clone()), starts
 
 
-def corner_rows(enc: HashGridEncoding, unit: torch.Tensor, starts: list[int]) -> tuple[torch.Tensor, torch.Tensor]:
-    """Rows [N, L, 8] of the flat table and trilinear weights [N, L, 8] of every level's 8 corners."""
+def corner_rows(enc: HashGridEncoding, points: torch.Tensor, starts: list[int]) -> tuple[torch.Tensor, torch.Tensor]:
+    """Rows [N, L, 8] of the flat table and trilinear weights [N, L, 8] of every level's 8 corners of
+    points [N, 3] in the box [-1, 1]^3."""
+    unit = (points + 1) / 2
     rows, weights = [], []
     primes = torch.tensor(HASH_PRIMES)
     for level, n in enumerate(enc.resolutions):
@@ -66,8 +68,8 @@ def corner_rows(enc: HashGridEncoding, unit: torch.Tensor, starts: list[int]) ->
     return torch.stack(rows, 1), torch.stack(weights, 1)
 
 
-def per_corner(table, enc, unit, starts):
-    rows, weights = corner_rows(enc, unit, starts)
+def per_corner(table, enc, points, starts):
+    rows, weights = corner_rows(enc, points, starts)
     out = 0
     for corner in range(8):
         values = table.index_select(0, rows[:, :, corner].flatten()).view(*rows.shape[:2], -1)  # [N, L, F]
@@ -75,14 +77,14 @@ def per_corner(table, enc, unit, starts):
     return out.flatten(1)
 
 
-def embedding_bag(table, enc, unit, starts):
-    rows, weights = corner_rows(enc, unit, starts)
+def embedding_bag(table, enc, points, starts):
+    rows, weights = corner_rows(enc, points, starts)
     n, levels, _ = rows.shape
     return F.embedding_bag(rows.view(-1, 8), table, per_sample_weights=weights.view(-1, 8), mode="sum").view(n, -1)
 
 
-def one_gather(table, enc, unit, starts):
-    rows, weights = corner_rows(enc, unit, starts)
+def one_gather(table, enc, points, starts):
+    rows, weights = corner_rows(enc, points, starts)
     values = table.index_select(0, rows.flatten()).view(*rows.shape, -1)  # [N, L, 8, F]
     return (weights[..., None, :] @ values).squeeze(-2).flatten(1)
 
@@ -109,8 +111,7 @@ def main() -> None:
     torch.manual_seed(0)
     box = [[-1.0, -1.0, -1.0], [1.0, 1.0, 1.0]]
     enc = HashGridEncoding(n_levels=16, features_per_level=2, log2_table_size=16, coarsest=16, finest=256, aabb=box)
-    points = (torch.rand(args.points, 3) * 2 - 1).requires_grad_(True)
-    unit = (points + 1) / 2
+    points = torch.rand(args.points, 3) * 2 - 1  # no gradient to positions, as in training
     table, starts = flat_table(enc)
     expected = enc(points).detach()
     mlp_hash = nn.Sequential(nn.Linear(enc.out_dim, 64), nn.ReLU(), nn.Linear(64, 16))
@@ -124,9 +125,9 @@ def main() -> None:
 
     for name, formulation in (("per_corner", per_corner), ("embedding_bag", embedding_bag),
                               ("one_gather", one_gather)):
-        error = (formulation(table, enc, unit, starts) - expected).abs().max().item()
+        error = (formulation(table, enc, points, starts) - expected).abs().max().item()
         assert error < 1e-5, (name, error)  # the same encoding, up to rounding
-        timings[name] = median_ms(lambda f=formulation: step(f(table, enc, unit, starts), mlp_hash), args.repeats)
+        timings[name] = median_ms(lambda f=formulation: step(f(table, enc, points, starts), mlp_hash), args.repeats)
     timings["nerfexp"] = median_ms(lambda: step(enc(points), mlp_hash), args.repeats)
     timings["posenc_mlp_4x128"] = median_ms(lambda: step(posenc(points), mlp_posenc), args.repeats)
     reference = timings["posenc_mlp_4x128"]
