@@ -164,3 +164,19 @@ def test_coarse_and_fine_fields_get_tables_of_their_own():
     coarse, fine = field(), field()
     assert coarse.position_encoding.hashed is not fine.position_encoding.hashed
     assert not set(map(id, coarse.parameters())) & set(map(id, fine.parameters()))
+
+
+def test_the_box_travels_with_the_weights():
+    # what nerfexp-eval and resume rely on: a field loaded from a trained one's state has its box
+    def field():
+        return NeRFField(HashGridEncoding(n_levels=2, log2_table_size=8, coarsest=2, finest=8),
+                         functools.partial(ViewMLPHead, direction_encoding=PositionalEncoding(4), hidden=8),
+                         depth=1, width=8, skips=())
+
+    trained, loaded = field(), field()
+    trained.position_encoding.set_bounds(torch.tensor(BOX))
+    assert not loaded.position_encoding.has_bounds
+    loaded.load_state_dict(trained.state_dict())
+    assert loaded.position_encoding.has_bounds
+    x = torch.rand(5, 3)
+    torch.testing.assert_close(loaded.density(x), trained.density(x))

@@ -82,16 +82,27 @@ def gather_rows(table: Tensor, rows: Tensor) -> Tensor:
 
 def level_resolutions(n_levels: int, coarsest: int, finest: int) -> list[int]:
     """Cells per side of each level: N_l = floor(N_min b^l) with b = exp((ln N_max - ln N_min) / (L - 1)),
-    so that level 0 has ``coarsest`` and level L - 1 ``finest`` (Instant-NGP, eq. 2 and 3).
+    so that level 0 has ``coarsest`` and level L - 1 ``finest`` (Instant-NGP, eq. 2 and 3), computed
+    exactly.
 
     >>> level_resolutions(3, 16, 64)
     [16, 32, 64]
     """
     if n_levels == 1:
         return [coarsest]
-    growth = math.exp((math.log(finest) - math.log(coarsest)) / (n_levels - 1))
-    # rounding up what is within float error of an integer: 16 * 2^2 computes as 63.99999999999999
-    return [math.floor(coarsest * growth**level * (1 + 1e-12)) for level in range(n_levels)]
+    k = n_levels - 1
+    resolutions = []
+    for level in range(n_levels):
+        # exactly, in integers: the largest n with n^k <= N_min^(k - l) N_max^l (floating point puts
+        # 3 * 8^(2/3) at 11.999..., whose floor would drop a cell)
+        bound = coarsest ** (k - level) * finest**level
+        n = math.floor(coarsest * (finest / coarsest) ** (level / k))  # within one of the answer
+        while (n + 1) ** k <= bound:
+            n += 1
+        while n**k > bound:
+            n -= 1
+        resolutions.append(n)
+    return resolutions
 
 
 class HashGridEncoding(Bounded):
