@@ -20,6 +20,12 @@ def positive(kind: type) -> Callable[[str], int | float]:
     return parse
 
 
+def command_parser(prog: str, description: str) -> argparse.ArgumentParser:
+    """The parser of the console script ``prog``, described by ``description`` (a docstring) without its
+    reStructuredText markup: ``code`` reads as code."""
+    return argparse.ArgumentParser(prog=prog, description=description.replace("``", ""))
+
+
 def add_run_arguments(parser: argparse.ArgumentParser) -> None:
     """``RUN [KEY=VALUE ...]``: a run directory (or a checkpoint file in one) and changes to its config."""
     parser.add_argument("run", type=Path, help="a run directory (its checkpoints/last.ckpt), or a checkpoint file")

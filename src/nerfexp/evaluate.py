@@ -6,7 +6,8 @@ from pathlib import Path
 from hydra.utils import instantiate
 from omegaconf import DictConfig
 
-from nerfexp.arguments import add_run_arguments, one_line_errors
+from nerfexp.arguments import add_run_arguments, command_parser, one_line_errors
+from nerfexp.console import quiet_dependencies
 from nerfexp.rundir import EVAL, find_run, load_module, read_json, run_config
 from nerfexp.training.recorders import EvalRecorder
 
@@ -23,12 +24,19 @@ def evaluate(cfg: DictConfig, run_dir: Path, checkpoint: Path) -> dict:
     return read_json(run_dir / EVAL)
 
 
-def main(argv: list[str] | None = None) -> None:
+def build_parser() -> argparse.ArgumentParser:
     """``nerfexp-eval RUN_DIR`` (or a checkpoint file in it): score the run's checkpoint on its test split
     with the config the run used, and write the scores to RUN_DIR/eval.json."""
-    parser = argparse.ArgumentParser(prog="nerfexp-eval", description=main.__doc__)
+    parser = command_parser("nerfexp-eval", build_parser.__doc__)
     add_run_arguments(parser)
+    return parser
+
+
+def main(argv: list[str] | None = None) -> None:
+    """The ``nerfexp-eval`` command (``build_parser``)."""
+    parser = build_parser()
     args = parser.parse_args(argv)
+    quiet_dependencies()
     with one_line_errors(parser.prog):
         run_dir, checkpoint = find_run(args.run)
         results = evaluate(run_config(run_dir, args.overrides), run_dir, checkpoint)

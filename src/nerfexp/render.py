@@ -21,9 +21,11 @@ from omegaconf import DictConfig
 from torch import Tensor
 from tqdm import tqdm
 
-from nerfexp.arguments import add_run_arguments, one_line_errors, positive
+from nerfexp.arguments import add_run_arguments, command_parser, one_line_errors, positive
+from nerfexp.console import quiet_dependencies
 from nerfexp.data.base import Scene
 from nerfexp.data.rays import model_batch
+from nerfexp.extras import require
 from nerfexp.files import atomic_directory
 from nerfexp.geometry.camera_paths import llff_focus_depth, orbit_path, spiral_path
 from nerfexp.geometry.cameras import camera_rays
@@ -86,7 +88,7 @@ def render_path(module: NeRFModule, scene: Scene, cameras: Tensor, height: int, 
         writers = {kind: videos.enter_context(
             imageio.get_writer(out_dir / f"{kind}.mp4", format="FFMPEG", fps=fps, codec="libx264", quality=8,
                                macro_block_size=2)) for kind in KINDS}
-        for index, c2w in enumerate(tqdm(cameras, desc="rendering", unit="frame")):
+        for index, c2w in enumerate(tqdm(cameras, desc="rendering", unit="frame", disable=None)):
             images = frame_images(render_frame(module, scene, c2w, height, width, focal), near, far)
             for kind, image in images.items():
                 frame = to_uint8(image)  # [H, W, 3] or [H, W]
@@ -130,23 +132,31 @@ def _even(text: str) -> int:
     return value
 
 
-def main(argv: list[str] | None = None) -> None:
+def build_parser() -> argparse.ArgumentParser:
     """``nerfexp-render RUN_DIR`` (or a checkpoint file in it): render the trained model along a camera
     path (an orbit around 360-degree scenes, a spiral for forward-facing ones) into RUN_DIR/render:
     rgb.mp4, depth.mp4, opacity.mp4 and their PNG frames."""
-    parser = argparse.ArgumentParser(prog="nerfexp-render", description=main.__doc__)
+    parser = command_parser("nerfexp-render", build_parser.__doc__)
     add_run_arguments(parser)
     parser.add_argument("--path", choices=PATHS, help="camera path (default: spiral for forward-facing "
                         "scenes, i.e. data.ndc or an LLFF scene; else orbit)")
     parser.add_argument("--frames", type=positive(int), default=120, help="number of frames (default 120)")
-    parser.add_argument("--fps", type=positive(float), default=30, help="frames per second of the videos")
+    parser.add_argument("--fps", type=positive(float), default=30, help="frames per second of the videos (default 30)")
     parser.add_argument("--size", type=_even, help="frame width in pixels, even; the height keeps the "
                         "training views' aspect ratio (default: the training views' width)")
     parser.add_argument("--chunk", type=positive(int), help="rays rendered at once (default: the run's model.chunk)")
     parser.add_argument("--focus", type=positive(float), help="spiral only: the depth its cameras look at "
                         "(default: from the scene's depth bounds)")
+    return parser
+
+
+def main(argv: list[str] | None = None) -> None:
+    """The ``nerfexp-render`` command (``build_parser``)."""
+    parser = build_parser()
     args = parser.parse_args(argv)
+    quiet_dependencies()
     with one_line_errors(parser.prog):
+        require("imageio_ffmpeg", "nerfexp-render (its MP4 videos)")
         out_dir = render_run(args.run, args.overrides, args.frames, args.fps, args.size, args.chunk, args.path,
                              args.focus)
     print(f"{args.frames} frames written to {out_dir}")

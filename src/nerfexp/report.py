@@ -33,14 +33,12 @@ import sys
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from hydra._internal.core_plugins.basic_sweeper import BasicSweeper
-from hydra.core.override_parser.overrides_parser import OverridesParser
 from matplotlib.figure import Figure
-from omegaconf import OmegaConf
 
+from nerfexp.arguments import command_parser
 from nerfexp.comparison import Difference, compare_order, paired_difference, seeds, tiers
 from nerfexp.files import atomic_write
-from nerfexp.rundir import METRICS, RESULTS, STATUS, find_run_dirs, process_alive, read_json, read_metrics
+from nerfexp.rundir import METRICS, RESULTS, STATUS, find_run_dirs, planned_jobs, process_alive, read_json, read_metrics
 
 # The paper's Table 4 (mean over the 8 Realistic Synthetic scenes): conf/ablation/NAME -> (row, PSNR, SSIM).
 PAPER_ABLATION = {
@@ -170,21 +168,6 @@ def find_runs(directories: list[Path]) -> list[Run]:
         raise SystemExit(f"nerfexp-report: error: no runs (no {STATUS} or {RESULTS}) under "
                          f"{', '.join(map(str, directories))}")
     return [read_run(path) for path in sorted(paths)]
-
-
-def planned_jobs(directory: Path) -> int | None:
-    """How many jobs the multirun in ``directory`` launches (its ``multirun.yaml``): the grid of a
-    basic sweep, the trials of a search; None where that cannot be told."""
-    path = directory / "multirun.yaml"
-    if not path.exists():
-        return None
-    hydra = OmegaConf.load(path).hydra
-    sweeper = hydra.sweeper
-    if sweeper._target_.endswith("BasicSweeper"):
-        params = [f"{key}={value}" for key, value in (sweeper.params or {}).items()] + list(hydra.overrides.task)
-        batches = BasicSweeper.split_arguments(OverridesParser.create().parse_overrides(params), None)
-        return sum(len(batch) for batch in batches)
-    return sweeper.get("n_trials")
 
 
 def _key(override: str) -> str:
@@ -407,6 +390,22 @@ def csv_text(variants: list[Variant], reference: Variant | None = None) -> str:
 FIGSIZE, DPI = (8.0, 5.0), 100  # 800 x 500 pixels
 
 
+LEGEND_INSIDE = 6  # entries; more go below the axes, the figure taller by a line's height (inches) for each
+LEGEND_LINE = 0.2
+
+
+def legend(figure: Figure, axes) -> None:
+    """The plot's legend, if it has entries: inside the axes, or below them where so many entries would
+    hide the data (a sweep's dozen variants)."""
+    handles, labels = axes.get_legend_handles_labels()
+    if len(handles) <= LEGEND_INSIDE:
+        if handles:
+            axes.legend(fontsize="small")
+        return
+    figure.set_figheight(FIGSIZE[1] + LEGEND_LINE * len(handles))
+    figure.legend(handles, labels, loc="outside lower center", fontsize="small")
+
+
 def _save(figure: Figure) -> bytes:
     out = io.BytesIO()
     figure.savefig(out, format="png", dpi=DPI)
@@ -425,20 +424,29 @@ def mean_curve(runs: list[Run]) -> list[tuple[float, float, float, float]]:
     return points
 
 
+MARKERS = "o^sDvP"  # with 10 colours, 60 variants each drawn differently
+
+
+def variant_style(i: int) -> tuple[str, str]:
+    """The colour and marker of the ``i``-th variant in both plots: the 10 default colours, then the
+    same colours with the next marker."""
+    return f"C{i % 10}", MARKERS[i // 10 % len(MARKERS)]
+
+
 def psnr_vs_time_png(variants: list[Variant]) -> bytes:
     """Validation PSNR against training seconds: a variant's mean over its finished runs (at the steps
     they all reached) with a band from the lowest to the highest run; every run faint in the same colour."""
     figure = Figure(figsize=FIGSIZE, layout="constrained")
     axes = figure.add_subplot()
     for i, variant in enumerate(variants):
-        colour = f"C{i % 10}"
+        colour, marker = variant_style(i)
         for run in variant.runs:
             if run.curve:
                 axes.plot(*zip(*[(t, p) for _, t, p in run.curve]), color=colour, linewidth=0.8, alpha=0.25)
         points = mean_curve([run for run in variant.finished if run.curve])
         if points:
             seconds, mean, low, high = zip(*points)
-            axes.plot(seconds, mean, color=colour, marker=".", linewidth=1.6,
+            axes.plot(seconds, mean, color=colour, marker=marker, markersize=4, linewidth=1.6,
                       label=f"{variant.label} ({seeds(len(variant.finished))})")
             if len(variant.finished) > 1:
                 axes.fill_between(seconds, low, high, color=colour, alpha=0.15, linewidth=0)
@@ -446,8 +454,7 @@ def psnr_vs_time_png(variants: list[Variant]) -> bytes:
              title="Validation PSNR against training time\nline: mean over seeds; band: lowest to highest seed; "
                    "faint: single runs")
     axes.grid(alpha=0.3)
-    if axes.get_legend_handles_labels()[0]:
-        axes.legend(fontsize="small")
+    legend(figure, axes)
     return _save(figure)
 
 
@@ -462,7 +469,8 @@ def pareto_png(variants: list[Variant]) -> bytes:
             continue
         x, y = variant.mean("train_time_s"), variant.mean("test_psnr")
         xerr, yerr = (0 if not math.isfinite(s) else s for s in (variant.std("train_time_s"), variant.std("test_psnr")))
-        axes.errorbar(x, y, xerr=xerr, yerr=yerr, fmt="o", color=f"C{i % 10}", label=variant.label, capsize=3)
+        colour, marker = variant_style(i)
+        axes.errorbar(x, y, xerr=xerr, yerr=yerr, fmt=marker, color=colour, label=variant.label, capsize=3)
         points.append((x, y))
     front, best = [], -math.inf
     for x, y in sorted(points, key=lambda p: (p[0], -p[1])):  # faster first; keep each new best PSNR
@@ -475,8 +483,7 @@ def pareto_png(variants: list[Variant]) -> bytes:
              title="Final quality against total training time\npoints: means over seeds; bars: ± 1 sample "
                    "standard deviation over seeds")
     axes.grid(alpha=0.3)
-    if points:
-        axes.legend(fontsize="small")
+    legend(figure, axes)
     return _save(figure)
 
 
@@ -494,8 +501,9 @@ def write_report(directories: list[Path], out: Path, over: tuple[str, ...] = ("s
     return variants
 
 
-def main(argv: list[str] | None = None) -> None:
-    parser = argparse.ArgumentParser(prog="nerfexp-report", description=__doc__.split("\n\n")[0])
+def build_parser() -> argparse.ArgumentParser:
+    """The ``nerfexp-report`` command line (the module's first paragraph describes it)."""
+    parser = command_parser("nerfexp-report", __doc__.split("\n\n")[0])
     parser.add_argument("dirs", nargs="+", type=Path, help="multirun or run directories")
     parser.add_argument("--out", type=Path, help="where to write the report (default: the first directory)")
     parser.add_argument("--over", nargs="+", default=["seed"],
@@ -503,7 +511,12 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--reference", metavar="VARIANT",
                         help="the variant the others are compared with, by its label in the report (e.g. "
                              "'encoding=posenc, hierarchical=true'); default: ablation=complete if in the sweep")
-    args = parser.parse_args(argv)
+    return parser
+
+
+def main(argv: list[str] | None = None) -> None:
+    """The ``nerfexp-report`` command (``build_parser``)."""
+    args = build_parser().parse_args(argv)
     out = args.out or args.dirs[0]
     variants = write_report(args.dirs, out, tuple(args.over), args.reference)
     print(f"{len(variants)} variants; report in {out / 'report.md'}", file=sys.stderr)

@@ -34,6 +34,8 @@ from pathlib import Path
 import lightning as L
 import torch
 import yaml
+from hydra._internal.core_plugins.basic_sweeper import BasicSweeper
+from hydra.core.override_parser.overrides_parser import OverridesParser
 from hydra.experimental.callback import Callback
 from hydra.utils import instantiate
 from lightning.pytorch.utilities.rank_zero import rank_zero_only
@@ -154,6 +156,21 @@ def find_run_dirs(directory: Path) -> set[Path]:
     """Every run directory under ``directory`` (itself included): a folder holding ``status.json`` or
     ``results.json``."""
     return {p.parent for name in (STATUS, RESULTS) for p in Path(directory).rglob(name)}
+
+
+def planned_jobs(directory: Path) -> int | None:
+    """How many jobs the multirun in ``directory`` launches (its ``multirun.yaml``): the grid of a
+    basic sweep, the trials of a search; None where that cannot be told."""
+    path = directory / "multirun.yaml"
+    if not path.exists():
+        return None
+    hydra = OmegaConf.load(path).hydra
+    sweeper = hydra.sweeper
+    if sweeper._target_.endswith("BasicSweeper"):
+        params = [f"{key}={value}" for key, value in (sweeper.params or {}).items()] + list(hydra.overrides.task)
+        batches = BasicSweeper.split_arguments(OverridesParser.create().parse_overrides(params), None)
+        return sum(len(batch) for batch in batches)
+    return sweeper.get("n_trials")
 
 
 def held_run(run_dir: Path) -> str | None:

@@ -14,6 +14,7 @@ from hydra.experimental.callback import Callback
 from omegaconf import DictConfig, OmegaConf
 
 from nerfexp.errors import ConfigError
+from nerfexp.extras import require
 
 FLOAT32_TOP_OCTAVE = 18  # the largest k of sin(2^k pi x) still meaningful for float32 positions (see above)
 
@@ -51,9 +52,19 @@ def named(cfg: DictConfig, key: str, value) -> str:
     return f"{key}={value}"
 
 
+def check_extras(cfg: DictConfig) -> None:
+    """A MissingExtraError (a ConfigError) where the config asks for a part of nerfexp whose optional
+    package is not installed (``nerfexp.extras``)."""
+    if str(OmegaConf.select(cfg, "data._target_", default="")).startswith("nerfexp.data.colmap."):
+        require("pycolmap", "data=colmap")
+    if OmegaConf.select(cfg, "data.video", default=None, throw_on_missing=False) is not None:
+        require("imageio_ffmpeg", "data.video")
+
+
 def check_settings(cfg: DictConfig) -> None:
     """A ConfigError for the first value that breaks a rule: ``RULES``, and positional encodings'
-    ``n_freqs`` (a whole number >= 0 whose top frequency float32 positions still resolve)."""
+    ``n_freqs`` (a whole number >= 0 whose top frequency float32 positions still resolve); then
+    ``check_extras``."""
     for key, (expected, valid) in RULES.items():
         value = OmegaConf.select(cfg, key, default="<absent>", throw_on_missing=False)
         if value != "<absent>" and not valid(value):
@@ -74,6 +85,7 @@ def check_settings(cfg: DictConfig) -> None:
             raise ConfigError(f"{key}={n_freqs}: frequencies above 2^{FLOAT32_TOP_OCTAVE} pi are noise for float32 "
                               f"positions (docs/numerics.md); use at most {math.floor(most)} with input_scale "
                               f"{scale:g}")
+    check_extras(cfg)
 
 
 class SettingsCheck(Callback):

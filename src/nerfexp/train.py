@@ -1,6 +1,7 @@
 """``nerfexp``: build everything from the config, train, test with the last checkpoint; nothing else."""
 
 import logging
+import re
 import sys
 from pathlib import Path
 
@@ -14,13 +15,24 @@ from lightning.pytorch.loggers import Logger
 from lightning.pytorch.utilities.exceptions import SIGTERMException
 from omegaconf import DictConfig, OmegaConf
 
+from nerfexp.console import quiet_dependencies
 from nerfexp.data.datamodule import fill_ray_bounds
 from nerfexp.data.rays import rank_slice
 from nerfexp.errors import ConfigError, NerfexpError
-from nerfexp.rundir import LAST_CHECKPOINT, RESULTS, is_global_zero, read_checkpoint, read_json, write_status
+from nerfexp.extras import require
+from nerfexp.rundir import (
+    LAST_CHECKPOINT,
+    RESULTS,
+    is_global_zero,
+    planned_jobs,
+    read_checkpoint,
+    read_json,
+    write_status,
+)
 from nerfexp.settings import check_settings
 from nerfexp.signals import ending_signals, received_signal
 from nerfexp.training.loggers import finish
+from nerfexp.training.progress import StepProgressBar
 from nerfexp.training.recorders import RunRecorder
 
 log = logging.getLogger("nerfexp")
@@ -38,8 +50,9 @@ def train(cfg: DictConfig) -> dict | None:
         raise ConfigError(f"missing mandatory value: {', '.join(missing)} (set it on the command line, "
                           f"e.g. {missing[0]}=...)")
     check_settings(cfg)
+    quiet_dependencies()
     fill_ray_bounds(cfg)
-    L.seed_everything(cfg.seed, workers=True)
+    L.seed_everything(cfg.seed, workers=True, verbose=False)
     runtime = HydraConfig.get().runtime
     choices = {k: v for k, v in runtime.choices.items() if not k.startswith("hydra") and v is not None}
     choices.update(hierarchical=cfg.hierarchical, seed=cfg.seed)
@@ -51,6 +64,8 @@ def train(cfg: DictConfig) -> dict | None:
     overrides = list(HydraConfig.get().overrides.task)
     recorder = RunRecorder(runtime.output_dir, choices, OmegaConf.to_container(cfg, resolve=True), overrides)
     callbacks = [instantiate(c) for c in cfg.callbacks.values()] + [recorder]
+    if cfg.trainer.get("enable_progress_bar", True):  # Lightning refuses a bar callback when bars are off
+        callbacks.append(StepProgressBar())
     trainer = instantiate(cfg.trainer, logger=logger, callbacks=callbacks)
     rank_slice(datamodule.batch_rays, 0, trainer.world_size)  # a batch that the processes cannot share: an error now
     succeeded = False
@@ -100,6 +115,9 @@ def main(cfg: DictConfig) -> float | None:
     writes = is_global_zero()  # under SLURM every process of a distributed job runs this; rank 0 records
     if writes:
         write_status(output_dir, "running", overrides)
+        if hydra_config.mode == RunMode.MULTIRUN:
+            planned = planned_jobs(Path(hydra_config.runtime.cwd) / hydra_config.sweep.dir)
+            log.info("job %d%s: %s", hydra_config.job.num + 1, f" of {planned}" if planned else "", output_dir)
     try:
         results = train(cfg)
     except BaseException as error:  # an interrupt too: the job did not finish
@@ -120,9 +138,27 @@ def main(cfg: DictConfig) -> float | None:
     return results["val_psnr"]
 
 
+# hydra/launcher=slurm (conf/hydra/launcher/slurm.yaml) and the plugin's own submitit_slurm, submitit_local
+SUBMITIT_LAUNCHER = re.compile(r"\+*hydra/launcher=(slurm|submitit_\w+)")
+
+
+def check_launcher(arguments: list[str]) -> None:
+    """A MissingExtraError where the command line picks a submitit launcher whose plugin is not installed
+    (Hydra would only say that it cannot find the launcher's config)."""
+    for argument in arguments:
+        if SUBMITIT_LAUNCHER.fullmatch(argument):
+            require("hydra_plugins.hydra_submitit_launcher", argument)
+
+
 def cli() -> None:
     """The ``nerfexp`` command: ``main``, where SIGTERM or SIGINT (a SLURM time limit, ``kill``, Ctrl-C)
     ends a run or a sweep with exit status 128 + the signal, after the job's ``status.json`` says
-    which signal ended it (``nerfexp.signals``)."""
+    which signal ended it (``nerfexp.signals``). Standard output is line-buffered, so that a log
+    redirected to a file (a SLURM log) shows each line when it is printed, not when the run ends."""
+    sys.stdout.reconfigure(line_buffering=True)
+    try:
+        check_launcher(sys.argv[1:])
+    except NerfexpError as error:
+        sys.exit(f"nerfexp: error: {error}")
     with ending_signals():
         main()

@@ -123,7 +123,7 @@ def load_blender(root, split: str, downscale: int = 1, max_views: int | None = N
     camera_angle_x, frames = read_transforms(transforms)
     frames = frames[::stride][:max_views]
     images, first = [], None
-    for file_path, _ in tqdm(frames, desc=f"loading {split}", unit="image"):
+    for file_path, _ in tqdm(frames, desc=f"loading {split}", unit="image", disable=None):
         path = image_path(root, file_path)
         image = read_image(path, f"file_path {file_path!r} in {transforms}")
         if first is None:

@@ -156,7 +156,7 @@ def read_images(files: list[Path], poses_path: Path, size: tuple[float, float], 
     ``poses_path`` records: the images must have its aspect ratio (to within a pixel) and all one size."""
     height, width = size
     images, first = [], None
-    for i, path in enumerate(tqdm(files, desc="loading llff", unit="image")):
+    for i, path in enumerate(tqdm(files, desc="loading llff", unit="image", disable=None)):
         image = read_image(path, f"row {i} of {poses_path}")
         if first is None:
             first = (path, image.shape)

@@ -257,7 +257,7 @@ def load_procedural(split: str, n_views: int, height: int, width: int, supersamp
     focal = focal_from_fov(width, CAMERA_ANGLE_X)
     group = max(1, RAYS_PER_GROUP // (height * width * supersample**2))
     images = []
-    with tqdm(total=n_views, desc=f"rendering {split}", unit="view") as bar:
+    with tqdm(total=n_views, desc=f"rendering {split}", unit="view", disable=None) as bar:
         for cameras in c2w.split(group):
             images.append(render_rgba(cameras, height, width, focal, supersample, tracer))
             bar.update(len(cameras))

@@ -1,0 +1,139 @@
+"""What installing nerfexp gives: every imported package declared, the optional parts as extras with an
+error naming the extra when one is missing, and a wheel built without warnings that holds every config."""
+
+import ast
+import importlib.metadata
+import importlib.util
+import os
+import re
+import shutil
+import subprocess
+import sys
+import zipfile
+from pathlib import Path
+
+import pytest
+import tomllib
+from omegaconf import OmegaConf
+
+from nerfexp import render
+from nerfexp.extras import EXTRAS, MissingExtraError, require
+from nerfexp.settings import check_settings
+from nerfexp.train import check_launcher
+from tests.helpers import REPO, command
+
+PYPROJECT = tomllib.loads((REPO / "pyproject.toml").read_text())
+
+
+def distribution_name(requirement: str) -> str:
+    """``pycolmap==4.2.1`` -> ``pycolmap``; names compared as PEP 503 normalizes them."""
+    return re.sub(r"[-_.]+", "-", re.match(r"[A-Za-z0-9_.\-]+", requirement).group()).lower()
+
+
+def imported_top_levels() -> set[str]:
+    """The top-level names of every module that nerfexp's source imports, anywhere in a file."""
+    names = set()
+    for path in (REPO / "src" / "nerfexp").rglob("*.py"):
+        for node in ast.walk(ast.parse(path.read_text())):
+            if isinstance(node, ast.Import):
+                names.update(alias.name.split(".")[0] for alias in node.names)
+            elif isinstance(node, ast.ImportFrom) and node.level == 0:
+                names.add(node.module.split(".")[0])
+    return names - set(sys.stdlib_module_names) - {"nerfexp"}
+
+
+def test_every_imported_package_is_declared():
+    declared = {distribution_name(r) for r in PYPROJECT["project"]["dependencies"]}
+    extras = {distribution_name(r) for rs in PYPROJECT["project"]["optional-dependencies"].values() for r in rs}
+    providers = importlib.metadata.packages_distributions()
+    undeclared = {name: providers.get(name) for name in imported_top_levels()
+                  if not {distribution_name(d) for d in providers.get(name, [])} & (declared | extras)}
+    assert undeclared == {}
+    assert {"pillow", "pyyaml"} <= declared  # imported as PIL and yaml
+
+
+def test_the_heavy_optional_parts_are_extras_the_tests_install():
+    declared = {distribution_name(r) for r in PYPROJECT["project"]["dependencies"]}
+    optional = PYPROJECT["project"]["optional-dependencies"]
+    for module, extra in EXTRAS.items():
+        (requirement,) = optional[extra]
+        assert distribution_name(requirement) not in declared, requirement
+        assert importlib.util.find_spec(module.split(".")[0]) is not None  # the dev install has it
+    assert "nerfexp[all]" in optional["dev"] and set(EXTRAS.values()) <= set(re.findall(r"\w+", optional["all"][0]))
+
+
+@pytest.mark.parametrize("cfg, module, message", [
+    ({"data": {"_target_": "nerfexp.data.colmap.ColmapScene"}}, "pycolmap",
+     'data=colmap needs pycolmap, which is not installed: pip install "nerfexp[colmap]"'),
+    ({"data": {"_target_": "nerfexp.data.colmap.ColmapScene", "video": "clip.mp4"}}, "imageio_ffmpeg",
+     'data.video needs imageio_ffmpeg, which is not installed: pip install "nerfexp[video]"'),
+])
+def test_a_config_needing_a_missing_extra_stops_in_one_line_naming_it(monkeypatch, cfg, module, message):
+    check_settings(OmegaConf.create(cfg))  # installed: nothing to say
+    monkeypatch.setitem(sys.modules, module, None)  # as if not installed: importing it fails
+    with pytest.raises(MissingExtraError, match=re.escape(message)):
+        check_settings(OmegaConf.create(cfg))
+
+
+def test_the_submitit_launchers_and_render_name_their_extras(monkeypatch, capsys):
+    check_launcher(["hydra/launcher=slurm", "seed=0,1"])
+    monkeypatch.setitem(sys.modules, "hydra_plugins.hydra_submitit_launcher", None)
+    check_launcher(["hydra/launcher=basic", "seed=0,1"])
+    for argument in ("hydra/launcher=slurm", "hydra/launcher=submitit_local"):
+        with pytest.raises(MissingExtraError, match=re.escape('pip install "nerfexp[slurm]"')):
+            check_launcher([argument])
+    monkeypatch.setitem(sys.modules, "imageio_ffmpeg", None)
+    with pytest.raises(SystemExit, match=re.escape('nerfexp-render: error: nerfexp-render (its MP4 videos) needs '
+                                                   'imageio_ffmpeg, which is not installed: '
+                                                   'pip install "nerfexp[video]"')):
+        render.main(["no/such/run"])
+
+
+def test_a_missing_dependency_of_an_installed_extra_is_not_blamed_on_the_extra(monkeypatch):
+    monkeypatch.setitem(sys.modules, "pycolmap", None)
+    assert require("tomllib", "anything").loads("a = 1") == {"a": 1}
+    with pytest.raises(KeyError):  # a module that is no extra's: a programming error, not a user's
+        require("no_such_module_of_nerfexp", "anything")
+
+
+def test_the_command_line_stops_before_making_a_run_directory(tmp_path):
+    argv, env = command("nerfexp", "data=colmap", f"data.root={tmp_path}", f"hydra.run.dir={tmp_path / 'run'}")
+    code = (f"import sys; sys.modules['pycolmap'] = None; sys.argv = {argv!r}; "
+            "from nerfexp.train import cli; cli()")
+    done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env, timeout=300)
+    assert done.returncode == 1
+    assert done.stderr.strip().splitlines() == [
+        'nerfexp: error: data=colmap needs pycolmap, which is not installed: pip install "nerfexp[colmap]"']
+    assert not (tmp_path / "run").exists()
+
+
+def config_folders() -> set[str]:
+    """``nerfexp.conf`` and one package name per folder below ``conf/`` (``sweeps/`` through its link)."""
+    conf = REPO / "conf"
+    return {".".join(("nerfexp", *Path(folder).relative_to(conf.parent).parts))
+            for folder, _, _ in os.walk(conf, followlinks=True) if "__pycache__" not in folder}
+
+
+def test_every_config_folder_is_a_package():
+    listed = {p for p in PYPROJECT["tool"]["setuptools"]["packages"] if p.startswith("nerfexp.conf")}
+    assert listed == config_folders()
+
+
+def test_the_wheel_builds_without_warnings_and_holds_every_config(tmp_path):
+    source = tmp_path / "source"  # built outside the repository: pip builds in the tree it is given
+    source.mkdir()
+    for name in ("pyproject.toml", "README.md"):
+        shutil.copy(REPO / name, source / name)
+    for name in ("src", "conf"):  # conf/sweeps, a link to sweeps/, copied as the folder it points to
+        shutil.copytree(REPO / name, source / name, ignore=shutil.ignore_patterns("__pycache__", "*.egg-info"))
+    isolation = [] if importlib.util.find_spec("setuptools") is None else ["--no-build-isolation"]
+    done = subprocess.run([sys.executable, "-m", "pip", "wheel", "--no-deps", *isolation, "-w", str(tmp_path / "dist"),
+                           "-v", str(source)], capture_output=True, text=True, timeout=600)
+    assert done.returncode == 0, done.stderr[-3000:]
+    log = done.stdout + done.stderr
+    assert not re.findall(r".*(?:is absent from the `packages`|Installing 'nerfexp[.\w]*' as data).*", log)
+    (wheel,) = (tmp_path / "dist").glob("nerfexp-*.whl")
+    in_wheel = {name for name in zipfile.ZipFile(wheel).namelist() if name.startswith("nerfexp/conf/")}
+    configs = {"nerfexp/conf/" + os.path.relpath(os.path.join(folder, f), REPO / "conf").replace(os.sep, "/")
+               for folder, _, files in os.walk(REPO / "conf", followlinks=True) for f in files if f.endswith(".yaml")}
+    assert configs and configs <= in_wheel
