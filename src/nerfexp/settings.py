@@ -38,6 +38,7 @@ RULES: dict[str, tuple[str, Callable[[object], bool]]] = {  # key -> (what is ex
     "data.n_train": COUNT_OR_ALL,
     "data.n_val": COUNT,
     "data.n_test": COUNT,
+    "data.fps": POSITIVE,  # data=colmap data.video: frames kept per second of video
 }
 
 

@@ -1,19 +1,24 @@
-"""Scenes posed by COLMAP (through pycolmap): a folder of photographs in, posed ``Views`` out.
+"""Scenes posed by COLMAP (through pycolmap): a folder of photographs, or a video, in; posed ``Views`` out.
 
-A scene root ``DIR`` holds ``images/`` (any depth; COLMAP names images by their path below it). The
+A scene root ``DIR`` holds ``images/`` (any depth; COLMAP names images by their path below it), or,
+with ``data.video``, the images are frames taken from a video into ``DIR/frames/`` (the sharpest of
+each 1/fps seconds, made once and cached: ``nerfexp.data.video``) and ``images/`` is not read. The
 sparse model is taken from the first of these that exists, binary or text
 (``cameras``, ``images``, ``points3D`` ``.bin`` or ``.txt``):
 
     DIR/sparse/0, DIR/sparse        a model you made yourself (COLMAP's usual layout)
     DIR/colmap/sparse/0             the model nerfexp made earlier (the cache)
 
-and is otherwise made by ``reconstruct``: SIFT features, exhaustive (or sequential) matching and
-incremental mapping with one camera shared by all images, written to ``DIR/colmap/`` (the SQLite
-``database.db`` and ``sparse/0``). A model whose camera has distortion is undistorted to ``PINHOLE``
-into ``DIR/colmap/undistorted/`` (``images/`` and ``sparse/``), and the images are then read from
-there. Folders are built under a temporary name in ``DIR`` and renamed into place when complete, so
-an interrupted run leaves no half-made cache; nothing outside ``DIR/colmap`` is ever written, and
-nothing is deleted but this run's own temporary folder.
+and is otherwise made by ``reconstruct``: SIFT features, exhaustive or sequential matching
+(``data.matcher``; by default sequential for a video's frames, which are in time order, and exhaustive
+for photographs) and incremental mapping with one camera shared by all images, written to
+``DIR/colmap/`` (the SQLite ``database.db`` and ``sparse/0``). A model whose camera has distortion is
+undistorted to ``PINHOLE`` into ``DIR/colmap/undistorted/`` (``images/`` and ``sparse/``), and the
+images are then read from there. Feature extraction and undistortion show progress per image,
+matching and mapping per stage. Folders are built under a temporary name in ``DIR`` and renamed into
+place when complete, so an interrupted run leaves no half-made cache; nothing outside ``DIR/colmap``
+(and ``DIR/frames`` for a video) is ever written, and nothing is deleted but this run's own temporary
+folder.
 
 Conventions. COLMAP's poses are ``cam_from_world`` (x_cam = R x_world + t) for a camera that looks
 down +z with y down; nerfexp's ``c2w`` looks down -z with y up (``nerfexp.geometry.cameras``):
@@ -34,9 +39,11 @@ has them: COLMAP's defaults (a shared camera, the principal point not refined, u
 it centred) give this; a model that breaks it is refused with a DatasetError rather than cropped.
 """
 
+import concurrent.futures
 import contextlib
 import math
-from collections.abc import Iterator
+import os
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -48,6 +55,7 @@ from tqdm import tqdm
 
 from nerfexp.data.base import Scene
 from nerfexp.data.images import downscale_rgba, fit_factor, read_image
+from nerfexp.data.video import video_frames
 from nerfexp.data.views import IMAGE_SUFFIXES, Views, holdout_split
 from nerfexp.errors import DatasetError
 from nerfexp.files import atomic_directory
@@ -58,6 +66,7 @@ PERCENTILES = (0.1, 99.9)  # of each image's point distances: near and far (as L
 MARGINS = (0.9, 1.1)  # near and far are widened by these factors
 PIXEL_TOLERANCE = 0.5  # principal point off-centre, or fx != fy at the image edge, by at most this (pixels)
 MATCHERS = ("exhaustive", "sequential")
+POLL_SECONDS = 0.25  # how often a progress bar counts the output of a pycolmap call running in a thread
 ADVICE = ("try more overlap between neighbouring views (60-80%), more texture (plain walls, sky, glass and "
           "reflections give no features), sharper images, more features (data.max_features), "
           "data.matcher=exhaustive, or a camera model that fits the lens (data.camera_model=OPENCV for wide angles)")
@@ -121,17 +130,60 @@ def registered_enough(n_registered: int, n_images: int, min_registered: float, w
                            f"needed, data.min_registered={min_registered:g}); {ADVICE}")
 
 
-def reconstruct(root, camera_model: str = "SIMPLE_RADIAL", matcher: str = "exhaustive", max_features: int = 4096,
-                threads: int = -1, min_registered: float = 0.8, verbose: bool = False) -> Path:
-    """Run COLMAP on ``root/images`` into ``root/colmap`` and return the sparse model's folder.
+def effective_threads(threads: int) -> int:
+    """The number of threads COLMAP runs for ``threads``: ``threads`` itself, or one per core where it is
+    <= 0 (-1: every core)."""
+    return threads if threads > 0 else os.cpu_count() or 1
 
-    Features (SIFT on the CPU, at most ``max_features`` per image, one ``camera_model`` camera shared
-    by all images), matching (``exhaustive`` or ``sequential``) and incremental mapping, each a step
-    of a progress bar (``verbose``: COLMAP's own log too). ``threads`` -1 uses every core. Raises a
-    DatasetError, and keeps nothing, when fewer than ``min_registered`` of the images are registered.
+
+def shared_camera_id(database: Path) -> int:
+    """The id of the first camera in the COLMAP ``database``; -1 where it has none."""
+    with pycolmap.Database.open(database) as db:
+        return min((camera.camera_id for camera in db.read_all_cameras()), default=-1)
+
+
+def extract_features(database: Path, image_dir: Path, names: list[str], camera_model: str = "SIMPLE_RADIAL",
+                     max_features: int = 4096, threads: int = -1) -> None:
+    """SIFT features (on the CPU, at most ``max_features`` per image) of the images ``names`` of
+    ``image_dir`` into ``database``, one ``camera_model`` camera shared by all, with a progress bar
+    counting images.
+
+    pycolmap reports nothing while it extracts, so the images go in batches, one call each, and the bar
+    moves after each batch. Each thread extracts whole images, so a batch holds two per thread: every
+    thread has work, one that finishes early takes a second image while the batch's slowest finishes,
+    and each call's fixed cost is shared by twice the images (one image per call forgoes the threads).
+    The first batch makes the shared camera (CameraMode.SINGLE) and the later ones name it
+    (``existing_camera_id``), so the database is the one a single call over all the images makes.
+    """
+    extraction = pycolmap.FeatureExtractionOptions(num_threads=threads, use_gpu=False)
+    extraction.sift.max_num_features = max_features
+    reader = pycolmap.ImageReaderOptions(camera_model=camera_model)
+    batch_size = 2 * effective_threads(threads)
+    with tqdm(total=len(names), desc="COLMAP features", unit="image") as bar:
+        for start in range(0, len(names), batch_size):
+            batch = names[start:start + batch_size]
+            pycolmap.extract_features(database, image_dir, batch, camera_mode=pycolmap.CameraMode.SINGLE,
+                                      reader_options=reader, extraction_options=extraction,
+                                      device=pycolmap.Device.cpu)
+            if reader.existing_camera_id < 0:
+                reader.existing_camera_id = shared_camera_id(database)
+            bar.update(len(batch))
+
+
+def reconstruct(root, camera_model: str = "SIMPLE_RADIAL", matcher: str = "exhaustive", max_features: int = 4096,
+                threads: int = -1, min_registered: float = 0.8, verbose: bool = False,
+                image_dir: Path | None = None) -> Path:
+    """Run COLMAP on the images of ``image_dir`` (None: ``root/images``) into ``root/colmap`` and return
+    the sparse model's folder.
+
+    Features (``extract_features``: SIFT on the CPU, at most ``max_features`` per image, one
+    ``camera_model`` camera shared by all images, a progress bar over the images), then matching
+    (``exhaustive`` or ``sequential``) and incremental mapping, each a step of a second bar
+    (``verbose``: COLMAP's own log too). ``threads`` -1 uses every core. Raises a DatasetError, and
+    keeps nothing, when fewer than ``min_registered`` of the images are registered.
     """
     root = Path(root)
-    image_dir = root / "images"
+    image_dir = root / "images" if image_dir is None else Path(image_dir)
     names = image_files(image_dir)
     if not names:
         raise DatasetError(f"{image_dir} holds no images ({', '.join(sorted(IMAGE_SUFFIXES))})")
@@ -142,26 +194,19 @@ def reconstruct(root, camera_model: str = "SIMPLE_RADIAL", matcher: str = "exhau
     if cache.exists():
         raise DatasetError(f"{cache} exists but holds no sparse model in sparse/0; move it away (nerfexp never "
                            f"deletes it) to reconstruct the scene again")
-    stages = ("features", "matching", "mapping")
-    progress = tqdm(total=len(stages), desc="COLMAP", unit="stage")
-    with _colmap_log_level(verbose), atomic_directory(cache) as work, progress as bar:
+    with _colmap_log_level(verbose), atomic_directory(cache) as work:
         database = work / "database.db"
-        bar.set_postfix_str(f"features of {len(names)} images")
-        extraction = pycolmap.FeatureExtractionOptions(num_threads=threads, use_gpu=False)
-        extraction.sift.max_num_features = max_features
-        pycolmap.extract_features(database, image_dir, camera_mode=pycolmap.CameraMode.SINGLE,
-                                  reader_options=pycolmap.ImageReaderOptions(camera_model=camera_model),
-                                  extraction_options=extraction, device=pycolmap.Device.cpu)
-        bar.update()
-        bar.set_postfix_str(f"{matcher} matching")
-        matching = pycolmap.FeatureMatchingOptions(num_threads=threads, use_gpu=False)
-        match = pycolmap.match_exhaustive if matcher == "exhaustive" else pycolmap.match_sequential
-        match(database, matching_options=matching, device=pycolmap.Device.cpu)
-        bar.update()
-        bar.set_postfix_str("incremental mapping")
-        options = pycolmap.IncrementalPipelineOptions(num_threads=threads, multiple_models=False)
-        models = pycolmap.incremental_mapping(database, image_dir, work / "sparse", options)
-        bar.update()
+        extract_features(database, image_dir, names, camera_model, max_features, threads)
+        with tqdm(total=2, desc="COLMAP", unit="stage") as bar:
+            bar.set_postfix_str(f"{matcher} matching")
+            matching = pycolmap.FeatureMatchingOptions(num_threads=threads, use_gpu=False)
+            match = pycolmap.match_exhaustive if matcher == "exhaustive" else pycolmap.match_sequential
+            match(database, matching_options=matching, device=pycolmap.Device.cpu)
+            bar.update()
+            bar.set_postfix_str("incremental mapping")
+            options = pycolmap.IncrementalPipelineOptions(num_threads=threads, multiple_models=False)
+            models = pycolmap.incremental_mapping(database, image_dir, work / "sparse", options)
+            bar.update()
         n_registered = max((m.num_reg_images() for m in models.values()), default=0)
         registered_enough(n_registered, len(names), min_registered, image_dir)
         if not is_model(work / "sparse" / "0"):
@@ -169,19 +214,43 @@ def reconstruct(root, camera_model: str = "SIMPLE_RADIAL", matcher: str = "exhau
     return cache / "sparse" / "0"
 
 
-def undistort(root: Path, model_dir: Path, image_dir: Path, verbose: bool = False) -> tuple[Path, Path]:
+def count_files(folder: Path) -> int:
+    """The number of files below ``folder`` (0 where it does not exist yet)."""
+    return sum(path.is_file() for path in folder.rglob("*"))
+
+
+def run_counting(task: Callable[[pycolmap.CancellationToken], None], count: Callable[[], int], bar: tqdm) -> None:
+    """``task(token)``, a pycolmap call (which releases the GIL while it works), run in a worker thread
+    while ``bar`` shows ``count()`` every POLL_SECONDS; its exception is raised here. An exception here
+    (Ctrl-C) cancels it through the token and waits for it to stop, so nothing writes after this returns."""
+    token = pycolmap.CancellationToken()
+    with concurrent.futures.ThreadPoolExecutor(max_workers=1) as pool:
+        running = pool.submit(task, token)
+        try:
+            while concurrent.futures.wait([running], timeout=POLL_SECONDS).not_done:
+                bar.update(count() - bar.n)
+        except BaseException:
+            token.cancel()
+            raise
+        running.result()
+    bar.update(count() - bar.n)
+
+
+def undistort(root: Path, model_dir: Path, image_dir: Path, n_images: int, verbose: bool = False) -> tuple[Path, Path]:
     """The PINHOLE model and image folders of the undistorted scene, ``root/colmap/undistorted/{sparse,
-    images}``, made by COLMAP's undistorter from ``model_dir`` and ``image_dir`` unless they exist."""
+    images}``, made by COLMAP's undistorter from ``model_dir`` and ``image_dir`` unless they exist, in one
+    call (its images, model and MVS configuration as COLMAP writes them), with a progress bar counting
+    the model's ``n_images`` registered images as their undistorted files appear."""
     final = root / CACHE / "undistorted"
     if is_model(final / "sparse"):
         return final / "sparse", final / "images"
     if final.exists():
         raise DatasetError(f"{final} exists but holds no model in sparse/; move it away (nerfexp never deletes it) "
                            f"to undistort the images again")
-    progress = tqdm(total=1, desc="COLMAP", unit="stage", postfix="undistortion to PINHOLE")
+    progress = tqdm(total=n_images, desc="COLMAP undistortion to PINHOLE", unit="image")
     with _colmap_log_level(verbose), atomic_directory(final) as work, progress as bar:
-        pycolmap.undistort_images(work, model_dir, image_dir)
-        bar.update()
+        run_counting(lambda token: pycolmap.undistort_images(work, model_dir, image_dir, cancellation_token=token),
+                     lambda: count_files(work / "images"), bar)
     return final / "sparse", final / "images"
 
 
@@ -279,27 +348,35 @@ class ColmapData:
     scale: float
 
 
-def load_colmap(root, bound: float = 4.0, camera_model: str = "SIMPLE_RADIAL", matcher: str = "exhaustive",
+def load_colmap(root, bound: float = 4.0, camera_model: str = "SIMPLE_RADIAL", matcher: str | None = None,
                 max_features: int = 4096, threads: int = -1, min_registered: float = 0.8,
-                verbose: bool = False) -> ColmapData:
-    """The scene ``root`` posed: its model found (``find_model``) or made (``reconstruct``), undistorted
-    where its camera has distortion, converted, normalized into ``bound`` and bounded by its points."""
+                verbose: bool = False, video: str | None = None, fps: float = 2.0) -> ColmapData:
+    """The scene ``root`` posed. Its images are ``root/images``, or with ``video`` (a path relative to
+    ``root``, or absolute) the video's sharpest frame of each 1/``fps`` seconds (``video_frames``, cached
+    in ``root/frames``). Its model is found (``find_model``) or made (``reconstruct``, ``matcher`` None:
+    sequential for a video's frames, which are in time order, else exhaustive), undistorted where its
+    camera has distortion, converted, normalized into ``bound`` and bounded by its points."""
     root = Path(root)
-    image_dir = root / "images"
-    if not image_dir.is_dir():
-        raise DatasetError(f"{image_dir} does not exist: data.root must be a folder holding images/ (and optionally "
-                           f"a COLMAP model in sparse/0)")
-    n_images = len(image_files(image_dir))
+    if video is None:
+        source_dir = root / "images"
+        if not source_dir.is_dir():
+            raise DatasetError(f"{source_dir} does not exist: data.root must be a folder holding images/ (and "
+                               f"optionally a COLMAP model in sparse/0), or set data.video")
+    else:
+        source_dir = video_frames(root, video, fps)
+    matcher = matcher or ("exhaustive" if video is None else "sequential")
+    n_images = len(image_files(source_dir))
     model_dir = find_model(root) or reconstruct(root, camera_model, matcher, max_features, threads, min_registered,
-                                                verbose)
+                                                verbose, source_dir)
+    image_dir = source_dir
     reconstruction = read_model(model_dir)
     for camera in reconstruction.cameras.values():
         check_camera_model(camera.model.name)
     if not all(camera.is_undistorted() for camera in reconstruction.cameras.values()):
-        model_dir, image_dir = undistort(root, model_dir, image_dir, verbose)
+        model_dir, image_dir = undistort(root, model_dir, image_dir, len(reconstruction.reg_image_ids()), verbose)
         reconstruction = read_model(model_dir)
     ids = sorted(reconstruction.reg_image_ids(), key=lambda i: reconstruction.images[i].name)
-    registered_enough(len(ids), max(n_images, len(ids)), min_registered, f"{root / 'images'} (model {model_dir})")
+    registered_enough(len(ids), max(n_images, len(ids)), min_registered, f"{source_dir} (model {model_dir})")
     focal, width, height = shared_focal(reconstruction, ids, model_dir)
     point_ids = sorted(reconstruction.point3D_ids())
     row = {point_id: k for k, point_id in enumerate(point_ids)}
@@ -312,14 +389,13 @@ def load_colmap(root, bound: float = 4.0, camera_model: str = "SIMPLE_RADIAL", m
     return ColmapData(names, image_dir, c2w, focal, width, height, near, far, centre, scale)
 
 
-
 def read_views(data: ColmapData, index: Tensor, downscale: int = 1, max_side: int | None = None) -> Views:
     """The images ``index`` of ``data`` as opaque ``Views``, shrunk by ``downscale`` and then, where
     ``max_side`` is set, by the smallest further integer factor that brings the longer side to at most
     ``max_side``; the focal length follows the width."""
     shrink = downscale * fit_factor(max(data.width, data.height) // downscale, max_side)
     images = []
-    for i in tqdm(index.tolist(), desc="loading colmap", unit="image"):
+    for i in tqdm(index.tolist(), desc="loading colmap", unit="image", disable=None):
         path = data.image_dir / data.names[i]
         image = read_image(path, f"the COLMAP model's image {data.names[i]!r}")
         if image.shape[:2] != (data.height, data.width):
@@ -333,12 +409,17 @@ def read_views(data: ColmapData, index: Tensor, downscale: int = 1, max_side: in
 
 @dataclass
 class ColmapScene(Scene):
-    """Photographs posed by COLMAP (``data=colmap``); see the module's docstring for the cache, the
-    conventions and the normalization. Test views are every ``holdout``-th image in name order,
-    training views the first ``n_train`` of the rest, validation views the first ``n_val`` test views.
-    ``near`` and ``far`` None: from the sparse points (``ray_bounds()``)."""
+    """Photographs, or the frames of a video, posed by COLMAP (``data=colmap``); see the module's
+    docstring for the cache, the conventions and the normalization. ``video``: a video file relative to
+    ``root`` (or absolute) whose sharpest frame of each 1/``fps`` seconds is taken instead of
+    ``root/images`` (``nerfexp.data.video``). ``matcher`` None: sequential for a video, else exhaustive.
+    Test views are every ``holdout``-th image in name order, training views the first ``n_train`` of the
+    rest, validation views the first ``n_val`` test views. ``near`` and ``far`` None: from the sparse
+    points (``ray_bounds()``)."""
 
     root: str
+    video: str | None = None
+    fps: float = 2.0
     downscale: int = 1
     max_side: int | None = None
     n_train: int | None = None
@@ -350,7 +431,7 @@ class ColmapScene(Scene):
     background: str = "white"
     aabb: list | None = None  # the occupancy grid's box; None: bound from the training cameras
     camera_model: str = "SIMPLE_RADIAL"
-    matcher: str = "exhaustive"
+    matcher: str | None = None
     max_features: int = 4096
     threads: int = -1
     min_registered: float = 0.8
@@ -368,7 +449,7 @@ class ColmapScene(Scene):
             raise DatasetError(f"data.bound must be positive, got {self.bound}")
         if self._data is None:
             self._data = load_colmap(self.root, self.bound, self.camera_model, self.matcher, self.max_features,
-                                     self.threads, self.min_registered, self.verbose)
+                                     self.threads, self.min_registered, self.verbose, self.video, self.fps)
         return self._data
 
     def ray_bounds(self) -> tuple[float, float]:
