@@ -29,7 +29,7 @@ def test_nerfexp_help_says_what_it_is_its_groups_sweeps_other_commands_and_outpu
         if folder.is_dir() and folder.name not in ("hydra", "__pycache__"):
             assert groups[folder.name] == sorted(p.stem for p in folder.glob("*.yaml")), folder.name
     assert "+sweeps=NAME" in text and "nerfexp -m " in text
-    for other in ("nerfexp-report", "nerfexp-eval", "nerfexp-render", "nerfexp-scene"):
+    for other in ("nerfexp-report", "nerfexp-eval", "nerfexp-render", "nerfexp-scene", "nerfexp-export"):
         assert f"  {other} " in text
     assert "outputs/DATE/TIME/" in text and "multirun/DATE/TIME/N/" in text
 

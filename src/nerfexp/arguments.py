@@ -1,13 +1,8 @@
-"""Pieces of the console scripts' command lines: argument types, a run and its config changes, and
-nerfexp's errors reported as one line."""
+"""Pieces of the console scripts' command lines: argument types, a run and its config changes."""
 
 import argparse
-import contextlib
-import sys
-from collections.abc import Callable, Iterator
+from collections.abc import Callable
 from pathlib import Path
-
-from nerfexp.errors import NerfexpError
 
 
 def positive(kind: type) -> Callable[[str], int | float]:
@@ -31,12 +26,3 @@ def add_run_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("run", type=Path, help="a run directory (its checkpoints/last.ckpt), or a checkpoint file")
     parser.add_argument("overrides", nargs="*", metavar="KEY=VALUE",
                         help="changes to the run's config, e.g. data.root=/new/place/of/the/scene")
-
-
-@contextlib.contextmanager
-def one_line_errors(prog: str) -> Iterator[None]:
-    """Inside the block, a ``NerfexpError`` ends the program with ``PROG: error: MESSAGE`` and exit status 1."""
-    try:
-        yield
-    except NerfexpError as error:
-        sys.exit(f"{prog}: error: {error}")

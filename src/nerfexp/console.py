@@ -1,12 +1,19 @@
-"""What nerfexp's commands print: their own lines and progress bars, not their dependencies' notices.
+"""What nerfexp's commands print: their own lines and progress bars, not their dependencies' notices, and
+their errors as one line.
 
 Lightning announces at INFO what nerfexp's own lines already say or what no run needs (the
 accelerators found, a tip advertising a package, each checkpoint restored or saved without
 ``weights_only``); its warnings still show. Dependency warnings are filtered one by one, each by its
 message, category and the module it is attributed to, so that a new warning is never hidden."""
 
+import argparse
+import contextlib
 import logging
+import sys
 import warnings
+from collections.abc import Callable, Iterator
+
+from nerfexp.errors import NerfexpError
 
 LIGHTNING_NOTICES = (  # loggers whose INFO lines are Lightning's notices (their warnings still show)
     "lightning.pytorch.utilities.rank_zero",  # GPU/TPU available, the litlogger tip, "Restoring states ..."
@@ -25,3 +32,24 @@ def quiet_dependencies() -> None:
         logging.getLogger(name).setLevel(logging.WARNING)
     for message, category, module in DEPENDENCY_WARNINGS:
         warnings.filterwarnings("ignore", message=message, category=category, module=module)
+
+
+@contextlib.contextmanager
+def one_line_errors(prog: str) -> Iterator[None]:
+    """Inside the block, a ``NerfexpError`` ends the program with ``PROG: error: MESSAGE`` and exit status 1."""
+    try:
+        yield
+    except NerfexpError as error:
+        sys.exit(f"{prog}: error: {error}")
+
+
+def run_command(parser: argparse.ArgumentParser, argv: list[str] | None,
+                work: Callable[[argparse.Namespace], str]) -> None:
+    """A console script's body: parse ``argv`` with ``parser``, silence the dependencies' notices
+    (``quiet_dependencies``), do ``work(args)`` and print the line it returns; a ``NerfexpError`` is one
+    line (``one_line_errors``)."""
+    args = parser.parse_args(argv)
+    quiet_dependencies()
+    with one_line_errors(parser.prog):
+        summary = work(args)
+    print(summary)

@@ -6,8 +6,8 @@ from pathlib import Path
 from hydra.utils import instantiate
 from omegaconf import DictConfig
 
-from nerfexp.arguments import add_run_arguments, command_parser, one_line_errors
-from nerfexp.console import quiet_dependencies
+from nerfexp.arguments import add_run_arguments, command_parser
+from nerfexp.console import run_command
 from nerfexp.rundir import EVAL, find_run, load_module, read_json, run_config
 from nerfexp.training.recorders import EvalRecorder
 
@@ -32,16 +32,18 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+def evaluate_run(run: Path, overrides: list[str]) -> str:
+    """Score the run at ``run`` (a run directory or a checkpoint file in one) with its saved config changed
+    by ``overrides`` (``evaluate``); returns a one-line summary."""
+    run_dir, checkpoint = find_run(run)
+    results = evaluate(run_config(run_dir, overrides), run_dir, checkpoint)
+    return (f"test PSNR {results['test_psnr']:.2f} dB, SSIM {results['test_ssim']:.4f} of {checkpoint} "
+            f"(step {results['step']}); written to {run_dir / EVAL}")
+
+
 def main(argv: list[str] | None = None) -> None:
     """The ``nerfexp-eval`` command (``build_parser``)."""
-    parser = build_parser()
-    args = parser.parse_args(argv)
-    quiet_dependencies()
-    with one_line_errors(parser.prog):
-        run_dir, checkpoint = find_run(args.run)
-        results = evaluate(run_config(run_dir, args.overrides), run_dir, checkpoint)
-    print(f"test PSNR {results['test_psnr']:.2f} dB, SSIM {results['test_ssim']:.4f} of {checkpoint} "
-          f"(step {results['step']}); written to {run_dir / EVAL}")
+    run_command(build_parser(), argv, lambda args: evaluate_run(args.run, args.overrides))
 
 
 if __name__ == "__main__":

@@ -21,8 +21,8 @@ from omegaconf import DictConfig
 from torch import Tensor
 from tqdm import tqdm
 
-from nerfexp.arguments import add_run_arguments, command_parser, one_line_errors, positive
-from nerfexp.console import quiet_dependencies
+from nerfexp.arguments import add_run_arguments, command_parser, positive
+from nerfexp.console import run_command
 from nerfexp.data.base import Scene
 from nerfexp.data.rays import model_batch
 from nerfexp.extras import require
@@ -152,14 +152,12 @@ def build_parser() -> argparse.ArgumentParser:
 
 def main(argv: list[str] | None = None) -> None:
     """The ``nerfexp-render`` command (``build_parser``)."""
-    parser = build_parser()
-    args = parser.parse_args(argv)
-    quiet_dependencies()
-    with one_line_errors(parser.prog):
+    def work(args: argparse.Namespace) -> str:
         require("imageio_ffmpeg", "nerfexp-render (its MP4 videos)")
         out_dir = render_run(args.run, args.overrides, args.frames, args.fps, args.size, args.chunk, args.path,
                              args.focus)
-    print(f"{args.frames} frames written to {out_dir}")
+        return f"{args.frames} frames written to {out_dir}"
+    run_command(build_parser(), argv, work)
 
 
 if __name__ == "__main__":
