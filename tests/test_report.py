@@ -198,7 +198,8 @@ def test_averaging_over_scenes_and_machines_are_named(tmp_path):
 def test_the_command_line(tmp_path, sweep):
     out = tmp_path / "out"
     main([str(sweep), "--out", str(out)])
-    assert {p.name for p in out.iterdir()} == {"report.md", "report.csv", "psnr_vs_time.png", "pareto.png"}
+    assert {p.name for p in out.iterdir()} == {"report.md", "report.csv", "psnr_vs_time.png", "pareto.png",
+                                              "report.html", "report_images"}
     empty = tmp_path / "empty"
     empty.mkdir()
     with pytest.raises(SystemExit, match="no runs"):

@@ -94,6 +94,12 @@ def test_smoke_sweep_through_the_report(tmp_path):
     for name in ("psnr_vs_time.png", "pareto.png"):
         assert iio.imread(sweep / name).shape[:2] == (500, 800)
     assert "## Ranking by mean test PSNR" in (sweep / "report.md").read_text()
+    # the page: per test view the truth and each variant's render and error, every one a real run's picture
+    html = (sweep / "report.html").read_text()
+    pictures = re.findall(r'<img src="(report_images/[^"]+)"', html)
+    views = re.findall(r"<h3>Test view (\d+)</h3>", html)
+    assert views and len(pictures) == 5 * len(views) and 'class="missing"' not in html
+    assert all(iio.imread(sweep / picture).ndim == 3 for picture in pictures)
     # TensorBoard's HPARAMS view: each job's choices and overrides, with the PSNR/SSIM scalars as metrics
     events = EventAccumulator(str(sweep / "0" / "tensorboard"))
     events.Reload()

@@ -14,7 +14,11 @@ Reads every run under the given directories (a run is a folder holding ``status.
 - ``psnr_vs_time.png``: validation PSNR against training wall-clock seconds: each variant's mean over
   seeds with a band from the lowest to the highest seed, single runs faint;
 - ``pareto.png``: final test PSNR against total training time (bars: one standard deviation over
-  seeds), the Pareto front drawn through the means.
+  seeds), the Pareto front drawn through the means;
+- ``report.html``: all of the above as a page that opens from disk (``nerfexp.report_page``), and a few
+  test views (``--views``) rendered by each variant beside the ground truth, with the render's error
+  image and its PSNR and SSIM; its pictures in ``report_images/``, decoded from the runs' ``test/``
+  PNGs and written anew.
 
 The reference is the paper's complete model (``ablation=complete``) where the sweep has it, else the
 variant named by ``--reference``; without either the report has no differences.
@@ -30,14 +34,22 @@ import math
 import socket
 import statistics
 import sys
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 
+import torch
+from matplotlib import colormaps
 from matplotlib.figure import Figure
+from torch import Tensor
 
 from nerfexp.arguments import command_parser
 from nerfexp.comparison import Difference, compare_order, paired_difference, seeds, tiers
-from nerfexp.files import atomic_write
+from nerfexp.data.images import read_image
+from nerfexp.errors import DatasetError
+from nerfexp.files import atomic_directory, atomic_write
+from nerfexp.pixels import png_bytes
+from nerfexp.report_page import Picture, Tile, page_html
 from nerfexp.rundir import METRICS, RESULTS, STATUS, find_run_dirs, planned_jobs, process_alive, read_json, read_metrics
 
 # The paper's Table 4 (mean over the 8 Realistic Synthetic scenes): conf/ablation/NAME -> (row, PSNR, SSIM).
@@ -487,17 +499,123 @@ def pareto_png(variants: list[Variant]) -> bytes:
     return _save(figure)
 
 
+IMAGES_DIR = "report_images"
+VIEWS_SHOWN = 3  # test views on the page by default: the first, the middle and the last
+PLOTS = [("psnr_vs_time.png", "validation PSNR against training seconds"),
+         ("pareto.png", "test PSNR against total training time")]
+
+
+def default_views(n_views: int, count: int = VIEWS_SHOWN) -> list[int]:
+    """``count`` of ``n_views`` test views spread evenly from the first to the last (all where there are
+    fewer). Example: 8 views, count 3: [0, 4, 7]."""
+    if n_views <= 1:
+        return list(range(n_views))
+    shown = min(count, n_views)
+    return sorted({round(k * (n_views - 1) / (shown - 1)) for k in range(shown)})
+
+
+def run_seed(run: Run) -> int | None:
+    seed = (run.results or {}).get("config", {}).get("seed")
+    return seed if isinstance(seed, int) else None
+
+
+def shown_run(variant: Variant) -> Run | None:
+    """The variant's finished run whose renders the page shows: the one with the lowest seed, so that
+    variants are shown with the same seed where they have it (then the first by path)."""
+    return min(variant.finished, key=lambda run: (run_seed(run) is None, run_seed(run) or 0, str(run.path)),
+               default=None)
+
+
+ERROR_WHITE = 0.25  # the error heat map's scale: 0 black, this mean absolute error (of 1) and above white
+
+
+def error_heatmap(rgba: Tensor) -> Tensor:
+    """The heat map [H, W, 3] (uint8) of an error image [H, W, 4] (uint8, |render - truth| per channel as
+    a run saves it): the mean over the colour channels on matplotlib's ``magma`` map, 0 black and
+    ``ERROR_WHITE`` or more white, the same scale for every variant."""
+    error = rgba[..., :3].double().mean(-1) / 255 / ERROR_WHITE
+    return torch.from_numpy(colormaps["magma"](error.clamp(0, 1).numpy(), bytes=True)[..., :3])
+
+
+def copy_picture(source: Path, folder: Path, name: str, alt: str,
+                 pixels: Callable[[Tensor], Tensor] = lambda rgba: rgba[..., :3]) -> Picture:
+    """The image file ``source`` (a run's render, read as data: decoded with its checks, never copied
+    byte for byte) written anew as the RGB PNG ``folder/name`` of ``pixels(rgba)`` (uint8 [H, W, 4] ->
+    [H, W, 3]); a missing or damaged file is a ``Picture`` saying so. ``name`` is relative to the page's
+    folder."""
+    try:
+        rgba = read_image(source, "the run's test renders")
+    except DatasetError as error:
+        return Picture(alt, missing="missing" if not source.is_file() else f"unreadable: {error}")
+    (folder / name).parent.mkdir(parents=True, exist_ok=True)
+    (folder / name).write_bytes(png_bytes(pixels(rgba).numpy()))
+    return Picture(alt, f"{IMAGES_DIR}/{name}", rgba.shape[1])
+
+
+def view_tiles(variants: list[Variant], views: list[int], folder: Path) -> dict[int, list[Tile]]:
+    """For each test view in ``views``: a ground-truth tile, then each variant's render and error image
+    (``shown_run``) with that view's PSNR and SSIM; the pictures written into ``folder``."""
+    shown = [(variant, shown_run(variant)) for variant in variants]
+    tiles = {}
+    for index in views:
+        truth = next((run.path / "test" / f"r_{index}_target.png" for _, run in shown
+                      if run is not None and (run.path / "test" / f"r_{index}_target.png").is_file()), None)
+        row = [Tile("ground truth", (copy_picture(truth, folder, f"view{index}/truth.png", "ground truth")
+                                     if truth else Picture("ground truth", missing="missing"),))]
+        for k, (variant, run) in enumerate(shown):
+            if run is None:
+                row.append(Tile(variant.label, (Picture("render", missing="no finished run"),)))
+                continue
+            test = run.path / "test"
+            pictures = (copy_picture(test / f"r_{index}.png", folder, f"view{index}/{k}.png", "render"),
+                        copy_picture(test / f"r_{index}_error.png", folder, f"view{index}/{k}_error.png",
+                                     "error heat map", error_heatmap))
+            caption = f"seed {run_seed(run)}"
+            if index in (views_run := run.results.get("test_views", [])):
+                at = views_run.index(index)
+                psnr, ssim = (run.results.get(f"test_{m}_per_view", [math.nan] * len(views_run))[at]
+                              for m in ("psnr", "ssim"))
+                caption = f"PSNR {psnr:.2f} dB, SSIM {ssim:.3f}, {caption}"
+            row.append(Tile(variant.label, pictures, caption))
+        tiles[index] = row
+    return tiles
+
+
+def check_views(variants: list[Variant], views: list[int] | None) -> list[int]:
+    """The test views to show: ``views`` where every one is a test view of some shown run, else a
+    SystemExit naming the ones that are not; None: ``default_views`` of the runs' test views."""
+    available = sorted({i for v in variants if (run := shown_run(v)) for i in run.results.get("test_views", [])})
+    if views is None:
+        return [available[i] for i in default_views(len(available))]
+    if unknown := [i for i in views if i not in available]:
+        have = f"views {available[0]} to {available[-1]}" if available else "no test views"
+        raise SystemExit(f"nerfexp-report: error: --views {' '.join(map(str, unknown))}: not a test view of "
+                         f"the runs shown (they have {have})")
+    return list(dict.fromkeys(views))
+
+
+VIEWS_NOTE = ("Each variant's run with the lowest seed: its render of the view (top) and its error (below): "
+              "the absolute difference to the ground truth averaged over the colour channels, black 0, white "
+              f"{ERROR_WHITE:g} and above (magma). The PSNR and SSIM are that run's on that view. Small images "
+              "are enlarged with visible pixels.")
+
+
 def write_report(directories: list[Path], out: Path, over: tuple[str, ...] = ("seed",),
-                 reference: str | None = None) -> list[Variant]:
+                 reference: str | None = None, views: list[int] | None = None) -> list[Variant]:
     """The report of the runs under ``directories`` in ``out``; ``reference``: the variant the others are
-    compared with (see ``reference_variant``)."""
+    compared with (see ``reference_variant``); ``views``: the test views on the page (``check_views``)."""
     runs = find_runs(directories)
     variants = group_variants([run for run in runs if run.state != "damaged"], over)
     base = reference_variant(variants, reference)
-    atomic_write(out / "report.md", markdown(variants, runs, directories, base).encode())
+    views = check_views(variants, views)
+    report_md = markdown(variants, runs, directories, base)
+    atomic_write(out / "report.md", report_md.encode())
     atomic_write(out / "report.csv", csv_text(variants, base).encode())
     atomic_write(out / "psnr_vs_time.png", psnr_vs_time_png(variants))
     atomic_write(out / "pareto.png", pareto_png(variants))
+    with atomic_directory(out / IMAGES_DIR, replace=True) as folder:
+        tiles = view_tiles(variants, views, folder)
+    atomic_write(out / "report.html", page_html(report_md, PLOTS, tiles, VIEWS_NOTE).encode())
     return variants
 
 
@@ -511,6 +629,9 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--reference", metavar="VARIANT",
                         help="the variant the others are compared with, by its label in the report (e.g. "
                              "'encoding=posenc, hierarchical=true'); default: ablation=complete if in the sweep")
+    parser.add_argument("--views", nargs="+", type=int, metavar="INDEX",
+                        help="test views shown in report.html, each variant's render beside the ground truth "
+                             f"(default: {VIEWS_SHOWN} spread from the first to the last)")
     return parser
 
 
@@ -518,5 +639,5 @@ def main(argv: list[str] | None = None) -> None:
     """The ``nerfexp-report`` command (``build_parser``)."""
     args = build_parser().parse_args(argv)
     out = args.out or args.dirs[0]
-    variants = write_report(args.dirs, out, tuple(args.over), args.reference)
-    print(f"{len(variants)} variants; report in {out / 'report.md'}", file=sys.stderr)
+    variants = write_report(args.dirs, out, tuple(args.over), args.reference, args.views)
+    print(f"{len(variants)} variants; report in {out / 'report.md'} and {out / 'report.html'}", file=sys.stderr)
