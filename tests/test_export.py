@@ -25,6 +25,7 @@ from nerfexp.data.procedural import (
     ProceduralScene,
     intersect_scene,
     scene_cameras,
+    signed_distances,
 )
 from nerfexp.data.views import Views
 from nerfexp.export import build_parser, export_box, extract_mesh, final_field, view_points
@@ -41,33 +42,9 @@ RAMP = 0.05  # the test field's density falls from THRESHOLD to 0 over this dist
 RESOLUTION = 64
 
 
-# The built-in scene's true geometry (nerfexp.data.procedural): each object's signed distance, negative inside.
-
-def box_distance(points: Tensor, lower, upper) -> Tensor:
-    lower, upper = torch.tensor(lower, dtype=F64), torch.tensor(upper, dtype=F64)
-    q = (points - (lower + upper) / 2).abs() - (upper - lower) / 2
-    return q.clamp_min(0).norm(dim=-1) + q.amax(-1).clamp_max(0)
-
-
-def sphere_distance(points: Tensor, centre, radius: float) -> Tensor:
-    return (points - torch.tensor(centre, dtype=F64)).norm(dim=-1) - radius
-
-
-def rod_distance(points: Tensor, centre_xy, radius: float, bottom: float, top: float) -> Tensor:
-    """A vertical cylinder: the box distance in (distance from the axis, height)."""
-    radial = (points[..., :2] - torch.tensor(centre_xy, dtype=F64)).norm(dim=-1) - radius
-    height = (points[..., 2] - (bottom + top) / 2).abs() - (top - bottom) / 2
-    q = torch.stack([radial, height], -1)
-    return q.clamp_min(0).norm(dim=-1) + q.amax(-1).clamp_max(0)
-
-
 def object_distances(points: Tensor) -> Tensor:
-    """[N, K]: the signed distance of points [N, 3] to each object, in ``intersect_scene``'s order (slab,
-    glossy sphere, striped sphere, rods standing on the slab's top)."""
-    points = points.double()
-    columns = [box_distance(points, *SLAB), sphere_distance(points, *GLOSSY[:2]), sphere_distance(points, *STRIPED)]
-    columns += [rod_distance(points, xy, r, SLAB[1][2], top) for xy, r, top, _ in RODS]
-    return torch.stack(columns, -1)
+    """[N, K]: the signed distance of points [N, 3] to each of the built-in scene's objects, in float64."""
+    return signed_distances(points.double())
 
 
 class BuiltInSceneField(nn.Module):

@@ -147,11 +147,11 @@ def view_points(module: NeRFModule, scene: Scene, views: Views, min_opacity: flo
     return torch.cat(points), torch.cat(colours)
 
 
-def export_run(run: Path, overrides: list[str], resolution: int, threshold: float, chunk: int | None,
-               min_opacity: float) -> str:
-    """Export the run at ``run`` (a run directory, or a checkpoint file in one) into ``RUN_DIR/export``:
-    ``mesh.ply`` (``extract_mesh``) and ``points.ply`` (``view_points`` of its test views). Returns a
-    one-line summary."""
+def trained_run(run: Path, overrides: list[str], chunk: int | None) -> tuple[Path, Path, int, NeRFModule, Scene]:
+    """The run at ``run`` (a run directory, or a checkpoint file in one) read as ``nerfexp-eval`` reads it,
+    ready to export: ``(run_dir, checkpoint, step, module, scene)``, the module in evaluation mode on the
+    GPU where there is one, rendering ``chunk`` rays at a time (None: the run's ``model.chunk``). Runs
+    trained on NDC rays are a NerfexpError, before their checkpoint is read."""
     run_dir, checkpoint = find_run(run)
     if run_config(run_dir).data.get("ndc", False):  # as trained: an override cannot change the field's space
         raise NerfexpError(f"{run_dir} was trained on NDC rays (data.ndc=true, a forward-facing scene): its "
@@ -161,14 +161,20 @@ def export_run(run: Path, overrides: list[str], resolution: int, threshold: floa
     module, step = load_module(cfg, checkpoint)
     if chunk is not None:
         module.chunk = chunk
-    device = "cuda" if torch.cuda.is_available() else "cpu"
-    module.to(device).eval()
-    scene = instantiate(cfg.data)
+    module.to("cuda" if torch.cuda.is_available() else "cpu").eval()
+    return run_dir, checkpoint, step, module, instantiate(cfg.data)
+
+
+def export_run(run: Path, overrides: list[str], resolution: int, threshold: float, chunk: int | None,
+               min_opacity: float) -> str:
+    """Export the run at ``run`` (``trained_run``) into ``RUN_DIR/export``: ``mesh.ply`` (``extract_mesh``)
+    and ``points.ply`` (``view_points`` of its test views). Returns a one-line summary."""
+    run_dir, checkpoint, step, module, scene = trained_run(run, overrides, chunk)
     renderer = module.renderer
     box = export_box(renderer, scene)
     # the grid is evaluated as many points at a time as a chunk of rays evaluates: the memory of rendering
     mesh, mesh_colours = extract_mesh(final_field(renderer), box, resolution, threshold,
-                                      module.chunk * renderer.samples_per_ray, device)
+                                      module.chunk * renderer.samples_per_ray, module.device)
     views = scene.views("test")
     points, point_colours = view_points(module, scene, views, min_opacity)
 

@@ -6,7 +6,16 @@ import pytest
 import torch
 
 from nerfexp.data import procedural as P
-from nerfexp.data.procedural import ProceduralScene, objects_box
+from nerfexp.data.procedural import (
+    CAMERA_ANGLE_X,
+    FAR,
+    NEAR,
+    ProceduralScene,
+    intersect_scene,
+    objects_box,
+    scene_cameras,
+    signed_distances,
+)
 from nerfexp.geometry.cameras import camera_rays, focal_from_fov, pixel_directions
 
 F64 = torch.float64
@@ -248,3 +257,25 @@ def test_every_pixel_that_shows_an_object_has_its_ray_through_the_scenes_box():
     origins, directions = (torch.stack(r).double() for r in zip(*rays))
     assert ray_meets_box(origins, directions, scene.bounding_box().double())[shown].all()
     assert not ray_meets_box(origins, directions, objects_box().double())[shown].all()  # the exact box cuts some
+
+
+def test_signed_distances_vanish_where_rays_hit_and_change_sign_across_the_surface():
+    # the scene's distances (signed_distances) against its ray intersections (intersect_scene): two
+    # formulas of the same shapes, on every pixel ray of two views
+    c2w = scene_cameras("test", 2)
+    origins, directions = camera_rays(c2w, 48, 48, focal_from_fov(48, CAMERA_ANGLE_X))
+    origins, directions = origins.double().reshape(-1, 3), directions.double().reshape(-1, 3)
+    t, normal, index = intersect_scene(origins, directions)
+    hit = torch.isfinite(t)
+    assert 500 < hit.sum() < len(t)
+    points, normal = origins[hit] + t[hit, None] * directions[hit], normal[hit]
+    distances = signed_distances(points)  # [N, K]
+    assert distances.amin(-1).abs().max() < 1e-9  # on the surface
+    # outside a little along the outward normal, inside a little against it
+    assert (signed_distances(points + 1e-4 * normal).amin(-1) > 0).all()
+    assert (signed_distances(points - 1e-4 * normal).amin(-1) < 0).all()
+    nearest = distances.abs().argmin(-1)
+    assert (nearest == index[hit]).float().mean() > 0.99  # the object hit (ties where objects touch)
+    ts = torch.linspace(NEAR, FAR, 200, dtype=torch.float64)
+    missed = origins[~hit, None] + ts[:, None] * directions[~hit, None]  # [M, 200, 3]
+    assert (signed_distances(missed).amin(-1) > 0).all()

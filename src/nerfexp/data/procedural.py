@@ -157,6 +157,33 @@ def intersect_scene(origins: Tensor, directions: Tensor) -> tuple[Tensor, Tensor
     return _nearest(hits)
 
 
+def _box_distance(points: Tensor, lower, upper) -> Tensor:
+    lower, upper = points.new_tensor(lower), points.new_tensor(upper)
+    q = (points - (lower + upper) / 2).abs() - (upper - lower) / 2  # per axis: outside the slab if positive
+    return q.clamp_min(0).norm(dim=-1) + q.amax(-1).clamp_max(0)
+
+
+def _sphere_distance(points: Tensor, centre, radius: float) -> Tensor:
+    return (points - points.new_tensor(centre)).norm(dim=-1) - radius
+
+
+def _rod_distance(points: Tensor, centre_xy, radius: float, bottom: float, top: float) -> Tensor:
+    """A vertical cylinder: the box distance in (distance from the axis, height)."""
+    radial = (points[..., :2] - points.new_tensor(centre_xy)).norm(dim=-1) - radius
+    height = (points[..., 2] - (bottom + top) / 2).abs() - (top - bottom) / 2
+    q = torch.stack([radial, height], -1)
+    return q.clamp_min(0).norm(dim=-1) + q.amax(-1).clamp_max(0)
+
+
+def signed_distances(points: Tensor) -> Tensor:
+    """The exact signed distance [..., K] of ``points`` [..., 3] to each object, negative inside, in
+    ``intersect_scene``'s order (slab, glossy sphere, striped sphere, rods): the scene's true geometry, what
+    an exported surface is measured against. The distance to the scene is the minimum over K."""
+    columns = [_box_distance(points, *SLAB), _sphere_distance(points, *GLOSSY[:2]), _sphere_distance(points, *STRIPED)]
+    columns += [_rod_distance(points, xy, r, SLAB[1][2], top) for xy, r, top, _ in RODS]
+    return torch.stack(columns, -1)
+
+
 def _checker(cells: Tensor, colours) -> Tensor:
     """Alternating colours [..., 3] by the parity of the summed integer cell coordinates [..., D]."""
     odd = (torch.floor(cells).sum(-1) % 2)[..., None]
