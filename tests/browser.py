@@ -35,3 +35,21 @@ def screenshot(url: str, out: Path, width: int, height: int, budget_ms: int = 20
     result = subprocess.run(command, capture_output=True, text=True, timeout=timeout_s)
     assert result.returncode == 0 and out.exists(), result.stderr[-2000:]
     return np.asarray(Image.open(io.BytesIO(out.read_bytes())).convert("RGB"))
+
+
+def open_page(url: str, profile: Path, width: int, height: int) -> subprocess.Popen:
+    """Headless chromium showing ``url`` in real time (no virtual time: a page that talks over a websocket
+    keeps talking) in a window ``width`` x ``height``, until the caller ends it (``close_page``)."""
+    command = [chromium(), *FLAGS, f"--user-data-dir={profile}", f"--window-size={width},{height}",
+               "--force-device-scale-factor=1", "--remote-debugging-port=0", url]
+    return subprocess.Popen(command, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+
+
+def close_page(browser: subprocess.Popen, timeout_s: float = 10) -> None:
+    """End a browser ``open_page`` started: SIGTERM, then SIGKILL where it is still there after ``timeout_s``."""
+    browser.terminate()
+    try:
+        browser.wait(timeout_s)
+    except subprocess.TimeoutExpired:
+        browser.kill()
+        browser.wait()

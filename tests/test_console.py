@@ -10,7 +10,7 @@ import pytest
 import torch
 from torch.utils.data import DataLoader, IterableDataset
 
-from nerfexp import evaluate, render, report, scene
+from nerfexp import evaluate, render, report, scene, view
 from nerfexp.training.progress import StepProgressBar
 from tests.helpers import REPO, TINY, command, run_nerfexp
 
@@ -29,12 +29,13 @@ def test_nerfexp_help_says_what_it_is_its_groups_sweeps_other_commands_and_outpu
         if folder.is_dir() and folder.name not in ("hydra", "__pycache__"):
             assert groups[folder.name] == sorted(p.stem for p in folder.glob("*.yaml")), folder.name
     assert "+sweeps=NAME" in text and "nerfexp -m " in text
-    for other in ("nerfexp-report", "nerfexp-eval", "nerfexp-render", "nerfexp-scene", "nerfexp-export"):
+    for other in ("nerfexp-report", "nerfexp-eval", "nerfexp-render", "nerfexp-scene", "nerfexp-export",
+                  "nerfexp-view"):
         assert f"  {other} " in text
     assert "outputs/DATE/TIME/" in text and "multirun/DATE/TIME/N/" in text
 
 
-@pytest.mark.parametrize("module", [evaluate, render, report, scene], ids=lambda m: m.__name__)
+@pytest.mark.parametrize("module", [evaluate, render, report, scene, view], ids=lambda m: m.__name__)
 def test_every_commands_help_reads_cleanly(module):
     parser = module.build_parser()
     text = parser.format_help()

@@ -2,6 +2,7 @@
 and the command line on a trained run against direct renders of the same cameras."""
 
 import json
+import re
 from pathlib import Path
 from types import SimpleNamespace
 
@@ -14,8 +15,10 @@ from hydra.utils import instantiate
 from omegaconf import OmegaConf
 
 from nerfexp.data.procedural import CAMERA_RADIUS
+from nerfexp.errors import NerfexpError
 from nerfexp.geometry.cameras import camera_rays
-from nerfexp.render import default_path, frame_size, render_frame, scene_focus_depth
+from nerfexp.pixels import to_uint8
+from nerfexp.render import default_path, frame_images, frame_size, read_camera_path, render_frame, scene_focus_depth
 from nerfexp.rundir import load_module, run_config
 from tests.helpers import TINY, cameras_at, run_nerfexp
 
@@ -44,7 +47,7 @@ def test_chunked_rendering_gives_the_image_of_unchunked_rendering():
     assert whole["rgb"].shape == (18, 20, 3) and whole["depth"].shape == whole["opacity"].shape == (18, 20)
     assert whole["rgb"].std() > 0  # an untrained field, but not a blank image
     for key in whole:
-        torch.testing.assert_close(chunked[key], whole[key], atol=1e-6, rtol=0)
+        torch.testing.assert_close(chunked[key], whole[key], atol=1e-6, rtol=1e-6)  # float32 round-off
 
 
 def read_video(path: Path) -> np.ndarray:
@@ -128,3 +131,73 @@ def test_the_spirals_focus_depth_comes_from_the_views_depth_bounds_else_the_ray_
     ray_bounds_only = SimpleNamespace(depth_bounds=lambda: None, ray_bounds=lambda: (2.0, 6.0))
     for scene in (per_view, ray_bounds_only):
         assert scene_focus_depth(scene) == pytest.approx(expected)
+
+
+def camera_file(path: Path, **changes) -> Path:
+    """A cameras file as nerfexp-render and nerfexp-view write them (3 cameras around the origin), with ``changes``."""
+    record = {"path": "viewer", "fps": 10, "height": 16, "width": 20, "focal": 20.0,
+              "c2w": cameras_at([4.0, 4.0, 4.0], [30.0, 20.0, 10.0], [0.0, 40.0, 80.0]).tolist(), **changes}
+    path.write_text(json.dumps({k: v for k, v in record.items() if v is not None}))
+    return path
+
+
+@pytest.mark.parametrize("changes, message", [
+    ({"height": None}, "no key 'height': expected a positive even number of pixels"),
+    ({"width": 0}, "key 'width': expected a positive even number of pixels, got 0"),
+    ({"width": 21}, "key 'width': expected a positive even number of pixels, got 21"),
+    ({"focal": -1}, "key 'focal': expected a positive focal length in pixels, got -1"),
+    ({"c2w": []}, "key 'c2w': expected a non-empty list of 4 x 4 rigid camera-to-world matrices (OpenGL "
+                  "convention), got an empty list"),
+    ({"c2w": [[[1, 0, 0, 0]] * 3]}, "key 'c2w': expected a non-empty list of 4 x 4 rigid camera-to-world matrices "
+                                    "(OpenGL convention), item 0 is not a 4 x 4 matrix of numbers"),
+    ({"c2w": [torch.diag(torch.tensor([2.0, 2, 2, 1])).tolist()]},
+     "item 0 is not a rigid transform: its rotation is not orthonormal"),
+    ({"c2w": "cameras"}, "got a str"),
+])
+def test_a_bad_cameras_file_is_one_error_naming_the_file_the_key_and_what_was_expected(tmp_path, changes, message):
+    path = camera_file(tmp_path / "cameras.json", **changes)
+    with pytest.raises(NerfexpError) as error:
+        read_camera_path(path)
+    assert str(error.value).startswith(f"--cameras {path}: ") and message in str(error.value)
+
+
+def test_a_cameras_file_that_is_no_json_object_is_refused_before_the_run_is_read(tmp_path):
+    (tmp_path / "bad.json").write_text("{not json")
+    (tmp_path / "list.json").write_text("[1, 2]")
+    for name, message in (("bad.json", "not JSON (Expecting property name"), ("list.json", "expected a JSON object")):
+        with pytest.raises(NerfexpError, match=re.escape(f"--cameras {tmp_path / name}: {message}")):
+            read_camera_path(tmp_path / name)
+    # on the command line: one line, before the run is looked for (there is none here)
+    result = run_nerfexp(str(tmp_path / "no_run"), "--cameras", str(tmp_path / "bad.json"), cwd=tmp_path,
+                         script="nerfexp-render")
+    lines = result.stderr.strip().splitlines()
+    assert result.returncode == 1 and len(lines) == 1, result.stderr[-2000:]
+    assert lines[0].startswith(f"nerfexp-render: error: --cameras {tmp_path / 'bad.json'}: not JSON"), lines
+
+
+@pytest.mark.slow
+def test_rendering_a_cameras_file_renders_exactly_its_cameras(tiny_run, tmp_path):
+    path = camera_file(tmp_path / "camera_path.json")
+    result = run_nerfexp(str(tiny_run), "--cameras", str(path), cwd=tmp_path, script="nerfexp-render")
+    assert result.returncode == 0, result.stderr[-3000:]
+    assert result.stdout.strip().endswith(f"3 frames written to {tiny_run / 'render'}")
+    out = tiny_run / "render"
+    written = json.loads((out / "cameras.json").read_text())
+    assert written == json.loads(path.read_text())  # the file's cameras, size, focal length and fps
+    module, _ = load_module(run_config(tiny_run), tiny_run / "checkpoints" / "last.ckpt")
+    scene = instantiate(run_config(tiny_run).data)
+    near, far = module.renderer.near, module.renderer.far
+    for i, c2w in enumerate(written["c2w"]):
+        truth = frame_images(render_frame(module.eval(), scene, torch.tensor(c2w), 16, 20, 20.0), near, far)
+        for kind, image in truth.items():
+            assert np.array_equal(imageio.imread(out / kind / f"{i:04d}.png"), to_uint8(image)), (i, kind)
+
+    # --size rescales the file's frames, keeping the field of view; path options do not apply
+    result = run_nerfexp(str(tiny_run), "--cameras", str(path), "--size", "10", cwd=tmp_path, script="nerfexp-render")
+    assert result.returncode == 0, result.stderr[-3000:]
+    written = json.loads((out / "cameras.json").read_text())
+    assert (written["height"], written["width"], written["focal"]) == (8, 10, 10.0)
+    assert imageio.imread(out / "rgb" / "0002.png").shape == (8, 10, 3)
+    result = run_nerfexp(str(tiny_run), "--cameras", str(path), "--frames", "5", cwd=tmp_path,
+                         script="nerfexp-render")
+    assert result.returncode == 2 and "--cameras renders the file's cameras: --frames do not apply" in result.stderr

@@ -27,6 +27,7 @@ from pathlib import Path
 import numpy as np
 import torch
 from hydra.utils import instantiate
+from omegaconf import DictConfig
 from torch import Tensor, nn
 from tqdm import tqdm
 
@@ -42,7 +43,7 @@ from nerfexp.nerf.bounds import Bounded
 from nerfexp.nerf.volume_renderer import VolumeRenderer
 from nerfexp.pixels import to_uint8
 from nerfexp.ply import face_rows, ply_bytes, vertex_rows
-from nerfexp.rundir import find_run, load_module, run_config
+from nerfexp.rundir import TrainedRun, load_run
 from nerfexp.training.module import NeRFModule
 
 EXPORT_DIR = "export"
@@ -147,29 +148,27 @@ def view_points(module: NeRFModule, scene: Scene, views: Views, min_opacity: flo
     return torch.cat(points), torch.cat(colours)
 
 
-def trained_run(run: Path, overrides: list[str], chunk: int | None) -> tuple[Path, Path, int, NeRFModule, Scene]:
-    """The run at ``run`` (a run directory, or a checkpoint file in one) read as ``nerfexp-eval`` reads it,
-    ready to export: ``(run_dir, checkpoint, step, module, scene)``, the module in evaluation mode on the
-    GPU where there is one, rendering ``chunk`` rays at a time (None: the run's ``model.chunk``). Runs
-    trained on NDC rays are a NerfexpError, before their checkpoint is read."""
-    run_dir, checkpoint = find_run(run)
-    if run_config(run_dir).data.get("ndc", False):  # as trained: an override cannot change the field's space
+def refuse_ndc(run_dir: Path, saved: DictConfig) -> None:
+    """A NerfexpError for a run trained on NDC rays (its saved config's ``data.ndc``: an override cannot
+    change the space its field was trained in)."""
+    if saved.data.get("ndc", False):
         raise NerfexpError(f"{run_dir} was trained on NDC rays (data.ndc=true, a forward-facing scene): its "
                            "field lives in NDC space, where a mesh and points would be distorted; nerfexp-export "
                            "exports runs trained on world rays")
-    cfg = run_config(run_dir, overrides)
-    module, step = load_module(cfg, checkpoint)
-    if chunk is not None:
-        module.chunk = chunk
-    module.to("cuda" if torch.cuda.is_available() else "cpu").eval()
-    return run_dir, checkpoint, step, module, instantiate(cfg.data)
+
+
+def trained_run(run: Path, overrides: list[str], chunk: int | None) -> tuple[TrainedRun, Scene]:
+    """The run at ``run`` read as ``nerfexp-eval`` reads it (``load_run``), runs trained on NDC rays refused
+    before their checkpoint is read (``refuse_ndc``), and its scene."""
+    loaded = load_run(run, overrides, chunk, refuse=refuse_ndc)
+    return loaded, instantiate(loaded.cfg.data)
 
 
 def export_run(run: Path, overrides: list[str], resolution: int, threshold: float, chunk: int | None,
                min_opacity: float) -> str:
     """Export the run at ``run`` (``trained_run``) into ``RUN_DIR/export``: ``mesh.ply`` (``extract_mesh``)
     and ``points.ply`` (``view_points`` of its test views). Returns a one-line summary."""
-    run_dir, checkpoint, step, module, scene = trained_run(run, overrides, chunk)
+    (run_dir, checkpoint, _, module, step), scene = trained_run(run, overrides, chunk)
     renderer = module.renderer
     box = export_box(renderer, scene)
     # the grid is evaluated as many points at a time as a chunk of rays evaluates: the memory of rendering

@@ -10,6 +10,7 @@ EXTRAS = {  # module -> the extra that installs it
     "pycolmap": "colmap",
     "imageio_ffmpeg": "video",
     "hydra_plugins.hydra_submitit_launcher": "slurm",
+    "viser": "view",
 }
 
 

@@ -6,11 +6,16 @@ written, so a reader sees the previous render or the new one, never a part):
 ``rgb.mp4``, ``depth.mp4``, ``opacity.mp4``; the same frames as 8-bit PNGs ``rgb/0000.png``, ...,
 ``depth/0000.png``, ..., ``opacity/0000.png``, ...; and ``cameras.json``: the path's name, ``fps``,
 ``height``, ``width``, ``focal`` (pixels) and ``c2w`` per frame.
+
+``--cameras FILE`` renders the cameras of a file in that format instead of an orbit or a spiral: a
+``cameras.json`` of an earlier render, or a path saved by ``nerfexp-view`` (``RUN_DIR/view/camera_path.json``).
 """
 
 import argparse
 import contextlib
 import json
+from collections.abc import Iterator
+from dataclasses import dataclass
 from pathlib import Path
 
 import imageio.v2 as imageio
@@ -25,16 +30,20 @@ from nerfexp.arguments import add_run_arguments, command_parser, positive
 from nerfexp.console import run_command
 from nerfexp.data.base import Scene
 from nerfexp.data.rays import model_batch
+from nerfexp.errors import NerfexpError
 from nerfexp.extras import require
 from nerfexp.files import atomic_directory
 from nerfexp.geometry.camera_paths import llff_focus_depth, orbit_path, spiral_path
-from nerfexp.geometry.cameras import camera_rays
+from nerfexp.geometry.cameras import camera_rays, pose_problem
 from nerfexp.pixels import depth_image, png_bytes, to_uint8
-from nerfexp.rundir import RENDER_DIR, find_run, load_module, run_config
+from nerfexp.rundir import RENDER_DIR, load_run
 from nerfexp.training.module import NeRFModule
 
 PATHS = ("orbit", "spiral")
 KINDS = ("rgb", "depth", "opacity")  # what is rendered of each frame, each a video and a folder of PNGs
+CAMERAS = "cameras.json"  # a render's cameras, in the format --cameras reads (``camera_path_record``)
+DEFAULT_FPS = 30.0
+DEFAULT_FRAMES = 120
 
 
 def default_path(data: DictConfig) -> str:
@@ -44,12 +53,17 @@ def default_path(data: DictConfig) -> str:
     return "spiral" if forward_facing else "orbit"
 
 
-def scene_focus_depth(scene: Scene) -> float:
-    """The spiral's focus depth from the scene's depth bounds: its per-view ``depth_bounds()`` where it
-    has them (LLFF), else its ray bounds ``ray_bounds()``."""
+def scene_depth_range(scene: Scene) -> tuple[float, float]:
+    """``(near, far)``: the depths the scene's content lies between, from its per-view ``depth_bounds()``
+    where it has them (LLFF), else its ray bounds ``ray_bounds()``."""
     bounds = scene.depth_bounds()
     near, far = scene.ray_bounds() if bounds is None else (bounds.min().item(), bounds.max().item())
-    return llff_focus_depth(float(near), float(far))
+    return float(near), float(far)
+
+
+def scene_focus_depth(scene: Scene) -> float:
+    """The spiral's focus depth (``llff_focus_depth``) from the scene's depth range (``scene_depth_range``)."""
+    return llff_focus_depth(*scene_depth_range(scene))
 
 
 def frame_size(height: int, width: int, focal: float, size: int | None) -> tuple[int, int, float]:
@@ -61,15 +75,31 @@ def frame_size(height: int, width: int, focal: float, size: int | None) -> tuple
     return scaled_height, size, focal * size / width
 
 
-def render_frame(module: NeRFModule, scene: Scene, c2w: Tensor, height: int, width: int,
-                 focal: float) -> dict[str, Tensor]:
-    """The module's render of camera ``c2w`` [4, 4]: ``rgb`` [H, W, 3], ``depth``, ``opacity`` [H, W].
+def frame_bands(module: NeRFModule, scene: Scene, c2w: Tensor, height: int, width: int,
+                focal: float) -> Iterator[dict[str, Tensor]]:
+    """The module's render of camera ``c2w`` [4, 4] band by band of rows, top to bottom, each band's
+    ``rgb`` [B, W, 3], ``depth``, ``opacity`` [B, W] rendered when it is asked for: a caller may stop
+    between bands (the viewer abandons a render when its camera moves). A band is as many rows as
+    ``module.chunk`` rays fill (at least one): one chunk, or the whole frame where it fits in one.
 
     The camera's world rays become the model's rays as in training (``model_batch``); the module renders
     them ``module.chunk`` rays at a time, so memory is bounded at any resolution."""
     origins, directions = camera_rays(c2w.to(module.device, torch.float32), height, width, focal)
     batch = model_batch(scene, {"origins": origins, "directions": directions})
-    return module.render_image(batch["origins"], batch["directions"], batch.get("viewdirs"))
+    rows = max(1, module.chunk // width)
+    for start in range(0, height, rows):
+        band = slice(start, start + rows)
+        viewdirs = batch.get("viewdirs")
+        yield module.render_image(batch["origins"][band], batch["directions"][band],
+                                  None if viewdirs is None else viewdirs[band])
+
+
+def render_frame(module: NeRFModule, scene: Scene, c2w: Tensor, height: int, width: int,
+                 focal: float) -> dict[str, Tensor]:
+    """The module's render of camera ``c2w`` [4, 4]: ``rgb`` [H, W, 3], ``depth``, ``opacity`` [H, W]
+    (``frame_bands`` put together)."""
+    bands = list(frame_bands(module, scene, c2w, height, width, focal))
+    return {key: torch.cat([band[key] for band in bands]) for key in bands[0]}
 
 
 def frame_images(frame: dict[str, Tensor], near: float, far: float) -> dict[str, Tensor]:
@@ -77,6 +107,88 @@ def frame_images(frame: dict[str, Tensor], near: float, far: float) -> dict[str,
     far black, faded by opacity: ``nerfexp.pixels.depth_image``) and ``opacity`` [H, W]."""
     return {"rgb": frame["rgb"], "depth": depth_image(frame["depth"], frame["opacity"], near, far),
             "opacity": frame["opacity"]}
+
+
+@dataclass
+class CameraPath:
+    """The cameras of a video: ``c2w`` [F, 4, 4] float64 (OpenGL, ``nerfexp.geometry.cameras``), one per
+    frame, seen by frames ``height`` x ``width`` pixels at ``focal`` (pixels), played at ``fps``; ``name``
+    says where they came from (``orbit``, ``spiral``, ``viewer``, ...)."""
+
+    name: str
+    c2w: Tensor
+    height: int
+    width: int
+    focal: float
+    fps: float
+
+    def record(self) -> dict:
+        """The path as JSON data: keys path, fps, height, width, focal, c2w (a list of 4 x 4 lists)."""
+        return {"path": self.name, "fps": self.fps, "height": self.height, "width": self.width,
+                "focal": self.focal, "c2w": self.c2w.tolist()}
+
+
+def _number(value, integer: bool = False) -> bool:
+    """Whether a JSON value is a number (an integer where ``integer``), not a boolean."""
+    return isinstance(value, int if integer else (int, float)) and not isinstance(value, bool)
+
+
+def _c2w_problem(c2w) -> str | None:
+    """Why a JSON value is not a non-empty list of rigid 4 x 4 camera-to-world matrices, or None."""
+    if not isinstance(c2w, list):
+        return f"got a {type(c2w).__name__}"
+    if not c2w:
+        return "got an empty list"
+    for index, matrix in enumerate(c2w):
+        shaped = isinstance(matrix, list) and len(matrix) == 4 and all(
+            isinstance(row, list) and len(row) == 4 and all(map(_number, row)) for row in matrix)
+        if not shaped:
+            return f"item {index} is not a 4 x 4 matrix of numbers"
+        if problem := pose_problem(torch.tensor(matrix, dtype=torch.float64)):
+            return f"item {index} is not a rigid transform: {problem}"
+    return None
+
+
+def read_camera_path(file: Path) -> CameraPath:
+    """The cameras of ``file`` (``CameraPath.record``'s JSON: a render's ``cameras.json``, a path saved by
+    ``nerfexp-view``), checked: a NerfexpError naming the file, the key and what was expected where it is
+    not JSON, lacks a key, has a size or focal length that is not positive (sizes also even: video encoders
+    need them so), or c2w is not a non-empty list of rigid 4 x 4 transforms. ``path`` and ``fps`` may be
+    left out (``file``, 30)."""
+    try:
+        data = json.loads(Path(file).read_text())
+    except OSError as error:
+        raise NerfexpError(f"--cameras {file}: cannot be read ({error.strerror})") from None
+    except (json.JSONDecodeError, UnicodeDecodeError) as error:
+        raise NerfexpError(f"--cameras {file}: not JSON ({error})") from None
+    expected = {"height": "a positive even number of pixels", "width": "a positive even number of pixels",
+                "focal": "a positive focal length in pixels", "fps": "a positive number of frames per second",
+                "c2w": "a non-empty list of 4 x 4 rigid camera-to-world matrices (OpenGL convention)"}
+    if not isinstance(data, dict):
+        raise NerfexpError(f"--cameras {file}: expected a JSON object with keys {', '.join(expected)}")
+    data = {"path": Path(file).name, "fps": DEFAULT_FPS, **data}
+    for key, what in expected.items():
+        if key not in data:
+            raise NerfexpError(f"--cameras {file}: no key '{key}': expected {what}")
+        value = data[key]
+        if key == "c2w":
+            problem = _c2w_problem(value)
+        elif key in ("height", "width"):
+            problem = None if _number(value, integer=True) and value > 0 and value % 2 == 0 else f"got {value!r}"
+        elif not (_number(value) and 0 < value < float("inf")):
+            problem = f"got {value!r}"
+        else:
+            problem = None
+        if problem:
+            raise NerfexpError(f"--cameras {file}: key '{key}': expected {what}, {problem}")
+    return CameraPath(str(data["path"]), torch.tensor(data["c2w"], dtype=torch.float64), data["height"],
+                      data["width"], float(data["focal"]), float(data["fps"]))
+
+
+def rgb_pixels(image: Tensor) -> np.ndarray:
+    """8-bit RGB pixels [H, W, 3] of an image [H, W, 3] or a grey one [H, W] (its value in each channel)."""
+    pixels = to_uint8(image)
+    return pixels if pixels.ndim == 3 else np.repeat(pixels[..., None], 3, -1)
 
 
 def render_path(module: NeRFModule, scene: Scene, cameras: Tensor, height: int, width: int, focal: float,
@@ -94,35 +206,42 @@ def render_path(module: NeRFModule, scene: Scene, cameras: Tensor, height: int, 
                 frame = to_uint8(image)  # [H, W, 3] or [H, W]
                 (out_dir / kind).mkdir(exist_ok=True)
                 (out_dir / kind / f"{index:04d}.png").write_bytes(png_bytes(frame))
-                writers[kind].append_data(frame if frame.ndim == 3 else np.repeat(frame[..., None], 3, -1))
+                writers[kind].append_data(rgb_pixels(image))
 
 
-def render_run(run: Path, overrides: list[str], n_frames: int, fps: float, size: int | None, chunk: int | None,
-               path: str | None, focus: float | None) -> Path:
-    """Render the run at ``run`` (a run directory, or a checkpoint file in one) along a camera path made
-    from its training cameras: ``path`` (None: ``default_path``), into ``RUN_DIR/render``; returns it."""
-    run_dir, checkpoint = find_run(run)
-    cfg = run_config(run_dir, overrides)
-    module, _ = load_module(cfg, checkpoint)
-    if chunk is not None:
-        module.chunk = chunk
-    module.to("cuda" if torch.cuda.is_available() else "cpu").eval()
-    scene = instantiate(cfg.data)
+def training_path(scene: Scene, data: DictConfig, path: str | None, n_frames: int, focus: float | None,
+                  fps: float) -> CameraPath:
+    """A camera path of ``n_frames`` made from the scene's training cameras: ``path`` (``orbit_path`` or
+    ``spiral_path`` looking at ``focus``, None: ``scene_focus_depth``; None: ``default_path`` of the data
+    config), seen as the training views are (their size and focal length)."""
     views = scene.views("train")
-    path = path or default_path(cfg.data)
+    path = path or default_path(data)
     c2w = views.c2w.double()
     if path == "orbit":
         cameras = orbit_path(c2w, n_frames)
     else:
         cameras = spiral_path(c2w, n_frames, focus if focus is not None else scene_focus_depth(scene))
-    height, width, focal = frame_size(views.height, views.width, views.focal, size)
+    return CameraPath(path, cameras, views.height, views.width, views.focal, fps)
+
+
+def render_run(run: Path, overrides: list[str], n_frames: int, fps: float | None, size: int | None,
+               chunk: int | None, path: str | None, focus: float | None,
+               cameras: CameraPath | None = None) -> tuple[Path, int]:
+    """Render the run at ``run`` (a run directory, or a checkpoint file in one) into ``RUN_DIR/render``
+    along ``cameras`` (None: a ``training_path``), frames ``size`` pixels wide (``frame_size``; None: the
+    cameras' own size) played at ``fps`` (None: the cameras'; 30 for a training path). Returns the folder
+    and the number of frames."""
+    run_dir, _, cfg, module, _ = load_run(run, overrides, chunk)
+    scene = instantiate(cfg.data)
+    if cameras is None:
+        cameras = training_path(scene, cfg.data, path, n_frames, focus, DEFAULT_FPS)
+    height, width, focal = frame_size(cameras.height, cameras.width, cameras.focal, size)
+    frames = CameraPath(cameras.name, cameras.c2w, height, width, focal, fps or cameras.fps)
     out_dir = run_dir / RENDER_DIR
     with atomic_directory(out_dir, replace=True) as new:
-        render_path(module, scene, cameras, height, width, focal, new, fps)
-        record = {"path": path, "fps": fps, "height": height, "width": width, "focal": focal,
-                  "c2w": cameras.tolist()}
-        (new / "cameras.json").write_text(json.dumps(record, indent=2))
-    return out_dir
+        render_path(module, scene, frames.c2w, height, width, focal, new, frames.fps)
+        (new / CAMERAS).write_text(json.dumps(frames.record(), indent=2))
+    return out_dir, len(frames.c2w)
 
 
 def _even(text: str) -> int:
@@ -134,16 +253,22 @@ def _even(text: str) -> int:
 
 def build_parser() -> argparse.ArgumentParser:
     """``nerfexp-render RUN_DIR`` (or a checkpoint file in it): render the trained model along a camera
-    path (an orbit around 360-degree scenes, a spiral for forward-facing ones) into RUN_DIR/render:
-    rgb.mp4, depth.mp4, opacity.mp4 and their PNG frames."""
+    path (an orbit around 360-degree scenes, a spiral for forward-facing ones, or the cameras of a file)
+    into RUN_DIR/render: rgb.mp4, depth.mp4, opacity.mp4, their PNG frames and cameras.json."""
     parser = command_parser("nerfexp-render", build_parser.__doc__)
     add_run_arguments(parser)
     parser.add_argument("--path", choices=PATHS, help="camera path (default: spiral for forward-facing "
                         "scenes, i.e. data.ndc or an LLFF scene; else orbit)")
-    parser.add_argument("--frames", type=positive(int), default=120, help="number of frames (default 120)")
-    parser.add_argument("--fps", type=positive(float), default=30, help="frames per second of the videos (default 30)")
+    parser.add_argument("--cameras", type=Path, metavar="FILE",
+                        help="render exactly the cameras of FILE instead of a path: a JSON object with keys "
+                             "height, width, focal (pixels) and c2w (a list of 4 x 4 camera-to-world matrices, "
+                             "OpenGL convention), optionally fps and path; e.g. a path saved by nerfexp-view "
+                             "(RUN_DIR/view/camera_path.json) or an earlier render's cameras.json")
+    parser.add_argument("--frames", type=positive(int), help=f"number of frames of the path (default {DEFAULT_FRAMES})")
+    parser.add_argument("--fps", type=positive(float), help="frames per second of the videos (default: the "
+                        "--cameras file's fps, else 30)")
     parser.add_argument("--size", type=_even, help="frame width in pixels, even; the height keeps the "
-                        "training views' aspect ratio (default: the training views' width)")
+                        "cameras' aspect ratio (default: the training views' width, or the --cameras file's)")
     parser.add_argument("--chunk", type=positive(int), help="rays rendered at once (default: the run's model.chunk)")
     parser.add_argument("--focus", type=positive(float), help="spiral only: the depth its cameras look at "
                         "(default: from the scene's depth bounds)")
@@ -152,12 +277,21 @@ def build_parser() -> argparse.ArgumentParser:
 
 def main(argv: list[str] | None = None) -> None:
     """The ``nerfexp-render`` command (``build_parser``)."""
+    parser = build_parser()
+
     def work(args: argparse.Namespace) -> str:
         require("imageio_ffmpeg", "nerfexp-render (its MP4 videos)")
-        out_dir = render_run(args.run, args.overrides, args.frames, args.fps, args.size, args.chunk, args.path,
-                             args.focus)
-        return f"{args.frames} frames written to {out_dir}"
-    run_command(build_parser(), argv, work)
+        cameras = None
+        if args.cameras is not None:
+            given = [flag for flag, value in (("--path", args.path), ("--frames", args.frames),
+                                              ("--focus", args.focus)) if value is not None]
+            if given:
+                parser.error(f"--cameras renders the file's cameras: {', '.join(given)} do not apply")
+            cameras = read_camera_path(args.cameras)  # checked before the run is loaded
+        out_dir, n_frames = render_run(args.run, args.overrides, args.frames or DEFAULT_FRAMES, args.fps, args.size,
+                                       args.chunk, args.path, args.focus, cameras)
+        return f"{n_frames} frames written to {out_dir}"
+    run_command(parser, argv, work)
 
 
 if __name__ == "__main__":

@@ -29,7 +29,9 @@ import pickle
 import socket
 import tempfile
 import time
+from collections.abc import Callable
 from pathlib import Path
+from typing import NamedTuple
 
 import lightning as L
 import torch
@@ -361,3 +363,30 @@ def load_module(cfg: DictConfig, checkpoint: Path) -> tuple[L.LightningModule, i
         raise NerfexpError(f"{checkpoint}: not a checkpoint of this run's model "
                            f"({type(error).__name__}: {str(error).splitlines()[0]})") from None
     return module, state["global_step"]
+
+
+class TrainedRun(NamedTuple):
+    """A run read back for rendering (``load_run``)."""
+
+    run_dir: Path
+    checkpoint: Path
+    cfg: DictConfig  # the run's saved config, with the caller's overrides
+    module: L.LightningModule  # with the checkpoint's weights, in eval mode
+    step: int  # optimizer steps the checkpoint had taken
+
+
+def load_run(run: str | Path, overrides: list[str] = (), chunk: int | None = None,
+             refuse: Callable[[Path, DictConfig], None] | None = None) -> TrainedRun:
+    """The run at ``run`` (a run directory, or a checkpoint file in one) read as data (``find_run``,
+    ``run_config`` with ``overrides``, ``load_module``): its module in eval mode on the GPU where there is
+    one, rendering ``chunk`` rays at once (None: the run's ``model.chunk``). ``refuse(run_dir, saved
+    config)``, where given, is called before the checkpoint is read, to raise for runs a command cannot use."""
+    run_dir, checkpoint = find_run(run)
+    if refuse is not None:
+        refuse(run_dir, run_config(run_dir))
+    cfg = run_config(run_dir, overrides)
+    module, step = load_module(cfg, checkpoint)
+    if chunk is not None:
+        module.chunk = chunk
+    module.to("cuda" if torch.cuda.is_available() else "cpu").eval()
+    return TrainedRun(run_dir, checkpoint, cfg, module, step)
