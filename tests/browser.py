@@ -1,14 +1,19 @@
 """A real browser for the tests that check what a person sees: Debian's chromium, headless (``.ci/run``
 installs it where it is missing). A test that needs it fails, not skips, where it is absent."""
 
+import base64
 import io
+import json
 import shutil
 import subprocess
+import time
+import urllib.request
 from pathlib import Path
 
 import numpy as np
 import pytest
 from PIL import Image
+from websockets.sync.client import connect
 
 NAMES = ("chromium", "chromium-browser", "google-chrome")
 FLAGS = ("--headless", "--no-sandbox", "--disable-gpu", "--hide-scrollbars", "--no-first-run",
@@ -53,3 +58,22 @@ def close_page(browser: subprocess.Popen, timeout_s: float = 10) -> None:
     except subprocess.TimeoutExpired:
         browser.kill()
         browser.wait()
+
+
+def page_screenshot(profile: Path, timeout_s: float = 30) -> np.ndarray:
+    """A screenshot [H, W, 3] (uint8) of the page a browser ``open_page`` started with ``profile`` shows
+    now, taken over the DevTools protocol (``Page.captureScreenshot``) at the port chromium wrote to the
+    profile's ``DevToolsActivePort``."""
+    deadline = time.monotonic() + timeout_s
+    port_file = profile / "DevToolsActivePort"
+    while not port_file.is_file() or not port_file.read_text().strip():
+        assert time.monotonic() < deadline, f"chromium wrote no {port_file}"
+        time.sleep(0.1)
+    port = int(port_file.read_text().split()[0])
+    with urllib.request.urlopen(f"http://127.0.0.1:{port}/json/list", timeout=timeout_s) as response:
+        pages = [target for target in json.load(response) if target["type"] == "page"]
+    with connect(pages[0]["webSocketDebuggerUrl"], open_timeout=timeout_s, max_size=None) as socket:
+        socket.send(json.dumps({"id": 1, "method": "Page.captureScreenshot", "params": {"format": "png"}}))
+        while (reply := json.loads(socket.recv(timeout=timeout_s))).get("id") != 1:
+            pass  # an event, not the reply
+    return np.asarray(Image.open(io.BytesIO(base64.b64decode(reply["result"]["data"]))).convert("RGB"))

@@ -15,6 +15,7 @@ import numpy as np
 import pytest
 import torch
 from hydra.utils import instantiate
+from PIL import Image
 from viser import transforms as viser_transforms
 from viser._viser import CameraHandle
 
@@ -22,9 +23,17 @@ from nerfexp.geometry import viewer_cameras
 from nerfexp.geometry.cameras import camera_rays, focal_from_fov, look_at
 from nerfexp.geometry.viewer_cameras import matrix_quaternion, quaternion_matrix, vertical_fov, viewer_pose
 from nerfexp.render import read_camera_path
-from nerfexp.rundir import run_config
-from nerfexp.view import CAMERA_PATH, ProgressiveRenderer, ViewRequest, refinement_sizes, saved_camera_path, target_size
-from tests.browser import close_page, open_page
+from nerfexp.rundir import load_run, run_config
+from nerfexp.view import (
+    CAMERA_PATH,
+    ProgressiveRenderer,
+    ViewRequest,
+    refinement_sizes,
+    render_request,
+    saved_camera_path,
+    target_size,
+)
+from tests.browser import close_page, open_page, page_screenshot
 from tests.helpers import command
 
 POSES = [  # (eye, target, world up)
@@ -209,7 +218,7 @@ def wait_for(lines: queue.Queue, seen: list[str], pattern: re.Pattern, timeout: 
 
 @pytest.mark.slow
 def test_the_viewer_sends_renders_of_the_first_test_camera_to_a_real_browser(tiny_run, tmp_path):
-    argv, env = command("nerfexp-view", str(tiny_run), "--port", "0")
+    argv, env = command("nerfexp-view", str(tiny_run), "--port", "0", "--image", "opacity")
     server = subprocess.Popen(argv, cwd=tmp_path, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
                               env=env)
     lines, seen = queue.Queue(), []
@@ -217,7 +226,7 @@ def test_the_viewer_sends_renders_of_the_first_test_camera_to_a_real_browser(tin
     try:
         serving = wait_for(lines, seen, re.compile(r"at (http://127\.0\.0\.1:\d+) \(Ctrl-C to stop\)"), 60)
         assert serving, "\n".join(seen)
-        browser = open_page(serving[1], tmp_path / "profile", 640, 480)
+        browser = open_page(serving[1], tmp_path / "profile", 1280, 960)
         # the finest render (the test views' 24 pixels wide) of the first test camera reached the browser
         views = instantiate(run_config(tiny_run).data).views("test")
         first = views.c2w[0].double()
@@ -228,10 +237,24 @@ def test_the_viewer_sends_renders_of_the_first_test_camera_to_a_real_browser(tin
             if torch.allclose(position, first[:3, 3].float(), atol=1e-3):
                 break
             seen.remove(match.string)  # a frame of the camera before the initial one arrived: look further
-        close_page(browser)
         assert match, "\n".join(seen)
+        time.sleep(1)  # the frame is drawn at the browser's next animation frame
+        shot = page_screenshot(tmp_path / "profile")
+        close_page(browser)
         torch.testing.assert_close(direction, -first[:3, 2].float(), atol=1e-3, rtol=0)  # the same rotation
-        assert match[4] == "rgb" and match[7] == "0"
+        assert match[4] == "opacity" and match[7] == "0"
+        # the page shows that frame: the screenshot, averaged down to the frame's pixels, is the viewer's
+        # render of the same camera, apart from where the page's panels lie over it
+        width, height = int(match[2]), int(match[3])
+        loaded = load_run(tiny_run)
+        request = ViewRequest(first, vertical_fov(views.height, views.focal), height, width, "opacity")
+        expected = render_request(loaded.module, instantiate(loaded.cfg.data), threading.Lock(), request, height,
+                                  width, lambda: False).astype(int)
+        shown = np.asarray(Image.fromarray(shot).resize((width, height), Image.Resampling.BOX)).astype(int)
+        difference = np.abs(shown - expected).max(-1)  # [H, W]
+        assert np.median(np.abs(255 - expected).max(-1)) > 48  # the frame is far from viser's white page
+        # measured: 3/4 of the pixels within 4 levels; the rest under the panels (a notice, the controls)
+        assert np.percentile(difference, 75) < 10, difference
         frames = [FRAME.search(line) for line in seen if FRAME.search(line)]
         assert int(frames[0][2]) <= 3  # the first image sent is the coarse one: 24 / 8 pixels wide
     finally:

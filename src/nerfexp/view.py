@@ -199,12 +199,14 @@ class Viewer:
     """The viewer of one run on a viser server: the GUI, the cameras' frustums, one
     ``ProgressiveRenderer`` per client and the recorded keyframes."""
 
-    def __init__(self, server, module: NeRFModule, scene: Scene, run_dir: Path, max_width: int):
+    def __init__(self, server, module: NeRFModule, scene: Scene, run_dir: Path, max_width: int,
+                 image: str = KINDS[0]):
         self.server = server
         self.module = module
         self.scene = scene
         self.run_dir = run_dir
         self.max_width = max_width
+        self.image = image
         self.keyframes: list[ViewRequest] = []
         self.renderers: dict[int, ProgressiveRenderer] = {}
         self.frames: dict[int, int] = {}  # images sent, per client
@@ -239,7 +241,7 @@ class Viewer:
 
     def add_gui(self) -> None:
         gui = self.server.gui
-        self.kind = gui.add_dropdown("image", KINDS, initial_value=KINDS[0])
+        self.kind = gui.add_dropdown("image", KINDS, initial_value=self.image)
         self.kind.on_update(lambda _: self.rerender())
         record, save, clear = (gui.add_button(label) for label in
                                ("record camera", "save camera path", "clear keyframes"))
@@ -338,7 +340,7 @@ def say(line: str) -> None:
 
 
 def view_run(run: Path, overrides: list[str], host: str, port: int, chunk: int | None,
-             max_width: int | None) -> NoReturn:
+             max_width: int | None, image: str = KINDS[0]) -> NoReturn:
     """Serve the viewer of the run at ``run`` (a run directory, or a checkpoint file in one) at
     ``http://host:port`` (port 0: any free one) until SIGINT or SIGTERM, which end the process as
     ``nerfexp.signals.ending_signals`` does (exit status 130 or 143)."""
@@ -348,7 +350,7 @@ def view_run(run: Path, overrides: list[str], host: str, port: int, chunk: int |
     max_width = max_width or scene.views("test").width
     with ending_signals():
         server = viser.ViserServer(host=host, port=port, label=f"nerfexp-view {run_dir.name}", verbose=False)
-        viewer = Viewer(server, module, scene, run_dir, max_width)
+        viewer = Viewer(server, module, scene, run_dir, max_width, image)
         try:
             say(f"nerfexp-view: {run_dir} (step {step}) at http://{host}:{server.get_port()} "
                 f"(Ctrl-C to stop)")
@@ -377,13 +379,15 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--max-width", type=positive(int),
                         help="the finest render's width in pixels at most (default: the test views' width); "
                              "the browser's canvas sets it where narrower, and the height")
+    parser.add_argument("--image", choices=KINDS, default=KINDS[0],
+                        help="the image shown first (default rgb; the page's dropdown switches)")
     return parser
 
 
 def main(argv: list[str] | None = None) -> None:
     """The ``nerfexp-view`` command (``build_parser``)."""
     run_command(build_parser(), argv, lambda args: view_run(args.run, args.overrides, args.host, args.port,
-                                                            args.chunk, args.max_width))
+                                                            args.chunk, args.max_width, args.image))
 
 
 if __name__ == "__main__":
