@@ -212,7 +212,8 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--threshold", type=positive(float), default=50.0,
                         help="mesh: the density at its surface (default 50, the original NeRF code's). Density "
                              "sigma absorbs 1 - exp(-sigma h) of the light crossing a width h: 50 absorbs 63%% "
-                             "over 0.02 scene units, 99%% over 0.09")
+                             "over 0.02 scene units, 99%% over 0.09. Fields trained briefly are rarely that "
+                             "dense: on the CPU-sized default run 5 gives the fuller mesh (docs/export.md)")
     parser.add_argument("--min-opacity", type=_opacity, default=0.5,
                         help="points: the test views' pixels whose rendered opacity is at least this, in (0, 1], "
                              "become points (default 0.5)")
