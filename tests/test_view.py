@@ -23,9 +23,8 @@ from nerfexp.geometry import viewer_cameras
 from nerfexp.geometry.cameras import camera_rays, focal_from_fov, look_at
 from nerfexp.geometry.viewer_cameras import matrix_quaternion, quaternion_matrix, vertical_fov, viewer_pose
 from nerfexp.render import read_camera_path
-from nerfexp.rundir import load_run, run_config
+from nerfexp.rundir import CAMERA_PATH, load_run, run_config
 from nerfexp.view import (
-    CAMERA_PATH,
     ProgressiveRenderer,
     ViewRequest,
     refinement_sizes,
@@ -183,8 +182,8 @@ def test_a_saved_camera_path_is_read_back_by_nerfexp_render(tmp_path):
     # 25 made even (12.5 pairs round to 12); the first keyframe's 32 x 16 aspect and vertical field of view, 1 rad
     assert (path.name, path.width, path.height) == ("viewer", 24, 12)
     assert path.focal == pytest.approx(6 / math.tan(0.5))
-    (tmp_path / CAMERA_PATH).write_text(json.dumps(path.record()))
-    read = read_camera_path(tmp_path / CAMERA_PATH)
+    (tmp_path / CAMERA_PATH.name).write_text(json.dumps(path.record()))
+    read = read_camera_path(tmp_path / CAMERA_PATH.name)
     assert (read.name, read.height, read.width, read.focal, read.fps) == (
         path.name, path.height, path.width, path.focal, path.fps)
     torch.testing.assert_close(read.c2w, torch.stack([k.c2w for k in keyframes]))

@@ -43,10 +43,9 @@ from nerfexp.nerf.bounds import Bounded
 from nerfexp.nerf.volume_renderer import VolumeRenderer
 from nerfexp.pixels import to_uint8
 from nerfexp.ply import face_rows, ply_bytes, vertex_rows
-from nerfexp.rundir import TrainedRun, load_run
+from nerfexp.rundir import EXPORT_DIR, TrainedRun, load_run
 from nerfexp.training.module import NeRFModule
 
-EXPORT_DIR = "export"
 MESH = "mesh.ply"
 POINTS = "points.ply"
 

@@ -558,8 +558,8 @@ def view_tiles(variants: list[Variant], views: list[int], folder: Path) -> dict[
     shown = [(variant, shown_run(variant)) for variant in variants]
     tiles = {}
     for index in views:
-        truth = next((run.path / "test" / f"r_{index}_target.png" for _, run in shown
-                      if run is not None and (run.path / "test" / f"r_{index}_target.png").is_file()), None)
+        truth = next((path for _, run in shown
+                      if run is not None and (path := run.path / "test" / f"r_{index}_target.png").is_file()), None)
         row = [Tile("ground truth", (copy_picture(truth, folder, f"view{index}/truth.png", "ground truth")
                                      if truth else Picture("ground truth", missing="missing"),))]
         for k, (variant, run) in enumerate(shown):

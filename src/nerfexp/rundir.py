@@ -13,12 +13,14 @@ A run's directory holds (every file written atomically):
 - ``test/``: each test view's render (``r_{i}.png``), ground truth (``r_{i}_target.png``), absolute
   error (``r_{i}_error.png``) and depth (``r_{i}_depth.png``).
 - ``checkpoints/last.ckpt``, ``.hydra/config.yaml`` (the composed config, as Hydra saves it).
-- ``eval.json`` (``nerfexp-eval``), ``render/`` (``nerfexp-render``), ``debug/`` (the training guards).
+- ``eval.json`` (``nerfexp-eval``), ``render/`` (``nerfexp-render``), ``export/`` (``nerfexp-export``),
+  ``view/camera_path.json`` (``nerfexp-view``'s saved camera path), ``debug/`` (the training guards).
 
 A directory belongs to one run: ``RunDirectoryGuard`` refuses to start a run in a directory that
 holds another one (or a sweep in one that holds an earlier sweep's runs), before Hydra writes into it.
 
-A finished (or interrupted) run is read back by ``find_run``, ``run_config`` and ``load_module``.
+A finished (or interrupted) run is read back by ``find_run``, ``run_config`` and ``load_module``
+(together: ``load_run``).
 """
 
 import contextlib
@@ -55,6 +57,8 @@ METRICS = "metrics.jsonl"
 EVAL = "eval.json"
 TEST_DIR = "test"
 RENDER_DIR = "render"
+EXPORT_DIR = "export"
+CAMERA_PATH = Path("view", "camera_path.json")  # nerfexp-view's saved camera path
 RUN_CONFIG = Path(".hydra", "config.yaml")  # the composed config, as Hydra saves it in every run directory
 LAST_CHECKPOINT = Path("checkpoints", "last.ckpt")
 

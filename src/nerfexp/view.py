@@ -40,12 +40,10 @@ from nerfexp.geometry.camera_paths import mean_up
 from nerfexp.geometry.cameras import focal_from_fov
 from nerfexp.geometry.viewer_cameras import vertical_fov, viewer_c2w, viewer_pose
 from nerfexp.render import KINDS, CameraPath, frame_bands, frame_images, rgb_pixels, scene_depth_range
-from nerfexp.rundir import load_run
+from nerfexp.rundir import CAMERA_PATH, load_run
 from nerfexp.signals import ending_signals, received_signal
 from nerfexp.training.module import NeRFModule
 
-VIEW_DIR = "view"  # in the run directory: what the viewer saves
-CAMERA_PATH = "camera_path.json"
 DIVISORS = (8, 4, 2, 1)  # the progressive schedule: the target width divided by each, in turn
 FPS = 30.0  # of a saved camera path
 TRAIN_COLOUR = (40, 110, 240)  # the training cameras' frustums
@@ -247,7 +245,7 @@ class Viewer:
                                ("record camera", "save camera path", "clear keyframes"))
         self.status = gui.add_markdown("No keyframes recorded.")
         gui.add_markdown(f"Frustums: training cameras in blue, test cameras in orange. Saved paths go to "
-                         f"`{self.run_dir / VIEW_DIR / CAMERA_PATH}`.")
+                         f"`{self.run_dir / CAMERA_PATH}`.")
         record.on_click(lambda event: self.record(event.client))
         save.on_click(lambda _: self.save())
         clear.on_click(lambda _: self.clear())
@@ -313,7 +311,7 @@ class Viewer:
         if not keyframes:
             self.status.content = "No keyframes to save: record a camera first."
             return
-        path = self.run_dir / VIEW_DIR / CAMERA_PATH
+        path = self.run_dir / CAMERA_PATH
         record = saved_camera_path(keyframes, self.max_width).record()
         atomic_write(path, json.dumps(record, indent=2).encode())
         self.status.content = f"{len(keyframes)} cameras saved to `{path}`."
