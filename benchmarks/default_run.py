@@ -19,6 +19,8 @@ from pathlib import Path
 
 import torch
 
+from nerfexp.files import atomic_write
+
 RESULTS = Path(__file__).parent / "results"
 
 
@@ -55,7 +57,7 @@ def main() -> None:
     gain = runs["complete"]["test_psnr"] - runs["encoding=none"]["test_psnr"]
     report = {"machine": machine, "runs": runs, "posenc_gain_db": round(gain, 2)}
     RESULTS.mkdir(exist_ok=True)
-    (RESULTS / "default_run.json").write_text(json.dumps(report, indent=2) + "\n")
+    atomic_write(RESULTS / "default_run.json", (json.dumps(report, indent=2) + "\n").encode())
     lines = ["| run | wall s | train s | steps/s | rays/s | samples/s | peak RSS MiB | test PSNR | test SSIM |",
              "|---|---|---|---|---|---|---|---|---|"]
     for name, r in runs.items():
@@ -63,7 +65,7 @@ def main() -> None:
                      f"{r['train_rays_per_s']:.0f} | {r['train_samples_per_s']:.0f} | {r['peak_rss_mib']} | "
                      f"{r['test_psnr']} | {r['test_ssim']} |")
     lines.append(f"\nPositional encoding gain: {gain:.2f} dB. Machine: {machine}.")
-    (RESULTS / "default_run.md").write_text("\n".join(lines) + "\n")
+    atomic_write(RESULTS / "default_run.md", ("\n".join(lines) + "\n").encode())
     print("\n".join(lines))
 
 

@@ -24,6 +24,8 @@ from pathlib import Path
 import lightning as L
 import torch
 
+from nerfexp.files import atomic_write
+
 HERE = Path(__file__).parent
 RESULTS = HERE / "results"
 TIMER = "step_timer.json"
@@ -55,7 +57,7 @@ class StepTimer(L.Callback):
         if trainer.global_step == trainer.max_steps and self._start is not None and trainer.is_global_zero:
             self._sync(trainer)
             record = {"steps": trainer.global_step - self._start_step, "seconds": time.perf_counter() - self._start}
-            Path(trainer.default_root_dir, TIMER).write_text(json.dumps(record))
+            atomic_write(Path(trainer.default_root_dir, TIMER), json.dumps(record).encode())
 
 
 def run(overrides: list[str], steps: int, warmup: int) -> dict:
@@ -113,13 +115,13 @@ def main() -> None:
         r["speedup"] = round(r["rays_per_s"] / baseline["CPU" if name.startswith("CPU") else "GPU"], 2)
     report = {"machine": machine(), "steps": args.steps, "warmup": args.warmup, "runs": runs}
     RESULTS.mkdir(exist_ok=True)
-    (RESULTS / "scaling.json").write_text(json.dumps(report, indent=2) + "\n")
+    atomic_write(RESULTS / "scaling.json", (json.dumps(report, indent=2) + "\n").encode())
     lines = ["| setting | processes | global batch | timed steps | s | rays/s | speedup |",
              "|---|---|---|---|---|---|---|"]
     lines += [f"| {name} | {r['processes']} | {r['batch_rays']} | {r['timed_steps']} | {r['seconds']} | "
               f"{r['rays_per_s']:.0f} | {r['speedup']}x |" for name, r in runs.items()]
     lines.append(f"\nMachine: {report['machine']}. Steps {args.steps}, the first {args.warmup} untimed.")
-    (RESULTS / "scaling.md").write_text("\n".join(lines) + "\n")
+    atomic_write(RESULTS / "scaling.md", ("\n".join(lines) + "\n").encode())
     print("\n".join(lines))
 
 

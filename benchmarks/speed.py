@@ -35,6 +35,7 @@ from lightning.fabric.utilities import move_data_to_device
 from matplotlib.figure import Figure
 from torch.profiler import ProfilerActivity, profile
 
+from nerfexp.files import atomic_write
 from nerfexp.training.callbacks import FlushDenormals
 from nerfexp.training.module import seeded_random
 
@@ -268,9 +269,9 @@ def main() -> None:
     report = {"machine": machine, "settings": {"overrides": overrides, "profile_steps": args.profile_steps},
               "runs": runs, "summary": summary}
     args.out.mkdir(parents=True, exist_ok=True)
-    (args.out / "speed.json").write_text(json.dumps(report, indent=2) + "\n")
-    (args.out / "speed.md").write_text(markdown(report))
-    (args.out / "speed.png").write_bytes(plot(runs, target))
+    atomic_write(args.out / "speed.json", (json.dumps(report, indent=2) + "\n").encode())
+    atomic_write(args.out / "speed.md", markdown(report).encode())
+    atomic_write(args.out / "speed.png", plot(runs, target))
     print(markdown(report))
 
 

@@ -15,12 +15,14 @@ from nerfexp.geometry.cameras import look_at
 
 REPO = Path(__file__).parents[1]  # on the console scripts' PYTHONPATH: they can load callbacks from here
 
-# Overrides that shrink the default experiment: a tiny network on a small version of the built-in scene.
+# Overrides that shrink the default experiment: a tiny network on a small version of the built-in scene
+# (hierarchical: a single run refuses scale.n_single, which it would not use; TINY_SINGLE adds it).
 TINY = [
     "scale.steps=60", "scale.val_every=30", "scale.batch_rays=256", "scale.depth=2", "scale.width=32",
-    "scale.skips=[1]", "scale.view_hidden=16", "scale.n_coarse=16", "scale.n_fine=16", "scale.n_single=48",
+    "scale.skips=[1]", "scale.view_hidden=16", "scale.n_coarse=16", "scale.n_fine=16",
     "scale.image_size=24", "data.n_train=12", "data.n_val=1", "data.n_test=2", "trainer.enable_progress_bar=false",
 ]
+TINY_SINGLE = "scale.n_single=48"  # hierarchical=false: as many evaluations per ray as 16 + (16 + 16)
 
 
 def command(script: str, *args: str) -> tuple[list[str], dict]:
@@ -62,6 +64,20 @@ class KillAtStep(L.Callback):
 def kill_at(step: int) -> list[str]:
     """Overrides that make a ``nerfexp`` run kill itself after step ``step`` (``KillAtStep``)."""
     return ["+callbacks.kill._target_=tests.helpers.KillAtStep", f"+callbacks.kill.step={step}"]
+
+
+class NanTargets(L.Callback):
+    """Makes the target colours of the first training batch NaN (as a damaged image could), so that the
+    step's losses are NaN while every setting and weight is finite. Injected by ``nan_targets()``."""
+
+    def on_train_batch_start(self, trainer, pl_module, batch, batch_idx):
+        if trainer.global_step == 0:
+            batch["rgb"].fill_(float("nan"))
+
+
+def nan_targets() -> list[str]:
+    """Overrides that make a ``nerfexp`` run's first batch have NaN targets (``NanTargets``)."""
+    return ["+callbacks.nan._target_=tests.helpers.NanTargets"]
 
 
 def final_state(run_dir: Path) -> dict:

@@ -1,7 +1,9 @@
 """What the commands print: help that explains nerfexp, a run's own lines and nothing else, progress in
 steps, and a log redirected to a file that shows each line when it happens."""
 
+import ast
 import re
+import shutil
 import subprocess
 import time
 
@@ -112,3 +114,32 @@ def test_the_training_bar_counts_the_runs_steps(tmp_path, capsys):
 def test_the_training_bar_is_off_where_output_is_not_a_terminal(capsys):
     assert StepProgressBar().is_disabled  # capsys replaces standard output with a capture: not a terminal
     assert StepProgressBar(enabled=True).is_enabled
+
+
+@pytest.mark.slow
+def test_a_piped_evaluation_draws_no_progress_bar(tiny_run, tmp_path):
+    run = tmp_path / "run"
+    shutil.copytree(tiny_run, run)
+    # bars on, as in the default config (the tiny config turns them off); stdout and stderr are pipes here
+    result = run_nerfexp(str(run), "trainer.enable_progress_bar=true", cwd=tmp_path, script="nerfexp-eval")
+    assert result.returncode == 0, result.stderr[-3000:]
+    assert "test PSNR" in result.stdout
+    for stream in (result.stdout, result.stderr):
+        assert "\r" not in stream and "Testing" not in stream and "it/s" not in stream, stream[-2000:]
+
+
+def tqdm_calls(path):
+    """Every call of ``tqdm(...)`` in the source file ``path``."""
+    return [node for node in ast.walk(ast.parse(path.read_text())) if isinstance(node, ast.Call)
+            and (node.func.id if isinstance(node.func, ast.Name) else getattr(node.func, "attr", "")) == "tqdm"]
+
+
+def test_every_tqdm_bar_is_off_where_its_stream_is_not_a_terminal():
+    # tqdm's disable=None turns a bar off where its stream (standard error) is not a terminal
+    calls = {path: tqdm_calls(path) for path in (REPO / "src" / "nerfexp").rglob("*.py")}
+    assert sum(map(len, calls.values())) >= 10  # the bars of render, export, the loaders, COLMAP and video
+    for path, found in calls.items():
+        for call in found:
+            disable = [k.value for k in call.keywords if k.arg == "disable"]
+            assert len(disable) == 1 and isinstance(disable[0], ast.Constant) and disable[0].value is None, \
+                f"{path.relative_to(REPO)}:{call.lineno}: a tqdm bar without disable=None"

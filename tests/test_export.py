@@ -5,6 +5,7 @@ bad input."""
 import json
 import math
 import re
+import shutil
 from pathlib import Path
 from types import SimpleNamespace
 
@@ -28,7 +29,18 @@ from nerfexp.data.procedural import (
     signed_distances,
 )
 from nerfexp.data.views import Views
-from nerfexp.export import build_parser, export_box, extract_mesh, final_field, main, view_points
+from nerfexp.errors import NerfexpError
+from nerfexp.export import (
+    THRESHOLD_QUANTILE,
+    build_parser,
+    export_box,
+    extract_mesh,
+    field_threshold,
+    final_field,
+    main,
+    trained_run,
+    view_points,
+)
 from nerfexp.geometry.cameras import camera_rays, focal_from_fov
 from nerfexp.nerf.occupancy import OccupancyGrid
 from nerfexp.nerf.volume_renderer import VolumeRenderer
@@ -279,3 +291,43 @@ def test_the_commands_help_explains_every_option():
     assert parser.description and "``" not in text
     assert [action.dest for action in parser._actions if not action.help] == []
     assert "absorbs 1 - exp(-sigma h) of the light" in text and "63% over 0.02" in text
+
+
+def test_an_export_folder_holding_a_users_file_is_refused_and_the_file_kept(tiny_run, tmp_path):
+    run_dir = shutil.copytree(tiny_run, tmp_path / "run")
+    (run_dir / "export").mkdir(exist_ok=True)
+    (run_dir / "export" / "mesh.obj").write_text("mine")
+    with pytest.raises(SystemExit) as exit:
+        main([str(run_dir), "--resolution", "4"])
+    assert exit.value.code == (f"nerfexp-export: error: {run_dir / 'export'} holds files nerfexp-export did not "
+                               "make (mesh.obj): move them elsewhere: nerfexp-export replaces this folder as a whole")
+    assert (run_dir / "export" / "mesh.obj").read_text() == "mine" and not list(run_dir.glob(".export*"))
+
+
+@pytest.mark.slow
+def test_the_default_threshold_is_read_from_the_field_and_finds_its_surface(tiny_run, tmp_path, capsys):
+    run_dir = shutil.copytree(tiny_run, tmp_path / "run")
+    main([str(run_dir), "--resolution", "16"])  # no --threshold: the tiny run is far below the literature's 50
+    summary = capsys.readouterr().out
+    match = re.search(rf"triangles \(density (\S+), the {THRESHOLD_QUANTILE:g} quantile of the density at the "
+                      r"test views' depths; \d+ x \d+ x \d+ grid\)", summary)
+    assert match, summary
+    threshold = float(match[1])
+    comments, mesh = read_ply((run_dir / "export" / "mesh.ply").read_bytes())
+    assert len(mesh["face"]) > 0 and f"density {match[1]} (the {THRESHOLD_QUANTILE:g} quantile" in comments[1]
+    # the threshold is that quantile of the field's density at the exported points (the test views' depths)
+    _, cloud = read_ply((run_dir / "export" / "points.ply").read_bytes())
+    points = torch.from_numpy(np.stack([cloud["vertex"][n] for n in ("x", "y", "z")], 1))
+    (_, _, _, module, _), _ = trained_run(run_dir, [], None)
+    with torch.no_grad():
+        sigma = final_field(module.renderer).density(points).double()
+    at_or_above = (sigma >= float(f"{threshold:.6g}") * (1 - 1e-5)).double().mean().item()  # to the printed digits
+    assert len(points) > 100 and 1 - THRESHOLD_QUANTILE <= at_or_above <= 1 - THRESHOLD_QUANTILE + 0.02, at_or_above
+
+
+def test_a_default_threshold_needs_a_rendered_surface():
+    with pytest.raises(NerfexpError, match="no pixel of the test views reaches --min-opacity"):
+        field_threshold(BuiltInSceneField(), torch.zeros(0, 3), batch=10, device="cpu")
+    # the built-in field at points on its objects' surfaces: density THRESHOLD at every one
+    surface = torch.from_numpy(true_surface(0.05))[:400]
+    assert field_threshold(BuiltInSceneField(), surface, batch=64, device="cpu") == pytest.approx(THRESHOLD)

@@ -3,6 +3,7 @@ and the command line on a trained run against direct renders of the same cameras
 
 import json
 import re
+import shutil
 from pathlib import Path
 from types import SimpleNamespace
 
@@ -14,6 +15,7 @@ from hydra import compose, initialize_config_module
 from hydra.utils import instantiate
 from omegaconf import OmegaConf
 
+from nerfexp import render
 from nerfexp.data.procedural import CAMERA_RADIUS
 from nerfexp.errors import NerfexpError
 from nerfexp.geometry.cameras import camera_rays
@@ -201,3 +203,14 @@ def test_rendering_a_cameras_file_renders_exactly_its_cameras(tiny_run, tmp_path
     result = run_nerfexp(str(tiny_run), "--cameras", str(path), "--frames", "5", cwd=tmp_path,
                          script="nerfexp-render")
     assert result.returncode == 2 and "--cameras renders the file's cameras: --frames do not apply" in result.stderr
+
+
+def test_a_render_folder_holding_a_users_file_is_refused_and_the_file_kept(tiny_run, tmp_path):
+    run_dir = shutil.copytree(tiny_run, tmp_path / "run")
+    (run_dir / "render").mkdir(exist_ok=True)
+    (run_dir / "render" / "notes.txt").write_text("mine")
+    with pytest.raises(SystemExit) as exit:
+        render.main([str(run_dir), "--frames", "2", "--size", "8"])
+    assert exit.value.code == (f"nerfexp-render: error: {run_dir / 'render'} holds files nerfexp-render did not "
+                               "make (notes.txt): move them elsewhere: nerfexp-render replaces this folder as a whole")
+    assert (run_dir / "render" / "notes.txt").read_text() == "mine" and not list(run_dir.glob(".render*"))

@@ -245,19 +245,71 @@ def test_damaged_runs_are_listed_with_the_file_and_the_reason_and_the_rest_is_re
     (sweep / "0" / "results.json").write_text('{"test_psnr": 20.0, "test_ss')  # truncated
     metrics = (sweep / "1" / "metrics.jsonl").read_text().splitlines()
     (sweep / "1" / "metrics.jsonl").write_text("\n".join([metrics[0][:15], *metrics[1:]]) + "\n")  # a torn line
-    (sweep / "3" / "status.json").write_text("")  # empty
+    (sweep / "3" / "status.json").write_text("")  # empty: the overrides are read from results.json
     write_report([sweep], sweep)
     report = (sweep / "report.md").read_text()
     assert "Runs: 7 (1 finished, 1 failed, 1 killed, 1 running, 3 damaged)" in report
-    assert f"- `{sweep / '0'}` (no overrides): damaged: results.json: not readable as JSON (" in report
-    assert f"- `{sweep / '1'}` (no overrides): damaged: metrics.jsonl: line 1 is not JSON (" in report
-    assert f"- `{sweep / '3'}` (no overrides): damaged: status.json: not readable as JSON (" in report
+    assert f"- `{sweep / '0'}` (hierarchical=true, seed=0): damaged: results.json: not readable as JSON (" in report
+    assert f"- `{sweep / '1'}` (hierarchical=true, seed=1): damaged: metrics.jsonl: line 1 is not JSON (" in report
+    assert f"- `{sweep / '3'}` (hierarchical=false, seed=0): damaged: status.json: not readable as JSON (" in report
     rows = {row["variant"]: row for row in read_csv(sweep / "report.csv")}
     assert float(rows["hierarchical=true"]["test_psnr_mean"]) == 24.0  # seed 2 alone is counted
+    # damaged jobs count against their variant; one whose jobs are all unusable stays in the table
+    assert {name: (row["finished"], row["runs"]) for name, row in rows.items()} == {
+        "hierarchical=true": ("1", "3"), "hierarchical=false": ("0", "3"), "encoding=none": ("0", "1")}
     # the same through the command line: exit status 0 and the report written
     (sweep / "report.md").unlink()
     result = subprocess.run([str(Path(sys.executable).with_name("nerfexp-report")), str(sweep)],
                             capture_output=True, text=True, timeout=300)
     assert result.returncode == 0 and "Traceback" not in result.stderr, result.stderr[-2000:]
-    assert "3 damaged" in (sweep / "report.md").read_text()
-    assert set(rows) == {"hierarchical=true", "hierarchical=false", "encoding=none"}  # damaged runs: no variant
+    report = (sweep / "report.md").read_text()
+    assert "3 damaged" in report
+    assert "| hierarchical=true | 1/3 |" in report and "| hierarchical=false | 0/3 |" in report
+
+
+def test_a_damaged_job_whose_overrides_cannot_be_read_joins_no_variant(sweep):
+    (sweep / "3" / "status.json").write_text("[")
+    (sweep / "3" / "results.json").write_text("")
+    runs = find_runs([sweep])
+    assert [run.overrides for run in runs if run.state == "damaged"] == [None]
+    write_report([sweep], sweep)
+    report = (sweep / "report.md").read_text()
+    assert f"- `{sweep / '3'}` (overrides unreadable): damaged: status.json: not readable as JSON (" in report
+    rows = {row["variant"]: row for row in read_csv(sweep / "report.csv")}
+    assert set(rows) == {"hierarchical=true", "hierarchical=false", "encoding=none"}
+    assert (rows["hierarchical=false"]["finished"], rows["hierarchical=false"]["runs"]) == ("0", "2")
+
+
+def cut_last_line(run: Path) -> None:
+    """Cut the last line of a run's ``metrics.jsonl`` short, as a full disk or a kill mid-write leaves it."""
+    text = (run / "metrics.jsonl").read_text()
+    (run / "metrics.jsonl").write_text(text[:-10])
+
+
+def test_a_cut_last_metrics_line_is_damage_in_a_run_that_ended_not_in_one_that_runs(sweep):
+    for name in ("0", "4", "6"):  # finished, failed, running (this test's own process)
+        cut_last_line(sweep / name)
+    result = subprocess.run([str(Path(sys.executable).with_name("nerfexp-report")), str(sweep)],
+                            capture_output=True, text=True, timeout=300)
+    assert result.returncode == 0 and "Traceback" not in result.stderr, result.stderr[-2000:]
+    report = (sweep / "report.md").read_text()
+    assert "Runs: 7 (3 finished, 1 killed, 1 running, 2 damaged)" in report
+    assert (f"- `{sweep / '0'}` (hierarchical=true, seed=0): damaged: metrics.jsonl: line 3, the last, is cut "
+            "(no newline, and the run has ended)") in report
+    assert (f"- `{sweep / '4'}` (hierarchical=false, seed=1): damaged: metrics.jsonl: line 2, the last, is cut "
+            "(no newline, and the run has ended) (the job failed: NonFiniteError: step 7:") in report
+    running = next(run for run in find_runs([sweep]) if run.path.name == "6")
+    assert running.state == "running" and running.curve == [(10, 50.0, 15.0)]  # the line being written left out
+    assert "| hierarchical=true | 2/3 | 23.00 ± 1.41 |" in report
+
+
+def test_a_report_into_a_folder_holding_a_users_files_is_refused_and_writes_nothing(tiny_run, tmp_path):
+    out = tmp_path / "out"
+    (out / "0").mkdir(parents=True)  # a run in the folder is nerfexp's; the user's file is not
+    (out / "0" / "status.json").write_text("{}")
+    (out / "notes.txt").write_text("mine")
+    with pytest.raises(SystemExit) as exit:
+        main([str(tiny_run), "--out", str(out)])
+    assert exit.value.code == (f"nerfexp-report: error: {out} holds files nerfexp-report did not make (notes.txt): "
+                               "choose another folder for the report (--out DIR)")
+    assert sorted(p.relative_to(out).as_posix() for p in out.rglob("*")) == ["0", "0/status.json", "notes.txt"]

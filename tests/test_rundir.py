@@ -4,6 +4,8 @@ metrics appended by several processes at once, and telling a run's process from 
 import hashlib
 import json
 import os
+import re
+import socket
 import subprocess
 import sys
 import time
@@ -13,10 +15,12 @@ import pytest
 from hydra.utils import get_class, instantiate
 from omegaconf import OmegaConf
 
+from nerfexp import scene
 from nerfexp.errors import NerfexpError
 from nerfexp.rundir import (
     LAST_CHECKPOINT,
     RUN_CONFIG,
+    admit_run,
     append_metrics,
     claim,
     find_run,
@@ -26,6 +30,8 @@ from nerfexp.rundir import (
     read_metrics,
     run_config,
 )
+from tests.helpers import run_nerfexp
+from tests.test_bad_input import one_error_line
 
 # The config an LLFF run saved before the layers (as nerfexp wrote it then, abridged to what builds
 # objects): the old module paths of every class, and the field's noise read from the data group.
@@ -84,12 +90,11 @@ def test_a_run_made_before_the_layers_is_read_with_the_current_classes(tmp_path)
     (tmp_path / RUN_CONFIG).write_text(OLD_CONFIG)
     cfg = run_config(tmp_path, ["data.root=/moved"])
     assert "density_noise_std" not in cfg.data and cfg.data.root == "/moved"
-    for path in ("model", "model.renderer", "model.renderer.field.position_encoding", "model.renderer.grid",
-                 "callbacks.flush_denormals", "callbacks.guard"):
+    for path in ("model", "model.renderer", "model.renderer.field.position_encoding", "model.renderer.grid"):
         get_class(OmegaConf.select(cfg, path)._target_)  # importable where the class lives now
     model = instantiate(cfg.model)
     assert model.renderer.coarse.density_noise_std == 1.0 and model.renderer.grid is not None
-    assert type(instantiate(cfg.callbacks.flush_denormals)).__module__ == "nerfexp.training.callbacks"
+    assert "callbacks" not in cfg  # only training builds them (nerfexp.saved_configs.TRAINING_ONLY)
 
 
 def test_a_run_is_found_by_its_directory_or_a_checkpoint_in_it(tmp_path):
@@ -189,3 +194,95 @@ def test_a_directory_is_claimed_once_where_the_file_system_has_no_hard_links(tmp
     assert claim(tmp_path / "run", ["seed=1"]) and not claim(tmp_path / "run", ["seed=2"])
     assert [p.name for p in (tmp_path / "run").iterdir()] == ["status.json"]
     assert held_run(tmp_path / "run") == "a running run (seed=1)"
+
+
+def digests(folder: Path) -> dict[str, str]:
+    """Every file under ``folder`` (relative path) with the SHA-256 of its bytes: to show nothing changed."""
+    return {p.relative_to(folder).as_posix(): hashlib.sha256(p.read_bytes()).hexdigest()
+            for p in sorted(folder.rglob("*")) if p.is_file()}
+
+
+def a_failed_run(run_dir: Path, **status) -> Path:
+    """A run directory as a run that failed on bad data leaves it: its status (``status``), config and log."""
+    (run_dir / ".hydra").mkdir(parents=True)
+    (run_dir / ".hydra" / "config.yaml").write_text("seed: 0\n")
+    (run_dir / "nerfexp.log").write_text("")
+    record = {"state": "failed", "overrides": ["seed=0"], "host": socket.gethostname(), "pid": 1} | status
+    (run_dir / "status.json").write_text(json.dumps(record))
+    return run_dir
+
+
+def test_a_run_into_a_blender_datasets_folder_is_one_line_and_changes_nothing(tmp_path):
+    dataset = tmp_path / "lego"
+    scene.main([str(dataset), "--resolution", "8", "--n-train", "2", "--n-val", "1", "--n-test", "2",
+                "--supersample", "1"])
+    (dataset / scene.MARKER).unlink()  # a dataset from elsewhere: the names nerfexp's test renders have
+    before = digests(dataset)
+    result = run_nerfexp("data=blender", f"data.root={dataset}", f"hydra.run.dir={dataset}", cwd=tmp_path)
+    assert one_error_line(result) == (f"nerfexp: error: {dataset} holds files nerfexp did not make (test/r_0.png, "
+                                      "test/r_1.png, train/r_0.png, ...): choose a new or empty directory "
+                                      "(hydra.run.dir=...)")
+    assert len(result.stderr.strip().splitlines()) == 1 and digests(dataset) == before
+
+
+def test_a_sweep_into_a_folder_holding_other_files_is_one_line_and_changes_nothing(tmp_path):
+    sweep = tmp_path / "sweep"
+    sweep.mkdir()
+    (sweep / "notes.txt").write_text("mine")
+    result = run_nerfexp("-m", "seed=0,1", f"hydra.sweep.dir={sweep}", cwd=tmp_path)
+    assert result.stderr.strip() == (f"nerfexp: error: {sweep} holds files this sweep did not make (notes.txt): "
+                                     "choose a new or empty directory (hydra.sweep.dir=...)")
+    assert result.returncode == 1 and digests(sweep) == {"notes.txt": hashlib.sha256(b"mine").hexdigest()}
+
+
+def test_a_run_that_failed_on_bad_data_is_replaced_and_only_its_files_removed(tmp_path):
+    run_dir = tmp_path / "run"
+    bad = ["data=blender", f"data.root={tmp_path / 'missing'}", "logger=none", f"hydra.run.dir={run_dir}"]
+    failed = run_nerfexp(*bad, cwd=tmp_path)
+    assert "does not exist" in one_error_line(failed) and json.loads((run_dir / "status.json").read_text())[
+        "state"] == "failed"
+    (run_dir / "empty").mkdir()  # holds nothing: kept, and no reason to refuse
+    again = run_nerfexp(*bad, "seed=7", cwd=tmp_path)
+    notice, error = again.stderr.strip().splitlines()  # the advice never names a checkpoint that does not exist
+    assert notice.startswith(f"nerfexp: {run_dir} holds a run that ended unfinished and saved no checkpoint: "
+                             "replacing it, removing its 5 files (.hydra/config.yaml, ") and "resume=" not in error
+    assert json.loads((run_dir / "status.json").read_text())["overrides"][-1] == "seed=7"
+    assert (run_dir / "empty").is_dir()
+
+    (run_dir / "notes.txt").write_text("mine")  # anything a user made there: refused, nothing removed
+    before = digests(run_dir)
+    with pytest.raises(NerfexpError, match=re.escape(f"{run_dir} holds files nerfexp did not make (notes.txt): ")):
+        admit_run(run_dir, None, "nerfexp.log")
+    assert digests(run_dir) == before
+
+
+def test_a_held_run_is_replaced_only_where_it_ended_unfinished_and_the_advice_names_a_saved_checkpoint(tmp_path):
+    # failed, or running in a process of this host that no longer runs: replaced, all of it
+    failed = a_failed_run(tmp_path / "failed")
+    assert admit_run(failed, None, "nerfexp.log") == [".hydra/config.yaml", "nerfexp.log", "status.json"]
+    dead = subprocess.Popen([sys.executable, "-c", ""])
+    dead.wait()
+    killed = a_failed_run(tmp_path / "killed", state="running", pid=dead.pid, process_start=None)
+    assert admit_run(killed, None, "nerfexp.log") == [".hydra/config.yaml", "nerfexp.log", "status.json"]
+    # running in this very process, or on another host: kept, and no checkpoint to resume from is named
+    for state in ({"state": "running", "pid": os.getpid(), "process_start": process_start(os.getpid())},
+                  {"state": "running", "host": "elsewhere"}, {"state": "finished"}):
+        held = a_failed_run(tmp_path / str(len(list(tmp_path.iterdir()))), **state)
+        with pytest.raises(NerfexpError, match=r"holds a \w+ run \(seed=0\): choose another directory") as error:
+            admit_run(held, None, "nerfexp.log")
+        assert "resume=" not in str(error.value)
+    # a failed run that saved a checkpoint is continued from the one it saved: never removed
+    (failed / "checkpoints").mkdir()
+    (failed / "checkpoints" / "epoch=0-step=30.ckpt").write_bytes(b"")
+    with pytest.raises(NerfexpError, match=re.escape(f"resume={failed}/checkpoints/epoch=0-step=30.ckpt ")):
+        admit_run(failed, None, "nerfexp.log")
+    (failed / LAST_CHECKPOINT).write_bytes(b"")
+    with pytest.raises(NerfexpError, match=re.escape(f"resume={failed / LAST_CHECKPOINT} ")):
+        admit_run(failed, None, "nerfexp.log")
+    assert admit_run(failed, str(failed / LAST_CHECKPOINT), "nerfexp.log") is None  # resume=: continued
+    # a checkpoint laid in a folder that holds no run is not a run to continue
+    elsewhere = tmp_path / "elsewhere"
+    elsewhere.mkdir()
+    (elsewhere / "model.ckpt").write_bytes(b"")
+    with pytest.raises(NerfexpError, match=r"holds files nerfexp did not make \(model.ckpt\)"):
+        admit_run(elsewhere, str(elsewhere / "model.ckpt"), "nerfexp.log")

@@ -13,7 +13,7 @@ from PIL import Image
 from nerfexp.data.procedural import load_procedural
 from nerfexp.metrics import psnr
 from nerfexp.pixels import to_uint8
-from tests.helpers import read_json, run_nerfexp
+from tests.helpers import TINY_SINGLE, read_json, run_nerfexp
 
 
 def blank_psnr(n_test: int, size: int) -> float:
@@ -83,7 +83,7 @@ def test_the_last_step_is_validated_and_each_test_view_is_saved_with_its_target_
 
 @pytest.mark.slow
 def test_readme_multirun_trains_four_variants(tmp_path, tiny):
-    result = run_nerfexp("-m", "encoding=none,posenc", "hierarchical=true,false", *tiny,
+    result = run_nerfexp("-m", "encoding=none,posenc", "hierarchical=true,false", *tiny, TINY_SINGLE,
                          f"hydra.sweep.dir={tmp_path}", cwd=tmp_path)
     assert result.returncode == 0, result.stderr[-3000:]
     results = [read_json(p) for p in sorted(tmp_path.glob("*/results.json"))]
@@ -97,8 +97,8 @@ def test_readme_multirun_trains_four_variants(tmp_path, tiny):
 
 def test_unknown_component_is_named(tmp_path):
     result = run_nerfexp("encoding=posenk", cwd=tmp_path)
-    assert result.returncode != 0
-    assert "Could not find 'encoding/posenk'" in result.stderr and "posenc" in result.stderr
+    assert result.returncode == 1
+    assert result.stderr == "nerfexp: error: encoding=posenk: no such option (choose from hashgrid, none, posenc)\n"
 
 
 def test_config_typo_is_named(tmp_path):

@@ -1,16 +1,41 @@
 """Pieces of the console scripts' command lines: argument types, a run and its config changes."""
 
 import argparse
+import math
 from collections.abc import Callable
 from pathlib import Path
 
+from nerfexp.errors import ConfigError
+from nerfexp.memory import require_memory
+
 
 def positive(kind: type) -> Callable[[str], int | float]:
-    """An argparse type: a number of ``kind`` (int or float) above zero."""
+    """An argparse type: a finite number of ``kind`` (int or float) above zero (nan and inf refused)."""
     def parse(text: str):
         value = kind(text)
-        if value <= 0:
-            raise argparse.ArgumentTypeError(f"expected a positive number, got {text}")
+        if not math.isfinite(value) or value <= 0:
+            raise argparse.ArgumentTypeError(f"expected a finite number > 0, got {text}")
+        return value
+    return parse
+
+
+def port(text: str) -> int:
+    """An argparse type: a TCP port, 1..65535, or 0 for any free one."""
+    value = int(text)
+    if not 0 <= value <= 65535:
+        raise argparse.ArgumentTypeError(f"expected a port in 1..65535 (0: any free one), got {text}")
+    return value
+
+
+def fitting(kind: Callable[[str], int], estimate: Callable[[int], int], what: str) -> Callable[[str], int]:
+    """An argparse type: a ``kind`` value whose memory ``estimate(value)`` (bytes) fits in this machine's
+    memory; ``what`` names the thing it sizes (``a grid of N^3 points``, N the value)."""
+    def parse(text: str) -> int:
+        value = kind(text)
+        try:
+            require_memory(text, what.replace("N", str(value)), estimate(value))
+        except ConfigError as error:
+            raise argparse.ArgumentTypeError(str(error)) from None
         return value
     return parse
 

@@ -9,6 +9,7 @@ from omegaconf import DictConfig
 from nerfexp.arguments import add_run_arguments, command_parser
 from nerfexp.console import run_command
 from nerfexp.rundir import EVAL, find_run, load_module, read_json, run_config
+from nerfexp.training.progress import progress_bars
 from nerfexp.training.recorders import EvalRecorder
 
 
@@ -18,8 +19,8 @@ def evaluate(cfg: DictConfig, run_dir: Path, checkpoint: Path) -> dict:
     ``RUN_DIR/eval.json`` (see ``EvalRecorder``) and are returned."""
     model, step = load_module(cfg, checkpoint)
     recorder = EvalRecorder(run_dir, checkpoint, step)
-    trainer = instantiate(cfg.trainer, logger=False, callbacks=[recorder], enable_checkpointing=False,
-                          default_root_dir=str(run_dir))
+    trainer = instantiate(cfg.trainer, logger=False, callbacks=[recorder, *progress_bars(cfg.trainer)],
+                          enable_checkpointing=False, default_root_dir=str(run_dir))
     trainer.test(model, datamodule=instantiate(cfg.datamodule), verbose=False)
     return read_json(run_dir / EVAL)
 

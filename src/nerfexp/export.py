@@ -2,7 +2,8 @@
 that MeshLab, Blender, Open3D and CloudCompare open.
 
 What an export leaves in ``RUN_DIR/export/`` (the folder is replaced as a whole once both files are
-written, so a reader sees the previous export or the new one, never a part):
+written, so a reader sees the previous export or the new one, never a part; an ``export/`` holding anything
+else is refused with one line before any work):
 
 - ``mesh.ply``: the surface where the field's density crosses ``--threshold``, by marching cubes on a grid
   over the box (``--resolution`` cells along its longest edge): vertices with outward normals and colours,
@@ -31,13 +32,14 @@ from omegaconf import DictConfig
 from torch import Tensor, nn
 from tqdm import tqdm
 
-from nerfexp.arguments import add_run_arguments, command_parser, positive
+from nerfexp.arguments import add_run_arguments, command_parser, fitting, positive
+from nerfexp.memory import grid_bytes
 from nerfexp.console import run_command
 from nerfexp.data.base import Scene
 from nerfexp.data.rays import WholeImages, model_batch
 from nerfexp.data.views import Views
 from nerfexp.errors import NerfexpError
-from nerfexp.files import atomic_directory
+from nerfexp.files import TEMPORARY, atomic_directory, foreign_entries, foreign_message
 from nerfexp.geometry.surfaces import Mesh, grid_points, grid_shape, isosurface, ray_points
 from nerfexp.nerf.bounds import Bounded
 from nerfexp.nerf.volume_renderer import VolumeRenderer
@@ -48,6 +50,8 @@ from nerfexp.training.module import NeRFModule
 
 MESH = "mesh.ply"
 POINTS = "points.ply"
+MADE = (MESH, POINTS, *TEMPORARY)  # what an export leaves in its folder
+THRESHOLD_QUANTILE = 0.25  # the default threshold: this quantile of the density at the test views' depths
 
 
 def final_field(renderer: VolumeRenderer) -> nn.Module:
@@ -118,6 +122,22 @@ def extract_mesh(field: nn.Module, aabb: Tensor, resolution: int, threshold: flo
     return mesh, vertex_colours(field, mesh, batch, device)
 
 
+@torch.no_grad()
+def field_threshold(field: nn.Module, points: Tensor, batch: int, device: str | torch.device) -> float:
+    """``--threshold``'s default, read from the field itself: the ``THRESHOLD_QUANTILE`` quantile of its
+    density (``field.density``: positions [N, 3] -> sigma [N]) at ``points`` [P, 3], where the test views'
+    rays that the field made opaque end (``view_points``), ``batch`` at a time. The density at which a
+    field draws its surfaces depends on how far it has trained (a field trained briefly is nowhere as
+    dense as a converged one), so no fixed number suits every run, while the rendered depths lie on the
+    surfaces the run renders: most of them end up inside the mesh, the haze of a few rays aside. A
+    NerfexpError where ``points`` is empty."""
+    if len(points) == 0:
+        raise NerfexpError("no default --threshold: no pixel of the test views reaches --min-opacity, so the "
+                           "field has no rendered surface to read a density from; give --threshold")
+    sigma = torch.cat([field.density(x.to(device, torch.float32)).double().cpu() for x in points.split(batch)])
+    return float(sigma.sort().values[round(THRESHOLD_QUANTILE * (len(sigma) - 1))])  # nearest rank
+
+
 def absorbed_colour(rgb: Tensor, opacity: Tensor, background: Tensor) -> Tensor:
     """The colour [..., 3] of the light that rays absorbed: the rendered ``rgb`` [..., 3] = opacity c +
     (1 - opacity) ``background`` [3] solved for c, clamped to [0, 1]. ``opacity`` [...] must be positive
@@ -163,33 +183,41 @@ def trained_run(run: Path, overrides: list[str], chunk: int | None) -> tuple[Tra
     return loaded, instantiate(loaded.cfg.data)
 
 
-def export_run(run: Path, overrides: list[str], resolution: int, threshold: float, chunk: int | None,
+def export_run(run: Path, overrides: list[str], resolution: int, threshold: float | None, chunk: int | None,
                min_opacity: float) -> str:
-    """Export the run at ``run`` (``trained_run``) into ``RUN_DIR/export``: ``mesh.ply`` (``extract_mesh``)
-    and ``points.ply`` (``view_points`` of its test views). Returns a one-line summary."""
+    """Export the run at ``run`` (``trained_run``) into ``RUN_DIR/export``: ``points.ply`` (``view_points``
+    of its test views) and ``mesh.ply`` (``extract_mesh`` at ``threshold``; None: ``field_threshold`` at the
+    points). Returns a one-line summary."""
     (run_dir, checkpoint, _, module, step), scene = trained_run(run, overrides, chunk)
+    out_dir = run_dir / EXPORT_DIR
+    if foreign := foreign_entries(out_dir, MADE):  # the folder is replaced as a whole: it must be an export
+        raise NerfexpError(foreign_message(out_dir, foreign, "nerfexp-export", "move them elsewhere: "
+                                           "nerfexp-export replaces this folder as a whole"))
     renderer = module.renderer
     box = export_box(renderer, scene)
-    # the grid is evaluated as many points at a time as a chunk of rays evaluates: the memory of rendering
-    mesh, mesh_colours = extract_mesh(final_field(renderer), box, resolution, threshold,
-                                      module.chunk * renderer.samples_per_ray, module.device)
     views = scene.views("test")
     points, point_colours = view_points(module, scene, views, min_opacity)
+    # the field is evaluated as many points at a time as a chunk of rays evaluates: the memory of rendering
+    batch = module.chunk * renderer.samples_per_ray
+    source = "given"
+    if threshold is None:
+        threshold = field_threshold(final_field(renderer), points, batch, module.device)
+        source = f"the {THRESHOLD_QUANTILE:g} quantile of the density at the test views' depths"
+    mesh, mesh_colours = extract_mesh(final_field(renderer), box, resolution, threshold, batch, module.device)
 
     shape = " x ".join(map(str, grid_shape(box, resolution)))
     made = f"nerfexp-export of {checkpoint} (step {step})"
-    out_dir = run_dir / EXPORT_DIR
     with atomic_directory(out_dir, replace=True) as new:
         mesh_elements = {"vertex": vertex_rows(mesh.vertices, mesh_colours, mesh.normals),
                          "face": face_rows(mesh.faces)}
         (new / MESH).write_bytes(ply_bytes(mesh_elements, [
-            made, f"density {threshold:g} crossed on a {shape} grid over the box {box_text(box)}",
+            made, f"density {threshold:g} ({source}) crossed on a {shape} grid over the box {box_text(box)}",
             "vertex colours: the field seen along the inward normal"]))
         (new / POINTS).write_bytes(ply_bytes({"vertex": vertex_rows(points.numpy(), to_uint8(point_colours))}, [
             made, f"pixels of {len(views)} test views with opacity >= {min_opacity:g}, at their depth along the ray",
             "colours: the rendered colour without the background"]))
     return (f"{MESH}: {len(mesh.vertices)} vertices, {len(mesh.faces)} triangles (density {threshold:g}, "
-            f"{shape} grid); {POINTS}: {len(points)} points from {len(views)} test views; written to {out_dir}")
+            f"{source}; {shape} grid); {POINTS}: {len(points)} points from {len(views)} test views; written to {out_dir}")
 
 
 def _opacity(text: str) -> float:
@@ -205,14 +233,17 @@ def build_parser() -> argparse.ArgumentParser:
     RUN_DIR/export/mesh.ply and points.ply."""
     parser = command_parser("nerfexp-export", build_parser.__doc__)
     add_run_arguments(parser)
-    parser.add_argument("--resolution", type=positive(int), default=128,
+    parser.add_argument("--resolution", type=fitting(positive(int), grid_bytes, "a grid of N^3 densities"),
+                        default=128,
                         help="mesh: grid cells along the box's longest edge, the other edges getting cells of "
                              "the same size (default 128: about 2 million density evaluations for a cube)")
-    parser.add_argument("--threshold", type=positive(float), default=50.0,
-                        help="mesh: the density at its surface (default 50, the original NeRF code's). Density "
-                             "sigma absorbs 1 - exp(-sigma h) of the light crossing a width h: 50 absorbs 63%% "
-                             "over 0.02 scene units, 99%% over 0.09. Fields trained briefly are rarely that "
-                             "dense: on the CPU-sized default run 5 gives the fuller mesh (docs/export.md)")
+    parser.add_argument("--threshold", type=positive(float),
+                        help="mesh: the density at its surface (default: read from the field, the "
+                             f"{THRESHOLD_QUANTILE:g} quantile of its density where the test views' rays that "
+                             "reach --min-opacity end, at their rendered depths; the summary prints the value "
+                             "used). Density sigma absorbs 1 - exp(-sigma h) of the light crossing a width h: 50, "
+                             "the original NeRF code's value for converged fields, absorbs 63%% over 0.02 scene "
+                             "units, 99%% over 0.09 (docs/export.md)")
     parser.add_argument("--min-opacity", type=_opacity, default=0.5,
                         help="points: the test views' pixels whose rendered opacity is at least this, in (0, 1], "
                              "become points (default 0.5)")

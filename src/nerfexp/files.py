@@ -1,35 +1,79 @@
 """Writing files and folders so that nothing a user made is ever half-written."""
 
 import contextlib
+import fnmatch
 import os
 import shutil
 import tempfile
 from collections.abc import Iterator
 from pathlib import Path
+from typing import BinaryIO
 
 
-def atomic_write(path: Path, data: bytes) -> None:
-    """Write ``data`` to ``path`` so that a reader sees the old file or the new one, never a part.
+def sync_folder(folder: Path) -> None:
+    """Flush ``folder``'s entries to the disk, so that a rename into it outlasts a power cut; where the OS
+    cannot open or flush a folder (Windows, some network file systems) nothing is done: the rename itself
+    is already complete."""
+    with contextlib.suppress(OSError):
+        fd = os.open(folder, os.O_RDONLY | getattr(os, "O_DIRECTORY", 0))
+        try:
+            os.fsync(fd)
+        finally:
+            os.close(fd)
 
-    The bytes go to a temporary file beside ``path`` (same file system), which is then renamed over it.
-    """
+
+def sync_tree(folder: Path) -> None:
+    """Flush every file under ``folder`` and every folder in it to the disk (links are left alone), so
+    that once ``folder`` is renamed into place its contents outlast a power cut whole."""
+    for parent, _, files in os.walk(folder):
+        for name in files:
+            file = os.path.join(parent, name)
+            if not os.path.islink(file):
+                fd = os.open(file, os.O_RDONLY)
+                try:
+                    os.fsync(fd)
+                finally:
+                    os.close(fd)
+        sync_folder(Path(parent))
+
+
+@contextlib.contextmanager
+def atomic_file(path: Path) -> Iterator[BinaryIO]:
+    """A binary file to stream ``path``'s new contents into, so that a reader, or a process killed at any
+    moment, finds the old file or the new one, never a part.
+
+    The file is a temporary one beside ``path``, always in its folder (the same file system, whatever
+    ``TMPDIR`` says: a rename across file systems is a copy, which a kill can cut short). Once the block
+    succeeds it is flushed to the disk and renamed over ``path``; if the block fails it is removed (it is
+    this block's own: nothing else is touched)."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
     try:
         with os.fdopen(fd, "wb") as file:
-            file.write(data)
-        os.chmod(tmp, 0o644)
+            yield file
+            file.flush()
+            os.fsync(file.fileno())
+        os.chmod(tmp, 0o644)  # mkstemp's is 0o600
         os.replace(tmp, path)
     except BaseException:
         Path(tmp).unlink(missing_ok=True)
         raise
+    sync_folder(path.parent)
+
+
+def atomic_write(path: Path, data: bytes) -> None:
+    """Write ``data`` to ``path`` so that a reader sees the old file or the new one, never a part
+    (``atomic_file``)."""
+    with atomic_file(path) as file:
+        file.write(data)
 
 
 @contextlib.contextmanager
 def atomic_directory(path: Path, replace: bool = False) -> Iterator[Path]:
-    """A new, empty folder beside ``path`` to fill; once the block succeeds it is renamed to ``path``,
-    and if the block fails it is removed (it is this block's own: nothing else is touched).
+    """A new, empty folder beside ``path`` to fill (never under ``TMPDIR``, see ``atomic_file``); once the
+    block succeeds its contents are flushed to the disk (``sync_tree``) and it is renamed to ``path``, and
+    if the block fails it is removed (it is this block's own: nothing else is touched).
 
     ``replace``: a previous ``path`` is moved aside and deleted after the new folder took its place, so
     a reader sees the old folder or the new one, never a part of one (for an instant between the two
@@ -41,6 +85,7 @@ def atomic_directory(path: Path, replace: bool = False) -> Iterator[Path]:
     try:
         os.chmod(new, 0o755)  # mkdtemp's is 0o700
         yield new
+        sync_tree(new)
         if replace and path.exists():
             trash = Path(tempfile.mkdtemp(dir=path.parent, prefix=f".{path.name}.", suffix=".old"))
             os.replace(path, trash / path.name)
@@ -51,3 +96,44 @@ def atomic_directory(path: Path, replace: bool = False) -> Iterator[Path]:
     except BaseException:
         shutil.rmtree(new, ignore_errors=True)
         raise
+    sync_folder(path.parent)
+
+
+# what atomic_write and atomic_directory leave beside their target where they are interrupted
+TEMPORARY = (".*.tmp", "*/.*.tmp", ".*.old", "*/.*.old")
+
+
+def folder_entries(folder: Path) -> list[str]:
+    """The files under ``folder`` (links and anything else that is not a folder included, links never
+    followed), as sorted ``/``-separated paths relative to it; none where it does not exist. Empty folders
+    are not entries: nothing in them can be overwritten. Where ``folder`` is a file, that file."""
+    folder = Path(folder)
+    if os.path.lexists(folder) and not folder.is_dir():
+        return [folder.name]
+    entries = []
+    for parent, folders, files in os.walk(folder):
+        links = [name for name in folders if os.path.islink(os.path.join(parent, name))]
+        folders[:] = [name for name in folders if name not in links]
+        relative = Path(parent).relative_to(folder)
+        entries += [(relative / name).as_posix() for name in files + links]
+    return sorted(entries)
+
+
+def is_made(entry: str, made: tuple[str, ...]) -> bool:
+    """Whether ``entry`` (a ``/``-separated relative path) is one a command makes: it, or a folder it lies
+    in, matches one of the ``fnmatch`` patterns ``made`` (``checkpoints`` claims the whole folder)."""
+    parts = entry.split("/")
+    prefixes = ["/".join(parts[:n]) for n in range(1, len(parts) + 1)]
+    return any(fnmatch.fnmatchcase(prefix, pattern) for prefix in prefixes for pattern in made)
+
+
+def foreign_entries(folder: Path, made: tuple[str, ...]) -> list[str]:
+    """The entries of ``folder`` (``folder_entries``) that a command making ``made`` (``is_made``) did
+    not make."""
+    return [entry for entry in folder_entries(folder) if not is_made(entry, made)]
+
+
+def foreign_message(folder: Path, foreign: list[str], maker: str, advice: str) -> str:
+    """One line: ``FOLDER holds files MAKER did not make (the first three, ...): ADVICE``."""
+    shown = ", ".join(foreign[:3]) + (", ..." if len(foreign) > 3 else "")
+    return f"{folder} holds files {maker} did not make ({shown}): {advice}"

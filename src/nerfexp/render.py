@@ -2,7 +2,8 @@
 as videos and PNG frames.
 
 What a render leaves in ``RUN_DIR/render/`` (the folder is replaced as a whole once every frame is
-written, so a reader sees the previous render or the new one, never a part):
+written, so a reader sees the previous render or the new one, never a part; a ``render/`` holding anything
+else, ``MADE``, is refused with one line before any work):
 ``rgb.mp4``, ``depth.mp4``, ``opacity.mp4``; the same frames as 8-bit PNGs ``rgb/0000.png``, ...,
 ``depth/0000.png``, ..., ``opacity/0000.png``, ...; and ``cameras.json``: the path's name, ``fps``,
 ``height``, ``width``, ``focal`` (pixels) and ``c2w`` per frame.
@@ -26,13 +27,14 @@ from omegaconf import DictConfig
 from torch import Tensor
 from tqdm import tqdm
 
-from nerfexp.arguments import add_run_arguments, command_parser, positive
+from nerfexp.arguments import add_run_arguments, command_parser, fitting, positive
+from nerfexp.memory import frame_bytes, require_memory
 from nerfexp.console import run_command
 from nerfexp.data.base import Scene
 from nerfexp.data.rays import model_batch
 from nerfexp.errors import NerfexpError
 from nerfexp.extras import require
-from nerfexp.files import atomic_directory
+from nerfexp.files import TEMPORARY, atomic_directory, foreign_entries, foreign_message
 from nerfexp.geometry.camera_paths import llff_focus_depth, orbit_path, spiral_path
 from nerfexp.geometry.cameras import camera_rays, pose_problem
 from nerfexp.pixels import depth_image, png_bytes, to_uint8
@@ -42,6 +44,7 @@ from nerfexp.training.module import NeRFModule
 PATHS = ("orbit", "spiral")
 KINDS = ("rgb", "depth", "opacity")  # what is rendered of each frame, each a video and a folder of PNGs
 CAMERAS = "cameras.json"  # a render's cameras, in the format --cameras reads (``camera_path_record``)
+MADE = (*(f"{kind}.mp4" for kind in KINDS), *(f"{kind}/*.png" for kind in KINDS), CAMERAS, *TEMPORARY)  # a render
 DEFAULT_FPS = 30.0
 DEFAULT_FRAMES = 120
 
@@ -181,6 +184,8 @@ def read_camera_path(file: Path) -> CameraPath:
             problem = None
         if problem:
             raise NerfexpError(f"--cameras {file}: key '{key}': expected {what}, {problem}")
+    require_memory(f"--cameras {file}", f"a frame of {data['height']} x {data['width']} pixels",
+                   frame_bytes(data["height"], data["width"]))
     return CameraPath(str(data["path"]), torch.tensor(data["c2w"], dtype=torch.float64), data["height"],
                       data["width"], float(data["focal"]), float(data["fps"]))
 
@@ -232,12 +237,15 @@ def render_run(run: Path, overrides: list[str], n_frames: int, fps: float | None
     cameras' own size) played at ``fps`` (None: the cameras'; 30 for a training path). Returns the folder
     and the number of frames."""
     run_dir, _, cfg, module, _ = load_run(run, overrides, chunk)
+    out_dir = run_dir / RENDER_DIR
+    if foreign := foreign_entries(out_dir, MADE):  # the folder is replaced as a whole: it must be a render
+        raise NerfexpError(foreign_message(out_dir, foreign, "nerfexp-render", "move them elsewhere: "
+                                           "nerfexp-render replaces this folder as a whole"))
     scene = instantiate(cfg.data)
     if cameras is None:
         cameras = training_path(scene, cfg.data, path, n_frames, focus, DEFAULT_FPS)
     height, width, focal = frame_size(cameras.height, cameras.width, cameras.focal, size)
     frames = CameraPath(cameras.name, cameras.c2w, height, width, focal, fps or cameras.fps)
-    out_dir = run_dir / RENDER_DIR
     with atomic_directory(out_dir, replace=True) as new:
         render_path(module, scene, frames.c2w, height, width, focal, new, frames.fps)
         (new / CAMERAS).write_text(json.dumps(frames.record(), indent=2))
@@ -245,7 +253,7 @@ def render_run(run: Path, overrides: list[str], n_frames: int, fps: float | None
 
 
 def _even(text: str) -> int:
-    value = positive(int)(text)
+    value = fitting(positive(int), lambda width: frame_bytes(width, width), "a frame of N x N pixels")(text)
     if value % 2:
         raise argparse.ArgumentTypeError(f"expected an even width (video encoders need one), got {text}")
     return value

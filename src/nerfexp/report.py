@@ -45,12 +45,25 @@ from torch import Tensor
 
 from nerfexp.arguments import command_parser
 from nerfexp.comparison import Difference, compare_order, paired_difference, seeds, tiers
+from nerfexp.console import one_line_errors
 from nerfexp.data.images import read_image
-from nerfexp.errors import DatasetError
-from nerfexp.files import atomic_directory, atomic_write
+from nerfexp.errors import DatasetError, NerfexpError
+from nerfexp.files import TEMPORARY, atomic_directory, atomic_write, folder_entries, foreign_message, is_made
 from nerfexp.pixels import png_bytes
 from nerfexp.report_page import Picture, Tile, page_html
-from nerfexp.rundir import METRICS, RESULTS, STATUS, find_run_dirs, planned_jobs, process_alive, read_json, read_metrics
+from nerfexp.rundir import (
+    METRICS,
+    REPORT_MADE,
+    RESULTS,
+    RUN_MADE,
+    STATUS,
+    SWEEP_MADE,
+    find_run_dirs,
+    planned_jobs,
+    process_alive,
+    read_json,
+    read_metrics,
+)
 
 # The paper's Table 4 (mean over the 8 Realistic Synthetic scenes): conf/ablation/NAME -> (row, PSNR, SSIM).
 PAPER_ABLATION = {
@@ -72,7 +85,7 @@ class Run:
 
     path: Path
     state: str
-    overrides: list[str]
+    overrides: list[str] | None  # None: a damaged job whose overrides cannot be read
     detail: str = ""
     results: dict | None = None
     curve: list[tuple[int, float, float]] = field(default_factory=list)  # (step, wall seconds, validation PSNR)
@@ -133,28 +146,44 @@ def read_record(path: Path, required: tuple[str, ...]) -> dict | None:
     return record
 
 
-def read_curve(path: Path) -> list[tuple[int, float, float]]:
-    """(step, wall seconds, validation PSNR) of each validation in a run's ``metrics.jsonl``, else ``Damaged``."""
+def read_curve(path: Path, ended: bool) -> list[tuple[int, float, float]]:
+    """(step, wall seconds, validation PSNR) of each validation in a run's ``metrics.jsonl``, else
+    ``Damaged``; a last line cut short is damage where the run has ``ended`` (``read_metrics``)."""
     try:
         return [(record["step"], record["wall_time_s"], record["psnr"])
-                for record in read_metrics(path) if record["split"] == "val"]
+                for record in read_metrics(path, ended) if record["split"] == "val"]
     except (ValueError, OSError) as error:
         raise Damaged(f"{METRICS}: {error}") from None
     except (KeyError, TypeError):
         raise Damaged(f"{METRICS}: a record without step, wall_time_s, split and psnr") from None
 
 
+def job_overrides(path: Path) -> list[str] | None:
+    """A job's command-line overrides, from whichever of its ``status.json`` and ``results.json`` can be
+    read (each records them), so that a job with another file damaged still counts against its variant;
+    None where neither can."""
+    for name in (STATUS, RESULTS):
+        try:
+            record = read_record(path / name, ())
+        except Damaged:
+            continue
+        overrides = (record or {}).get("overrides")
+        if isinstance(overrides, list) and all(isinstance(o, str) for o in overrides):
+            return overrides
+    return None
+
+
 def read_run(path: Path) -> Run:
     """What a run directory says about its job. A job whose status still says running but whose
     process is gone from this host was killed (out of memory, a time limit, a signal). A run with a file
-    that cannot be read as nerfexp writes it (``Damaged``) is listed as damaged, and none of its numbers
-    is used."""
+    that cannot be read as nerfexp writes it (``Damaged``) is listed as damaged with its overrides where
+    they can be read (``job_overrides``; else none, and it joins no variant), and none of its numbers is
+    used."""
     try:
         status = read_record(path / STATUS, ("state",)) or {}
         results = read_record(path / RESULTS, ("test_psnr", "test_ssim", "choices"))
-        curve = read_curve(path)
     except Damaged as damage:
-        return Run(path, "damaged", [], str(damage))
+        return Run(path, "damaged", job_overrides(path), str(damage))
     overrides = status.get("overrides", (results or {}).get("overrides", []))
     state = status.get("state", "finished" if results is not None else "unknown")
     detail = status.get("error", "")
@@ -166,6 +195,11 @@ def read_run(path: Path) -> Run:
             state, detail = "killed", f"process {pid} is gone (killed before it finished)"
         else:
             detail = f"on {status.get('host')}, process {pid}" + ("" if here else " (not checked)")
+    try:
+        curve = read_curve(path, ended=state != "running")
+    except Damaged as damage:
+        ended = "" if state == "finished" else f" (the job {state}" + (f": {detail})" if detail else ")")
+        return Run(path, "damaged", list(overrides), f"{damage}{ended}")
     return Run(path, state, list(overrides), detail, results if state == "finished" else None, curve)
 
 
@@ -187,8 +221,9 @@ def _key(override: str) -> str:
 
 
 def group_variants(runs: list[Run], over: tuple[str, ...] = ("seed",)) -> list[Variant]:
-    """Runs with the same overrides, apart from the keys in ``over``, form a variant. Overrides that
-    every run shares are left out of the labels. Variants are ranked by mean test PSNR."""
+    """Runs with the same overrides, apart from the keys in ``over``, form a variant: every job started,
+    damaged, failed or still running included, so that a variant counts its finished runs against all of
+    them. Overrides that every run shares are left out of the labels. Variants are ranked by mean test PSNR."""
     kept = [tuple(o for o in run.overrides if _key(o) not in over) for run in runs]
     shared = set.intersection(*(set(k) for k in kept)) if kept else set()
     groups: dict[frozenset, tuple[tuple, list[Run]]] = {}  # the order of overrides does not matter
@@ -369,7 +404,7 @@ def markdown(variants: list[Variant], runs: list[Run], sources: list[Path], refe
     lines += [""] + ranking_text(variants)
     unfinished = [run for run in runs if run.state != "finished"]
     lines += ["", "## Jobs that did not finish, or whose files are damaged (not counted)", ""]
-    lines += [f"- `{run.path}` ({', '.join(run.overrides) or 'no overrides'}): {run.state}"
+    lines += [f"- `{run.path}` ({overrides_text(run.overrides)}): {run.state}"
               + (f": {run.detail}" if run.detail else "") for run in unfinished]
     lines += [f"- {text}: the rest never started (the sweep stopped or is still going)" for text in not_started]
     if not unfinished and not not_started:
@@ -378,6 +413,13 @@ def markdown(variants: list[Variant], runs: list[Run], sources: list[Path], refe
               "over seeds, its band from the lowest to the highest seed, single runs faint), `pareto.png` "
               "(test PSNR against total training time, bars one standard deviation over seeds)."]
     return "\n".join(lines) + "\n"
+
+
+def overrides_text(overrides: list[str] | None) -> str:
+    """A job's overrides as the report lists them."""
+    if overrides is None:
+        return "overrides unreadable"
+    return ", ".join(overrides) or "no overrides"
 
 
 def reference_text(reference: Variant | None) -> str:
@@ -600,12 +642,27 @@ VIEWS_NOTE = ("Each variant's run with the lowest seed: its render of the view (
               "are enlarged with visible pixels.")
 
 
+def check_out(out: Path) -> None:
+    """A NerfexpError where the report's folder ``out`` holds files that neither a report (``REPORT_MADE``)
+    nor a sweep (``SWEEP_MADE``) made, outside the run directories in it (``find_run_dirs``; where ``out``
+    is one, those its commands make, ``RUN_MADE``, and its log): a report writes over nothing a user made."""
+    runs = {run.relative_to(out) for run in find_run_dirs(out)}
+    made = (*REPORT_MADE, *SWEEP_MADE, *TEMPORARY, *((*RUN_MADE, "*.log") if Path(".") in runs else ()))
+    foreign = [entry for entry in folder_entries(out)
+               if not is_made(entry, made) and not runs & (set(Path(entry).parents) - {Path(".")})]
+    if foreign:
+        raise NerfexpError(foreign_message(out, foreign, "nerfexp-report",
+                                           "choose another folder for the report (--out DIR)"))
+
+
 def write_report(directories: list[Path], out: Path, over: tuple[str, ...] = ("seed",),
                  reference: str | None = None, views: list[int] | None = None) -> list[Variant]:
     """The report of the runs under ``directories`` in ``out``; ``reference``: the variant the others are
-    compared with (see ``reference_variant``); ``views``: the test views on the page (``check_views``)."""
+    compared with (see ``reference_variant``); ``views``: the test views on the page (``check_views``);
+    ``out`` is checked first (``check_out``)."""
+    check_out(out)
     runs = find_runs(directories)
-    variants = group_variants([run for run in runs if run.state != "damaged"], over)
+    variants = group_variants([run for run in runs if run.overrides is not None], over)
     base = reference_variant(variants, reference)
     views = check_views(variants, views)
     report_md = markdown(variants, runs, directories, base)
@@ -639,5 +696,6 @@ def main(argv: list[str] | None = None) -> None:
     """The ``nerfexp-report`` command (``build_parser``)."""
     args = build_parser().parse_args(argv)
     out = args.out or args.dirs[0]
-    variants = write_report(args.dirs, out, tuple(args.over), args.reference, args.views)
+    with one_line_errors("nerfexp-report"):
+        variants = write_report(args.dirs, out, tuple(args.over), args.reference, args.views)
     print(f"{len(variants)} variants; report in {out / 'report.md'} and {out / 'report.html'}", file=sys.stderr)

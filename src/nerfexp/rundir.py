@@ -16,8 +16,10 @@ A run's directory holds (every file written atomically):
 - ``eval.json`` (``nerfexp-eval``), ``render/`` (``nerfexp-render``), ``export/`` (``nerfexp-export``),
   ``view/camera_path.json`` (``nerfexp-view``'s saved camera path), ``debug/`` (the training guards).
 
-A directory belongs to one run: ``RunDirectoryGuard`` refuses to start a run in a directory that
-holds another one (or a sweep in one that holds an earlier sweep's runs), before Hydra writes into it.
+A directory belongs to one run, and a run writes over nothing a user made: ``RunDirectoryGuard`` starts
+a run only in a new or empty directory, the run that ``resume`` continues, or that of a run that ended
+unfinished without saving a checkpoint (replaced), and a sweep only in a new or empty directory; it
+refuses before Hydra writes into the directory. ``RUN_MADE`` lists what nerfexp's commands make there.
 
 A finished (or interrupted) run is read back by ``find_run``, ``run_config`` and ``load_module``
 (together: ``load_run``).
@@ -29,8 +31,11 @@ import json
 import os
 import pickle
 import socket
+import sys
 import tempfile
 import time
+import warnings
+import zipfile
 from collections.abc import Callable
 from pathlib import Path
 from typing import NamedTuple
@@ -48,8 +53,8 @@ from omegaconf.errors import OmegaConfBaseException
 
 from nerfexp.data.datamodule import fill_ray_bounds
 from nerfexp.errors import ConfigError, NerfexpError
-from nerfexp.files import atomic_write
-from nerfexp.saved_configs import check_saved_config
+from nerfexp.files import TEMPORARY, atomic_write, folder_entries, foreign_message, is_made
+from nerfexp.saved_configs import as_data
 
 STATUS = "status.json"
 RESULTS = "results.json"
@@ -61,11 +66,21 @@ EXPORT_DIR = "export"
 CAMERA_PATH = Path("view", "camera_path.json")  # nerfexp-view's saved camera path
 RUN_CONFIG = Path(".hydra", "config.yaml")  # the composed config, as Hydra saves it in every run directory
 LAST_CHECKPOINT = Path("checkpoints", "last.ckpt")
+# what nerfexp-report writes into its folder (a sweep's or a run's, by default), and what Hydra's multirun, the
+# Optuna sweeper and the submitit launchers write into a sweep's
+REPORT_MADE = ("report.md", "report.csv", "report.html", "psnr_vs_time.png", "pareto.png", "report_images/view*/*.png")
+SWEEP_MADE = ("multirun.yaml", "optimization_results.yaml", ".submitit")
+# every entry nerfexp's commands make in a run directory (``nerfexp.files.is_made`` patterns; the run's log,
+# ``hydra.job.name``.log, aside): the run's files, Hydra's, the checkpoints, the training guards', each
+# logger's (conf/logger/, and the images of a logger without a folder of its own), nerfexp-eval's,
+# nerfexp-render's, nerfexp-export's, nerfexp-view's and nerfexp-report's, and interrupted atomic writes
+RUN_MADE = (STATUS, RESULTS, METRICS, f"{TEST_DIR}/r_*.png", RUN_CONFIG.parent.name, LAST_CHECKPOINT.parent.name,
+            "debug", "tensorboard", "csv", "wandb", "mlflow.db*", "mlartifacts", "images", EVAL, RENDER_DIR,
+            EXPORT_DIR, CAMERA_PATH.as_posix(), *REPORT_MADE, *TEMPORARY)
 
 # Where the classes of a run's config lived before the package was split into layers (and the data group
 # held the field's density noise): a run made by an earlier nerfexp is read as if made by this one.
-MOVED_TARGETS = {  # the first match of a target wins
-    "nerfexp.module.FlushDenormals": "nerfexp.training.callbacks.FlushDenormals",
+MOVED_TARGETS = {  # the first match of a target wins; callbacks are not read back (saved_configs.TRAINING_ONLY)
     "nerfexp.module.": "nerfexp.training.module.",
     "nerfexp.guards.": "nerfexp.training.guards.",
     "nerfexp.renderer.": "nerfexp.nerf.volume_renderer.",
@@ -73,6 +88,7 @@ MOVED_TARGETS = {  # the first match of a target wins
     "nerfexp.encodings.": "nerfexp.nerf.encodings.",
     "nerfexp.occupancy.": "nerfexp.nerf.occupancy.",
 }
+OLD_NOISE = "density_noise_std: ${oc.select:data.density_noise_std,0.0}"  # the field's line while data held it
 
 
 def is_global_zero() -> bool:
@@ -145,12 +161,17 @@ def append_metrics(output_dir: str | Path, record: dict) -> None:
         raise OSError(f"{path}: wrote {written} of the {len(line)} bytes of a metrics line")
 
 
-def read_metrics(run_dir: Path) -> list[dict]:
-    """The records of a run's ``metrics.jsonl``, in order; none where it has none. A last line still
-    being written (no newline yet) is left out; a line that is not JSON is a ValueError naming it."""
+def read_metrics(run_dir: Path, ended: bool = False) -> list[dict]:
+    """The records of a run's ``metrics.jsonl``, in order; none where it has none. A last line without
+    its newline is one still being written where the run may still run: left out; where the run has
+    ``ended`` (finished, failed or killed) nothing will finish it, so it was cut: a ValueError naming it,
+    as is a line that is not JSON."""
     path = Path(run_dir) / METRICS
+    lines = path.read_text().split("\n") if path.exists() else [""]
+    if ended and lines[-1]:
+        raise ValueError(f"line {len(lines)}, the last, is cut (no newline, and the run has ended)")
     records = []
-    for number, line in enumerate(path.read_text().split("\n")[:-1] if path.exists() else [], 1):
+    for number, line in enumerate(lines[:-1], 1):
         try:
             records.append(json.loads(line))
         except ValueError as error:
@@ -166,17 +187,19 @@ def find_run_dirs(directory: Path) -> set[Path]:
 
 def planned_jobs(directory: Path) -> int | None:
     """How many jobs the multirun in ``directory`` launches (its ``multirun.yaml``): the grid of a
-    basic sweep, the trials of a search; None where that cannot be told."""
+    basic sweep, the trials of a search; None where that cannot be told. The file is read as data (it may
+    come from elsewhere): nothing in it is resolved, an interpolation is counted as the text it is."""
     path = directory / "multirun.yaml"
     if not path.exists():
         return None
-    hydra = OmegaConf.load(path).hydra
-    sweeper = hydra.sweeper
-    if sweeper._target_.endswith("BasicSweeper"):
-        params = [f"{key}={value}" for key, value in (sweeper.params or {}).items()] + list(hydra.overrides.task)
+    hydra = OmegaConf.to_container(OmegaConf.load(path), resolve=False)["hydra"]
+    sweeper = hydra["sweeper"]
+    if str(sweeper["_target_"]).endswith("BasicSweeper"):
+        params = [f"{key}={value}" for key, value in (sweeper.get("params") or {}).items()] + hydra["overrides"]["task"]
         batches = BasicSweeper.split_arguments(OverridesParser.create().parse_overrides(params), None)
         return sum(len(batch) for batch in batches)
-    return sweeper.get("n_trials")
+    trials = sweeper.get("n_trials")
+    return trials if isinstance(trials, int) else None
 
 
 def held_run(run_dir: Path) -> str | None:
@@ -217,13 +240,72 @@ def claim(run_dir: Path, overrides: list[str]) -> bool:
     return True
 
 
+CLAIM_DRAFTS = (f".{STATUS}.*.tmp",)  # a status being claimed (``claim``): a run starting at this moment
+
+
+def saved_checkpoints(run_dir: Path) -> list[Path]:
+    """The checkpoints a run saved (``checkpoints/*.ckpt``): ``last.ckpt`` first, then the newest first."""
+    found = [path for path in (run_dir / LAST_CHECKPOINT.parent).glob("*.ckpt") if path.is_file()]
+    return sorted(found, key=lambda path: (path.name != LAST_CHECKPOINT.name, -path.stat().st_mtime))
+
+
+def ended_unfinished(status: dict | None) -> bool:
+    """Whether the run whose ``status.json`` reads ``status`` ended without finishing: ``failed``, or
+    ``running`` in a process of this host that no longer runs (``process_alive``; killed, out of memory).
+    A run of another host, or with no status, may still run: not."""
+    if status is None or status.get("state") == "failed":
+        return status is not None
+    pid = status.get("pid")
+    return (status.get("state") == "running" and status.get("host") == socket.gethostname()
+            and isinstance(pid, int) and not process_alive(pid, status.get("process_start")))
+
+
+def admit_run(run_dir: Path, resume: str | None, log: str) -> list[str] | None:
+    """The entries (``nerfexp.files.folder_entries``) to remove from ``run_dir`` before a run claims it:
+    none where it holds no files; all of them where it holds a run that ended unfinished
+    (``ended_unfinished``) and saved no checkpoint. None where it holds the run that ``resume`` (a
+    checkpoint inside it) continues: the directory is that run's already.
+    Otherwise a NerfexpError saying what it holds and what to do: files that no nerfexp command made
+    (``RUN_MADE``, and the run's ``log``; any file, where it holds no run: ``held_run``), or another run
+    (continued with ``resume=`` one of its checkpoints, where it saved one: ``saved_checkpoints``)."""
+    held = held_run(run_dir)
+    entries = folder_entries(run_dir)
+    made = CLAIM_DRAFTS if held is None else (*RUN_MADE, log)
+    if foreign := [entry for entry in entries if not is_made(entry, made)]:
+        raise NerfexpError(foreign_message(run_dir, foreign, "nerfexp",
+                                           "choose a new or empty directory (hydra.run.dir=...)"))
+    if held is None:
+        return []
+    if resume is not None and run_dir.resolve() in Path(resume).resolve().parents:
+        return None
+    if checkpoints := saved_checkpoints(run_dir):
+        raise NerfexpError(f"{run_dir} holds {held}: continue it with resume={checkpoints[0]} "
+                           f"hydra.run.dir={run_dir}, or choose another directory (hydra.run.dir=...)")
+    if not ended_unfinished(read_json(run_dir / STATUS)):
+        raise NerfexpError(f"{run_dir} holds {held}: choose another directory (hydra.run.dir=...)")
+    return entries
+
+
+def remove_entries(folder: Path, entries: list[str]) -> None:
+    """Delete ``entries`` (``/``-separated paths relative to ``folder``), then the folders they leave
+    empty inside ``folder``: nothing else."""
+    emptied = set()
+    for entry in entries:
+        (folder / entry).unlink(missing_ok=True)
+        emptied.update(Path(entry).parents)
+    for parent in sorted(emptied - {Path(".")}, key=lambda path: len(path.parts), reverse=True):
+        with contextlib.suppress(OSError):  # a folder that still holds something stays
+            (folder / parent).rmdir()
+
+
 class RunDirectoryGuard(Callback):
     """Hydra callback: a run starts only in a directory of its own, checked before Hydra writes its
-    config there (``hydra.callbacks.run_directory``).
+    config there (``hydra.callbacks.run_directory``): nothing a user made is written over.
 
-    A single run stops with one line (exit status 1) where ``hydra.run.dir`` holds another run
-    (``held_run``), unless ``resume`` names a checkpoint inside it (the run continued); otherwise it
-    claims the directory (``claim``). A multirun stops where ``hydra.sweep.dir`` holds runs already.
+    A single run stops with one line (exit status 1) unless ``hydra.run.dir`` is new or empty, holds the
+    run that ``resume`` continues, or holds a run that ended unfinished and saved no checkpoint, whose
+    files are then removed, saying so in one line (``admit_run``); then it claims the directory
+    (``claim``). A multirun stops unless ``hydra.sweep.dir`` is new or empty.
     In a distributed job started by SLURM every process runs this; global rank 0 checks and claims.
     It stops with ``SystemExit``: Hydra turns a callback's exceptions into warnings and goes on."""
 
@@ -231,20 +313,23 @@ class RunDirectoryGuard(Callback):
         if not is_global_zero():
             return
         run_dir = Path(config.hydra.run.dir)
-        resume = config.get("resume")
-        if resume is not None and run_dir.resolve() in Path(resume).resolve().parents:
-            return
-        held = held_run(run_dir)
         try:
-            if held is None and not claim(run_dir, list(config.hydra.overrides.task)):
-                held = "a run that started at the same time"
+            replaced = admit_run(run_dir, config.get("resume"), f"{config.hydra.job.name}.log")
+            if replaced is None:  # the run continued
+                return
+            if replaced:
+                print(f"nerfexp: {run_dir} holds a run that ended unfinished and saved no checkpoint: replacing it, "
+                      f"removing its {len(replaced)} files ({', '.join(replaced[:3])}{', ...' * (len(replaced) > 3)})",
+                      file=sys.stderr)
+                remove_entries(run_dir, replaced)
+            if not claim(run_dir, list(config.hydra.overrides.task)):
+                raise NerfexpError(f"{run_dir} holds a run that started at the same time: choose another "
+                                   "directory (hydra.run.dir=...)")
+        except NerfexpError as error:
+            raise SystemExit(f"nerfexp: error: {error}") from None
         except OSError as error:
             raise SystemExit(f"nerfexp: error: cannot write the run directory {run_dir}: {error.strerror} "
                              "(choose another with hydra.run.dir=...)") from None
-        if held is not None:
-            raise SystemExit(f"nerfexp: error: {run_dir} holds {held}: continue it with "
-                             f"resume={run_dir / LAST_CHECKPOINT} hydra.run.dir={run_dir}, or choose another "
-                             f"directory (hydra.run.dir=...)")
 
     def on_multirun_start(self, config: DictConfig, **kwargs) -> None:
         sweep_dir = Path(config.hydra.sweep.dir)
@@ -258,6 +343,9 @@ class RunDirectoryGuard(Callback):
         if runs:
             raise SystemExit(f"nerfexp: error: {sweep_dir} holds the runs of an earlier sweep ({len(runs)}): choose "
                              f"another directory (hydra.sweep.dir=...)")
+        if entries := folder_entries(sweep_dir):
+            raise SystemExit("nerfexp: error: " + foreign_message(
+                sweep_dir, entries, "this sweep", "choose a new or empty directory (hydra.sweep.dir=...)"))
 
 
 def machine() -> dict:
@@ -310,12 +398,17 @@ def find_run(path: str | Path) -> tuple[Path, Path]:
     return run_dir, checkpoint
 
 
-def _current(text: str) -> DictConfig:
-    """A run config's text read as this version's config: ``MOVED_TARGETS`` paths made current, and
-    ``data.density_noise_std`` moved to ``model.renderer.field``."""
+def _current(text: str, source: Path) -> DictConfig:
+    """A run config's text (read from ``source``) as this version's config, read as data
+    (``nerfexp.saved_configs.as_data``, before anything in it is resolved): ``MOVED_TARGETS`` paths made
+    current, and ``data.density_noise_std`` moved to ``model.renderer.field`` (``OLD_NOISE``: the field
+    once read it with a resolver, whose default was 0.0)."""
     for old, new in MOVED_TARGETS.items():
         text = text.replace(f"_target_: {old}", f"_target_: {new}")  # a replaced target matches no later old
-    cfg = OmegaConf.create(text)
+    cfg = OmegaConf.create(text.replace(OLD_NOISE, "density_noise_std: 0.0"))
+    if not isinstance(cfg, DictConfig):
+        raise ConfigError(f"{source}: not a config nerfexp can read (a mapping of keys was expected)")
+    cfg = as_data(cfg, source)
     if "density_noise_std" in cfg.get("data", {}):
         with open_dict(cfg):
             cfg.model.renderer.field.density_noise_std = cfg.data.pop("density_noise_std")
@@ -325,31 +418,55 @@ def _current(text: str) -> DictConfig:
 def run_config(run_dir: Path, overrides: list[str] = ()) -> DictConfig:
     """The config a run used (its ``RUN_CONFIG``), with ``KEY=VALUE`` ``overrides`` of existing keys
     (e.g. ``data.root=...`` for a scene that moved). The file is read as data: a ``_target_`` in it that
-    is not one of the classes nerfexp builds is a ConfigError (``nerfexp.saved_configs``)."""
+    is not one of the classes nerfexp builds, or an interpolation that is not a plain reference to another
+    of its keys, is a ConfigError (``nerfexp.saved_configs``), and the keys only training builds are left
+    out. A reference that the config cannot follow is a ConfigError naming the key, before anything is built."""
     source = Path(run_dir) / RUN_CONFIG
     try:
-        cfg = _current(source.read_text())
+        cfg = _current(source.read_text(), source)
     except (OmegaConfBaseException, yaml.YAMLError, UnicodeDecodeError) as error:
         raise ConfigError(f"{source}: not a config nerfexp can read ({str(error).splitlines()[0]})") from None
-    if not isinstance(cfg, DictConfig):
-        raise ConfigError(f"{source}: not a config nerfexp can read (a mapping of keys was expected)")
-    check_saved_config(cfg, source)
     OmegaConf.set_struct(cfg, True)  # an override of a key the run does not have is a typo, not a new key
     try:
-        return OmegaConf.merge(cfg, OmegaConf.from_dotlist(list(overrides)))
+        cfg = OmegaConf.merge(cfg, OmegaConf.from_dotlist(list(overrides)))
     except OmegaConfBaseException as error:
         raise ConfigError(f"cannot apply {' '.join(overrides)} to {Path(run_dir) / RUN_CONFIG}: "
                           f"{str(error).splitlines()[0]}") from None
+    try:
+        OmegaConf.to_container(cfg, resolve=True)  # plain references only (and the overrides'): nothing runs
+    except OmegaConfBaseException as error:
+        where = f" at {error.full_key}" if error.full_key else ""
+        raise ConfigError(f"{source}: cannot resolve the config{where}: {str(error).splitlines()[0]}") from None
+    return cfg
+
+
+def not_a_checkpoint(path: Path, error: Exception) -> str:
+    """What file ``path``, which ``torch.load`` could not read as data (``error``), is, in a few words: never
+    torch's own message, whose advice to load it with ``weights_only=False`` would run any code it holds."""
+    if path.stat().st_size == 0:
+        return "an empty file"
+    if not zipfile.is_zipfile(path):
+        return "not a whole zip archive as torch.save writes: cut short, or another kind of file"
+    if isinstance(error, pickle.UnpicklingError):
+        return "it holds objects other than tensors, numbers, strings and containers of them"
+    return "a damaged zip archive"
 
 
 def read_checkpoint(path: Path) -> dict:
     """A Lightning checkpoint's contents read as data (``weights_only``: tensors and plain containers;
     a pickle that would run code is refused), on the CPU; a NerfexpError naming the file otherwise."""
+    path = Path(path)
+    if not path.is_file():
+        raise NerfexpError(f"{path}: no such checkpoint file")
     try:
-        state = torch.load(path, map_location="cpu", weights_only=True)
-    except (OSError, RuntimeError, EOFError, pickle.UnpicklingError) as error:
-        raise NerfexpError(f"{path}: not a checkpoint nerfexp can read as data "
-                           f"({type(error).__name__}: {str(error).splitlines()[0]})") from None
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")  # torch's notes on pickle protocols: the error below says what matters
+            state = torch.load(path, map_location="cpu", weights_only=True)
+    except OSError as error:
+        raise NerfexpError(f"{path}: cannot read the checkpoint ({error.strerror})") from None
+    except Exception as error:  # torch raises any type (IndexError, KeyError, ...) on bytes it cannot parse
+        raise NerfexpError(f"{path}: not a checkpoint ({not_a_checkpoint(path, error)}); nerfexp reads checkpoints "
+                           "as data only, never running code in them") from None
     if not isinstance(state, dict) or not isinstance(state.get("state_dict"), dict) or "global_step" not in state:
         raise NerfexpError(f"{path}: not a Lightning checkpoint (expected a state_dict and a global_step)")
     return state
@@ -361,12 +478,24 @@ def load_module(cfg: DictConfig, checkpoint: Path) -> tuple[L.LightningModule, i
     fill_ray_bounds(cfg)  # a run's saved config holds null where the scene chose near and far
     module = instantiate(cfg.model)
     state = read_checkpoint(checkpoint)
-    try:
-        module.load_state_dict(state["state_dict"])
-    except RuntimeError as error:
-        raise NerfexpError(f"{checkpoint}: not a checkpoint of this run's model "
-                           f"({type(error).__name__}: {str(error).splitlines()[0]})") from None
+    check_weights(state["state_dict"], module, checkpoint)
+    module.load_state_dict(state["state_dict"])
     return module, state["global_step"]
+
+
+def check_weights(weights: dict[str, torch.Tensor], module: torch.nn.Module, checkpoint: Path) -> None:
+    """A NerfexpError in one line where a checkpoint's ``weights`` (a state_dict) do not fit ``module``: the
+    first parameter or buffer that one has and the other lacks, or whose shapes differ, with both shapes
+    (where torch's ``load_state_dict`` would list every one, a line each)."""
+    expected = module.state_dict()
+    for name in [*expected, *(name for name in weights if name not in expected)]:
+        if name not in weights or name not in expected:
+            where = "the checkpoint" if name not in weights else "this run's model"
+            raise NerfexpError(f"{checkpoint}: not a checkpoint of this run's model: {name} is missing from {where}")
+        if weights[name].shape != expected[name].shape:
+            raise NerfexpError(f"{checkpoint}: not a checkpoint of this run's model: {name} has shape "
+                               f"{list(weights[name].shape)} there and {list(expected[name].shape)} in this run's "
+                               "model (another network size?)")
 
 
 class TrainedRun(NamedTuple):

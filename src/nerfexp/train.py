@@ -1,19 +1,23 @@
 """``nerfexp``: build everything from the config, train, test with the last checkpoint; nothing else."""
 
+import contextlib
 import logging
+import os
 import re
 import sys
+from collections.abc import Iterator
 from pathlib import Path
 
 import hydra
 import lightning as L
 from hydra.core.hydra_config import HydraConfig
-from hydra.errors import InstantiationException
+from hydra.errors import HydraException, InstantiationException, MissingConfigException, OverrideParseException
 from hydra.types import RunMode
 from hydra.utils import instantiate
 from lightning.pytorch.loggers import Logger
 from lightning.pytorch.utilities.exceptions import SIGTERMException
 from omegaconf import DictConfig, OmegaConf
+from omegaconf.errors import ConfigAttributeError, ConfigKeyError, OmegaConfBaseException
 
 from nerfexp.console import quiet_dependencies
 from nerfexp.data.datamodule import fill_ray_bounds
@@ -23,17 +27,18 @@ from nerfexp.extras import require
 from nerfexp.rundir import (
     LAST_CHECKPOINT,
     RESULTS,
+    check_weights,
     is_global_zero,
     planned_jobs,
-    read_checkpoint,
     read_json,
     write_status,
 )
-from nerfexp.settings import check_settings
+from nerfexp.settings import check_settings, unused_settings, without_unused
 from nerfexp.signals import ending_signals, received_signal
 from nerfexp.training.loggers import finish
-from nerfexp.training.progress import StepProgressBar
+from nerfexp.training.progress import progress_bars
 from nerfexp.training.recorders import RunRecorder
+from nerfexp.training.resume import check_resume, checkpoint_settings, group_choices, resume_record
 
 log = logging.getLogger("nerfexp")
 
@@ -50,22 +55,30 @@ def train(cfg: DictConfig) -> dict | None:
         raise ConfigError(f"missing mandatory value: {', '.join(missing)} (set it on the command line, "
                           f"e.g. {missing[0]}=...)")
     check_settings(cfg)
+    unused = unused_settings(cfg, list(HydraConfig.get().overrides.task))  # a sweep's job: recorded as null
+    for override, reason in unused:
+        log.warning("%s: not used with %s; results.json records it as null", override, reason)
     quiet_dependencies()
     fill_ray_bounds(cfg)
     L.seed_everything(cfg.seed, workers=True, verbose=False)
     runtime = HydraConfig.get().runtime
     choices = {k: v for k, v in runtime.choices.items() if not k.startswith("hydra") and v is not None}
     choices.update(hierarchical=cfg.hierarchical, seed=cfg.seed)
-    if cfg.resume is not None:  # a checkpoint that cannot be read as data: an error before any work
-        read_checkpoint(Path(cfg.resume))
+    resolved = OmegaConf.to_container(cfg, resolve=True)
+    settings = checkpoint_settings(OmegaConf.create(resolved), group_choices(runtime.choices))
+    resumes, state = [], None
+    if cfg.resume is not None:  # a checkpoint this run may not continue: an error before any work
+        state = check_resume(cfg, group_choices(runtime.choices), Path(cfg.resume))
+        resumes = resume_record(state, Path(cfg.resume), settings["settings"])
     logger = build_logger(cfg.get("logger"))
     datamodule = instantiate(cfg.datamodule)
     model = instantiate(cfg.model)
+    if state is not None:  # a checkpoint that records no settings may hold another network size
+        check_weights(state["state_dict"], model, Path(cfg.resume))
     overrides = list(HydraConfig.get().overrides.task)
-    recorder = RunRecorder(runtime.output_dir, choices, OmegaConf.to_container(cfg, resolve=True), overrides)
-    callbacks = [instantiate(c) for c in cfg.callbacks.values()] + [recorder]
-    if cfg.trainer.get("enable_progress_bar", True):  # Lightning refuses a bar callback when bars are off
-        callbacks.append(StepProgressBar())
+    recorded = without_unused(cfg, resolved, [override for override, _ in unused])
+    recorder = RunRecorder(runtime.output_dir, choices, recorded, overrides, settings, resumes)
+    callbacks = [instantiate(c) for c in cfg.callbacks.values()] + [recorder] + progress_bars(cfg.trainer)
     trainer = instantiate(cfg.trainer, logger=logger, callbacks=callbacks)
     rank_slice(datamodule.batch_rays, 0, trainer.world_size)  # a batch that the processes cannot share: an error now
     succeeded = False
@@ -160,5 +173,43 @@ def cli() -> None:
         check_launcher(sys.argv[1:])
     except NerfexpError as error:
         sys.exit(f"nerfexp: error: {error}")
-    with ending_signals():
+    with ending_signals(), hydra_errors_in_one_line():
         main()
+
+
+@contextlib.contextmanager
+def hydra_errors_in_one_line() -> Iterator[None]:
+    """Inside the block, Hydra's and OmegaConf's errors (an unknown option or key, an override's syntax, a
+    class that cannot be built) and nerfexp's end the program with one line (``hydra_error_line``) and exit
+    status 1. Hydra prints its own multi-line report unless HYDRA_FULL_ERROR=1, which makes it re-raise:
+    so it is set inside the block, and a user's own HYDRA_FULL_ERROR=1 keeps Hydra's full output."""
+    if os.environ.get("HYDRA_FULL_ERROR") == "1":
+        yield
+        return
+    os.environ["HYDRA_FULL_ERROR"] = "1"
+    try:
+        yield
+    except (HydraException, OmegaConfBaseException, NerfexpError) as error:
+        sys.exit(f"nerfexp: error: {hydra_error_line(error)}")
+    finally:
+        del os.environ["HYDRA_FULL_ERROR"]
+
+
+def hydra_error_line(error: Exception) -> str:
+    """One line for an error of Hydra, OmegaConf or nerfexp: the override at fault and what was expected."""
+    cause = error.__cause__
+    if isinstance(error, MissingConfigException) and error.options is not None:
+        group, _, option = str(error.missing_cfg_file).rpartition("/")
+        return f"{group}={option}: no such option (choose from {', '.join(error.options)})"
+    if isinstance(error, OverrideParseException):
+        return f"{error.override}: not a valid override ({error.message.splitlines()[0]}; see Hydra's override grammar)"
+    if isinstance(cause, ConfigKeyError | ConfigAttributeError) and "Could not override" in str(error):
+        key = cause.full_key
+        override = next((a for a in sys.argv[1:] if a.split("=", 1)[0] == key), key)
+        parent = cause.parent_node
+        known = ", ".join(str(k) for k in parent.keys() if k != "hydra") if parent is not None else ""
+        return f"{override}: no such key ({key.rpartition('.')[0] or 'the config'} has {known}; +{override} adds one)"
+    text = " ".join(line.strip() for line in str(error).splitlines() if line.strip())
+    if isinstance(error, InstantiationException) and cause is not None:
+        text = f"{text} ({type(cause).__name__}: {' '.join(str(cause).split())})"
+    return text

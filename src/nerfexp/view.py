@@ -31,11 +31,12 @@ import torch
 from hydra.utils import instantiate
 from torch import Tensor
 
-from nerfexp.arguments import add_run_arguments, command_parser, positive
+from nerfexp.arguments import add_run_arguments, command_parser, port, positive
 from nerfexp.console import run_command
 from nerfexp.data.base import Scene
 from nerfexp.extras import require
-from nerfexp.files import atomic_write
+from nerfexp.errors import NerfexpError
+from nerfexp.files import TEMPORARY, atomic_write, foreign_entries, foreign_message
 from nerfexp.geometry.camera_paths import mean_up
 from nerfexp.geometry.cameras import focal_from_fov
 from nerfexp.geometry.viewer_cameras import vertical_fov, viewer_c2w, viewer_pose
@@ -344,6 +345,10 @@ def view_run(run: Path, overrides: list[str], host: str, port: int, chunk: int |
     ``nerfexp.signals.ending_signals`` does (exit status 130 or 143)."""
     viser = require("viser", "nerfexp-view")
     run_dir, _, cfg, module, step = load_run(run, overrides, chunk)
+    folder = run_dir / CAMERA_PATH.parent  # where a saved camera path goes: nerfexp-view's alone
+    if foreign := foreign_entries(folder, (CAMERA_PATH.name, *TEMPORARY)):
+        raise NerfexpError(foreign_message(folder, foreign, "nerfexp-view", "move them elsewhere: nerfexp-view "
+                                           f"saves camera paths to {CAMERA_PATH.name} there"))
     scene = instantiate(cfg.data)
     max_width = max_width or scene.views("test").width
     with ending_signals():
@@ -369,7 +374,7 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--host", default="127.0.0.1",
                         help="address to serve on (default 127.0.0.1: this machine only; from elsewhere, "
                              "forward the port over SSH: docs/viewer.md)")
-    parser.add_argument("--port", type=int, default=8080,
+    parser.add_argument("--port", type=port, default=8080,
                         help="port to serve on (default 8080; the next free one where it is taken; 0: any free one)")
     parser.add_argument("--chunk", type=positive(int),
                         help="rays rendered at once, and between which a render is abandoned when the camera "

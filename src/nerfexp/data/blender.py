@@ -20,7 +20,7 @@ from torch import Tensor
 from tqdm import tqdm
 
 from nerfexp.data.base import Scene
-from nerfexp.data.images import downscale_rgba, fit_factor, read_image
+from nerfexp.data.images import downscale_rgba, fit_factor, has_alpha, read_image
 from nerfexp.data.views import Views
 from nerfexp.errors import DatasetError
 from nerfexp.files import atomic_write
@@ -29,6 +29,7 @@ from nerfexp.pixels import png_bytes, to_uint8
 
 TRANSFORMS = "transforms_{split}.json"
 BLENDER_HALF_SIDE = 1.5  # the synthetic scenes' objects lie in [-1.5, 1.5]^3
+ALPHA_KINDS = {True: "an RGBA image", False: "an RGB image (no alpha)"}  # an image file, by whether it has an alpha channel
 
 
 def write_blender(root: Path, split: str, views: Views, camera_angle_x: float) -> None:
@@ -108,7 +109,8 @@ def load_blender(root, split: str, downscale: int = 1, max_views: int | None = N
 
     Keeps every ``stride``-th frame, then the first ``max_views`` of those; images are shrunk by
     the integer factor ``downscale`` (see ``downscale_rgba``) and the focal length is
-    0.5 W / tan(0.5 camera_angle_x) for the final width W.
+    0.5 W / tan(0.5 camera_angle_x) for the final width W. The images must agree in size and in having
+    an alpha channel (``has_alpha``): an RGB image among RGBA ones would be read as opaque.
     """
     for name, value in (("downscale", downscale), ("stride", stride), ("max_views", max_views)):
         if value is not None and value < 1:
@@ -126,11 +128,16 @@ def load_blender(root, split: str, downscale: int = 1, max_views: int | None = N
     for file_path, _ in tqdm(frames, desc=f"loading {split}", unit="image", disable=None):
         path = image_path(root, file_path)
         image = read_image(path, f"file_path {file_path!r} in {transforms}")
+        alpha = has_alpha(path)
         if first is None:
-            first = (path, image.shape)
+            first = (path, image.shape, alpha)
         elif image.shape != first[1]:
             (h, w), (h0, w0) = image.shape[:2], first[1][:2]
             raise DatasetError(f"{path}: image size {w}x{h} differs from {first[0]} ({w0}x{h0}); all images must match")
+        elif alpha != first[2]:
+            raise DatasetError(f"{path}: {ALPHA_KINDS[alpha]}, but {first[0]} is {ALPHA_KINDS[first[2]]}: a "
+                               "scene's images must all have an alpha channel or none (one without is read as "
+                               "opaque, its background learned as part of the scene)")
         images.append(image)
     rgba = torch.stack(images).float() / 255
     if downscale > 1:

@@ -159,7 +159,7 @@ def extract_features(database: Path, image_dir: Path, names: list[str], camera_m
     extraction.sift.max_num_features = max_features
     reader = pycolmap.ImageReaderOptions(camera_model=camera_model)
     batch_size = 2 * effective_threads(threads)
-    with tqdm(total=len(names), desc="COLMAP features", unit="image") as bar:
+    with tqdm(total=len(names), desc="COLMAP features", unit="image", disable=None) as bar:
         for start in range(0, len(names), batch_size):
             batch = names[start:start + batch_size]
             pycolmap.extract_features(database, image_dir, batch, camera_mode=pycolmap.CameraMode.SINGLE,
@@ -197,7 +197,7 @@ def reconstruct(root, camera_model: str = "SIMPLE_RADIAL", matcher: str = "exhau
     with _colmap_log_level(verbose), atomic_directory(cache) as work:
         database = work / "database.db"
         extract_features(database, image_dir, names, camera_model, max_features, threads)
-        with tqdm(total=2, desc="COLMAP", unit="stage") as bar:
+        with tqdm(total=2, desc="COLMAP", unit="stage", disable=None) as bar:
             bar.set_postfix_str(f"{matcher} matching")
             matching = pycolmap.FeatureMatchingOptions(num_threads=threads, use_gpu=False)
             match = pycolmap.match_exhaustive if matcher == "exhaustive" else pycolmap.match_sequential
@@ -247,7 +247,8 @@ def undistort(root: Path, model_dir: Path, image_dir: Path, n_images: int, verbo
     if final.exists():
         raise DatasetError(f"{final} exists but holds no model in sparse/; move it away (nerfexp never deletes it) "
                            f"to undistort the images again")
-    progress = tqdm(total=n_images, desc="COLMAP undistortion to PINHOLE", unit="image")
+    progress = tqdm(total=n_images, desc="COLMAP undistortion to PINHOLE", unit="image",
+                    disable=None)
     with _colmap_log_level(verbose), atomic_directory(final) as work, progress as bar:
         run_counting(lambda token: pycolmap.undistort_images(work, model_dir, image_dir, cancellation_token=token),
                      lambda: count_files(work / "images"), bar)

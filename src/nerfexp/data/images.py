@@ -50,6 +50,14 @@ def read_image(path: Path, source: str) -> Tensor:
     return torch.from_numpy(rgba.copy())
 
 
+def has_alpha(path: Path) -> bool:
+    """Whether the image file ``path`` carries transparency: an alpha channel (RGBA, LA, ...) or a
+    transparent colour (PNG's ``tRNS``); ``read_image`` gives every other image alpha 255 (opaque). Reads
+    the file's header only: call it on a file ``read_image`` has read."""
+    with Image.open(path) as image:
+        return "A" in image.getbands() or "transparency" in image.info
+
+
 def downscale_rgba(rgba: Tensor, factor: int) -> Tensor:
     """Area-average straight-alpha images [N, H, W, 4] down to [N, H // factor, W // factor, 4].
 

@@ -185,7 +185,7 @@ def video_frames(root, video: str, fps: float) -> Path:
         if n_promised and n_kept_of(n_promised, rate, fps) < MIN_FRAMES:
             raise too_few(path, n_kept_of(n_promised, rate, fps), fps)
         progress = tqdm(decoded_frames(reader, path), total=n_promised or None, desc=f"frames of {path.name}",
-                        unit="frame")
+                        unit="frame", disable=None)
         with atomic_directory(folder) as work, progress as frames:
             n_kept = 0
             for interval, rgb in sharpest_frames(frames, rate, fps):

@@ -143,13 +143,17 @@ class DiffuseHead(nn.Module):
         return torch.sigmoid(self.rgb(h))
 
 
+SH_MAX_DEGREE = 3  # the highest band ``sh_basis`` writes out (16 coefficients per colour channel)
+
+
 def sh_basis(directions: Tensor, degree: int) -> Tensor:
-    """Real spherical harmonics up to ``degree`` (0..3) at unit ``directions`` [..., 3]: [..., (degree+1)^2].
+    """Real spherical harmonics up to ``degree`` (0..SH_MAX_DEGREE) at unit ``directions`` [..., 3]:
+    [..., (degree+1)^2].
 
     Ordered by band l, then m = -l..l, with the standard orthonormal constants (as in PlenOctrees).
     """
-    if not 0 <= degree <= 3:
-        raise ValueError(f"view_dependence.degree: expected 0..3, got {degree}")
+    if not 0 <= degree <= SH_MAX_DEGREE:
+        raise ValueError(f"view_dependence.degree: expected 0..{SH_MAX_DEGREE}, got {degree}")
     x, y, z = directions.unbind(-1)
     out = [torch.full_like(x, 0.28209479177387814)]
     if degree >= 1:

@@ -13,7 +13,6 @@ by name only when that norm is not finite (finite gradients whose norm overflowe
 With gradient accumulation, the losses and the batch seen are those of the last accumulated batch.
 """
 
-import io
 import logging
 import math
 from pathlib import Path
@@ -24,7 +23,7 @@ from lightning.fabric.utilities import move_data_to_device
 from torch import Tensor
 
 from nerfexp.errors import FieldCollapseError, NonFiniteError
-from nerfexp.files import atomic_write
+from nerfexp.files import atomic_file
 
 log = logging.getLogger(__name__)
 
@@ -178,9 +177,8 @@ class TrainingGuard(L.Callback):
             "gradients": {name: p.grad.detach().cpu() for name, p in pl_module.named_parameters()
                           if p.grad is not None},
         }
-        buffer = io.BytesIO()
-        torch.save(record, buffer)
-        atomic_write(path, buffer.getvalue())
+        with atomic_file(path) as file:
+            torch.save(record, file)
 
     def _watch_collapse(self, step: int, max_opacities: dict[str, float]) -> None:
         """Count each network's consecutive batches in which no ray reaches ``collapse_opacity``."""

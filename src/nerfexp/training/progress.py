@@ -1,8 +1,10 @@
-"""The training progress bar: optimizer steps of the whole run, not batches of an epoch."""
+"""The progress bars of nerfexp's trainers: optimizer steps of the whole run, not batches of an epoch,
+and drawn only on a terminal."""
 
 import sys
 
-from lightning.pytorch.callbacks import TQDMProgressBar
+from lightning.pytorch.callbacks import Callback, TQDMProgressBar
+from omegaconf import DictConfig
 
 
 class StepProgressBar(TQDMProgressBar):
@@ -38,3 +40,11 @@ class StepProgressBar(TQDMProgressBar):
         metrics = super().get_metrics(trainer, pl_module)
         metrics.pop("v_num", None)
         return metrics
+
+
+def progress_bars(trainer: DictConfig) -> list[Callback]:
+    """The progress-bar callback of a Lightning trainer built from the config ``trainer``: a
+    ``StepProgressBar`` (on only where standard output is a terminal) where the config shows bars, none
+    where it does not (Lightning refuses a bar callback then). Every trainer nerfexp makes (training,
+    ``nerfexp-eval``) takes it, since Lightning's own bar draws on standard output whatever it is."""
+    return [StepProgressBar()] if trainer.get("enable_progress_bar", True) else []

@@ -6,6 +6,7 @@ gather every image's scores and renders to all processes (``gather_evaluations``
 rank 0 writes files and logs, so the numbers are those of one process scoring every image.
 """
 
+import json
 import logging
 import time
 from pathlib import Path
@@ -16,8 +17,19 @@ import torch
 
 from nerfexp.files import atomic_write
 from nerfexp.pixels import depth_image, png_bytes, to_uint8
-from nerfexp.rundir import EVAL, RESULTS, TEST_DIR, append_metrics, checkpoint_record, machine, write_json
+from nerfexp.rundir import (
+    EVAL,
+    METRICS,
+    RESULTS,
+    TEST_DIR,
+    append_metrics,
+    checkpoint_record,
+    machine,
+    read_metrics,
+    write_json,
+)
 from nerfexp.training.loggers import log_hyperparams, log_image
+from nerfexp.training.resume import RESUMES, SETTINGS
 
 log = logging.getLogger("nerfexp")
 
@@ -57,6 +69,17 @@ def scores_record(scores: dict[int, dict[str, float]]) -> dict:
             **{f"test_{name}_per_view": [scores[i][name] for i in views] for name in ("psnr", "ssim")}}
 
 
+def keep_metrics_through(output_dir: Path, step: int) -> None:
+    """Rewrite ``metrics.jsonl`` in ``output_dir`` without its lines of steps after ``step`` (and a last line
+    cut short), where it has any; otherwise leave it untouched."""
+    records = read_metrics(output_dir)
+    kept = [record for record in records if record["step"] <= step]
+    path = Path(output_dir) / METRICS
+    text = "".join(json.dumps(record) + "\n" for record in kept).encode()
+    if path.exists() and path.read_bytes() != text:
+        atomic_write(path, text)
+
+
 class RunRecorder(L.Callback):
     """Writes a run's metrics, results and test renders; times the training in wall-clock seconds;
     logs ``val/psnr``, ``val/ssim``, ``test/psnr``, ``test/ssim`` (means over the images).
@@ -72,12 +95,20 @@ class RunRecorder(L.Callback):
     the end of training the last checkpoint is written again, after the last validation: Lightning's
     ``ModelCheckpoint`` keeps the one of its last save, taken before that validation (or at an earlier
     step where ``scale.steps`` is not a multiple of ``scale.val_every``).
+
+    Each checkpoint also records the run's ``settings`` (``nerfexp.training.resume.checkpoint_settings``)
+    and ``resumes`` (``nerfexp.training.resume.resume_record``), which ``results.json`` lists too, so that
+    a resume is checked against the settings that trained the checkpoint. A resumed run's
+    ``metrics.jsonl`` keeps the lines of the steps up to its checkpoint's: later ones came from training
+    that the resumed run does again, and would stand twice for the same steps.
     """
 
     def __init__(self, output_dir: str, choices: dict, run_config: dict | None = None,
-                 overrides: list[str] = ()):
+                 overrides: list[str] = (), settings: dict | None = None, resumes: list[dict] = ()):
         self.output_dir = Path(output_dir)
         self.choices, self.run_config, self.overrides = dict(choices), run_config, list(overrides)
+        self.settings = settings
+        self.resumes = list(resumes)
         self.last_val_psnr: float | None = None
         self.elapsed_s, self._started, self.steps, self.trained = 0.0, None, 0, False
         self._scores: dict[int, dict[str, float]] = {}  # image index -> its psnr and ssim
@@ -118,9 +149,16 @@ class RunRecorder(L.Callback):
         if not self.trained:  # a test after training in this process keeps what it measured
             self.elapsed_s, self.last_val_psnr = state_dict["elapsed_s"], state_dict.get("last_val_psnr")
 
+    def on_save_checkpoint(self, trainer, pl_module, checkpoint: dict) -> None:
+        if self.settings is not None:
+            checkpoint[SETTINGS] = self.settings
+        checkpoint[RESUMES] = self.resumes
+
     def on_load_checkpoint(self, trainer, pl_module, checkpoint: dict) -> None:
         if not self.trained:
             self.steps = checkpoint["global_step"]
+            if trainer.is_global_zero:
+                keep_metrics_through(self.output_dir, self.steps)
 
     def _collect(self, trainer, pl_module, outputs: dict, split: str) -> None:
         for item in gather_evaluations(trainer, outputs):
@@ -188,7 +226,7 @@ class RunRecorder(L.Callback):
             "n_params": sum(p.numel() for p in pl_module.parameters()),
             "evaluations_per_ray": renderer.evaluations_per_ray,
             "machine": machine(), "choices": self.choices, "overrides": self.overrides,
-            "config": self.run_config,
+            "config": self.run_config, "resumes": self.resumes,
         }
         if trainer.ckpt_path is not None:  # the weights scored: the checkpoint the test loaded
             results["checkpoint"] = checkpoint_record(self.output_dir, Path(trainer.ckpt_path))

@@ -1,0 +1,71 @@
+"""Memory estimates that refuse a size before any work: a scene, the networks' working arrays, a grid or a
+frame that would not fit in this machine's memory is one line naming the setting and the estimate.
+
+The estimates are deliberately simple upper bounds (bytes per element times a generous count of the
+arrays kept at once), so that a size they pass may still be slow, but one they refuse cannot fit.
+"""
+
+import os
+
+from nerfexp.errors import ConfigError
+
+FLOAT = 4  # bytes of a float32
+PIXEL_BYTES = 16 * FLOAT  # a scene's pixel: its ray (origin, direction, bounds), colour and index, and room to spare
+SAMPLE_BYTES = 8 * FLOAT  # a ray sample's position, direction, density and colour, before the networks
+ACTIVATION_COPIES = 3  # a hidden activation kept for the backward pass, its gradient and a temporary
+TABLE_COPIES = 4  # a hash table's entries, their gradients and Adam's two moments
+VOXEL_BYTES = 8 * FLOAT  # export: a density per grid point, and marching cubes' own arrays over the grid
+FRAME_PIXEL_BYTES = 12 * FLOAT  # a rendered frame's colour, depth, opacity and the images written from them
+
+
+def machine_bytes() -> int:
+    """This machine's total physical memory in bytes."""
+    return os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES")
+
+
+def readable(n_bytes: int) -> str:
+    """``n_bytes`` in the largest binary unit that keeps it at least 1 (``1.5 GiB``)."""
+    value, unit = float(n_bytes), "bytes"
+    for name in ("KiB", "MiB", "GiB", "TiB", "PiB", "EiB"):
+        if value < 1024:
+            break
+        value, unit = value / 1024, name
+    return f"{value:.3g} {unit}" if unit != "bytes" else f"{n_bytes} bytes"
+
+
+def require_memory(setting: str, what: str, n_bytes: int, available: int | None = None) -> None:
+    """A ConfigError naming ``setting`` (``scale.image_size=100000``) where ``what`` needs an estimated
+    ``n_bytes``, more than ``available`` (default: the machine's memory)."""
+    available = machine_bytes() if available is None else available
+    if n_bytes > available:
+        raise ConfigError(f"{setting}: {what} needs about {readable(n_bytes)} of memory, more than this machine's "
+                          f"{readable(available)}")
+
+
+def scene_bytes(n_images: int, height: int, width: int, supersample: int = 1) -> int:
+    """A scene held in memory: ``n_images`` views of ``height`` x ``width`` pixels, each traced with
+    ``supersample``^2 rays while it is made."""
+    return n_images * height * width * supersample ** 2 * PIXEL_BYTES
+
+
+def network_bytes(rays: int, samples: int, width: int, depth: int) -> int:
+    """The working arrays of ``rays`` rays of ``samples`` samples each through a network of ``depth``
+    hidden layers of ``width`` units (forward activations kept for the backward pass)."""
+    points = rays * samples
+    return points * (SAMPLE_BYTES + depth * width * FLOAT * ACTIVATION_COPIES)
+
+
+def hash_table_bytes(n_levels: int, log2_table_size: int, features_per_level: int) -> int:
+    """A multiresolution hash encoding's tables and their optimizer state, at most ``2^log2_table_size``
+    entries of ``features_per_level`` numbers at each of ``n_levels`` levels."""
+    return n_levels * 2 ** log2_table_size * features_per_level * FLOAT * TABLE_COPIES
+
+
+def grid_bytes(resolution: int) -> int:
+    """nerfexp-export's grid of ``resolution``^3 densities and the marching cubes' arrays over it."""
+    return resolution ** 3 * VOXEL_BYTES
+
+
+def frame_bytes(height: int, width: int) -> int:
+    """One rendered frame of ``height`` x ``width`` pixels and the images made from it."""
+    return height * width * FRAME_PIXEL_BYTES
