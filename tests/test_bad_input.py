@@ -142,3 +142,37 @@ def test_bad_data_in_any_split_stops_the_run_before_its_first_step(tmp_path, tin
     line = one_error_line(result)
     assert line.startswith(f"nerfexp: error: {path}") and message in line, line
     assert not (tmp_path / "run" / "metrics.jsonl").exists() and not (tmp_path / "run" / "checkpoints").exists()
+
+
+def big_cameras(tmp_path) -> str:
+    """A --cameras file of one camera whose frames are 200,000 pixels square."""
+    path = tmp_path / "cameras.json"
+    identity = [[1.0, 0.0, 0.0, 0.0], [0.0, 1.0, 0.0, 0.0], [0.0, 0.0, 1.0, 4.0], [0.0, 0.0, 0.0, 1.0]]
+    path.write_text(json.dumps({"height": 200_000, "width": 200_000, "focal": 100.0, "c2w": [identity]}))
+    return str(path)
+
+
+@pytest.mark.parametrize(("prog", "args", "message"), [
+    ("nerfexp-export", ["--resolution", "100000"], "argument --resolution: 100000: a grid of 100000^3 densities "
+                                                   "needs about"),
+    ("nerfexp-export", ["--threshold", "nan"], "argument --threshold: expected a finite number > 0, got nan"),
+    ("nerfexp-export", ["--threshold", "inf"], "argument --threshold: expected a finite number > 0, got inf"),
+    ("nerfexp-view", ["--port", "70000"], "argument --port: expected a port in 1..65535 (0: any free one), got 70000"),
+    ("nerfexp-render", ["--size", "200000"], "argument --size: 200000: a frame of 200000 x 200000 pixels needs about"),
+    ("nerfexp-render", ["--cameras", big_cameras], "a frame of 200000 x 200000 pixels needs about"),
+])
+def test_an_argument_out_of_its_domain_or_too_big_for_memory_is_one_line_before_the_run_is_read(
+        tmp_path, capsys, prog, args, message):
+    # the run does not exist: each argument is refused before the run is looked for
+    from nerfexp import export, render, view
+    main = {"nerfexp-export": export.main, "nerfexp-render": render.main, "nerfexp-view": view.main}[prog]
+    args = [arg(tmp_path) if callable(arg) else arg for arg in args]
+    with pytest.raises(SystemExit) as ended:
+        main([str(tmp_path / "no_run"), *args])
+    assert ended.value.code != 0
+    stderr = capsys.readouterr().err + (ended.value.code if isinstance(ended.value.code, str) else "")
+    (line,) = [line for line in stderr.splitlines() if line.startswith(f"{prog}: error:")]
+    assert message in line and "Traceback" not in stderr
+    if "needs about" in message:
+        assert "of memory, more than this machine's" in line
+    assert not (tmp_path / "no_run").exists()

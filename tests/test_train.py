@@ -93,6 +93,17 @@ def test_readme_multirun_trains_four_variants(tmp_path, tiny):
     for r in results:
         assert math.isfinite(r["test_psnr"]) and math.isfinite(r["test_ssim"])
         assert r["evaluations_per_ray"] == 48  # 16 + (16 + 16) with hierarchy, n_single = 48 without
+        # each job was given a sample count it does not use (a legitimate sweep): recorded as null, not as set
+        config, hierarchical = r["config"], r["choices"]["hierarchical"]
+        unused = ["n_single"] if hierarchical else ["n_coarse", "n_fine"]
+        used = ["n_coarse", "n_fine"] if hierarchical else ["n_single"]
+        assert all(config["scale"][k] is None and config["model"]["renderer"][k] is None for k in unused)
+        assert all(config["scale"][k] == config["model"]["renderer"][k] > 0 for k in used)
+    log = (tmp_path / "0" / "nerfexp.log").read_text()
+    assert "scale.n_single=48: not used with hierarchical=true" in log
+    report = run_nerfexp(str(tmp_path), cwd=tmp_path, script="nerfexp-report")
+    assert report.returncode == 0, report.stderr[-3000:]
+    assert "Runs: 4 (4 finished)" in (tmp_path / "report.md").read_text()  # the null records read back
 
 
 def test_unknown_component_is_named(tmp_path):
