@@ -18,7 +18,7 @@ from omegaconf import OmegaConf
 
 from nerfexp import render
 from nerfexp.extras import EXTRAS, MissingExtraError, require
-from nerfexp.settings import check_settings
+from nerfexp.settings import check_extras
 from nerfexp.train import check_launcher
 from tests.helpers import REPO, command
 
@@ -69,10 +69,10 @@ def test_the_heavy_optional_parts_are_extras_the_tests_install():
      'data.video needs imageio_ffmpeg, which is not installed: pip install "nerfexp[video]"'),
 ])
 def test_a_config_needing_a_missing_extra_stops_in_one_line_naming_it(monkeypatch, cfg, module, message):
-    check_settings(OmegaConf.create(cfg))  # installed: nothing to say
+    check_extras(OmegaConf.create(cfg))  # installed: nothing to say
     monkeypatch.setitem(sys.modules, module, None)  # as if not installed: importing it fails
     with pytest.raises(MissingExtraError, match=re.escape(message)):
-        check_settings(OmegaConf.create(cfg))
+        check_extras(OmegaConf.create(cfg))
 
 
 def test_the_submitit_launchers_and_render_name_their_extras(monkeypatch, capsys):
