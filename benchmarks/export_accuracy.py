@@ -81,8 +81,10 @@ def markdown(result: dict) -> str:
         return " | ".join(f"{summary[f'q{round(q * 100)}']:.4f} ({summary[f'q{round(q * 100)}'] / cell:.2f})"
                           for q in QUANTILES) + f" | {100 * summary['within_1_cell']:.1f}%"
 
+    thresholds = " ".join(f"{row['threshold']:g}" for row in result["meshes"])
     lines = ["# How near an export lies to the built-in scene's true surface", "",
-             f"    python benchmarks/export_accuracy.py {result['run']} --resolution {result['resolution']}", "",
+             f"    python benchmarks/export_accuracy.py {result['run']} --resolution {result['resolution']} "
+             f"--thresholds {thresholds}", "",
              f"Checkpoint `{result['checkpoint']}` (step {result['step']}); grid of {result['resolution']} cells along "
              f"the box's longest edge, cells of {cell:.4f}; box {box_text(torch.tensor(result['box']))}. Distances "
              f"in scene units (in cells); quantiles over vertices (accuracy) or over the "

@@ -102,7 +102,8 @@ def files_of(folder: Path) -> dict:
                                                     "sets seed=1, scale.lr=0.01: resume with the checkpoint's settings "
                                                     "or start a new run"),
     (["encoding=hashgrid", "scale.steps=90"], "the checkpoint was trained with encoding=posenc, "),
-    (["scale.width=64", "scale.steps=90"], "the checkpoint was trained with scale.width=32; this run sets scale.width=64:"),
+    (["scale.width=64", "scale.steps=90"],
+     "the checkpoint was trained with scale.width=32; this run sets scale.width=64:"),
     (["trainer.precision=bf16-mixed", "scale.steps=90"], "trained with trainer.precision=32-true; this run sets "
                                                          "trainer.precision=bf16-mixed:"),
     ([], "the checkpoint has taken 60 steps, all of this run's (scale.steps=60): raise scale.steps to train further, "
@@ -128,8 +129,9 @@ def test_another_network_size_in_a_checkpoint_that_records_no_settings_is_one_li
     result = run_nerfexp(*tiny, "scale.width=64", "scale.steps=90", f"resume={tmp_path / 'old.ckpt'}",
                          f"hydra.run.dir={tmp_path / 'run'}", cwd=tmp_path)
     assert one_error_line(result) == (
-        f"nerfexp: error: {tmp_path / 'old.ckpt'}: not a checkpoint of this run's model: renderer.coarse.trunk.0.weight "
-        "has shape [32, 63] there and [64, 63] in this run's model (another network size?)")
+        f"nerfexp: error: {tmp_path / 'old.ckpt'}: not a checkpoint of this run's model: "
+        "renderer.coarse.trunk.0.weight has shape [32, 63] there and [64, 63] in this run's model "
+        "(another network size?)")
     assert not (tmp_path / "run" / "metrics.jsonl").exists()
 
 

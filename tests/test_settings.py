@@ -11,7 +11,7 @@ from hypothesis import strategies as st
 from omegaconf import OmegaConf
 
 from nerfexp.errors import ConfigError
-from nerfexp.settings import PASSED_ON, SCHEMA, check_settings, leaves, matching, unused_settings
+from nerfexp.settings import SCHEMA, check_settings, leaves, matching, unused_settings
 from tests.helpers import TINY
 
 GROUPS = {  # every option of every group (conf/), and the sweeps' configs

@@ -33,7 +33,6 @@ from torch import Tensor, nn
 from tqdm import tqdm
 
 from nerfexp.arguments import add_run_arguments, command_parser, fitting, positive
-from nerfexp.memory import grid_bytes
 from nerfexp.console import run_command
 from nerfexp.data.base import Scene
 from nerfexp.data.rays import WholeImages, model_batch
@@ -41,6 +40,7 @@ from nerfexp.data.views import Views
 from nerfexp.errors import NerfexpError
 from nerfexp.files import TEMPORARY, atomic_directory, foreign_entries, foreign_message
 from nerfexp.geometry.surfaces import Mesh, grid_points, grid_shape, isosurface, ray_points
+from nerfexp.memory import grid_bytes
 from nerfexp.nerf.bounds import Bounded
 from nerfexp.nerf.volume_renderer import VolumeRenderer
 from nerfexp.pixels import to_uint8
@@ -217,7 +217,8 @@ def export_run(run: Path, overrides: list[str], resolution: int, threshold: floa
             made, f"pixels of {len(views)} test views with opacity >= {min_opacity:g}, at their depth along the ray",
             "colours: the rendered colour without the background"]))
     return (f"{MESH}: {len(mesh.vertices)} vertices, {len(mesh.faces)} triangles (density {threshold:g}, "
-            f"{source}; {shape} grid); {POINTS}: {len(points)} points from {len(views)} test views; written to {out_dir}")
+            f"{source}; {shape} grid); {POINTS}: {len(points)} points from {len(views)} test views; "
+            f"written to {out_dir}")
 
 
 def _opacity(text: str) -> float:

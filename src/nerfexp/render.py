@@ -28,7 +28,6 @@ from torch import Tensor
 from tqdm import tqdm
 
 from nerfexp.arguments import add_run_arguments, command_parser, fitting, positive
-from nerfexp.memory import frame_bytes, require_memory
 from nerfexp.console import run_command
 from nerfexp.data.base import Scene
 from nerfexp.data.rays import model_batch
@@ -37,6 +36,7 @@ from nerfexp.extras import require
 from nerfexp.files import TEMPORARY, atomic_directory, foreign_entries, foreign_message
 from nerfexp.geometry.camera_paths import llff_focus_depth, orbit_path, spiral_path
 from nerfexp.geometry.cameras import camera_rays, pose_problem
+from nerfexp.memory import frame_bytes, require_memory
 from nerfexp.pixels import depth_image, png_bytes, to_uint8
 from nerfexp.rundir import RENDER_DIR, load_run
 from nerfexp.training.module import NeRFModule

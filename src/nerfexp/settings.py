@@ -16,9 +16,9 @@ applies to the frequencies the encoding sees, so an ``input_scale`` below 1 (gam
 """
 
 import math
-from typing import get_args
 from collections.abc import Callable, Iterator
 from fnmatch import fnmatchcase
+from typing import get_args
 
 from hydra.experimental.callback import Callback
 from lightning.fabric.plugins.precision.precision import _PRECISION_INPUT_STR, _PRECISION_INPUT_STR_ALIAS
@@ -339,7 +339,8 @@ def check_rules(cfg: DictConfig) -> None:
         pattern = matching(SCHEMA, key)
         if pattern is None:
             if matching(PASSED_ON, key) is None:
-                raise ConfigError(f"{key}={value}: not a setting nerfexp reads (`nerfexp --cfg job` shows those it reads)")
+                raise ConfigError(f"{key}={value}: not a setting nerfexp reads "
+                                  "(`nerfexp --cfg job` shows those it reads)")
             continue
         expected, valid = SCHEMA[pattern]
         if not valid(value):

@@ -34,8 +34,8 @@ from torch import Tensor
 from nerfexp.arguments import add_run_arguments, command_parser, port, positive
 from nerfexp.console import run_command
 from nerfexp.data.base import Scene
-from nerfexp.extras import require
 from nerfexp.errors import NerfexpError
+from nerfexp.extras import require
 from nerfexp.files import TEMPORARY, atomic_write, foreign_entries, foreign_message
 from nerfexp.geometry.camera_paths import mean_up
 from nerfexp.geometry.cameras import focal_from_fov

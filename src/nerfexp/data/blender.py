@@ -29,7 +29,8 @@ from nerfexp.pixels import png_bytes, to_uint8
 
 TRANSFORMS = "transforms_{split}.json"
 BLENDER_HALF_SIDE = 1.5  # the synthetic scenes' objects lie in [-1.5, 1.5]^3
-ALPHA_KINDS = {True: "an RGBA image", False: "an RGB image (no alpha)"}  # an image file, by whether it has an alpha channel
+# an image file, by whether it has an alpha channel
+ALPHA_KINDS = {True: "an RGBA image", False: "an RGB image (no alpha)"}
 
 
 def write_blender(root: Path, split: str, views: Views, camera_angle_x: float) -> None:
