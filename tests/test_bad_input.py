@@ -41,8 +41,12 @@ def one_error_line(result, prog: str = "nerfexp") -> str:
     (["encoding=bogus"], "encoding=bogus: no such option (choose from hashgrid, none, posenc)"),
     (["scale.lrr=1"], "scale.lrr=1: no such key (scale has steps, lr, lr_final, lr_warmup_steps, batch_rays, depth, "
                       "width, skips, view_hidden, n_coarse, n_fine, n_single, chunk, val_every, image_size, "
-                      "position_input_scale, max_side, test_stride, hash_log2_table_size, hash_finest; +scale.lrr=1 "
-                      "adds one)"),
+                      "position_input_scale, max_side, test_stride, hash_log2_table_size, hash_finest; the closest: "
+                      "scale.lr)"),
+    (["trainer.max_step=3"], "trainer.max_step=3: no such key (trainer has _target_, accelerator, devices, precision, "
+                             "max_steps, val_check_interval, check_val_every_n_epoch, num_sanity_val_steps, "
+                             "log_every_n_steps, default_root_dir, enable_progress_bar, enable_model_summary, "
+                             "plugins; the closest: trainer.max_steps; +trainer.max_step=3 adds one)"),
 ])
 def test_a_bad_setting_is_one_line_before_the_run_directory_is_made(tmp_path, overrides, message):
     result = run_nerfexp(*overrides, f"hydra.run.dir={tmp_path / 'run'}", cwd=tmp_path)

@@ -1,6 +1,7 @@
 """``nerfexp``: build everything from the config, train, test with the last checkpoint; nothing else."""
 
 import contextlib
+import difflib
 import logging
 import os
 import re
@@ -33,7 +34,7 @@ from nerfexp.rundir import (
     read_json,
     write_status,
 )
-from nerfexp.settings import check_settings, unused_settings, without_unused
+from nerfexp.settings import PASSED_ON, check_settings, matching, unused_settings, without_unused
 from nerfexp.signals import ending_signals, received_signal
 from nerfexp.training.loggers import finish
 from nerfexp.training.progress import progress_bars
@@ -207,8 +208,14 @@ def hydra_error_line(error: Exception) -> str:
         key = cause.full_key
         override = next((a for a in sys.argv[1:] if a.split("=", 1)[0] == key), key)
         parent = cause.parent_node
-        known = ", ".join(str(k) for k in parent.keys() if k != "hydra") if parent is not None else ""
-        return f"{override}: no such key ({key.rpartition('.')[0] or 'the config'} has {known}; +{override} adds one)"
+        known = [str(k) for k in parent.keys() if k != "hydra"] if parent is not None else []
+        section, _, leaf = key.rpartition(".")
+        close = difflib.get_close_matches(leaf, known, n=1)
+        advice = [f"the closest: {section + '.' if section else ''}{close[0]}"] if close else []
+        if matching(PASSED_ON, key):  # a keyword argument nerfexp's config does not set: its class checks it
+            advice.append(f"+{override} adds one")
+        return (f"{override}: no such key ({section or 'the config'} has {', '.join(known)}"
+                f"{'; ' if advice else ''}{'; '.join(advice)})")
     text = " ".join(line.strip() for line in str(error).splitlines() if line.strip())
     if isinstance(error, InstantiationException) and cause is not None:
         text = f"{text} ({type(cause).__name__}: {' '.join(str(cause).split())})"
