@@ -54,6 +54,16 @@ def test_a_bad_setting_is_one_line_before_the_run_directory_is_made(tmp_path, ov
     assert not (tmp_path / "run").exists()
 
 
+def test_a_keyword_its_class_refuses_is_one_line(tmp_path, tiny):
+    # +trainer.KEY is handed to lightning.Trainer, which checks it when the run builds it
+    result = run_nerfexp(*tiny, "+trainer.gradient_clip_val=abc", f"hydra.run.dir={tmp_path / 'run'}", cwd=tmp_path)
+    line = one_error_line(result)
+    assert line.startswith("nerfexp: error: Error in call to target 'lightning.pytorch.trainer.trainer.Trainer'")
+    assert "`gradient_clip_val` should be an int or a float. Got abc." in line
+    assert len(result.stderr.splitlines()) == 1, result.stderr
+    assert not (tmp_path / "run" / "metrics.jsonl").exists()
+
+
 def test_eight_times_lower_positions_allow_three_more_octaves(tmp_path):
     # gamma(x / 8): L = 22 puts its top frequency 2^21 pi x / 8 = 2^18 pi x at the limit; L = 23 is past it
     result = run_nerfexp("encoding.position.n_freqs=23", "scale.position_input_scale=0.125",

@@ -57,6 +57,9 @@ def composed(*overrides):
     (["hierarchical=maybe"], "hierarchical=maybe: expected true or false"),
     (["scale.skips=[5]"], "scale.skips=[5] (which sets model.renderer.field.skips): layer indices must be in 1..1"),
     (["+foo=1"], "foo=1: not a setting nerfexp reads"),
+    (["data.near=5", "data.far=2"], "data.near=5 (which sets model.renderer.near) and data.far=2 (which sets "
+                                    "model.renderer.far): expected near < far"),
+    (["data.near=2", "data.far=2"], "data.near=2 (which sets model.renderer.near) and data.far=2"),
     (["scale.image_size=100000"], "scale.image_size=100000 (which sets data.image_size): a scene of 15 views needs "),
     (["scale.batch_rays=100000000"], "scale.batch_rays=100000000 (which sets datamodule.batch_rays): a training "
                                      "batch of 100000000 rays x 48 samples needs about"),

@@ -366,6 +366,14 @@ def check_frequencies(cfg: DictConfig) -> None:
                               f"{scale:g}")
 
 
+def check_ray_bounds(cfg: DictConfig) -> None:
+    """A ConfigError where the rays' bounds, both set, leave no interval to sample: near must lie before far."""
+    near, far = cfg.model.renderer.near, cfg.model.renderer.far
+    if near is not None and far is not None and not near < far:
+        raise ConfigError(f"{named(cfg, 'model.renderer.near', near)} and {named(cfg, 'model.renderer.far', far)}: "
+                          "expected near < far (the rays are sampled between them)")
+
+
 def check_skips(cfg: DictConfig) -> None:
     """A ConfigError where the field's skip connections name a layer it does not have (1..depth-1)."""
     field = cfg.model.renderer.field
@@ -412,8 +420,8 @@ def check_extras(cfg: DictConfig) -> None:
 
 def check_settings(cfg: DictConfig) -> None:
     """A ConfigError for the first setting that is out of its domain (``check_rules``), a frequency
-    float32 cannot resolve, a skip connection past the field's depth, a size that would not fit in memory,
-    or a missing optional package."""
+    float32 cannot resolve, a skip connection past the field's depth, ray bounds with near not before far,
+    a size that would not fit in memory, or a missing optional package."""
     missing = sorted(key for key, value in leaves(cfg) if value is MISSING)
     if missing:
         raise ConfigError(f"missing mandatory value: {', '.join(missing)} (set it on the command line, "
@@ -421,6 +429,7 @@ def check_settings(cfg: DictConfig) -> None:
     check_rules(cfg)
     check_frequencies(cfg)
     check_skips(cfg)
+    check_ray_bounds(cfg)
     check_memory(cfg)
     check_extras(cfg)
 

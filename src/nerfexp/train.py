@@ -141,10 +141,11 @@ def main(cfg: DictConfig) -> float | None:
             details = {"signal": ended_by, "error": f"ended by {ended_by}"} if ended_by else {
                 "error": f"{type(error).__name__}: {error}"}
             write_status(output_dir, "failed", overrides, **details)
-        if isinstance(error, NerfexpError):
+        if isinstance(error, NerfexpError | InstantiationException):  # bad input, or a class the config names
+            line = hydra_error_line(error)
             if hydra_config.mode == RunMode.RUN:
-                sys.exit(f"nerfexp: error: {error}")
-            log.error("job failed: %s", error)
+                sys.exit(f"nerfexp: error: {line}")
+            log.error("job failed: %s", line)
         raise
     if results is None:  # not global rank 0
         return None
