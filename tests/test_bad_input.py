@@ -190,3 +190,26 @@ def test_an_argument_out_of_its_domain_or_too_big_for_memory_is_one_line_before_
     if "needs about" in message:
         assert "of memory, more than this machine's" in line
     assert not (tmp_path / "no_run").exists()
+
+
+@pytest.mark.parametrize("args", [["--resolution", "100000"], ["--n-train", "10000000"]])
+def test_a_scene_too_big_for_memory_is_one_line_before_anything_is_written(tmp_path, capsys, args):
+    from nerfexp import scene
+    with pytest.raises(SystemExit) as ended:
+        scene.main([str(tmp_path / "scene"), *args])
+    assert ended.value.code == "nerfexp-scene: error: " + ended.value.code.split(": error: ", 1)[1]
+    assert "a split of" in ended.value.code and "of memory, more than this machine's" in ended.value.code
+    assert not (tmp_path / "scene").exists() and list(tmp_path.iterdir()) == []
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("prog", ["nerfexp-render", "nerfexp-export", "nerfexp-view"])
+def test_a_chunk_too_big_for_memory_is_one_line_before_any_rendering(tiny_run, tmp_path, prog):
+    from nerfexp import export, render, view
+    main = {"nerfexp-export": export.main, "nerfexp-render": render.main, "nerfexp-view": view.main}[prog]
+    before = sorted(p.relative_to(tiny_run) for p in tiny_run.rglob("*"))
+    with pytest.raises(SystemExit) as ended:
+        main([str(tiny_run), "--chunk", "99999999999"])
+    assert ended.value.code.startswith(f"{prog}: error: --chunk 99999999999: an evaluation of 99999999999 rays x 48 "
+                                       "samples needs about")
+    assert sorted(p.relative_to(tiny_run) for p in tiny_run.rglob("*")) == before

@@ -1,8 +1,9 @@
 """Memory estimates that refuse a size before any work: a scene, the networks' working arrays, a grid or a
 frame that would not fit in this machine's memory is one line naming the setting and the estimate.
 
-The estimates are deliberately simple upper bounds (bytes per element times a generous count of the
-arrays kept at once), so that a size they pass may still be slow, but one they refuse cannot fit.
+The estimates are deliberately simple lower bounds: the arrays that must exist at once (a training step
+keeps every layer's output for its backward pass; an evaluation holds one layer's at a time), so that a
+size they refuse cannot fit, while one they pass may still be too large or slow.
 """
 
 import os
@@ -10,12 +11,11 @@ import os
 from nerfexp.errors import ConfigError
 
 FLOAT = 4  # bytes of a float32
-PIXEL_BYTES = 16 * FLOAT  # a scene's pixel: its ray (origin, direction, bounds), colour and index, and room to spare
+PIXEL_BYTES = 9 * FLOAT  # a scene's pixel (a traced ray while it is made): its origin, direction and colour
 SAMPLE_BYTES = 8 * FLOAT  # a ray sample's position, direction, density and colour, before the networks
-ACTIVATION_COPIES = 3  # a hidden activation kept for the backward pass, its gradient and a temporary
 TABLE_COPIES = 4  # a hash table's entries, their gradients and Adam's two moments
-VOXEL_BYTES = 8 * FLOAT  # export: a density per grid point, and marching cubes' own arrays over the grid
-FRAME_PIXEL_BYTES = 12 * FLOAT  # a rendered frame's colour, depth, opacity and the images written from them
+VOXEL_BYTES = FLOAT  # export: a density per grid point
+FRAME_PIXEL_BYTES = 5 * FLOAT  # a rendered frame's colour, depth and opacity
 
 
 def machine_bytes() -> int:
@@ -48,11 +48,12 @@ def scene_bytes(n_images: int, height: int, width: int, supersample: int = 1) ->
     return n_images * height * width * supersample ** 2 * PIXEL_BYTES
 
 
-def network_bytes(rays: int, samples: int, width: int, depth: int) -> int:
+def network_bytes(rays: int, samples: int, width: int, depth: int, training: bool = True) -> int:
     """The working arrays of ``rays`` rays of ``samples`` samples each through a network of ``depth``
-    hidden layers of ``width`` units (forward activations kept for the backward pass)."""
+    hidden layers of ``width`` units: in ``training`` every layer's output, kept for the backward pass;
+    in an evaluation one layer's."""
     points = rays * samples
-    return points * (SAMPLE_BYTES + depth * width * FLOAT * ACTIVATION_COPIES)
+    return points * (SAMPLE_BYTES + (depth if training else 1) * width * FLOAT)
 
 
 def hash_table_bytes(n_levels: int, log2_table_size: int, features_per_level: int) -> int:
@@ -62,10 +63,10 @@ def hash_table_bytes(n_levels: int, log2_table_size: int, features_per_level: in
 
 
 def grid_bytes(resolution: int) -> int:
-    """nerfexp-export's grid of ``resolution``^3 densities and the marching cubes' arrays over it."""
+    """nerfexp-export's grid of ``resolution``^3 densities."""
     return resolution ** 3 * VOXEL_BYTES
 
 
 def frame_bytes(height: int, width: int) -> int:
-    """One rendered frame of ``height`` x ``width`` pixels and the images made from it."""
+    """One rendered frame of ``height`` x ``width`` pixels: its colour, depth and opacity."""
     return height * width * FRAME_PIXEL_BYTES

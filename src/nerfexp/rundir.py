@@ -54,6 +54,7 @@ from omegaconf.errors import OmegaConfBaseException
 from nerfexp.data.datamodule import fill_ray_bounds
 from nerfexp.errors import ConfigError, NerfexpError
 from nerfexp.files import TEMPORARY, atomic_write, folder_entries, foreign_message, is_made
+from nerfexp.memory import network_bytes, require_memory
 from nerfexp.saved_configs import as_data
 
 STATUS = "status.json"
@@ -519,7 +520,10 @@ def load_run(run: str | Path, overrides: list[str] = (), chunk: int | None = Non
         refuse(run_dir, run_config(run_dir))
     cfg = run_config(run_dir, overrides)
     module, step = load_module(cfg, checkpoint)
-    if chunk is not None:
+    if chunk is not None:  # refused where it cannot fit, before any rendering
+        samples, field = module.renderer.samples_per_ray, cfg.model.renderer.field
+        require_memory(f"--chunk {chunk}", f"an evaluation of {chunk} rays x {samples} samples",
+                       network_bytes(chunk, samples, field.width, field.depth, training=False))
         module.chunk = chunk
     module.to("cuda" if torch.cuda.is_available() else "cpu").eval()
     return TrainedRun(run_dir, checkpoint, cfg, module, step)

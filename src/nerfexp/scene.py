@@ -22,6 +22,7 @@ from nerfexp.data.glossy import load_glossy
 from nerfexp.data.procedural import CAMERA_ANGLE_X, load_procedural
 from nerfexp.errors import NerfexpError
 from nerfexp.files import TEMPORARY, atomic_directory, folder_entries, foreign_message, is_made
+from nerfexp.memory import require_memory, scene_bytes
 
 LOADERS = {"builtin": load_procedural, "glossy": load_glossy}  # --scene: the function rendering a split
 SPLITS = ("train", "val", "test")
@@ -55,11 +56,15 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def write_scene(args: argparse.Namespace) -> str:
-    """Render the scene ``args`` describe into ``args.out_dir`` (``check_out_dir`` first), with its
-    ``MARKER``; returns a one-line summary."""
+    """Render the scene ``args`` describe into ``args.out_dir`` (after ``nerfexp.memory.require_memory`` for
+    its largest split and ``check_out_dir``), with its ``MARKER``; returns a one-line summary."""
+    counts = dict(zip(SPLITS, (args.n_train, args.n_val, args.n_test), strict=True))
+    largest = max(counts, key=counts.get)  # a split is rendered whole before it is written
+    require_memory(f"--resolution {args.resolution} --n-{largest} {counts[largest]} --supersample {args.supersample}",
+                   f"a split of {counts[largest]} views", scene_bytes(counts[largest], args.resolution,
+                                                                      args.resolution, args.supersample))
     check_out_dir(args.out_dir)
     load = LOADERS[args.scene]
-    counts = dict(zip(SPLITS, (args.n_train, args.n_val, args.n_test), strict=True))
     with atomic_directory(args.out_dir, replace=True) as new:
         for split, n in counts.items():
             views = load(split, n, args.resolution, args.resolution, args.supersample)

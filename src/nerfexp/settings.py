@@ -398,9 +398,9 @@ def check_memory(cfg: DictConfig) -> None:
         require_memory(named(cfg, "data.image_size", data.image_size), f"a scene of {views} views", needed)
     samples = samples_per_ray(renderer)
     width = max(field.width, cfg.view_dependence.get("hidden", 0))
-    for key, rays, what in (("datamodule.batch_rays", cfg.datamodule.batch_rays, "a training batch"),
-                            ("model.chunk", cfg.model.chunk, "an evaluation chunk")):
-        needed = network_bytes(rays, samples, width, field.depth)
+    for key, rays, what, training in (("datamodule.batch_rays", cfg.datamodule.batch_rays, "a training batch", True),
+                                      ("model.chunk", cfg.model.chunk, "an evaluation chunk", False)):
+        needed = network_bytes(rays, samples, width, field.depth, training)
         require_memory(named(cfg, key, rays), f"{what} of {rays} rays x {samples} samples", needed)
     position = cfg.encoding.position
     if "log2_table_size" in position:
