@@ -51,11 +51,7 @@ def train(cfg: DictConfig) -> dict | None:
     The test loads the checkpoint because under ``trainer=ddp`` (Lightning's ``ddp_spawn``) ``fit`` and
     ``test`` each run in new processes, and this one gets back only the weights: the checkpoint carries
     the step, the training time and the last validation, and rank 0 leaves the results in ``results.json``."""
-    missing = sorted(OmegaConf.missing_keys(cfg))
-    if missing:
-        raise ConfigError(f"missing mandatory value: {', '.join(missing)} (set it on the command line, "
-                          f"e.g. {missing[0]}=...)")
-    check_settings(cfg)
+    check_settings(cfg)  # missing mandatory values first
     unused = unused_settings(cfg, list(HydraConfig.get().overrides.task))  # a sweep's job: recorded as null
     for override, reason in unused:
         log.warning("%s: not used with %s; results.json records it as null", override, reason)
