@@ -26,11 +26,12 @@ import numpy as np
 import torch
 from scipy.spatial import cKDTree
 
+from nerfexp.commands.export import trained_run
 from nerfexp.data.procedural import ProceduralScene, intersect_scene, signed_distances
-from nerfexp.export import box_text, export_box, extract_mesh, final_field, trained_run, view_points
 from nerfexp.files import atomic_write
 from nerfexp.geometry.cameras import camera_rays
-from nerfexp.rundir import machine
+from nerfexp.products.mesh import box_text, export_box, extract_mesh, final_field, view_points
+from nerfexp.rundir.layout import machine
 
 RESULTS = Path(__file__).parent / "results"
 QUANTILES = (0.5, 0.9, 0.99)

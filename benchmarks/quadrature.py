@@ -34,7 +34,7 @@ from nerfexp.files import atomic_write
 from nerfexp.nerf.analytic import GaussianBlob, Shell, Slab, aimed_rays, cost_for_error, render_errors
 from nerfexp.nerf.backgrounds import BACKGROUNDS
 from nerfexp.nerf.volume_renderer import VolumeRenderer
-from nerfexp.rundir import machine
+from nerfexp.rundir.layout import machine
 
 RESULTS = Path(__file__).parent / "results"
 NEAR, FAR, BACKGROUND = 2.0, 6.0, "white"

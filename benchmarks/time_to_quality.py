@@ -42,7 +42,7 @@ GPU = {"steps": 20000, "val_every": 1000, "resolution": 400, "overrides": ["scal
 
 def write_blender_scene(folder: Path, resolution: int) -> Path:
     """The built-in scene written as a Blender-format dataset by ``nerfexp-scene`` (its console entry)."""
-    subprocess.run([sys.executable, "-m", "nerfexp.scene", str(folder), "--resolution", str(resolution)],
+    subprocess.run([sys.executable, "-m", "nerfexp.commands.scene", str(folder), "--resolution", str(resolution)],
                    check=True, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
     return folder
 

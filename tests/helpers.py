@@ -4,11 +4,13 @@ as a user runs them."""
 import json
 import os
 import signal
+import socket
 import subprocess
 import sys
 from pathlib import Path
 
 import lightning as L
+import numpy as np
 import torch
 
 from nerfexp.geometry.cameras import look_at
@@ -93,3 +95,80 @@ def cameras_at(distance: list[float], elevation_deg: list[float], azimuth_deg: l
     e, a = torch.deg2rad(e), torch.deg2rad(a)
     eye = r[:, None] * torch.stack([e.cos() * a.cos(), e.cos() * a.sin(), e.sin()], -1)
     return look_at(eye, torch.zeros(3, dtype=torch.float64), torch.tensor([0.0, 0.0, 1.0], dtype=torch.float64))
+
+
+def one_error_line(result, prog: str = "nerfexp") -> str:
+    """The one ``PROG: error: ...`` line of a command that failed with exit status 1 and no traceback."""
+    assert result.returncode == 1 and "Traceback" not in result.stderr, result.stderr[-3000:]
+    (line,) = [line for line in result.stderr.splitlines() if line.startswith(f"{prog}: error:")]
+    return line
+
+
+def make_run(root: Path, name: str, overrides: list[str], state: str = "finished", psnr: float = 20.0,
+             ssim: float = 0.8, time_s: float = 100.0, choices: dict | None = None, pid: int | None = None,
+             error: str = "", host: str | None = None, curve=((50.0, 15.0), (100.0, 18.0))) -> Path:
+    """A run directory ``root/name`` as nerfexp leaves it, with known numbers: its status, its validation
+    ``curve`` (wall seconds, PSNR), and where ``state`` is finished its test scores and results.json."""
+    run = root / name
+    run.mkdir(parents=True)
+    status = {"state": state, "overrides": overrides, "host": host or socket.gethostname(),
+              "pid": pid or os.getpid(), "time_unix": 0.0}
+    if error:
+        status["error"] = error
+    (run / "status.json").write_text(json.dumps(status))
+    lines = [{"step": 10 * (i + 1), "wall_time_s": t, "split": "val", "psnr": p, "ssim": 0.5}
+             for i, (t, p) in enumerate(curve)]
+    if state == "finished":
+        lines.append({"step": 20, "wall_time_s": time_s, "split": "test", "psnr": psnr, "ssim": ssim})
+        results = {"test_psnr": psnr, "test_ssim": ssim, "val_psnr": curve[-1][1], "train_time_s": time_s,
+                   "steps": 20, "time_per_step_s": time_s / 20, "rays_per_s": 256 * 20 / time_s,
+                   "batch_rays": 256, "n_params": 1000, "evaluations_per_ray": 96,
+                   "machine": {"host": host or "lab-pc", "device": "CPU (2 cores, 2 torch threads)"},
+                   "choices": choices or {}, "overrides": overrides}
+        (run / "results.json").write_text(json.dumps(results))
+    (run / "metrics.jsonl").write_text("".join(json.dumps(line) + "\n" for line in lines))
+    return run
+
+
+PLY_DTYPES = {"char": "i1", "uchar": "u1", "short": "<i2", "ushort": "<u2", "int": "<i4", "uint": "<u4",
+              "float": "<f4", "double": "<f8"}  # the PLY specification's types, little-endian
+
+
+def read_ply(data: bytes) -> tuple[list[str], dict[str, np.ndarray]]:
+    """``(comments, elements)`` of a binary little-endian PLY file: each element a structured array [N] with
+    one field per property (a list property: the field ``NAME`` of its values and ``NAME count``, every
+    row's count asserted equal to the first row's, as in a triangle mesh). The file must end where its
+    last element does."""
+    end = data.index(b"end_header\n") + len(b"end_header\n")
+    lines = data[:end].decode("ascii").splitlines()
+    assert lines[:2] == ["ply", "format binary_little_endian 1.0"] and lines[-1] == "end_header", lines
+    comments = [line[len("comment "):] for line in lines if line.startswith("comment ")]
+    layout = []  # (element name, count, [property words])
+    for line in lines[2:-1]:
+        words = line.split()
+        if words[0] == "element":
+            layout.append((words[1], int(words[2]), []))
+        elif words[0] == "property":
+            layout[-1][2].append(words[1:])
+        else:
+            assert words[0] == "comment", line
+    elements, offset = {}, end
+    for name, count, properties in layout:
+        fields = []
+        for words in properties:
+            if words[0] == "list":  # list COUNT_TYPE VALUE_TYPE NAME: the first row's count is every row's
+                _, count_type, value_type, field = words
+                before = np.dtype(fields).itemsize if fields else 0  # bytes of the row before the count
+                length = int(np.frombuffer(data, PLY_DTYPES[count_type], 1, offset + before)[0]) if count else 1
+                fields += [(f"{field} count", PLY_DTYPES[count_type]), (field, PLY_DTYPES[value_type], (length,))]
+            else:
+                fields.append((words[1], PLY_DTYPES[words[0]]))
+        dtype = np.dtype(fields)
+        rows = np.frombuffer(data, dtype, count, offset) if count else np.zeros(0, dtype)
+        for field in dtype.names:
+            if field.endswith(" count"):
+                assert (rows[field] == dtype[field[:-len(" count")]].shape[0]).all(), field
+        elements[name] = rows
+        offset += count * dtype.itemsize
+    assert offset == len(data), f"{len(data) - offset} bytes after the last element"
+    return comments, elements

@@ -8,14 +8,8 @@ import zlib
 import pytest
 from PIL import Image
 
-from nerfexp.settings import FLOAT32_TOP_OCTAVE
-from tests.helpers import run_nerfexp
-
-
-def one_error_line(result, prog: str = "nerfexp") -> str:
-    assert result.returncode == 1 and "Traceback" not in result.stderr, result.stderr[-3000:]
-    (line,) = [line for line in result.stderr.splitlines() if line.startswith(f"{prog}: error:")]
-    return line
+from nerfexp.settings.checks import FLOAT32_TOP_OCTAVE
+from tests.helpers import one_error_line, run_nerfexp
 
 
 @pytest.mark.parametrize(("overrides", "message"), [
@@ -32,7 +26,7 @@ def one_error_line(result, prog: str = "nerfexp") -> str:
                                        "expected a finite number > 0"),
     (["data.n_train=0"], "data.n_train=0: expected a whole number >= 1, or null (all)"),
     (["data.n_val=0"], "data.n_val=0: expected a whole number >= 1"),
-    # issue 27 section 5: every key a user sets has a domain (nerfexp.settings.SCHEMA); Hydra's own errors
+    # issue 27 section 5: every key a user sets has a domain (nerfexp.settings.schema.SCHEMA); Hydra's own errors
     (["seed=abc"], "seed=abc: expected a whole number in [0, 4294967295]"),
     (["view_dependence=sh", "view_dependence.degree=7"], "view_dependence.degree=7: expected a whole number in [0, 3]"),
     (["scale.image_size=-32"], "scale.image_size=-32 (which sets data.image_size): expected a whole number >= 1"),
@@ -178,7 +172,7 @@ def big_cameras(tmp_path) -> str:
 def test_an_argument_out_of_its_domain_or_too_big_for_memory_is_one_line_before_the_run_is_read(
         tmp_path, capsys, prog, args, message):
     # the run does not exist: each argument is refused before the run is looked for
-    from nerfexp import export, render, view
+    from nerfexp.commands import export, render, view
     main = {"nerfexp-export": export.main, "nerfexp-render": render.main, "nerfexp-view": view.main}[prog]
     args = [arg(tmp_path) if callable(arg) else arg for arg in args]
     with pytest.raises(SystemExit) as ended:
@@ -194,7 +188,7 @@ def test_an_argument_out_of_its_domain_or_too_big_for_memory_is_one_line_before_
 
 @pytest.mark.parametrize("args", [["--resolution", "100000"], ["--n-train", "10000000"]])
 def test_a_scene_too_big_for_memory_is_one_line_before_anything_is_written(tmp_path, capsys, args):
-    from nerfexp import scene
+    from nerfexp.commands import scene
     with pytest.raises(SystemExit) as ended:
         scene.main([str(tmp_path / "scene"), *args])
     assert ended.value.code == "nerfexp-scene: error: " + ended.value.code.split(": error: ", 1)[1]
@@ -205,7 +199,7 @@ def test_a_scene_too_big_for_memory_is_one_line_before_anything_is_written(tmp_p
 @pytest.mark.slow
 @pytest.mark.parametrize("prog", ["nerfexp-render", "nerfexp-export", "nerfexp-view"])
 def test_a_chunk_too_big_for_memory_is_one_line_before_any_rendering(tiny_run, tmp_path, prog):
-    from nerfexp import export, render, view
+    from nerfexp.commands import export, render, view
     main = {"nerfexp-export": export.main, "nerfexp-render": render.main, "nerfexp-view": view.main}[prog]
     before = sorted(p.relative_to(tiny_run) for p in tiny_run.rglob("*"))
     with pytest.raises(SystemExit) as ended:

@@ -16,10 +16,10 @@ import pytest
 import tomllib
 from omegaconf import OmegaConf
 
-from nerfexp import render
+from nerfexp.commands import render
+from nerfexp.commands.train import check_launcher
 from nerfexp.extras import EXTRAS, MissingExtraError, require
-from nerfexp.settings import check_extras
-from nerfexp.train import check_launcher
+from nerfexp.settings.checks import check_extras
 from tests.helpers import REPO, command
 
 PYPROJECT = tomllib.loads((REPO / "pyproject.toml").read_text())
@@ -99,7 +99,7 @@ def test_a_missing_dependency_of_an_installed_extra_is_not_blamed_on_the_extra(m
 def test_the_command_line_stops_before_making_a_run_directory(tmp_path):
     argv, env = command("nerfexp", "data=colmap", f"data.root={tmp_path}", f"hydra.run.dir={tmp_path / 'run'}")
     code = (f"import sys; sys.modules['pycolmap'] = None; sys.argv = {argv!r}; "
-            "from nerfexp.train import cli; cli()")
+            "from nerfexp.commands.train import cli; cli()")
     done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env, timeout=300)
     assert done.returncode == 1
     assert done.stderr.strip().splitlines() == [

@@ -11,7 +11,9 @@ from hypothesis import strategies as st
 from omegaconf import OmegaConf
 
 from nerfexp.errors import ConfigError
-from nerfexp.settings import SCHEMA, check_settings, leaves, matching, unused_settings
+from nerfexp.settings.checks import check_settings, checked_settings
+from nerfexp.settings.schema import SCHEMA, matching
+from nerfexp.settings.unused import unused_settings
 from tests.helpers import TINY
 
 GROUPS = {  # every option of every group (conf/), and the sweeps' configs
@@ -35,8 +37,8 @@ def test_every_key_of_every_option_has_a_rule(hydra_configs):
     for group, options in GROUPS.items():
         for option in options:
             cfg = compose("config", overrides=[f"{group}={option}", "++data.root=/x"])  # the folder scenes need
-            uncovered = [key for key, _ in leaves(cfg) if matching(SCHEMA, key) is None]
-            assert not uncovered, f"{group}={option}: keys with no rule in nerfexp.settings.SCHEMA: {uncovered}"
+            uncovered = [key for key, _ in checked_settings(cfg) if matching(SCHEMA, key) is None]
+            assert not uncovered, f"{group}={option}: keys with no rule in nerfexp.settings.schema.SCHEMA: {uncovered}"
 
 
 def composed(*overrides):
@@ -57,6 +59,7 @@ def composed(*overrides):
     (["hierarchical=maybe"], "hierarchical=maybe: expected true or false"),
     (["scale.skips=[5]"], "scale.skips=[5] (which sets model.renderer.field.skips): layer indices must be in 1..1"),
     (["+foo=1"], "foo=1: not a setting nerfexp reads"),
+    (["scale.lr=???"], "missing mandatory value: scale.lr (set it"),  # not model.optimizer.lr, which reads it
     (["data.near=5", "data.far=2"], "data.near=5 (which sets model.renderer.near) and data.far=2 (which sets "
                                     "model.renderer.far): expected near < far"),
     (["data.near=2", "data.far=2"], "data.near=2 (which sets model.renderer.near) and data.far=2"),

@@ -16,7 +16,8 @@ from hydra.utils import instantiate
 from PIL import Image
 
 from nerfexp.data import procedural
-from nerfexp.data.colmap import ColmapScene, colmap_to_c2w, read_model
+from nerfexp.data.colmap import ColmapScene, colmap_to_c2w
+from nerfexp.data.colmap_sfm import read_model
 from nerfexp.data.datamodule import fill_ray_bounds
 from nerfexp.errors import DatasetError
 from nerfexp.geometry.cameras import camera_rays, focal_from_fov, look_at

@@ -6,7 +6,7 @@ import math
 import pytest
 import torch
 
-from nerfexp import scene
+from nerfexp.commands import scene
 from nerfexp.data import glossy as G
 from nerfexp.data.blender import BlenderScene
 from nerfexp.data.procedural import CAMERA_ANGLE_X, scene_cameras, shade

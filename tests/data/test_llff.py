@@ -14,9 +14,9 @@ from nerfexp.data.llff import LLFFScene, load_llff, write_llff
 from nerfexp.data.procedural import CAMERA_ANGLE_X, intersect_scene, render_rgba
 from nerfexp.errors import ConfigError, DatasetError
 from nerfexp.geometry.cameras import camera_rays, focal_from_fov, look_at
-from nerfexp.metrics import psnr
 from nerfexp.nerf.encodings import IdentityEncoding
 from nerfexp.nerf.fields import DiffuseHead, NeRFField
+from nerfexp.training.metrics import psnr
 from tests.helpers import read_json, run_nerfexp
 
 HEIGHT, WIDTH = 30, 40

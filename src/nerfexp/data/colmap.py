@@ -39,220 +39,32 @@ has them: COLMAP's defaults (a shared camera, the principal point not refined, u
 it centred) give this; a model that breaks it is refused with a DatasetError rather than cropped.
 """
 
-import concurrent.futures
-import contextlib
-import math
-import os
-from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
-import pycolmap
 import torch
 from torch import Tensor
 from tqdm import tqdm
 
 from nerfexp.data.base import Scene
+from nerfexp.data.colmap_sfm import (
+    check_camera_model,
+    find_model,
+    image_files,
+    read_model,
+    reconstruct,
+    registered_enough,
+    undistort,
+)
 from nerfexp.data.images import downscale_rgba, fit_factor, read_image
 from nerfexp.data.video import video_frames
-from nerfexp.data.views import IMAGE_SUFFIXES, Views, holdout_split
+from nerfexp.data.views import Views, holdout_split
 from nerfexp.errors import DatasetError
-from nerfexp.files import atomic_directory
 
-CACHE = "colmap"  # DIR/colmap: nerfexp's own database, sparse model and undistorted images
-MODEL_FILES = ("cameras", "images", "points3D")
 PERCENTILES = (0.1, 99.9)  # of each image's point distances: near and far (as LLFF's imgs2poses)
 MARGINS = (0.9, 1.1)  # near and far are widened by these factors
 PIXEL_TOLERANCE = 0.5  # principal point off-centre, or fx != fy at the image edge, by at most this (pixels)
-MATCHERS = ("exhaustive", "sequential")
-POLL_SECONDS = 0.25  # how often a progress bar counts the output of a pycolmap call running in a thread
-ADVICE = ("try more overlap between neighbouring views (60-80%), more texture (plain walls, sky, glass and "
-          "reflections give no features), sharper images, more features (data.max_features), "
-          "data.matcher=exhaustive, or a camera model that fits the lens (data.camera_model=OPENCV for wide angles)")
-
-
-def image_files(folder: Path) -> list[str]:
-    """Names of the images below ``folder`` as COLMAP gives them (relative POSIX paths), sorted."""
-    return sorted(p.relative_to(folder).as_posix() for p in folder.rglob("*")
-                  if p.suffix.lower() in IMAGE_SUFFIXES and p.is_file() and not p.name.startswith("."))
-
-
-def is_model(path: Path) -> bool:
-    """Whether ``path`` holds a COLMAP sparse model, binary or text."""
-    return any(all((path / f"{name}{ext}").is_file() for name in MODEL_FILES) for ext in (".bin", ".txt"))
-
-
-def find_model(root: Path) -> Path | None:
-    """The sparse model to use for the scene ``root``: the user's, else nerfexp's cache, else None."""
-    for path in (root / "sparse" / "0", root / "sparse", root / CACHE / "sparse" / "0"):
-        if is_model(path):
-            return path
-    return None
-
-
-def read_model(path):
-    """A ``pycolmap.Reconstruction`` read from the folder ``path`` (binary or text files)."""
-    path = Path(path)
-    if not is_model(path):
-        raise DatasetError(f"{path} holds no COLMAP sparse model: expected cameras, images and points3D, "
-                           f"all .bin or all .txt")
-    try:
-        return pycolmap.Reconstruction(path)
-    except Exception as error:  # pycolmap raises plain exceptions for malformed files
-        raise DatasetError(f"{path}: cannot read the COLMAP model ({error})") from None
-
-
-@contextlib.contextmanager
-def _colmap_log_level(verbose: bool) -> Iterator[None]:
-    """COLMAP's own log (glog, on stderr) at INFO with ``verbose``, else warnings and errors only."""
-    previous = pycolmap.logging.minloglevel
-    pycolmap.logging.minloglevel = 0 if verbose else 1
-    try:
-        yield
-    finally:
-        pycolmap.logging.minloglevel = previous
-
-
-def check_camera_model(name: str) -> None:
-    """A DatasetError unless ``name`` is a COLMAP perspective camera model (undistortable to PINHOLE)."""
-    models = [m for m in pycolmap.CameraModelId.__members__ if m not in ("INVALID", "EQUIRECTANGULAR")]
-    if name not in models:
-        raise DatasetError(f"unsupported camera model {name!r} (data.camera_model): nerfexp needs a perspective "
-                           f"camera, one of {', '.join(models)}")
-
-
-def registered_enough(n_registered: int, n_images: int, min_registered: float, where: str) -> None:
-    """A DatasetError unless at least max(2, ceil(min_registered n_images)) images were registered."""
-    needed = max(2, math.ceil(min_registered * n_images))
-    if n_registered < needed:
-        raise DatasetError(f"COLMAP registered {n_registered} of {n_images} images of {where} (at least {needed} "
-                           f"needed, data.min_registered={min_registered:g}); {ADVICE}")
-
-
-def effective_threads(threads: int) -> int:
-    """The number of threads COLMAP runs for ``threads``: ``threads`` itself, or one per core where it is
-    <= 0 (-1: every core)."""
-    return threads if threads > 0 else os.cpu_count() or 1
-
-
-def shared_camera_id(database: Path) -> int:
-    """The id of the first camera in the COLMAP ``database``; -1 where it has none."""
-    with pycolmap.Database.open(database) as db:
-        return min((camera.camera_id for camera in db.read_all_cameras()), default=-1)
-
-
-def extract_features(database: Path, image_dir: Path, names: list[str], camera_model: str = "SIMPLE_RADIAL",
-                     max_features: int = 4096, threads: int = -1) -> None:
-    """SIFT features (on the CPU, at most ``max_features`` per image) of the images ``names`` of
-    ``image_dir`` into ``database``, one ``camera_model`` camera shared by all, with a progress bar
-    counting images.
-
-    pycolmap reports nothing while it extracts, so the images go in batches, one call each, and the bar
-    moves after each batch. Each thread extracts whole images, so a batch holds two per thread: every
-    thread has work, one that finishes early takes a second image while the batch's slowest finishes,
-    and each call's fixed cost is shared by twice the images (one image per call forgoes the threads).
-    The first batch makes the shared camera (CameraMode.SINGLE) and the later ones name it
-    (``existing_camera_id``), so the database is the one a single call over all the images makes.
-    """
-    extraction = pycolmap.FeatureExtractionOptions(num_threads=threads, use_gpu=False)
-    extraction.sift.max_num_features = max_features
-    reader = pycolmap.ImageReaderOptions(camera_model=camera_model)
-    batch_size = 2 * effective_threads(threads)
-    with tqdm(total=len(names), desc="COLMAP features", unit="image", disable=None) as bar:
-        for start in range(0, len(names), batch_size):
-            batch = names[start:start + batch_size]
-            pycolmap.extract_features(database, image_dir, batch, camera_mode=pycolmap.CameraMode.SINGLE,
-                                      reader_options=reader, extraction_options=extraction,
-                                      device=pycolmap.Device.cpu)
-            if reader.existing_camera_id < 0:
-                reader.existing_camera_id = shared_camera_id(database)
-            bar.update(len(batch))
-
-
-def reconstruct(root, camera_model: str = "SIMPLE_RADIAL", matcher: str = "exhaustive", max_features: int = 4096,
-                threads: int = -1, min_registered: float = 0.8, verbose: bool = False,
-                image_dir: Path | None = None) -> Path:
-    """Run COLMAP on the images of ``image_dir`` (None: ``root/images``) into ``root/colmap`` and return
-    the sparse model's folder.
-
-    Features (``extract_features``: SIFT on the CPU, at most ``max_features`` per image, one
-    ``camera_model`` camera shared by all images, a progress bar over the images), then matching
-    (``exhaustive`` or ``sequential``) and incremental mapping, each a step of a second bar
-    (``verbose``: COLMAP's own log too). ``threads`` -1 uses every core. Raises a DatasetError, and
-    keeps nothing, when fewer than ``min_registered`` of the images are registered.
-    """
-    root = Path(root)
-    image_dir = root / "images" if image_dir is None else Path(image_dir)
-    names = image_files(image_dir)
-    if not names:
-        raise DatasetError(f"{image_dir} holds no images ({', '.join(sorted(IMAGE_SUFFIXES))})")
-    check_camera_model(camera_model)
-    if matcher not in MATCHERS:
-        raise DatasetError(f"unknown matcher {matcher!r} (data.matcher): expected one of {', '.join(MATCHERS)}")
-    cache = root / CACHE
-    if cache.exists():
-        raise DatasetError(f"{cache} exists but holds no sparse model in sparse/0; move it away (nerfexp never "
-                           f"deletes it) to reconstruct the scene again")
-    with _colmap_log_level(verbose), atomic_directory(cache) as work:
-        database = work / "database.db"
-        extract_features(database, image_dir, names, camera_model, max_features, threads)
-        with tqdm(total=2, desc="COLMAP", unit="stage", disable=None) as bar:
-            bar.set_postfix_str(f"{matcher} matching")
-            matching = pycolmap.FeatureMatchingOptions(num_threads=threads, use_gpu=False)
-            match = pycolmap.match_exhaustive if matcher == "exhaustive" else pycolmap.match_sequential
-            match(database, matching_options=matching, device=pycolmap.Device.cpu)
-            bar.update()
-            bar.set_postfix_str("incremental mapping")
-            options = pycolmap.IncrementalPipelineOptions(num_threads=threads, multiple_models=False)
-            models = pycolmap.incremental_mapping(database, image_dir, work / "sparse", options)
-            bar.update()
-        n_registered = max((m.num_reg_images() for m in models.values()), default=0)
-        registered_enough(n_registered, len(names), min_registered, image_dir)
-        if not is_model(work / "sparse" / "0"):
-            raise DatasetError(f"COLMAP wrote no model for {image_dir} to {work / 'sparse' / '0'}")
-    return cache / "sparse" / "0"
-
-
-def count_files(folder: Path) -> int:
-    """The number of files below ``folder`` (0 where it does not exist yet)."""
-    return sum(path.is_file() for path in folder.rglob("*"))
-
-
-def run_counting(task: Callable[[pycolmap.CancellationToken], None], count: Callable[[], int], bar: tqdm) -> None:
-    """``task(token)``, a pycolmap call (which releases the GIL while it works), run in a worker thread
-    while ``bar`` shows ``count()`` every POLL_SECONDS; its exception is raised here. An exception here
-    (Ctrl-C) cancels it through the token and waits for it to stop, so nothing writes after this returns."""
-    token = pycolmap.CancellationToken()
-    with concurrent.futures.ThreadPoolExecutor(max_workers=1) as pool:
-        running = pool.submit(task, token)
-        try:
-            while concurrent.futures.wait([running], timeout=POLL_SECONDS).not_done:
-                bar.update(count() - bar.n)
-        except BaseException:
-            token.cancel()
-            raise
-        running.result()
-    bar.update(count() - bar.n)
-
-
-def undistort(root: Path, model_dir: Path, image_dir: Path, n_images: int, verbose: bool = False) -> tuple[Path, Path]:
-    """The PINHOLE model and image folders of the undistorted scene, ``root/colmap/undistorted/{sparse,
-    images}``, made by COLMAP's undistorter from ``model_dir`` and ``image_dir`` unless they exist, in one
-    call (its images, model and MVS configuration as COLMAP writes them), with a progress bar counting
-    the model's ``n_images`` registered images as their undistorted files appear."""
-    final = root / CACHE / "undistorted"
-    if is_model(final / "sparse"):
-        return final / "sparse", final / "images"
-    if final.exists():
-        raise DatasetError(f"{final} exists but holds no model in sparse/; move it away (nerfexp never deletes it) "
-                           f"to undistort the images again")
-    progress = tqdm(total=n_images, desc="COLMAP undistortion to PINHOLE", unit="image",
-                    disable=None)
-    with _colmap_log_level(verbose), atomic_directory(final) as work, progress as bar:
-        run_counting(lambda token: pycolmap.undistort_images(work, model_dir, image_dir, cancellation_token=token),
-                     lambda: count_files(work / "images"), bar)
-    return final / "sparse", final / "images"
 
 
 def colmap_to_c2w(cam_from_world: Tensor) -> Tensor:

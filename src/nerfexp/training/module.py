@@ -13,9 +13,9 @@ import torch.nn.functional as F
 from torch import Tensor, nn
 
 from nerfexp.errors import ConfigError
-from nerfexp.metrics import psnr, ssim
 from nerfexp.nerf.bounds import Bounded
 from nerfexp.nerf.volume_renderer import VolumeRenderer, final_output
+from nerfexp.training.metrics import psnr, ssim
 
 log = logging.getLogger(__name__)
 

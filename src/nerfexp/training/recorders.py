@@ -17,7 +17,7 @@ import torch
 
 from nerfexp.files import atomic_write
 from nerfexp.pixels import depth_image, png_bytes, to_uint8
-from nerfexp.rundir import (
+from nerfexp.rundir.layout import (
     EVAL,
     METRICS,
     RESULTS,

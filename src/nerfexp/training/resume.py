@@ -8,19 +8,26 @@ the model, the data (where the scene lies, ``data.root``, aside), the data modul
 precision, the learning rates and their schedule. A checkpoint of an earlier nerfexp, which records no
 settings, is compared with the config saved in its run directory (``.hydra/config.yaml``, before Hydra
 writes this run's there); one that lies in no run directory, with the network's shapes alone
-(``nerfexp.rundir.check_weights``).
+(``nerfexp.rundir.trained.check_weights``).
+
+A job reads the checkpoint once (``read_resumed``), keeping of it only what resuming needs (``Resumed``):
+Lightning reads it again, whole, to continue training from it.
 """
 
+import functools
 import json
 from collections.abc import Mapping
 from pathlib import Path
+from typing import NamedTuple
 
+import torch
 from hydra.experimental.callback import Callback
-from omegaconf import DictConfig, ListConfig, OmegaConf
-from omegaconf.errors import OmegaConfBaseException
+from omegaconf import DictConfig, OmegaConf
 
+from nerfexp.config_keys import leaves, source_key
 from nerfexp.errors import NerfexpError
-from nerfexp.rundir import RUN_CONFIG, read_checkpoint, run_config
+from nerfexp.rundir.layout import RUN_CONFIG
+from nerfexp.rundir.trained import read_checkpoint, run_config
 
 SETTINGS = "nerfexp_settings"  # a checkpoint's key: {"settings": flat_settings, "choices": config group -> option}
 RESUMES = "nerfexp_resumes"  # a checkpoint's key: the record of each resume that led to it (``resume_record``)
@@ -50,31 +57,10 @@ def may_differ(key: str) -> bool:
 
 
 def flat_settings(cfg: DictConfig, skip=lambda key: False) -> dict[str, object]:
-    """``cfg``'s leaves as ``{dotted key: value}``, resolved (a list is one leaf, as a list), apart from
-    ``hydra`` and the keys ``skip`` names. A value that cannot be resolved here (an interpolation of
-    Hydra's run-time values) is kept as its text; a mandatory value not set (``???``) as ``"???"``."""
-    flat = {}
-
-    def walk(node: DictConfig, prefix: str) -> None:
-        for key in node.keys():
-            path = f"{prefix}{key}"
-            if path == "hydra" or skip(path):
-                continue
-            if OmegaConf.is_missing(node, key):
-                flat[path] = "???"
-                continue
-            try:
-                value = node[key]
-            except OmegaConfBaseException:
-                flat[path] = node._get_node(key)._value()
-                continue
-            if isinstance(value, DictConfig):
-                walk(value, f"{path}.")
-            else:
-                flat[path] = OmegaConf.to_container(value, resolve=True) if isinstance(value, ListConfig) else value
-
-    walk(cfg, "")
-    return flat
+    """``cfg``'s leaves as ``{dotted key: value}`` (``nerfexp.config_keys.leaves``: resolved, a list is one
+    leaf, as a list; a value made from Hydra's runtime kept as its text; a mandatory value not set as
+    ``"???"``), apart from ``hydra`` and the keys ``skip`` names."""
+    return dict(leaves(cfg, skip=lambda key, node: skip(key)))
 
 
 def group_choices(choices: Mapping) -> dict[str, str]:
@@ -90,34 +76,48 @@ def checkpoint_settings(cfg: DictConfig, choices: dict[str, str]) -> dict:
     return {"settings": flat_settings(cfg), "choices": dict(choices)}
 
 
-def recorded_settings(state: dict, checkpoint: Path) -> dict | None:
-    """The settings (``checkpoint_settings``) that trained checkpoint ``state``: as it records them, else
-    (an earlier nerfexp's) those of its run directory's saved config while that is still the run's
-    (``checkpoint`` is ``RUN/checkpoints/NAME.ckpt``), with no choices; None where neither exists."""
-    if isinstance(state.get(SETTINGS), dict):
-        return state[SETTINGS]
+class Resumed(NamedTuple):
+    """What resuming needs of a checkpoint (``read_resumed``): its record and the shapes of its weights."""
+
+    step: int  # the optimizer steps it had taken (its global_step)
+    settings: dict | None  # what it records of the run that trained it (SETTINGS); None: an earlier nerfexp's
+    resumes: list[dict]  # the resumes that led to it (RESUMES)
+    weights: dict[str, torch.Tensor]  # its state_dict on the meta device: names and shapes, no values
+
+
+def read_resumed(checkpoint: Path) -> Resumed:
+    """Checkpoint ``checkpoint``'s ``Resumed``, read as data (``read_checkpoint``; its errors name the file).
+    A process reads a file once (while it is unchanged): Hydra checks a single run (``ResumeCheck``) and
+    then runs its job in one process, and nothing passes from the callback to the job but this."""
+    path = Path(checkpoint)
+    version = None  # no file: read_checkpoint says so
+    if path.is_file():
+        found = path.stat()
+        version = (found.st_ino, found.st_size, found.st_mtime_ns)
+    return _read_resumed(path, path.resolve(), version)
+
+
+@functools.lru_cache(maxsize=1)
+def _read_resumed(path: Path, resolved: Path, version: tuple | None) -> Resumed:
+    """``read_resumed`` of ``path`` (the file ``resolved`` as ``version``: inode, size, modification time)."""
+    state = read_checkpoint(path)
+    settings, resumes = state.get(SETTINGS), state.get(RESUMES)
+    weights = {name: value.to("meta") if isinstance(value, torch.Tensor) else value
+               for name, value in state["state_dict"].items()}
+    return Resumed(state["global_step"], settings if isinstance(settings, dict) else None,
+                   resumes if isinstance(resumes, list) else [], weights)
+
+
+def recorded_settings(resumed: Resumed, checkpoint: Path) -> dict | None:
+    """The settings (``checkpoint_settings``) that trained checkpoint ``checkpoint`` (``resumed``): as it
+    records them, else (an earlier nerfexp's) those of its run directory's saved config while that is still
+    the run's (``checkpoint`` is ``RUN/checkpoints/NAME.ckpt``), with no choices; None where neither exists."""
+    if resumed.settings is not None:
+        return resumed.settings
     run_dir = Path(checkpoint).resolve().parent.parent
     if not (run_dir / RUN_CONFIG).is_file():
         return None
     return {"settings": flat_settings(run_config(run_dir), skip=may_differ), "choices": {}}
-
-
-def source_key(cfg: DictConfig, key: str) -> str:
-    """The key a user sets for ``key`` of ``cfg``: where ``key`` or a key above it is a plain interpolation
-    (``model.optimizer.lr: ${scale.lr}``, ``...position_encoding: ${encoding.position}``), the key it names
-    (``scale.lr``, ``encoding.position...``), followed to its end; else ``key``."""
-    parts = key.split(".")
-    node = cfg
-    for i, part in enumerate(parts):
-        child = node._get_node(part) if isinstance(node, DictConfig) and part in node else None
-        if child is None:
-            return key
-        raw = child._value()
-        if isinstance(raw, str) and raw.startswith("${") and raw.endswith("}") and raw.count("$") == 1 \
-                and ":" not in raw:
-            return source_key(cfg, ".".join([raw[2:-1], *parts[i + 1:]]))
-        node = child
-    return key
 
 
 ABSENT = object()  # a setting one side does not have
@@ -135,10 +135,10 @@ def shown(value) -> str:
 def differing(recorded: dict, cfg: DictConfig, current: dict[str, object], choices: dict[str, str]) -> list[tuple]:
     """The settings of ``recorded`` (``checkpoint_settings``) that ``current`` (``flat_settings`` of this run's
     ``cfg``, with its ``choices``) sets otherwise, outside ``MAY_DIFFER``, as ``(name, checkpoint's value,
-    this run's value)`` in the order of the checkpoint's keys, each named as the user sets it (``source_key``):
-    a config group whose option differs (``encoding``) stands for the keys under it. A ``DERIVED`` value
-    this run leaves null, and a setting the checkpoint does not record (one added by a later nerfexp), are
-    not compared."""
+    this run's value)`` in the order of the checkpoint's keys, each named as the user sets it
+    (``nerfexp.config_keys.source_key``): a config group whose option differs (``encoding``) stands for the
+    keys under it. A ``DERIVED`` value this run leaves null, and a setting the checkpoint does not record
+    (one added by a later nerfexp), are not compared."""
     changed_groups = {group.replace("/", "."): (option, choices.get(group, ABSENT))
                       for group, option in recorded.get("choices", {}).items()
                       if choices.get(group, ABSENT) != option and not may_differ(group.replace("/", "."))}
@@ -156,13 +156,13 @@ def differing(recorded: dict, cfg: DictConfig, current: dict[str, object], choic
     return list(found.values())
 
 
-def check_resume(cfg: DictConfig, choices: dict[str, str], checkpoint: Path) -> dict:
-    """Checkpoint ``checkpoint``'s contents (``read_checkpoint``) where the run of ``cfg`` (its config group
+def check_resume(cfg: DictConfig, choices: dict[str, str], checkpoint: Path) -> Resumed:
+    """Checkpoint ``checkpoint``'s ``Resumed`` (``read_resumed``) where the run of ``cfg`` (its config group
     ``choices``) may continue it; else a NerfexpError in one line: settings that differ from those it was
     trained with (``differing``, each named with both values), or a checkpoint that has taken all of the
     run's steps (train further by raising ``scale.steps``, or score it with ``nerfexp-eval``)."""
-    state = read_checkpoint(checkpoint)
-    recorded = recorded_settings(state, checkpoint)
+    resumed = read_resumed(checkpoint)
+    recorded = recorded_settings(resumed, checkpoint)
     if recorded is not None:
         current = flat_settings(cfg, skip=may_differ)
         if found := differing(recorded, cfg, current, choices):
@@ -170,33 +170,33 @@ def check_resume(cfg: DictConfig, choices: dict[str, str], checkpoint: Path) -> 
             now = ", ".join(f"{name}={shown(value)}" for name, _, value in found)
             raise NerfexpError(f"resume={checkpoint}: the checkpoint was trained with {was}; this run sets {now}: "
                                "resume with the checkpoint's settings or start a new run")
-    step, max_steps = state["global_step"], OmegaConf.select(cfg, "trainer.max_steps")
+    step, max_steps = resumed.step, OmegaConf.select(cfg, "trainer.max_steps")
     if isinstance(max_steps, int) and step >= max_steps:
         steps = f"{source_key(cfg, 'trainer.max_steps')}={max_steps}"
         raise NerfexpError(f"resume={checkpoint}: the checkpoint has taken {step} steps, all of this run's ({steps}): "
                            f"raise {steps.split('=')[0]} to train further, or score it with nerfexp-eval "
                            f"{checkpoint}")
-    return state
+    return resumed
 
 
-def resume_record(state: dict, checkpoint: Path, current: dict[str, object]) -> list[dict]:
-    """The resumes that led to a run continued from checkpoint ``state`` (file ``checkpoint``) with the
+def resume_record(resumed: Resumed, checkpoint: Path, current: dict[str, object]) -> list[dict]:
+    """The resumes that led to a run continued from checkpoint ``checkpoint`` (``resumed``) with the
     settings ``current`` (``flat_settings`` of its whole config): the checkpoint's own (``RESUMES``), then
     this one, ``{"step", "checkpoint", "changed": {key: [checkpoint's value, this run's]}}`` with the
     ``MAY_DIFFER`` settings it changed (none known for an earlier nerfexp's checkpoint)."""
-    recorded = state.get(SETTINGS, {}).get("settings", {}) if isinstance(state.get(SETTINGS), dict) else {}
+    recorded = (resumed.settings or {}).get("settings", {})
     changed = {key: [was, current.get(key)] for key, was in recorded.items()
                if may_differ(key) and key != "resume" and current.get(key, ABSENT) != was}
-    earlier = state.get(RESUMES) if isinstance(state.get(RESUMES), list) else []
-    return [*earlier, {"step": state["global_step"], "checkpoint": str(Path(checkpoint).resolve()),
-                       "changed": changed}]
+    return [*resumed.resumes, {"step": resumed.step, "checkpoint": str(Path(checkpoint).resolve()),
+                               "changed": changed}]
 
 
 class ResumeCheck(Callback):
     """Hydra callback (``hydra.callbacks.resume``): a single run with ``resume=`` is checked
     (``check_resume``) before Hydra claims or writes its directory, so that a refused resume leaves the
-    run it names as it was; each job of a sweep is checked by ``nerfexp.train``. It stops with
-    ``SystemExit``: Hydra turns a callback's exceptions into warnings and goes on."""
+    run it names as it was; its job then uses what this read (``read_resumed``). Each job of a sweep is
+    checked by ``nerfexp.commands.train``. It stops with ``SystemExit``: Hydra turns a callback's
+    exceptions into warnings and goes on."""
 
     def on_run_start(self, config: DictConfig, **kwargs) -> None:
         if config.get("resume") is None:

@@ -1,0 +1,52 @@
+"""``nerfexp-eval RUN_DIR``: score a run's checkpoint on its test split, with the config the run used."""
+
+import argparse
+from pathlib import Path
+
+from hydra.utils import instantiate
+from omegaconf import DictConfig
+
+from nerfexp.commands.arguments import add_run_arguments, command_parser
+from nerfexp.commands.console import run_command
+from nerfexp.rundir.layout import EVAL, read_json
+from nerfexp.rundir.trained import find_run, load_module, run_config
+from nerfexp.training.progress import progress_bars
+from nerfexp.training.recorders import EvalRecorder
+
+
+def evaluate(cfg: DictConfig, run_dir: Path, checkpoint: Path) -> dict:
+    """Score ``checkpoint`` on the test split of the run's data (``cfg``, the run's config), without
+    training, on the run's trainer (``trainer=ddp``: its processes share the images); the scores go to
+    ``RUN_DIR/eval.json`` (see ``EvalRecorder``) and are returned."""
+    model, step = load_module(cfg, checkpoint)
+    recorder = EvalRecorder(run_dir, checkpoint, step)
+    trainer = instantiate(cfg.trainer, logger=False, callbacks=[recorder, *progress_bars(cfg.trainer)],
+                          enable_checkpointing=False, default_root_dir=str(run_dir))
+    trainer.test(model, datamodule=instantiate(cfg.datamodule), verbose=False)
+    return read_json(run_dir / EVAL)
+
+
+def build_parser() -> argparse.ArgumentParser:
+    """``nerfexp-eval RUN_DIR`` (or a checkpoint file in it): score the run's checkpoint on its test split
+    with the config the run used, and write the scores to RUN_DIR/eval.json."""
+    parser = command_parser("nerfexp-eval", build_parser.__doc__)
+    add_run_arguments(parser)
+    return parser
+
+
+def evaluate_run(run: Path, overrides: list[str]) -> str:
+    """Score the run at ``run`` (a run directory or a checkpoint file in one) with its saved config changed
+    by ``overrides`` (``evaluate``); returns a one-line summary."""
+    run_dir, checkpoint = find_run(run)
+    results = evaluate(run_config(run_dir, overrides), run_dir, checkpoint)
+    return (f"test PSNR {results['test_psnr']:.2f} dB, SSIM {results['test_ssim']:.4f} of {checkpoint} "
+            f"(step {results['step']}); written to {run_dir / EVAL}")
+
+
+def main(argv: list[str] | None = None) -> None:
+    """The ``nerfexp-eval`` command (``build_parser``)."""
+    run_command(build_parser(), argv, lambda args: evaluate_run(args.run, args.overrides))
+
+
+if __name__ == "__main__":
+    main()

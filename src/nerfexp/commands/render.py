@@ -1,0 +1,111 @@
+"""``nerfexp-render RUN_DIR``: a trained run's views along a camera path (``nerfexp.geometry.camera_paths``),
+as videos and PNG frames.
+
+What a render leaves in ``RUN_DIR/render/`` (the folder is replaced as a whole once every frame is
+written, so a reader sees the previous render or the new one, never a part; a ``render/`` holding anything
+else, ``MADE``, is refused with one line before any work):
+``rgb.mp4``, ``depth.mp4``, ``opacity.mp4``; the same frames as 8-bit PNGs ``rgb/0000.png``, ...,
+``depth/0000.png``, ..., ``opacity/0000.png``, ...; and ``cameras.json``: the path's name, ``fps``,
+``height``, ``width``, ``focal`` (pixels) and ``c2w`` per frame.
+
+``--cameras FILE`` renders the cameras of a file in that format instead of an orbit or a spiral: a
+``cameras.json`` of an earlier render, or a path saved by ``nerfexp-view`` (``RUN_DIR/view/camera_path.json``).
+"""
+
+import argparse
+import json
+from pathlib import Path
+
+from hydra.utils import instantiate
+
+from nerfexp.commands.arguments import add_run_arguments, command_parser, fitting, positive
+from nerfexp.commands.console import run_command
+from nerfexp.errors import NerfexpError
+from nerfexp.extras import require
+from nerfexp.files import TEMPORARY, atomic_directory, foreign_entries, foreign_message
+from nerfexp.memory import frame_bytes
+from nerfexp.products.camera_files import DEFAULT_FPS, CameraPath, read_camera_path
+from nerfexp.products.frames import KINDS, PATHS, frame_size, render_path, training_path
+from nerfexp.rundir.layout import RENDER_DIR
+from nerfexp.rundir.trained import load_run
+
+CAMERAS = "cameras.json"  # a render's cameras, in the format --cameras reads (``camera_path_record``)
+MADE = (*(f"{kind}.mp4" for kind in KINDS), *(f"{kind}/*.png" for kind in KINDS), CAMERAS, *TEMPORARY)  # a render
+DEFAULT_FRAMES = 120
+
+
+def render_run(run: Path, overrides: list[str], n_frames: int, fps: float | None, size: int | None,
+               chunk: int | None, path: str | None, focus: float | None,
+               cameras: CameraPath | None = None) -> tuple[Path, int]:
+    """Render the run at ``run`` (a run directory, or a checkpoint file in one) into ``RUN_DIR/render``
+    along ``cameras`` (None: a ``training_path``), frames ``size`` pixels wide (``frame_size``; None: the
+    cameras' own size) played at ``fps`` (None: the cameras'; 30 for a training path). Returns the folder
+    and the number of frames."""
+    run_dir, _, cfg, module, _ = load_run(run, overrides, chunk)
+    out_dir = run_dir / RENDER_DIR
+    if foreign := foreign_entries(out_dir, MADE):  # the folder is replaced as a whole: it must be a render
+        raise NerfexpError(foreign_message(out_dir, foreign, "nerfexp-render", "move them elsewhere: "
+                                           "nerfexp-render replaces this folder as a whole"))
+    scene = instantiate(cfg.data)
+    if cameras is None:
+        cameras = training_path(scene, cfg.data, path, n_frames, focus, DEFAULT_FPS)
+    height, width, focal = frame_size(cameras.height, cameras.width, cameras.focal, size)
+    frames = CameraPath(cameras.name, cameras.c2w, height, width, focal, fps or cameras.fps)
+    with atomic_directory(out_dir, replace=True) as new:
+        render_path(module, scene, frames.c2w, height, width, focal, new, frames.fps)
+        (new / CAMERAS).write_text(json.dumps(frames.record(), indent=2))
+    return out_dir, len(frames.c2w)
+
+
+def _even(text: str) -> int:
+    value = fitting(positive(int), lambda width: frame_bytes(width, width), "a frame of N x N pixels")(text)
+    if value % 2:
+        raise argparse.ArgumentTypeError(f"expected an even width (video encoders need one), got {text}")
+    return value
+
+
+def build_parser() -> argparse.ArgumentParser:
+    """``nerfexp-render RUN_DIR`` (or a checkpoint file in it): render the trained model along a camera
+    path (an orbit around 360-degree scenes, a spiral for forward-facing ones, or the cameras of a file)
+    into RUN_DIR/render: rgb.mp4, depth.mp4, opacity.mp4, their PNG frames and cameras.json."""
+    parser = command_parser("nerfexp-render", build_parser.__doc__)
+    add_run_arguments(parser)
+    parser.add_argument("--path", choices=PATHS, help="camera path (default: spiral for forward-facing "
+                        "scenes, i.e. data.ndc or an LLFF scene; else orbit)")
+    parser.add_argument("--cameras", type=Path, metavar="FILE",
+                        help="render exactly the cameras of FILE instead of a path: a JSON object with keys "
+                             "height, width, focal (pixels) and c2w (a list of 4 x 4 camera-to-world matrices, "
+                             "OpenGL convention), optionally fps and path; e.g. a path saved by nerfexp-view "
+                             "(RUN_DIR/view/camera_path.json) or an earlier render's cameras.json")
+    parser.add_argument("--frames", type=positive(int), help=f"number of frames of the path (default {DEFAULT_FRAMES})")
+    parser.add_argument("--fps", type=positive(float), help="frames per second of the videos (default: the "
+                        "--cameras file's fps, else 30)")
+    parser.add_argument("--size", type=_even, help="frame width in pixels, even; the height keeps the "
+                        "cameras' aspect ratio (default: the training views' width, or the --cameras file's)")
+    parser.add_argument("--chunk", type=positive(int), help="rays rendered at once (default: the run's model.chunk)")
+    parser.add_argument("--focus", type=positive(float), help="spiral only: the depth its cameras look at "
+                        "(default: from the scene's depth bounds)")
+    return parser
+
+
+def main(argv: list[str] | None = None) -> None:
+    """The ``nerfexp-render`` command (``build_parser``)."""
+    parser = build_parser()
+
+    def work(args: argparse.Namespace) -> str:
+        require("imageio_ffmpeg", "nerfexp-render (its MP4 videos)")
+        cameras = None
+        if args.cameras is not None:
+            given = [flag for flag, value in (("--path", args.path), ("--frames", args.frames),
+                                              ("--focus", args.focus)) if value is not None]
+            if given:
+                parser.error(f"--cameras renders the file's cameras: {', '.join(given)} do not apply")
+            cameras = read_camera_path(args.cameras)  # checked before the run is loaded
+        out_dir, n_frames = render_run(args.run, args.overrides, args.frames or DEFAULT_FRAMES, args.fps, args.size,
+                                       args.chunk, args.path, args.focus, cameras)
+        return f"{n_frames} frames written to {out_dir}"
+    run_command(parser, argv, work)
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,220 @@
+"""``nerfexp``: build everything from the config, train, test with the last checkpoint; nothing else."""
+
+import contextlib
+import difflib
+import logging
+import os
+import re
+import sys
+from collections.abc import Iterator
+from pathlib import Path
+
+import hydra
+import lightning as L
+from hydra.core.hydra_config import HydraConfig
+from hydra.errors import HydraException, InstantiationException, MissingConfigException, OverrideParseException
+from hydra.types import RunMode
+from hydra.utils import instantiate
+from lightning.pytorch.loggers import Logger
+from lightning.pytorch.utilities.exceptions import SIGTERMException
+from omegaconf import DictConfig, OmegaConf
+from omegaconf.errors import ConfigAttributeError, ConfigKeyError, OmegaConfBaseException
+
+from nerfexp.commands.console import quiet_dependencies
+from nerfexp.commands.signals import ending_signals, received_signal
+from nerfexp.data.datamodule import fill_ray_bounds
+from nerfexp.data.rays import rank_slice
+from nerfexp.errors import ConfigError, NerfexpError
+from nerfexp.extras import require
+from nerfexp.rundir.layout import LAST_CHECKPOINT, RESULTS, is_global_zero, planned_jobs, read_json, write_status
+from nerfexp.rundir.trained import check_weights
+from nerfexp.settings.checks import check_settings
+from nerfexp.settings.schema import PASSED_ON, matching
+from nerfexp.settings.unused import unused_settings, without_unused
+from nerfexp.training.loggers import finish
+from nerfexp.training.progress import progress_bars
+from nerfexp.training.recorders import RunRecorder
+from nerfexp.training.resume import check_resume, checkpoint_settings, group_choices, read_resumed, resume_record
+
+log = logging.getLogger("nerfexp")
+
+
+def train(cfg: DictConfig) -> dict | None:
+    """Train on ``cfg.data``, then score the test split with the last checkpoint; everything is written
+    to the run's directory. Returns the run's results (see ``RunRecorder``) in global rank 0, else None.
+
+    The test loads the checkpoint because under ``trainer=ddp`` (Lightning's ``ddp_spawn``) ``fit`` and
+    ``test`` each run in new processes, and this one gets back only the weights: the checkpoint carries
+    the step, the training time and the last validation, and rank 0 leaves the results in ``results.json``.
+
+    Hydra's callbacks checked a single run's settings and its checkpoint (``SettingsCheck``, ``ResumeCheck``)
+    before its directory was made; a sweep's job, which they do not see, is checked here."""
+    sweep = HydraConfig.get().mode == RunMode.MULTIRUN
+    if sweep:
+        check_settings(cfg)  # missing mandatory values first
+    unused = unused_settings(cfg, list(HydraConfig.get().overrides.task))  # a sweep's job: recorded as null
+    for override, reason in unused:
+        log.warning("%s: not used with %s; results.json records it as null", override, reason)
+    quiet_dependencies()
+    fill_ray_bounds(cfg)
+    L.seed_everything(cfg.seed, workers=True, verbose=False)
+    runtime = HydraConfig.get().runtime
+    choices = {k: v for k, v in runtime.choices.items() if not k.startswith("hydra") and v is not None}
+    choices.update(hierarchical=cfg.hierarchical, seed=cfg.seed)
+    resolved = OmegaConf.to_container(cfg, resolve=True)
+    settings = checkpoint_settings(OmegaConf.create(resolved), group_choices(runtime.choices))
+    resumes, resumed = [], None
+    if cfg.resume is not None:  # a checkpoint this run may not continue: an error before any work
+        checkpoint = Path(cfg.resume)
+        resumed = check_resume(cfg, group_choices(runtime.choices), checkpoint) if sweep else read_resumed(checkpoint)
+        resumes = resume_record(resumed, checkpoint, settings["settings"])
+    logger = build_logger(cfg.get("logger"))
+    datamodule = instantiate(cfg.datamodule)
+    model = instantiate(cfg.model)
+    if resumed is not None:  # a checkpoint that records no settings may hold another network size
+        check_weights(resumed.weights, model, Path(cfg.resume))
+    overrides = list(HydraConfig.get().overrides.task)
+    recorded = without_unused(cfg, resolved, [override for override, _ in unused])
+    recorder = RunRecorder(runtime.output_dir, choices, recorded, overrides, settings, resumes)
+    callbacks = [instantiate(c) for c in cfg.callbacks.values()] + [recorder] + progress_bars(cfg.trainer)
+    trainer = instantiate(cfg.trainer, logger=logger, callbacks=callbacks)
+    rank_slice(datamodule.batch_rays, 0, trainer.world_size)  # a batch that the processes cannot share: an error now
+    succeeded = False
+    try:
+        # checkpoints are read as data (weights_only), whoever wrote them
+        trainer.fit(model, datamodule=datamodule, ckpt_path=cfg.resume, weights_only=True)
+        # the checkpoint this run wrote: ModelCheckpoint's own record of it where fit ran in this process
+        written = (getattr(trainer.checkpoint_callback, "last_model_path", "")
+                   or Path(runtime.output_dir) / LAST_CHECKPOINT)
+        trainer.test(model, datamodule=datamodule, ckpt_path=written, verbose=False, weights_only=True)
+        succeeded = True
+    finally:
+        finish(logger, succeeded)
+    if not trainer.is_global_zero:
+        return None
+    results = read_json(recorder.output_dir / RESULTS)
+    log.info("test PSNR %.2f dB, SSIM %.4f after %d steps in %.0f s; outputs in %s", results["test_psnr"],
+             results["test_ssim"], results["steps"], results["train_time_s"], recorder.output_dir)
+    return results
+
+
+def build_logger(cfg: DictConfig | None) -> Logger | bool:
+    """The run's Lightning logger (``conf/logger/``), or False for none; a ConfigError where the logger's
+    package is not installed."""
+    if not cfg:
+        return False
+    try:
+        return instantiate(cfg)
+    except InstantiationException as error:
+        if not isinstance(error.__cause__, ModuleNotFoundError):
+            raise
+        raise ConfigError(f"logger._target_={cfg._target_} needs a package that is not installed ({error.__cause__}); "
+                          'pip install -e ".[mlflow]" or ".[wandb]" installs those of logger=mlflow and logger=wandb, '
+                          "and logger=tensorboard, csv or none need nothing more") from error
+
+
+@hydra.main(version_base=None, config_path="pkg://nerfexp.conf", config_name="config")
+def main(cfg: DictConfig) -> float | None:
+    """Run one job; its status goes to ``status.json``. Returns the last validation PSNR, which a
+    hyper-parameter sweeper (``+sweeps=optuna``) maximizes.
+
+    A single run with bad input ends with one line on stderr and exit status 1. In a multirun the
+    error is raised instead, so that Hydra records this job as failed and goes on with the others
+    (the sweep then ends with the first job's error; ``nerfexp-report`` lists the failed jobs)."""
+    hydra_config = HydraConfig.get()
+    output_dir, overrides = hydra_config.runtime.output_dir, list(hydra_config.overrides.task)
+    writes = is_global_zero()  # under SLURM every process of a distributed job runs this; rank 0 records
+    if writes:
+        write_status(output_dir, "running", overrides)
+        if hydra_config.mode == RunMode.MULTIRUN:
+            planned = planned_jobs(Path(hydra_config.runtime.cwd) / hydra_config.sweep.dir)
+            log.info("job %d%s: %s", hydra_config.job.num + 1, f" of {planned}" if planned else "", output_dir)
+    try:
+        results = train(cfg)
+    except BaseException as error:  # an interrupt too: the job did not finish
+        if writes:
+            # the signal: from nerfexp's handler (cli), else Lightning's SIGTERM handling (a job under submitit)
+            ended_by = received_signal() or ("SIGTERM" if isinstance(error, SIGTERMException) else None)
+            details = {"signal": ended_by, "error": f"ended by {ended_by}"} if ended_by else {
+                "error": f"{type(error).__name__}: {error}"}
+            write_status(output_dir, "failed", overrides, **details)
+        if isinstance(error, NerfexpError | InstantiationException):  # bad input, or a class the config names
+            line = hydra_error_line(error)
+            if hydra_config.mode == RunMode.RUN:
+                sys.exit(f"nerfexp: error: {line}")
+            log.error("job failed: %s", line)
+        raise
+    if results is None:  # not global rank 0
+        return None
+    write_status(output_dir, "finished", overrides)
+    return results["val_psnr"]
+
+
+# hydra/launcher=slurm (conf/hydra/launcher/slurm.yaml) and the plugin's own submitit_slurm, submitit_local
+SUBMITIT_LAUNCHER = re.compile(r"\+*hydra/launcher=(slurm|submitit_\w+)")
+
+
+def check_launcher(arguments: list[str]) -> None:
+    """A MissingExtraError where the command line picks a submitit launcher whose plugin is not installed
+    (Hydra would only say that it cannot find the launcher's config)."""
+    for argument in arguments:
+        if SUBMITIT_LAUNCHER.fullmatch(argument):
+            require("hydra_plugins.hydra_submitit_launcher", argument)
+
+
+def cli() -> None:
+    """The ``nerfexp`` command: ``main``, where SIGTERM or SIGINT (a SLURM time limit, ``kill``, Ctrl-C)
+    ends a run or a sweep with exit status 128 + the signal, after the job's ``status.json`` says
+    which signal ended it (``nerfexp.commands.signals``). Standard output is line-buffered, so that a log
+    redirected to a file (a SLURM log) shows each line when it is printed, not when the run ends."""
+    sys.stdout.reconfigure(line_buffering=True)
+    try:
+        check_launcher(sys.argv[1:])
+    except NerfexpError as error:
+        sys.exit(f"nerfexp: error: {error}")
+    with ending_signals(), hydra_errors_in_one_line():
+        main()
+
+
+@contextlib.contextmanager
+def hydra_errors_in_one_line() -> Iterator[None]:
+    """Inside the block, Hydra's and OmegaConf's errors (an unknown option or key, an override's syntax, a
+    class that cannot be built) and nerfexp's end the program with one line (``hydra_error_line``) and exit
+    status 1. Hydra prints its own multi-line report unless HYDRA_FULL_ERROR=1, which makes it re-raise:
+    so it is set inside the block, and a user's own HYDRA_FULL_ERROR=1 keeps Hydra's full output."""
+    if os.environ.get("HYDRA_FULL_ERROR") == "1":
+        yield
+        return
+    os.environ["HYDRA_FULL_ERROR"] = "1"
+    try:
+        yield
+    except (HydraException, OmegaConfBaseException, NerfexpError) as error:
+        sys.exit(f"nerfexp: error: {hydra_error_line(error)}")
+    finally:
+        del os.environ["HYDRA_FULL_ERROR"]
+
+
+def hydra_error_line(error: Exception) -> str:
+    """One line for an error of Hydra, OmegaConf or nerfexp: the override at fault and what was expected."""
+    cause = error.__cause__
+    if isinstance(error, MissingConfigException) and error.options is not None:
+        group, _, option = str(error.missing_cfg_file).rpartition("/")
+        return f"{group}={option}: no such option (choose from {', '.join(error.options)})"
+    if isinstance(error, OverrideParseException):
+        return f"{error.override}: not a valid override ({error.message.splitlines()[0]}; see Hydra's override grammar)"
+    if isinstance(cause, ConfigKeyError | ConfigAttributeError) and "Could not override" in str(error):
+        key = cause.full_key
+        override = next((a for a in sys.argv[1:] if a.split("=", 1)[0] == key), key)
+        parent = cause.parent_node
+        known = [str(k) for k in parent.keys() if k != "hydra"] if parent is not None else []
+        section, _, leaf = key.rpartition(".")
+        close = difflib.get_close_matches(leaf, known, n=1)
+        advice = [f"the closest: {section + '.' if section else ''}{close[0]}"] if close else []
+        if matching(PASSED_ON, key):  # a keyword argument nerfexp's config does not set: its class checks it
+            advice.append(f"+{override} adds one")
+        return (f"{override}: no such key ({section or 'the config'} has {', '.join(known)}"
+                f"{'; ' if advice else ''}{'; '.join(advice)})")
+    text = " ".join(line.strip() for line in str(error).splitlines() if line.strip())
+    if isinstance(error, InstantiationException) and cause is not None:
+        text = f"{text} ({type(cause).__name__}: {' '.join(str(cause).split())})"
+    return text

@@ -1,0 +1,79 @@
+"""``nerfexp-view RUN_DIR``: a trained run in the browser, live (the viewer: ``nerfexp.products.viewer``;
+``docs/viewer.md``)."""
+
+import argparse
+import time
+from pathlib import Path
+from typing import NoReturn
+
+from hydra.utils import instantiate
+
+from nerfexp.commands.arguments import add_run_arguments, command_parser, port, positive
+from nerfexp.commands.console import run_command
+from nerfexp.commands.signals import ending_signals, received_signal
+from nerfexp.errors import NerfexpError
+from nerfexp.extras import require
+from nerfexp.files import TEMPORARY, foreign_entries, foreign_message
+from nerfexp.products.frames import KINDS
+from nerfexp.products.viewer import Viewer, say
+from nerfexp.rundir.layout import CAMERA_PATH
+from nerfexp.rundir.trained import load_run
+
+
+def view_run(run: Path, overrides: list[str], host: str, port: int, chunk: int | None,
+             max_width: int | None, image: str = KINDS[0]) -> NoReturn:
+    """Serve the viewer of the run at ``run`` (a run directory, or a checkpoint file in one) at
+    ``http://host:port`` (port 0: any free one) until SIGINT or SIGTERM, which end the process as
+    ``nerfexp.commands.signals.ending_signals`` does (exit status 130 or 143)."""
+    viser = require("viser", "nerfexp-view")
+    run_dir, _, cfg, module, step = load_run(run, overrides, chunk)
+    folder = run_dir / CAMERA_PATH.parent  # where a saved camera path goes: nerfexp-view's alone
+    if foreign := foreign_entries(folder, (CAMERA_PATH.name, *TEMPORARY)):
+        raise NerfexpError(foreign_message(folder, foreign, "nerfexp-view", "move them elsewhere: nerfexp-view "
+                                           f"saves camera paths to {CAMERA_PATH.name} there"))
+    scene = instantiate(cfg.data)
+    max_width = max_width or scene.views("test").width
+    with ending_signals():
+        server = viser.ViserServer(host=host, port=port, label=f"nerfexp-view {run_dir.name}", verbose=False)
+        viewer = Viewer(server, module, scene, run_dir, max_width, image)
+        try:
+            say(f"nerfexp-view: {run_dir} (step {step}) at http://{host}:{server.get_port()} "
+                f"(Ctrl-C to stop)")
+            while True:
+                time.sleep(3600)
+        finally:
+            viewer.close()
+            server.stop()
+            say(f"nerfexp-view: stopped ({received_signal()})")
+
+
+def build_parser() -> argparse.ArgumentParser:
+    """``nerfexp-view RUN_DIR`` (or a checkpoint file in it): the trained run in the browser, rendered live
+    from the camera you move (coarse at once, finer while it rests), with its training and test cameras,
+    and camera paths to save for nerfexp-render --cameras. Stops with Ctrl-C."""
+    parser = command_parser("nerfexp-view", build_parser.__doc__)
+    add_run_arguments(parser)
+    parser.add_argument("--host", default="127.0.0.1",
+                        help="address to serve on (default 127.0.0.1: this machine only; from elsewhere, "
+                             "forward the port over SSH: docs/viewer.md)")
+    parser.add_argument("--port", type=port, default=8080,
+                        help="port to serve on (default 8080; the next free one where it is taken; 0: any free one)")
+    parser.add_argument("--chunk", type=positive(int),
+                        help="rays rendered at once, and between which a render is abandoned when the camera "
+                             "moves (default: the run's model.chunk)")
+    parser.add_argument("--max-width", type=positive(int),
+                        help="the finest render's width in pixels at most (default: the test views' width); "
+                             "the browser's canvas sets it where narrower, and the height")
+    parser.add_argument("--image", choices=KINDS, default=KINDS[0],
+                        help="the image shown first (default rgb; the page's dropdown switches)")
+    return parser
+
+
+def main(argv: list[str] | None = None) -> None:
+    """The ``nerfexp-view`` command (``build_parser``)."""
+    run_command(build_parser(), argv, lambda args: view_run(args.run, args.overrides, args.host, args.port,
+                                                            args.chunk, args.max_width, args.image))
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,76 @@
+"""A config read key by key, each key a dotted path (``model.optimizer.lr``, ``scale.skips.0``): its leaves,
+resolved (``leaves``, of a DictConfig) or as they are written (``entries``, of its plain containers), and
+the key that an interpolated value comes from (``source_key``).
+
+The settings check (``nerfexp.settings``), the settings a checkpoint records (``nerfexp.training.resume``)
+and the check of a run's saved config (``nerfexp.rundir.saved_configs``) read configs through these, so
+that a key is spelled, and an interpolation followed, one way everywhere.
+"""
+
+from collections.abc import Callable, Iterator
+
+from omegaconf import MISSING, DictConfig, ListConfig, Node, OmegaConf
+from omegaconf.errors import InterpolationToMissingValueError
+
+
+def reference(raw: object) -> str | None:
+    """The key that the unresolved value ``raw`` names where it is a plain interpolation (``${scale.lr}``:
+    ``scale.lr``); None for any other value (a resolver's ``${hydra:...}``, text around one ``a/${b}``)."""
+    if isinstance(raw, str) and raw.startswith("${") and raw.endswith("}") and raw.count("$") == 1 and ":" not in raw:
+        return raw[2:-1]
+    return None
+
+
+def source_key(cfg: DictConfig, key: str) -> str:
+    """The key a user sets for ``key`` of ``cfg``: where ``key`` or a key above it is a plain interpolation
+    (``model.optimizer.lr: ${scale.lr}``, ``...position_encoding: ${encoding.position}``), the key it names
+    (``scale.lr``, ``encoding.position...``), followed to its end; else ``key``."""
+    parts = key.split(".")
+    node = cfg
+    for i, part in enumerate(parts):
+        child = node._get_node(part) if isinstance(node, DictConfig) and part in node else None
+        if child is None:
+            return key
+        named = reference(child._value())
+        if named is not None:
+            return source_key(cfg, ".".join([named, *parts[i + 1:]]))
+        node = child
+    return key
+
+
+def leaves(cfg: DictConfig, skip: Callable[[str, Node], bool] = lambda key, node: False,
+           prefix: str = "") -> Iterator[tuple[str, object]]:
+    """Each leaf of ``cfg`` as (dotted key, resolved value), ``hydra`` and the keys that ``skip(key, node)``
+    names aside: a list is one leaf (a plain list), and a section that an interpolation names is walked
+    under the key that names it (``datamodule.scene.root``). A value made from Hydra's runtime
+    (``${hydra:runtime.output_dir}/...``) is given unresolved, its text: it exists only once the job runs. A
+    mandatory value not set is ``MISSING`` (``???``), and an interpolation of one is left out: the key
+    set to ``???`` is the one to name."""
+    for name in cfg.keys():
+        key, node = f"{prefix}{name}", cfg._get_node(name)
+        if key == "hydra" or skip(key, node):
+            continue
+        raw = node._value()
+        if isinstance(raw, str) and "${hydra:" in raw:
+            yield key, raw
+        elif node._is_missing():
+            yield key, MISSING
+        else:
+            try:
+                value = cfg[name]
+            except InterpolationToMissingValueError:
+                continue
+            if isinstance(value, DictConfig):
+                yield from leaves(value, skip, f"{key}.")
+            else:
+                yield key, OmegaConf.to_container(value, resolve=True) if isinstance(value, ListConfig) else value
+
+
+def entries(node, path: str = "") -> Iterator[tuple[str, object]]:
+    """Every (dotted key, e.g. ``model.optimizer._target_`` or ``scale.skips.0``; value) of a config's plain
+    containers (``OmegaConf.to_container``) at every depth, containers as well as what they hold."""
+    items = node.items() if isinstance(node, dict) else enumerate(node) if isinstance(node, list) else ()
+    for key, value in items:
+        dotted = f"{path}.{key}" if path else str(key)
+        yield dotted, value
+        yield from entries(value, dotted)

@@ -1,0 +1,93 @@
+"""Camera path files: a render's ``cameras.json`` and a path saved by ``nerfexp-view``, the format
+``nerfexp-render --cameras`` reads, checked key by key before anything is rendered."""
+
+import json
+from dataclasses import dataclass
+from pathlib import Path
+
+import torch
+from torch import Tensor
+
+from nerfexp.errors import NerfexpError
+from nerfexp.geometry.cameras import pose_problem
+from nerfexp.memory import frame_bytes, require_memory
+
+DEFAULT_FPS = 30.0  # of a camera path whose file names none, and of a path made from training cameras
+
+
+@dataclass
+class CameraPath:
+    """The cameras of a video: ``c2w`` [F, 4, 4] float64 (OpenGL, ``nerfexp.geometry.cameras``), one per
+    frame, seen by frames ``height`` x ``width`` pixels at ``focal`` (pixels), played at ``fps``; ``name``
+    says where they came from (``orbit``, ``spiral``, ``viewer``, ...)."""
+
+    name: str
+    c2w: Tensor
+    height: int
+    width: int
+    focal: float
+    fps: float
+
+    def record(self) -> dict:
+        """The path as JSON data: keys path, fps, height, width, focal, c2w (a list of 4 x 4 lists)."""
+        return {"path": self.name, "fps": self.fps, "height": self.height, "width": self.width,
+                "focal": self.focal, "c2w": self.c2w.tolist()}
+
+
+def _number(value, integer: bool = False) -> bool:
+    """Whether a JSON value is a number (an integer where ``integer``), not a boolean."""
+    return isinstance(value, int if integer else (int, float)) and not isinstance(value, bool)
+
+
+def _c2w_problem(c2w) -> str | None:
+    """Why a JSON value is not a non-empty list of rigid 4 x 4 camera-to-world matrices, or None."""
+    if not isinstance(c2w, list):
+        return f"got a {type(c2w).__name__}"
+    if not c2w:
+        return "got an empty list"
+    for index, matrix in enumerate(c2w):
+        shaped = isinstance(matrix, list) and len(matrix) == 4 and all(
+            isinstance(row, list) and len(row) == 4 and all(map(_number, row)) for row in matrix)
+        if not shaped:
+            return f"item {index} is not a 4 x 4 matrix of numbers"
+        if problem := pose_problem(torch.tensor(matrix, dtype=torch.float64)):
+            return f"item {index} is not a rigid transform: {problem}"
+    return None
+
+
+def read_camera_path(file: Path) -> CameraPath:
+    """The cameras of ``file`` (``CameraPath.record``'s JSON: a render's ``cameras.json``, a path saved by
+    ``nerfexp-view``), checked: a NerfexpError naming the file, the key and what was expected where it is
+    not JSON, lacks a key, has a size or focal length that is not positive (sizes also even: video encoders
+    need them so), or c2w is not a non-empty list of rigid 4 x 4 transforms. ``path`` and ``fps`` may be
+    left out (``file``, 30)."""
+    try:
+        data = json.loads(Path(file).read_text())
+    except OSError as error:
+        raise NerfexpError(f"--cameras {file}: cannot be read ({error.strerror})") from None
+    except (json.JSONDecodeError, UnicodeDecodeError) as error:
+        raise NerfexpError(f"--cameras {file}: not JSON ({error})") from None
+    expected = {"height": "a positive even number of pixels", "width": "a positive even number of pixels",
+                "focal": "a positive focal length in pixels", "fps": "a positive number of frames per second",
+                "c2w": "a non-empty list of 4 x 4 rigid camera-to-world matrices (OpenGL convention)"}
+    if not isinstance(data, dict):
+        raise NerfexpError(f"--cameras {file}: expected a JSON object with keys {', '.join(expected)}")
+    data = {"path": Path(file).name, "fps": DEFAULT_FPS, **data}
+    for key, what in expected.items():
+        if key not in data:
+            raise NerfexpError(f"--cameras {file}: no key '{key}': expected {what}")
+        value = data[key]
+        if key == "c2w":
+            problem = _c2w_problem(value)
+        elif key in ("height", "width"):
+            problem = None if _number(value, integer=True) and value > 0 and value % 2 == 0 else f"got {value!r}"
+        elif not (_number(value) and 0 < value < float("inf")):
+            problem = f"got {value!r}"
+        else:
+            problem = None
+        if problem:
+            raise NerfexpError(f"--cameras {file}: key '{key}': expected {what}, {problem}")
+    require_memory(f"--cameras {file}", f"a frame of {data['height']} x {data['width']} pixels",
+                   frame_bytes(data["height"], data["width"]))
+    return CameraPath(str(data["path"]), torch.tensor(data["c2w"], dtype=torch.float64), data["height"],
+                      data["width"], float(data["focal"]), float(data["fps"]))

@@ -1,0 +1,28 @@
+"""``nerfexp-report``: a sweep's variants side by side, their quality against the compute they cost.
+
+Reads every run under the given directories (a run is a folder holding ``status.json`` or
+``results.json``, as ``nerfexp`` writes them), groups runs into variants and writes
+
+- ``report.md`` / ``report.csv``: one row per variant: test PSNR and SSIM (mean and sample standard
+  deviation over the runs of the variant, usually its seeds), the difference to a reference variant
+  paired by seed with its 95% interval and verdict (``nerfexp.report.comparison``), training time, time per
+  step, rays/s, parameters, network evaluations per ray, and for rows of the paper's ablation table
+  the paper's numbers beside ours; then the ranking in groups the seeds cannot tell apart, and which
+  pairs of ablation rows agree with the paper's order, are reversed, or are not resolved; then every
+  job that did not finish (failed, or running / killed) with its reason, and every run whose files
+  cannot be read (damaged: the file and why), none of whose numbers is used;
+- ``psnr_vs_time.png``: validation PSNR against training wall-clock seconds: each variant's mean over
+  seeds with a band from the lowest to the highest seed, single runs faint;
+- ``pareto.png``: final test PSNR against total training time (bars: one standard deviation over
+  seeds), the Pareto front drawn through the means;
+- ``report.html``: all of the above as a page that opens from disk (``nerfexp.report.page``), and a few
+  test views (``--views``) rendered by each variant beside the ground truth, with the render's error
+  image and its PSNR and SSIM; its pictures in ``report_images/``, decoded from the runs' ``test/``
+  PNGs and written anew.
+
+The reference is the paper's complete model (``ablation=complete``) where the sweep has it, else the
+variant named by ``--reference``; without either the report has no differences.
+
+A variant is the set of a run's command-line overrides without the keys averaged over (``--over``,
+default ``seed``), leaving out overrides every run shares.
+"""

@@ -1,0 +1,114 @@
+"""Reading a sweep's runs back: each job's state, overrides, results and validation curve, as data;
+a file that cannot be read as nerfexp writes it makes the run damaged, never a wrong number."""
+
+
+import socket
+from dataclasses import dataclass, field
+from pathlib import Path
+
+from nerfexp.rundir.layout import (
+    METRICS,
+    RESULTS,
+    STATUS,
+    find_run_dirs,
+    process_alive,
+    read_json,
+    read_metrics,
+)
+
+
+@dataclass
+class Run:
+    """One job's directory and what it left: ``state`` is finished, failed, running or killed."""
+
+    path: Path
+    state: str
+    overrides: list[str] | None  # None: a damaged job whose overrides cannot be read
+    detail: str = ""
+    results: dict | None = None
+    curve: list[tuple[int, float, float]] = field(default_factory=list)  # (step, wall seconds, validation PSNR)
+
+
+class Damaged(Exception):
+    """A run's file that cannot be read as nerfexp writes it; the message names the file and why."""
+
+
+def read_record(path: Path, required: tuple[str, ...]) -> dict | None:
+    """A run's JSON file (None where there is none) holding the keys ``required``, else ``Damaged``."""
+    try:
+        record = read_json(path)
+    except (ValueError, OSError) as error:  # truncated, empty, not UTF-8, unreadable
+        raise Damaged(f"{path.name}: not readable as JSON ({error})") from None
+    if record is not None and not (isinstance(record, dict) and all(key in record for key in required)):
+        raise Damaged(f"{path.name}: not a record with {', '.join(required)}")
+    return record
+
+
+def read_curve(path: Path, ended: bool) -> list[tuple[int, float, float]]:
+    """(step, wall seconds, validation PSNR) of each validation in a run's ``metrics.jsonl``, else
+    ``Damaged``; a last line cut short is damage where the run has ``ended`` (``read_metrics``)."""
+    try:
+        return [(record["step"], record["wall_time_s"], record["psnr"])
+                for record in read_metrics(path, ended) if record["split"] == "val"]
+    except (ValueError, OSError) as error:
+        raise Damaged(f"{METRICS}: {error}") from None
+    except (KeyError, TypeError):
+        raise Damaged(f"{METRICS}: a record without step, wall_time_s, split and psnr") from None
+
+
+def job_overrides(path: Path) -> list[str] | None:
+    """A job's command-line overrides, from whichever of its ``status.json`` and ``results.json`` can be
+    read (each records them), so that a job with another file damaged still counts against its variant;
+    None where neither can."""
+    for name in (STATUS, RESULTS):
+        try:
+            record = read_record(path / name, ())
+        except Damaged:
+            continue
+        overrides = (record or {}).get("overrides")
+        if isinstance(overrides, list) and all(isinstance(o, str) for o in overrides):
+            return overrides
+    return None
+
+
+def read_run(path: Path) -> Run:
+    """What a run directory says about its job. A job whose status still says running but whose
+    process is gone from this host was killed (out of memory, a time limit, a signal). A run with a file
+    that cannot be read as nerfexp writes it (``Damaged``) is listed as damaged with its overrides where
+    they can be read (``job_overrides``; else none, and it joins no variant), and none of its numbers is
+    used."""
+    try:
+        status = read_record(path / STATUS, ("state",)) or {}
+        results = read_record(path / RESULTS, ("test_psnr", "test_ssim", "choices"))
+    except Damaged as damage:
+        return Run(path, "damaged", job_overrides(path), str(damage))
+    overrides = status.get("overrides", (results or {}).get("overrides", []))
+    state = status.get("state", "finished" if results is not None else "unknown")
+    detail = status.get("error", "")
+    if state == "finished" and results is None:
+        state, detail = "failed", f"status says finished but {RESULTS} is missing"
+    if state == "running":
+        here, pid = status.get("host") == socket.gethostname(), status.get("pid")
+        if here and pid is not None and not process_alive(pid, status.get("process_start")):
+            state, detail = "killed", f"process {pid} is gone (killed before it finished)"
+        else:
+            detail = f"on {status.get('host')}, process {pid}" + ("" if here else " (not checked)")
+    try:
+        curve = read_curve(path, ended=state != "running")
+    except Damaged as damage:
+        ended = "" if state == "finished" else f" (the job {state}" + (f": {detail})" if detail else ")")
+        return Run(path, "damaged", list(overrides), f"{damage}{ended}")
+    return Run(path, state, list(overrides), detail, results if state == "finished" else None, curve)
+
+
+def find_runs(directories: list[Path]) -> list[Run]:
+    """Every run directory under ``directories`` (a run directory itself counts)."""
+    paths = set()
+    for directory in directories:
+        if not directory.is_dir():
+            raise SystemExit(f"nerfexp-report: error: {directory} is not a directory")
+        paths.update(find_run_dirs(directory))
+    if not paths:
+        raise SystemExit(f"nerfexp-report: error: no runs (no {STATUS} or {RESULTS}) under "
+                         f"{', '.join(map(str, directories))}")
+    return [read_run(path) for path in sorted(paths)]

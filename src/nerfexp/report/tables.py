@@ -1,0 +1,215 @@
+"""The report's tables: ``report.md`` (the variants with their differences to the reference and the
+paper's rows, the ranking, the paper's order, the jobs that did not finish) and ``report.csv``."""
+
+
+import csv
+import io
+import math
+from pathlib import Path
+
+from nerfexp.report.comparison import Difference, compare_order, tiers
+from nerfexp.report.runs import Run
+from nerfexp.report.variants import PAPER_ABLATION, Variant, difference
+from nerfexp.rundir.layout import PARETO_PLOT, PSNR_PLOT, planned_jobs
+
+
+def _fmt(value: float, digits: int) -> str:
+    return "–" if value is None or not math.isfinite(value) else f"{value:.{digits}f}"
+
+
+def _pm(variant: Variant, key: str, digits: int) -> str:
+    mean, std = variant.mean(key), variant.std(key)
+    return _fmt(mean, digits) + ("" if not math.isfinite(std) else f" ± {std:.{digits}f}")
+
+
+COLUMNS = ("variant", "runs", "finished", "test_psnr_mean", "test_psnr_std", "test_ssim_mean", "test_ssim_std",
+           "reference", "paired_seeds", "psnr_diff", "psnr_diff_low", "psnr_diff_high",
+           "ssim_diff", "ssim_diff_low", "ssim_diff_high", "verdict",
+           "train_time_s", "time_per_step_s", "rays_per_s", "n_params", "evaluations_per_ray",
+           "paper_row", "paper_psnr", "paper_ssim", "psnr_minus_paper")
+
+
+METRICS = ("psnr", "ssim")  # the test scores compared with the reference
+
+
+def reference_differences(variant: Variant, reference: Variant | None) -> dict[str, Difference]:
+    """``variant`` - ``reference`` in each test score of ``METRICS``, paired by seed (``difference``); none
+    for the reference itself, or without one."""
+    if reference is None or variant is reference:
+        return {}
+    return {metric: difference(variant, reference, f"test_{metric}") for metric in METRICS}
+
+
+def reference_columns(differences: dict[str, Difference], reference: Variant | None) -> dict:
+    """The CSV's columns of a variant's ``differences`` to ``reference`` (``reference_differences``): PSNR
+    and SSIM differences paired by seed, their 95% intervals (NaN for fewer than two seeds) and the PSNR
+    verdict."""
+    if not differences:
+        return {"reference": "" if reference is None else "reference", "paired_seeds": "", "verdict": "",
+                **{f"{m}_diff{end}": math.nan for m in METRICS for end in ("", "_low", "_high")}}
+    columns = {"reference": reference.label}
+    for metric, d in differences.items():
+        low, high = d.interval or (math.nan, math.nan)
+        columns.update({f"{metric}_diff": d.mean, f"{metric}_diff_low": low, f"{metric}_diff_high": high})
+        if metric == "psnr":
+            columns.update(paired_seeds=d.n, verdict=d.verdict_text())
+    return columns
+
+
+def table_rows(variants: list[Variant], reference: Variant | None = None) -> list[dict]:
+    """One dict per variant with the ``COLUMNS``, and its ``differences`` to the reference (computed once,
+    for report.md's cells and report.csv's columns); the difference to the paper only on Blender data
+    (the paper's numbers are means over its 8 Blender scenes; other scenes are not comparable)."""
+    rows = []
+    for v in variants:
+        paper, differences = v.paper, reference_differences(v, reference)
+        row = {"variant": v.label, "runs": len(v.runs), "finished": len(v.finished),
+               "test_psnr_mean": v.mean("test_psnr"), "test_psnr_std": v.std("test_psnr"),
+               "test_ssim_mean": v.mean("test_ssim"), "test_ssim_std": v.std("test_ssim"),
+               **reference_columns(differences, reference),
+               "train_time_s": v.mean("train_time_s"), "time_per_step_s": v.mean("time_per_step_s"),
+               "rays_per_s": v.mean("rays_per_s"), "n_params": v.mean("n_params"),
+               "evaluations_per_ray": v.mean("evaluations_per_ray"),
+               "paper_row": paper[0] if paper else "", "paper_psnr": paper[1] if paper else math.nan,
+               "paper_ssim": paper[2] if paper else math.nan, "psnr_minus_paper": math.nan,
+               "differences": differences}
+        if paper and v.choice("data") == "blender":
+            row["psnr_minus_paper"] = row["test_psnr_mean"] - paper[1]
+        rows.append(row)
+    return rows
+
+
+def ranking_text(variants: list[Variant]) -> list[str]:
+    """The ranking by mean test PSNR, cut into groups whose members the seeds do not resolve from the
+    group's best (``nerfexp.report.comparison.tiers``), then the pairs of ablation rows against the paper's order."""
+    ranked = [v for v in variants if v.finished]
+    by_label = {v.label: v for v in ranked}
+    groups = tiers([v.label for v in ranked], lambda a, b: difference(by_label[a], by_label[b]))
+    lines = ["## Ranking by mean test PSNR", "",
+             "Variants on one line are not resolved from the first of the line: the 95% interval of their "
+             "difference in test PSNR, paired by seed, includes zero (or there is no interval, with one "
+             "seed). The next line starts at the first variant resolved below it.", ""]
+    lines += [f"{i}. " + ", ".join(f"{label} ({by_label[label].mean('test_psnr'):.2f} dB)" for label in group)
+              for i, group in enumerate(groups, 1)]
+    return lines + [""] + paper_order_text(ranked)
+
+
+def paper_order_text(ranked: list[Variant]) -> list[str]:
+    """Each pair of the paper's ablation rows in the sweep: resolved in the paper's order, resolved in
+    the other, or not resolved with the seeds there are; each pair named with our difference."""
+    rows = {v.choice("ablation"): v for v in ranked if v.paper}
+    if len(rows) < 2 or sum(bool(v.paper) for v in ranked) != len(rows):
+        return ["No comparison with the paper's order: it needs at least two finished variants that are "
+                "distinct rows of the paper's ablation table (`ablation=...`)."]
+    paper_order = sorted(rows, key=lambda n: -PAPER_ABLATION[n][1])
+
+    def measured(higher: str, lower: str) -> Difference:
+        return difference(rows[higher], rows[lower])
+
+    order = compare_order(paper_order, measured)
+    n_pairs = len(rows) * (len(rows) - 1) // 2
+    lines = [f"## Against the paper's order ({len(rows)} ablation rows, {n_pairs} pairs)", "",
+             f"Of the {n_pairs} pairs the paper orders: {len(order.agree)} resolved in the paper's order, "
+             f"{len(order.reversed)} resolved in the other order, {len(order.unresolved)} not resolved by "
+             "these seeds. Each pair: the paper's higher row first, then our mean difference (higher - lower) "
+             "in test PSNR, paired by seed, with its 95% interval.", ""]
+    for title, pairs in (("Resolved in the paper's order", order.agree),
+                         ("Resolved in the other order", order.reversed),
+                         ("Not resolved", order.unresolved)):
+        lines += [f"**{title}** ({len(pairs)}):", ""]
+        lines += [f"- {PAPER_ABLATION[a][0]} above {PAPER_ABLATION[b][0]}: {measured(a, b).describe(2)} dB"
+                  for a, b in pairs] or ["- none"]
+        lines.append("")
+    return lines[:-1]
+
+
+def machines_text(runs: list[Run]) -> str:
+    seen = sorted({(r.results["machine"]["host"], r.results["machine"]["device"])
+                   for r in runs if r.results and "machine" in r.results})
+    where = "; ".join(f"{host}: {device}" for host, device in seen) or "unknown"
+    note = (" Runs come from different machines, so their times are not comparable with each other."
+            if len(seen) > 1 else "")
+    return (f"Times are training wall-clock seconds as each run measured them (periodic validation included; "
+            f"preparing the data and the final test not), on {where}.{note}")
+
+
+def markdown(variants: list[Variant], rows: list[dict], runs: list[Run], sources: list[Path],
+             reference: Variant | None = None) -> str:
+    """report.md: the ``variants`` with their ``rows`` (``table_rows`` against ``reference``), the ranking,
+    the paper's order, and the ``runs`` under ``sources`` that did not finish."""
+    planned = [(source, planned_jobs(source)) for source in sources]
+    started = {source: sum(source in run.path.parents for run in runs) for source in sources}
+    not_started = [f"`{source}` plans {n} jobs, {started[source]} started" for source, n in planned
+                   if n is not None and n > started[source]]
+    order = ["finished", "failed", "killed", "running", "damaged", "unknown"]
+    states = {state: n for state in order if (n := sum(run.state == state for run in runs))}
+    has_paper = any(row["paper_row"] for row in rows)
+    header = ["variant", "runs", "test PSNR (dB)", "test SSIM"]
+    if reference is not None:
+        header += ["PSNR - reference (95% CI)", "SSIM - reference (95% CI)", "verdict (PSNR)"]
+    header += ["train time (s)", "s / step", "rays / s", "params", "evals / ray"]
+    if has_paper:
+        header += ["paper row", "paper PSNR", "paper SSIM", "PSNR - paper"]
+    lines = [
+        "# nerfexp report", "",
+        f"Runs: {len(runs)} ({', '.join(f'{n} {s}' for s, n in states.items())}) from "
+        f"{', '.join(f'`{s}`' for s in sources)}. Means ± sample standard deviation over each variant's "
+        "finished runs. " + machines_text(runs), "", reference_text(reference), "",
+        "| " + " | ".join(header) + " |", "|" + "---|" * len(header),
+    ]
+    for v, row in zip(variants, rows):
+        cells = [row["variant"], f"{row['finished']}/{row['runs']}", _pm(v, "test_psnr", 2), _pm(v, "test_ssim", 3)]
+        if reference is not None:
+            if v is reference or not v.finished:
+                cells += ["reference" if v is reference else "–"] * 3
+            else:
+                differences = row["differences"]
+                cells += [differences["psnr"].describe(2), differences["ssim"].describe(3), row["verdict"]]
+        cells += [_fmt(row["train_time_s"], 0), _fmt(row["time_per_step_s"], 4), _fmt(row["rays_per_s"], 0),
+                 _fmt(row["n_params"], 0), _fmt(row["evaluations_per_ray"], 0)]
+        if has_paper:
+            cells += [row["paper_row"], _fmt(row["paper_psnr"], 2), _fmt(row["paper_ssim"], 3),
+                      _fmt(row["psnr_minus_paper"], 2)]
+        lines.append("| " + " | ".join(cells) + " |")
+    if has_paper:
+        lines += ["", "The paper's numbers are means over its 8 Realistic Synthetic scenes at 800 x 800; the "
+                  "difference is given only for runs on Blender data."]
+    lines += [""] + ranking_text(variants)
+    unfinished = [run for run in runs if run.state != "finished"]
+    lines += ["", "## Jobs that did not finish, or whose files are damaged (not counted)", ""]
+    lines += [f"- `{run.path}` ({overrides_text(run.overrides)}): {run.state}"
+              + (f": {run.detail}" if run.detail else "") for run in unfinished]
+    lines += [f"- {text}: the rest never started (the sweep stopped or is still going)" for text in not_started]
+    if not unfinished and not not_started:
+        lines.append("None.")
+    lines += ["", f"Plots: `{PSNR_PLOT}` (validation PSNR against training seconds: each variant's mean "
+              f"over seeds, its band from the lowest to the highest seed, single runs faint), `{PARETO_PLOT}` "
+              "(test PSNR against total training time, bars one standard deviation over seeds)."]
+    return "\n".join(lines) + "\n"
+
+
+def overrides_text(overrides: list[str] | None) -> str:
+    """A job's overrides as the report lists them."""
+    if overrides is None:
+        return "overrides unreadable"
+    return ", ".join(overrides) or "no overrides"
+
+
+def reference_text(reference: Variant | None) -> str:
+    if reference is None:
+        return ("No reference variant (the sweep has no `ablation=complete`; name one with `--reference "
+                "VARIANT`), so no differences between variants are given beside the table.")
+    return (f"Differences are to the reference, `{reference.label}`: the mean over seeds of (variant - reference), "
+            "each run paired with the reference's run of the same seed, with its 95% confidence interval "
+            "(Student's t, n - 1 degrees of freedom). Verdict: better or worse where the interval excludes "
+            "zero, else not resolved with this many seeds; one seed gives no interval. Intervals are per "
+            "comparison, not corrected for making many.")
+
+
+def csv_text(rows: list[dict]) -> str:
+    """report.csv: the ``COLUMNS`` of each of ``rows`` (``table_rows``)."""
+    out = io.StringIO()
+    writer = csv.DictWriter(out, fieldnames=COLUMNS, lineterminator="\n")
+    writer.writeheader()
+    writer.writerows({column: row[column] for column in COLUMNS} for row in rows)
+    return out.getvalue()

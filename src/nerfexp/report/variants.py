@@ -1,0 +1,101 @@
+"""Runs grouped into variants (the same overrides, apart from the seeds), the reference variant, and
+their differences paired by seed (``nerfexp.report.comparison``)."""
+
+
+import math
+import statistics
+from dataclasses import dataclass
+
+from nerfexp.report.comparison import Difference, paired_difference
+from nerfexp.report.runs import Run
+
+PAPER_ABLATION = {
+    "no_pe_vd_h": ("No PE, VD, H", 26.67, 0.906),
+    "no_posenc": ("No Pos. Encoding", 28.77, 0.924),
+    "no_view_dependence": ("No View Dependence", 27.66, 0.925),
+    "no_hierarchical": ("No Hierarchical", 30.06, 0.938),
+    "far_fewer_images": ("Far Fewer Images", 27.78, 0.925),
+    "fewer_images": ("Fewer Images", 29.79, 0.940),
+    "fewer_frequencies": ("Fewer Frequencies", 30.59, 0.944),
+    "more_frequencies": ("More Frequencies", 30.81, 0.946),
+    "complete": ("Complete Model", 31.01, 0.947),
+}
+
+
+@dataclass
+class Variant:
+    """Runs that differ only in the override keys ``over`` (their seeds): ``by_seed`` pairs them with
+    another variant's runs."""
+
+    label: str
+    runs: list[Run]
+    over: tuple[str, ...] = ("seed",)
+
+    @property
+    def finished(self) -> list[Run]:
+        return [run for run in self.runs if run.state == "finished"]
+
+    def values(self, key: str) -> list[float]:
+        return [run.results[key] for run in self.finished if run.results.get(key) is not None]
+
+    def mean(self, key: str) -> float:
+        values = self.values(key)
+        return statistics.fmean(values) if values else math.nan
+
+    def std(self, key: str) -> float:
+        """Sample standard deviation (n - 1); NaN for fewer than two runs."""
+        values = self.values(key)
+        return statistics.stdev(values) if len(values) > 1 else math.nan
+
+    def by_seed(self, key: str) -> dict[tuple[str, ...], float]:
+        """``results[key]`` of each finished run, keyed by the run's overrides of the ``over`` keys."""
+        return {tuple(sorted(o for o in run.overrides if _key(o) in self.over)): run.results[key]
+                for run in self.finished if run.results.get(key) is not None}
+
+    def choice(self, key: str):
+        """The variant's choice of a config group, where all its finished runs agree."""
+        values = {run.results["choices"].get(key) for run in self.finished}
+        return values.pop() if len(values) == 1 else None
+
+    @property
+    def paper(self) -> tuple[str, float, float] | None:
+        return PAPER_ABLATION.get(self.choice("ablation"))
+
+
+def _key(override: str) -> str:
+    return override.split("=", 1)[0].lstrip("+~")
+
+
+def group_variants(runs: list[Run], over: tuple[str, ...] = ("seed",)) -> list[Variant]:
+    """Runs with the same overrides, apart from the keys in ``over``, form a variant: every job started,
+    damaged, failed or still running included, so that a variant counts its finished runs against all of
+    them. Overrides that every run shares are left out of the labels. Variants are ranked by mean test PSNR."""
+    kept = [tuple(o for o in run.overrides if _key(o) not in over) for run in runs]
+    shared = set.intersection(*(set(k) for k in kept)) if kept else set()
+    groups: dict[frozenset, tuple[tuple, list[Run]]] = {}  # the order of overrides does not matter
+    for key, run in zip(kept, runs):
+        groups.setdefault(frozenset(key), (key, []))[1].append(run)
+    variants = []
+    for key, members in groups.values():
+        label = ", ".join(o for o in key if o not in shared) or ", ".join(key) or "default"
+        variants.append(Variant(label, members, tuple(over)))
+    return sorted(variants, key=lambda v: (-v.mean("test_psnr") if v.finished else math.inf, v.label))
+
+
+def reference_variant(variants: list[Variant], name: str | None = None) -> Variant | None:
+    """The variant the others are compared with: the one named ``name`` (its label, or its overrides in
+    any order), else the paper's complete model (``ablation=complete``) if one variant is, else None."""
+    if name is not None:
+        wanted = frozenset(part.strip() for part in name.split(","))
+        for variant in variants:
+            if frozenset(part.strip() for part in variant.label.split(",")) == wanted:
+                return variant
+        raise SystemExit(f"nerfexp-report: error: --reference {name!r}: no such variant; the variants are "
+                         + "; ".join(repr(v.label) for v in variants))
+    complete = [v for v in variants if v.finished and v.choice("ablation") == "complete"]
+    return complete[0] if len(complete) == 1 else None
+
+
+def difference(a: Variant, b: Variant, key: str = "test_psnr") -> Difference:
+    """a - b in ``key``, paired by seed (``nerfexp.report.comparison.paired_difference``)."""
+    return paired_difference(a.by_seed(key), b.by_seed(key))

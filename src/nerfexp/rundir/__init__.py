@@ -1,0 +1,26 @@
+"""The run directory: the one place that knows the names of the files a run leaves, and how a run is
+found and read back.
+
+A run's directory holds (every file written atomically):
+
+- ``status.json``: ``running`` (with host, process id and the process's start), ``finished`` or
+  ``failed`` (with the error), and the run's command-line overrides, so a report can list jobs that
+  crashed or still run.
+- ``metrics.jsonl``: one JSON object per evaluation: step, wall_time_s, split, psnr, ssim (means).
+- ``results.json``: final test means and per-view scores, last validation PSNR, training time,
+  throughput, parameters, the machine, the resolved choices and overrides
+  (``nerfexp.training.recorders.RunRecorder``).
+- ``test/``: each test view's render (``r_{i}.png``), ground truth (``r_{i}_target.png``), absolute
+  error (``r_{i}_error.png``) and depth (``r_{i}_depth.png``).
+- ``checkpoints/last.ckpt``, ``.hydra/config.yaml`` (the composed config, as Hydra saves it).
+- ``eval.json`` (``nerfexp-eval``), ``render/`` (``nerfexp-render``), ``export/`` (``nerfexp-export``),
+  ``view/camera_path.json`` (``nerfexp-view``'s saved camera path), ``debug/`` (the training guards).
+
+A directory belongs to one run, and a run writes over nothing a user made: ``RunDirectoryGuard`` starts
+a run only in a new or empty directory, the run that ``resume`` continues, or that of a run that ended
+unfinished without saving a checkpoint (replaced), and a sweep only in a new or empty directory; it
+refuses before Hydra writes into the directory. ``RUN_MADE`` lists what nerfexp's commands make there.
+
+A finished (or interrupted) run is read back by ``find_run``, ``run_config`` and ``load_module``
+(together: ``load_run``).
+"""

@@ -1,0 +1,175 @@
+"""A directory belongs to one run: ``RunDirectoryGuard`` (a Hydra callback) starts a run only in a new or
+empty directory, the run that ``resume`` continues, or that of a run that ended unfinished without a
+checkpoint, and a sweep only in a new or empty directory, before Hydra writes into it; ``claim``
+makes the run's status the directory's atomically."""
+
+import contextlib
+import os
+import socket
+import sys
+import tempfile
+from pathlib import Path
+
+from hydra.experimental.callback import Callback
+from omegaconf import DictConfig
+
+from nerfexp.errors import NerfexpError
+from nerfexp.files import folder_entries, foreign_message, is_made
+from nerfexp.rundir.layout import (
+    LAST_CHECKPOINT,
+    METRICS,
+    RESULTS,
+    RUN_MADE,
+    STATUS,
+    find_run_dirs,
+    is_global_zero,
+    process_alive,
+    read_json,
+    status_bytes,
+)
+
+
+def held_run(run_dir: Path) -> str | None:
+    """What run ``run_dir`` holds, described (its state and overrides, from ``status.json``), or None
+    where it holds none (no status, results, metrics or checkpoints)."""
+    status = read_json(run_dir / STATUS)
+    if status is not None:
+        return f"a {status.get('state')} run ({' '.join(status.get('overrides', [])) or 'no overrides'})"
+    if any((run_dir / name).exists() for name in (RESULTS, METRICS, LAST_CHECKPOINT.parent)):
+        return "a run's results"
+    return None
+
+
+def claim(run_dir: Path, overrides: list[str]) -> bool:
+    """Make ``run_dir`` this run's: its ``status.json`` (``running``) is created only where none exists,
+    whole (written beside it, then hard-linked into place, which fails where the name is taken), so of
+    two runs started into one directory at once one gets it, and no reader sees half a status. Returns
+    whether this run did."""
+    run_dir.mkdir(parents=True, exist_ok=True)
+    status = status_bytes("running", overrides)
+    fd, draft = tempfile.mkstemp(dir=run_dir, prefix=f".{STATUS}.", suffix=".tmp")
+    try:
+        with os.fdopen(fd, "wb") as file:
+            file.write(status)
+        os.chmod(draft, 0o644)
+        os.link(draft, run_dir / STATUS)
+    except FileExistsError:
+        return False
+    except OSError:  # a file system without hard links: create the name exclusively, then write it
+        try:
+            fd = os.open(run_dir / STATUS, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o644)
+        except FileExistsError:
+            return False
+        with os.fdopen(fd, "wb") as file:
+            file.write(status)
+    finally:
+        os.unlink(draft)
+    return True
+
+
+CLAIM_DRAFTS = (f".{STATUS}.*.tmp",)  # a status being claimed (``claim``): a run starting at this moment
+
+
+def saved_checkpoints(run_dir: Path) -> list[Path]:
+    """The checkpoints a run saved (``checkpoints/*.ckpt``): ``last.ckpt`` first, then the newest first."""
+    found = [path for path in (run_dir / LAST_CHECKPOINT.parent).glob("*.ckpt") if path.is_file()]
+    return sorted(found, key=lambda path: (path.name != LAST_CHECKPOINT.name, -path.stat().st_mtime))
+
+
+def ended_unfinished(status: dict | None) -> bool:
+    """Whether the run whose ``status.json`` reads ``status`` ended without finishing: ``failed``, or
+    ``running`` in a process of this host that no longer runs (``process_alive``; killed, out of memory).
+    A run of another host, or with no status, may still run: not."""
+    if status is None or status.get("state") == "failed":
+        return status is not None
+    pid = status.get("pid")
+    return (status.get("state") == "running" and status.get("host") == socket.gethostname()
+            and isinstance(pid, int) and not process_alive(pid, status.get("process_start")))
+
+
+def admit_run(run_dir: Path, resume: str | None, log: str) -> list[str] | None:
+    """The entries (``nerfexp.files.folder_entries``) to remove from ``run_dir`` before a run claims it:
+    none where it holds no files; all of them where it holds a run that ended unfinished
+    (``ended_unfinished``) and saved no checkpoint. None where it holds the run that ``resume`` (a
+    checkpoint inside it) continues: the directory is that run's already.
+    Otherwise a NerfexpError saying what it holds and what to do: files that no nerfexp command made
+    (``RUN_MADE``, and the run's ``log``; any file, where it holds no run: ``held_run``), or another run
+    (continued with ``resume=`` one of its checkpoints, where it saved one: ``saved_checkpoints``)."""
+    held = held_run(run_dir)
+    entries = folder_entries(run_dir)
+    made = CLAIM_DRAFTS if held is None else (*RUN_MADE, log)
+    if foreign := [entry for entry in entries if not is_made(entry, made)]:
+        raise NerfexpError(foreign_message(run_dir, foreign, "nerfexp",
+                                           "choose a new or empty directory (hydra.run.dir=...)"))
+    if held is None:
+        return []
+    if resume is not None and run_dir.resolve() in Path(resume).resolve().parents:
+        return None
+    if checkpoints := saved_checkpoints(run_dir):
+        raise NerfexpError(f"{run_dir} holds {held}: continue it with resume={checkpoints[0]} "
+                           f"hydra.run.dir={run_dir}, or choose another directory (hydra.run.dir=...)")
+    if not ended_unfinished(read_json(run_dir / STATUS)):
+        raise NerfexpError(f"{run_dir} holds {held}: choose another directory (hydra.run.dir=...)")
+    return entries
+
+
+def remove_entries(folder: Path, entries: list[str]) -> None:
+    """Delete ``entries`` (``/``-separated paths relative to ``folder``), then the folders they leave
+    empty inside ``folder``: nothing else."""
+    emptied = set()
+    for entry in entries:
+        (folder / entry).unlink(missing_ok=True)
+        emptied.update(Path(entry).parents)
+    for parent in sorted(emptied - {Path(".")}, key=lambda path: len(path.parts), reverse=True):
+        with contextlib.suppress(OSError):  # a folder that still holds something stays
+            (folder / parent).rmdir()
+
+
+class RunDirectoryGuard(Callback):
+    """Hydra callback: a run starts only in a directory of its own, checked before Hydra writes its
+    config there (``hydra.callbacks.run_directory``): nothing a user made is written over.
+
+    A single run stops with one line (exit status 1) unless ``hydra.run.dir`` is new or empty, holds the
+    run that ``resume`` continues, or holds a run that ended unfinished and saved no checkpoint, whose
+    files are then removed, saying so in one line (``admit_run``); then it claims the directory
+    (``claim``). A multirun stops unless ``hydra.sweep.dir`` is new or empty.
+    In a distributed job started by SLURM every process runs this; global rank 0 checks and claims.
+    It stops with ``SystemExit``: Hydra turns a callback's exceptions into warnings and goes on."""
+
+    def on_run_start(self, config: DictConfig, **kwargs) -> None:
+        if not is_global_zero():
+            return
+        run_dir = Path(config.hydra.run.dir)
+        try:
+            replaced = admit_run(run_dir, config.get("resume"), f"{config.hydra.job.name}.log")
+            if replaced is None:  # the run continued
+                return
+            if replaced:
+                print(f"nerfexp: {run_dir} holds a run that ended unfinished and saved no checkpoint: replacing it, "
+                      f"removing its {len(replaced)} files ({', '.join(replaced[:3])}{', ...' * (len(replaced) > 3)})",
+                      file=sys.stderr)
+                remove_entries(run_dir, replaced)
+            if not claim(run_dir, list(config.hydra.overrides.task)):
+                raise NerfexpError(f"{run_dir} holds a run that started at the same time: choose another "
+                                   "directory (hydra.run.dir=...)")
+        except NerfexpError as error:
+            raise SystemExit(f"nerfexp: error: {error}") from None
+        except OSError as error:
+            raise SystemExit(f"nerfexp: error: cannot write the run directory {run_dir}: {error.strerror} "
+                             "(choose another with hydra.run.dir=...)") from None
+
+    def on_multirun_start(self, config: DictConfig, **kwargs) -> None:
+        sweep_dir = Path(config.hydra.sweep.dir)
+        try:
+            sweep_dir.mkdir(parents=True, exist_ok=True)
+            tempfile.TemporaryFile(dir=sweep_dir).close()  # writable, before any job starts
+        except OSError as error:
+            raise SystemExit(f"nerfexp: error: cannot write the sweep directory {sweep_dir}: {error.strerror} "
+                             "(choose another with hydra.sweep.dir=...)") from None
+        runs = find_run_dirs(sweep_dir)
+        if runs:
+            raise SystemExit(f"nerfexp: error: {sweep_dir} holds the runs of an earlier sweep ({len(runs)}): choose "
+                             f"another directory (hydra.sweep.dir=...)")
+        if entries := folder_entries(sweep_dir):
+            raise SystemExit("nerfexp: error: " + foreign_message(
+                sweep_dir, entries, "this sweep", "choose a new or empty directory (hydra.sweep.dir=...)"))

@@ -1,0 +1,122 @@
+"""A config read from someone else's run directory is data: it may build only the classes that nerfexp's own
+configs build, and an interpolation in it may only refer to another of its keys.
+
+Hydra builds whatever ``_target_`` a config names, so a crafted ``.hydra/config.yaml`` could call any
+importable function (``torch.load`` of a pickle with ``weights_only: false``, say) the moment
+``nerfexp-eval`` or ``nerfexp-render`` builds it. Before anything is built or resolved from a saved config
+(``as_data``):
+
+- The keys that only training builds are removed, unread (``TRAINING_ONLY``: the callbacks, the logger and
+  the trainer's ``default_root_dir``, where a run wrote its files: the only keys of nerfexp's configs that
+  call a resolver, ``${hydra:runtime.output_dir}``). The commands that read a run back build none of them.
+- Every interpolation left, nested ones included, must be a plain reference to another key (``${scale.width}``,
+  ``${..near}``, ``${a.${b}}``); an escaped one (``\\${x}``) is text. Any resolver (``oc.create``, which
+  makes a node that Hydra then builds, ``oc.decode``, ``oc.env``, which would read the reader's environment,
+  ``oc.select``, ``oc.dict.keys``, ``oc.dict.values``, ``oc.deprecated``, ``now``, ``hydra`` or any other)
+  is refused. So the config is checked as it will be built: what a plain reference yields is another key
+  of the same file, which is checked too, and nothing outside the file reaches what is built or written.
+- Every ``_target_`` must be one of:
+
+  - a class defined in nerfexp (``nerfexp.*``, the class itself rather than something a module imported);
+  - ``lightning.Trainer``;
+  - a torch optimizer (a subclass of ``torch.optim.Optimizer`` from ``torch.optim``);
+  - a Lightning logger or callback (a subclass of ``Logger`` / ``Callback`` from
+    ``lightning.pytorch.loggers`` / ``lightning.pytorch.callbacks``).
+
+A config you compose yourself (``nerfexp ...`` with your overrides, ``KEY=VALUE`` arguments of the commands
+that read a run back) is your own code, as in any Hydra application, and is not checked.
+"""
+
+from collections.abc import Iterator
+from pathlib import Path
+
+from hydra.utils import get_class
+from lightning.pytorch.callbacks import Callback
+from lightning.pytorch.loggers import Logger
+from omegaconf import DictConfig, OmegaConf
+from omegaconf.grammar_parser import parse
+from omegaconf.grammar_visitor import OmegaConfGrammarParser
+from torch.optim import Optimizer
+
+from nerfexp.config_keys import entries
+from nerfexp.errors import ConfigError
+
+TRAINERS = ("lightning.Trainer", "lightning.pytorch.Trainer")
+FAMILIES = (("torch.optim.", Optimizer), ("lightning.pytorch.loggers.", Logger),
+            ("lightning.pytorch.callbacks.", Callback))  # (where the target and its class live, their base)
+TRAINING_ONLY = ("callbacks", "logger", "trainer.default_root_dir")  # what only training builds (dotted keys)
+
+
+def targets(node, path: str = "") -> Iterator[tuple[str, object]]:
+    """Every ``_target_`` in a config's plain containers (``nerfexp.config_keys.entries``): (its dotted key,
+    its value)."""
+    return ((key, value) for key, value in entries(node, path) if key.split(".")[-1] == "_target_")
+
+
+def resolvers(value: str) -> list[str]:
+    """The resolvers that the string ``value`` calls when OmegaConf resolves it, in the order written, those
+    in another interpolation's key or arguments included (``${a.${oc.env:X}}``: ``oc.env``); none where its
+    interpolations are all plain references or it has none. An escaped ``\\${x}`` is text. Raises OmegaConf's
+    GrammarParseError where ``value`` is not a string OmegaConf can resolve."""
+    if "${" not in value:  # OmegaConf's own test of whether a string is interpolated
+        return []
+    names, pending = [], [parse(value)]
+    while pending:
+        context = pending.pop()
+        if isinstance(context, OmegaConfGrammarParser.InterpolationResolverContext):
+            names.append(context.resolverName().getText())
+        pending.extend(context.getChild(i) for i in reversed(range(context.getChildCount())))  # tokens have none
+    return names
+
+
+def buildable(target: object) -> bool:
+    """Whether a saved config may build ``target`` (see the module's docstring). Only nerfexp's, torch's
+    optimizers' and Lightning's own modules are imported to find out."""
+    if not isinstance(target, str) or target in TRAINERS:
+        return target in TRAINERS
+    for prefix, base in (("nerfexp.", object), *FAMILIES):
+        if target.startswith(prefix):
+            try:
+                cls = get_class(target)
+            except (ImportError, ValueError):  # no such class (a function, a module, a missing name)
+                return False
+            return issubclass(cls, base) and cls.__module__.startswith(prefix)
+    return False
+
+
+def check_saved_config(plain: dict, source: Path) -> None:
+    """A ConfigError naming ``source`` (the file the config came from) and the key for the first value of
+    ``plain`` (a saved config's containers, unresolved) that calls a resolver (``resolvers``), then for the
+    first ``_target_`` that a saved config may not build (``buildable``). Nothing is built or resolved."""
+    for key, value in entries(plain):
+        called = resolvers(value) if isinstance(value, str) else []
+        if called:
+            raise ConfigError(
+                f"{source}: {key}={value!r} uses the resolver {called[0]}: a run directory from elsewhere is read "
+                "as data: only plain references ${key} to its own keys are followed")
+    for key, target in targets(plain):
+        if not buildable(target):
+            raise ConfigError(
+                f"{source}: {key}={target!r} is not a class nerfexp builds from a run's saved config (nerfexp's "
+                "own classes, lightning.Trainer, torch optimizers, Lightning loggers and callbacks): a run "
+                "directory from elsewhere is read as data, never run")
+
+
+def without(plain: dict, dotted: str) -> None:
+    """Remove the key ``dotted`` (e.g. ``trainer.default_root_dir``) from the plain containers ``plain``, in
+    place, where it is there; nothing is resolved."""
+    *parents, leaf = dotted.split(".")
+    for key in parents:
+        plain = plain.get(key) if isinstance(plain, dict) else None
+    if isinstance(plain, dict):
+        plain.pop(leaf, None)
+
+
+def as_data(cfg: DictConfig, source: Path) -> DictConfig:
+    """The saved config ``cfg`` (read from ``source``, nothing resolved yet) as the commands that read a run
+    back may use it: without ``TRAINING_ONLY``'s keys, checked (``check_saved_config``)."""
+    plain = OmegaConf.to_container(cfg, resolve=False)
+    for dotted in TRAINING_ONLY:
+        without(plain, dotted)
+    check_saved_config(plain, source)
+    return OmegaConf.create(plain)

@@ -1,0 +1,186 @@
+"""A finished (or interrupted) run read back as data: ``find_run``, ``run_config`` and ``load_module``
+(together: ``load_run``); runs made by earlier versions are read as if made by this one
+(``MOVED_TARGETS``)."""
+
+import pickle
+import warnings
+import zipfile
+from collections.abc import Callable
+from pathlib import Path
+from typing import NamedTuple
+
+import lightning as L
+import torch
+import yaml
+from hydra.utils import instantiate
+from omegaconf import DictConfig, OmegaConf, open_dict
+from omegaconf.errors import OmegaConfBaseException
+
+from nerfexp.data.datamodule import fill_ray_bounds
+from nerfexp.errors import ConfigError, NerfexpError
+from nerfexp.memory import network_bytes, require_memory
+from nerfexp.rundir.layout import LAST_CHECKPOINT, RESULTS, RUN_CONFIG, read_json, sha256
+from nerfexp.rundir.saved_configs import as_data
+
+# Where the classes of a run's config lived before the package was split into layers (and the data group
+# held the field's density noise): a run made by an earlier nerfexp is read as if made by this one.
+MOVED_TARGETS = {  # the first match of a target wins; callbacks are not read back (saved_configs.TRAINING_ONLY)
+    "nerfexp.module.": "nerfexp.training.module.",
+    "nerfexp.guards.": "nerfexp.training.guards.",
+    "nerfexp.renderer.": "nerfexp.nerf.volume_renderer.",
+    "nerfexp.fields.": "nerfexp.nerf.fields.",
+    "nerfexp.encodings.": "nerfexp.nerf.encodings.",
+    "nerfexp.occupancy.": "nerfexp.nerf.occupancy.",
+}
+OLD_NOISE = "density_noise_std: ${oc.select:data.density_noise_std,0.0}"  # the field's line while data held it
+
+
+def find_run(path: str | Path) -> tuple[Path, Path]:
+    """``(run directory, checkpoint)`` of ``path``: a run directory (the checkpoint its final test scored,
+    as ``results.json`` records it, checked against its SHA-256; else ``checkpoints/last.ckpt``) or a
+    checkpoint file in one (``RUN_DIR/checkpoints/NAME.ckpt``: the run directory two levels up)."""
+    path = Path(path)
+    if not path.exists():
+        raise NerfexpError(f"{path} does not exist: expected a run directory or a checkpoint file in one")
+    run_dir, checkpoint = (path, path / LAST_CHECKPOINT) if path.is_dir() else (path.parent.parent, path)
+    if not (run_dir / RUN_CONFIG).is_file():
+        raise NerfexpError(f"{run_dir} is not a run directory: it has no {RUN_CONFIG}")
+    tested = (read_json(run_dir / RESULTS) or {}).get("checkpoint") if path.is_dir() else None
+    if tested is not None:
+        checkpoint = run_dir / tested["path"]
+        if checkpoint.is_file() and sha256(checkpoint) != tested["sha256"]:
+            raise NerfexpError(f"{checkpoint} is not the checkpoint the run's test scored (its SHA-256 differs "
+                               f"from {run_dir / RESULTS}'s): name a checkpoint file to use it anyway")
+    if not checkpoint.is_file():
+        raise NerfexpError(f"{checkpoint} does not exist: the run in {run_dir} has saved no checkpoint")
+    return run_dir, checkpoint
+
+
+def _current(text: str, source: Path) -> DictConfig:
+    """A run config's text (read from ``source``) as this version's config, read as data
+    (``nerfexp.rundir.saved_configs.as_data``, before anything in it is resolved): ``MOVED_TARGETS`` paths made
+    current, and ``data.density_noise_std`` moved to ``model.renderer.field`` (``OLD_NOISE``: the field
+    once read it with a resolver, whose default was 0.0)."""
+    for old, new in MOVED_TARGETS.items():
+        text = text.replace(f"_target_: {old}", f"_target_: {new}")  # a replaced target matches no later old
+    cfg = OmegaConf.create(text.replace(OLD_NOISE, "density_noise_std: 0.0"))
+    if not isinstance(cfg, DictConfig):
+        raise ConfigError(f"{source}: not a config nerfexp can read (a mapping of keys was expected)")
+    cfg = as_data(cfg, source)
+    if "density_noise_std" in cfg.get("data", {}):
+        with open_dict(cfg):
+            cfg.model.renderer.field.density_noise_std = cfg.data.pop("density_noise_std")
+    return cfg
+
+
+def run_config(run_dir: Path, overrides: list[str] = ()) -> DictConfig:
+    """The config a run used (its ``RUN_CONFIG``), with ``KEY=VALUE`` ``overrides`` of existing keys
+    (e.g. ``data.root=...`` for a scene that moved). The file is read as data: a ``_target_`` in it that
+    is not one of the classes nerfexp builds, or an interpolation that is not a plain reference to another
+    of its keys, is a ConfigError (``nerfexp.rundir.saved_configs``), and the keys only training builds are left
+    out. A reference that the config cannot follow is a ConfigError naming the key, before anything is built."""
+    source = Path(run_dir) / RUN_CONFIG
+    try:
+        cfg = _current(source.read_text(), source)
+    except (OmegaConfBaseException, yaml.YAMLError, UnicodeDecodeError) as error:
+        raise ConfigError(f"{source}: not a config nerfexp can read ({str(error).splitlines()[0]})") from None
+    OmegaConf.set_struct(cfg, True)  # an override of a key the run does not have is a typo, not a new key
+    try:
+        cfg = OmegaConf.merge(cfg, OmegaConf.from_dotlist(list(overrides)))
+    except OmegaConfBaseException as error:
+        raise ConfigError(f"cannot apply {' '.join(overrides)} to {Path(run_dir) / RUN_CONFIG}: "
+                          f"{str(error).splitlines()[0]}") from None
+    try:
+        OmegaConf.to_container(cfg, resolve=True)  # plain references only (and the overrides'): nothing runs
+    except OmegaConfBaseException as error:
+        where = f" at {error.full_key}" if error.full_key else ""
+        raise ConfigError(f"{source}: cannot resolve the config{where}: {str(error).splitlines()[0]}") from None
+    return cfg
+
+
+def not_a_checkpoint(path: Path, error: Exception) -> str:
+    """What file ``path``, which ``torch.load`` could not read as data (``error``), is, in a few words: never
+    torch's own message, whose advice to load it with ``weights_only=False`` would run any code it holds."""
+    if path.stat().st_size == 0:
+        return "an empty file"
+    if not zipfile.is_zipfile(path):
+        return "not a whole zip archive as torch.save writes: cut short, or another kind of file"
+    if isinstance(error, pickle.UnpicklingError):
+        return "it holds objects other than tensors, numbers, strings and containers of them"
+    return "a damaged zip archive"
+
+
+def read_checkpoint(path: Path) -> dict:
+    """A Lightning checkpoint's contents read as data (``weights_only``: tensors and plain containers;
+    a pickle that would run code is refused), on the CPU; a NerfexpError naming the file otherwise."""
+    path = Path(path)
+    if not path.is_file():
+        raise NerfexpError(f"{path}: no such checkpoint file")
+    try:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")  # torch's notes on pickle protocols: the error below says what matters
+            state = torch.load(path, map_location="cpu", weights_only=True)
+    except OSError as error:
+        raise NerfexpError(f"{path}: cannot read the checkpoint ({error.strerror})") from None
+    except Exception as error:  # torch raises any type (IndexError, KeyError, ...) on bytes it cannot parse
+        raise NerfexpError(f"{path}: not a checkpoint ({not_a_checkpoint(path, error)}); nerfexp reads checkpoints "
+                           "as data only, never running code in them") from None
+    if not isinstance(state, dict) or not isinstance(state.get("state_dict"), dict) or "global_step" not in state:
+        raise NerfexpError(f"{path}: not a Lightning checkpoint (expected a state_dict and a global_step)")
+    return state
+
+
+def load_module(cfg: DictConfig, checkpoint: Path) -> tuple[L.LightningModule, int]:
+    """The run's model (``cfg.model``) with the weights of ``checkpoint`` (``read_checkpoint``), on the
+    CPU, and the number of optimizer steps it had taken."""
+    fill_ray_bounds(cfg)  # a run's saved config holds null where the scene chose near and far
+    module = instantiate(cfg.model)
+    state = read_checkpoint(checkpoint)
+    check_weights(state["state_dict"], module, checkpoint)
+    module.load_state_dict(state["state_dict"])
+    return module, state["global_step"]
+
+
+def check_weights(weights: dict[str, torch.Tensor], module: torch.nn.Module, checkpoint: Path) -> None:
+    """A NerfexpError in one line where a checkpoint's ``weights`` (a state_dict) do not fit ``module``: the
+    first parameter or buffer that one has and the other lacks, or whose shapes differ, with both shapes
+    (where torch's ``load_state_dict`` would list every one, a line each)."""
+    expected = module.state_dict()
+    for name in [*expected, *(name for name in weights if name not in expected)]:
+        if name not in weights or name not in expected:
+            where = "the checkpoint" if name not in weights else "this run's model"
+            raise NerfexpError(f"{checkpoint}: not a checkpoint of this run's model: {name} is missing from {where}")
+        if weights[name].shape != expected[name].shape:
+            raise NerfexpError(f"{checkpoint}: not a checkpoint of this run's model: {name} has shape "
+                               f"{list(weights[name].shape)} there and {list(expected[name].shape)} in this run's "
+                               "model (another network size?)")
+
+
+class TrainedRun(NamedTuple):
+    """A run read back for rendering (``load_run``)."""
+
+    run_dir: Path
+    checkpoint: Path
+    cfg: DictConfig  # the run's saved config, with the caller's overrides
+    module: L.LightningModule  # with the checkpoint's weights, in eval mode
+    step: int  # optimizer steps the checkpoint had taken
+
+
+def load_run(run: str | Path, overrides: list[str] = (), chunk: int | None = None,
+             refuse: Callable[[Path, DictConfig], None] | None = None) -> TrainedRun:
+    """The run at ``run`` (a run directory, or a checkpoint file in one) read as data (``find_run``,
+    ``run_config`` with ``overrides``, ``load_module``): its module in eval mode on the GPU where there is
+    one, rendering ``chunk`` rays at once (None: the run's ``model.chunk``). ``refuse(run_dir, saved
+    config)``, where given, is called before the checkpoint is read, to raise for runs a command cannot use."""
+    run_dir, checkpoint = find_run(run)
+    if refuse is not None:
+        refuse(run_dir, run_config(run_dir))
+    cfg = run_config(run_dir, overrides)
+    module, step = load_module(cfg, checkpoint)
+    if chunk is not None:  # refused where it cannot fit, before any rendering
+        samples, field = module.renderer.samples_per_ray, cfg.model.renderer.field
+        require_memory(f"--chunk {chunk}", f"an evaluation of {chunk} rays x {samples} samples",
+                       network_bytes(chunk, samples, field.width, field.depth, training=False))
+        module.chunk = chunk
+    module.to("cuda" if torch.cuda.is_available() else "cpu").eval()
+    return TrainedRun(run_dir, checkpoint, cfg, module, step)

@@ -1,0 +1,236 @@
+"""The settings' domains: every key of the composed config has one in ``SCHEMA`` (fnmatch patterns, the
+first that matches rules), a rule being what is expected, in words for the error, and the test.
+
+A key nothing in ``SCHEMA`` covers is not a setting, so a new key in ``conf/`` cannot ship without a domain
+(tests/test_settings.py composes every option of every group). Keys a user adds under a section that a
+class takes as keyword arguments (``PASSED_ON``: ``+trainer.gradient_clip_val``, ``+callbacks.NAME.*``)
+are that class's to check; its error is one line too (``nerfexp.commands.train.cli``). The domains are
+read from the components' own constants (backgrounds, activations, the guards' actions, Lightning's
+registries), so that a new choice there is a valid setting here.
+"""
+
+import math
+from collections.abc import Callable
+from fnmatch import fnmatchcase
+from typing import get_args
+
+from lightning.fabric.plugins.precision.precision import _PRECISION_INPUT_STR, _PRECISION_INPUT_STR_ALIAS
+from lightning.pytorch.accelerators import AcceleratorRegistry
+from lightning.pytorch.strategies import StrategyRegistry
+
+from nerfexp.nerf.backgrounds import BACKGROUNDS
+from nerfexp.nerf.fields import DENSITY_ACTIVATIONS, SH_MAX_DEGREE
+from nerfexp.training.guards import COLLAPSE_ACTIONS, NONFINITE_ACTIONS
+
+SEED_LIMIT = 2 ** 32  # seeds are whole numbers in [0, 2^32): numpy's and Lightning's range
+
+Rule = tuple[str, Callable[[object], bool]]  # (what is expected, the test)
+
+
+def is_whole(value) -> bool:
+    return isinstance(value, int) and not isinstance(value, bool)
+
+
+def is_real(value) -> bool:
+    return isinstance(value, int | float) and not isinstance(value, bool) and math.isfinite(value)
+
+
+def whole(low: int, high: int | None = None) -> Rule:
+    """A whole number in [low, high] (high: None for no upper bound)."""
+    expected = f"a whole number >= {low}" if high is None else f"a whole number in [{low}, {high}]"
+    return expected, lambda v: is_whole(v) and v >= low and (high is None or v <= high)
+
+
+def real(low: float, high: float | None = None, *, above: bool = False) -> Rule:
+    """A finite number >= ``low`` (> ``low`` where ``above``), and <= ``high`` where given."""
+    expected = f"a finite number {'>' if above else '>='} {low:g}" + ("" if high is None else f" and <= {high:g}")
+    return expected, lambda v: (is_real(v) and (v > low if above else v >= low)
+                                and (high is None or v <= high))
+
+
+def choice(*values) -> Rule:
+    return f"one of {', '.join(map(str, values))}", lambda v: isinstance(v, str | bool) and v in values
+
+
+def optional(rule: Rule, meaning: str) -> Rule:
+    """``rule``, or null meaning ``meaning``."""
+    return f"{rule[0]}, or null ({meaning})", lambda v: v is None or rule[1](v)
+
+
+def whole_list(low: int) -> Rule:
+    return f"a list of whole numbers >= {low}", lambda v: isinstance(v, list) and all(whole(low)[1](x) for x in v)
+
+
+COUNT = whole(1)
+NONNEGATIVE_COUNT = whole(0)
+POSITIVE = real(0, above=True)
+FRACTION = real(0, 1)
+BOOLEAN = ("true or false", lambda v: isinstance(v, bool))
+TEXT = ("a text", lambda v: isinstance(v, str) and v != "")
+TARGET = ("a dotted Python name (module.Class)", lambda v: isinstance(v, str) and v != "")
+NULL = ("null", lambda v: v is None)
+PATH = ("a path", lambda v: isinstance(v, str) and v != "")
+BOX = ("[[x0, y0, z0], [x1, y1, z1]] of finite numbers with x0 < x1, y0 < y1, z0 < z1, or null",
+       lambda v: v is None or (isinstance(v, list) and len(v) == 2 and all(isinstance(c, list) and len(c) == 3
+                                                                         and all(map(is_real, c)) for c in v)
+                               and all(a < b for a, b in zip(*v))))
+BETAS = ("[beta1, beta2], each a finite number in [0, 1)",
+         lambda v: isinstance(v, list) and len(v) == 2 and all(is_real(b) and 0 <= b < 1 for b in v))
+DEVICES = ("a whole number >= 1, a list of device indices, or auto",
+           lambda v: v == "auto" or COUNT[1](v) or (isinstance(v, list) and v != [] and all(map(is_whole, v))))
+PLUGINS = ("a list of plugin configs ({_target_: ...}), or null",
+           lambda v: v is None or (isinstance(v, list) and all(isinstance(p, dict) and "_target_" in p for p in v)))
+PRECISIONS = choice(*get_args(_PRECISION_INPUT_STR), *get_args(_PRECISION_INPUT_STR_ALIAS))
+ACCELERATORS = choice("auto", "gpu", *sorted(AcceleratorRegistry.available_accelerators()))
+STRATEGIES = choice("auto", *StrategyRegistry.available_strategies())
+SKIPS = whole_list(0)
+
+# Every key of the composed config (fnmatch patterns, the first that matches rules), hydra.* aside.
+SCHEMA: dict[str, Rule] = {
+    "*._target_": TARGET,
+    "*._partial_": BOOLEAN,
+    "seed": whole(0, SEED_LIMIT - 1),
+    "hierarchical": BOOLEAN,
+    "resume": optional(PATH, "train from scratch"),
+    # scale: the sizes the groups read (each checked again where it lands)
+    "scale.steps": COUNT,
+    "scale.lr": POSITIVE,
+    "scale.lr_final": POSITIVE,
+    "scale.lr_warmup_steps": NONNEGATIVE_COUNT,
+    "scale.batch_rays": COUNT,
+    "scale.depth": COUNT,
+    "scale.width": COUNT,
+    "scale.skips": SKIPS,
+    "scale.view_hidden": COUNT,
+    "scale.n_coarse": COUNT,
+    "scale.n_fine": COUNT,
+    "scale.n_single": COUNT,
+    "scale.chunk": COUNT,
+    "scale.val_every": COUNT,
+    "scale.image_size": COUNT,
+    "scale.position_input_scale": POSITIVE,
+    "scale.max_side": optional(COUNT, "never shrink"),
+    "scale.test_stride": COUNT,
+    "scale.hash_log2_table_size": whole(1, 62),
+    "scale.hash_finest": COUNT,
+    # the model
+    "model.chunk": COUNT,
+    "model.compile": BOOLEAN,
+    "model.lr_final": POSITIVE,
+    "model.lr_warmup_steps": NONNEGATIVE_COUNT,
+    "model.optimizer.lr": POSITIVE,
+    "model.optimizer.betas": BETAS,
+    "model.optimizer.eps": POSITIVE,
+    "model.optimizer.weight_decay": real(0),
+    "model.renderer.hierarchical": BOOLEAN,
+    "model.renderer.n_coarse": COUNT,
+    "model.renderer.n_fine": COUNT,
+    "model.renderer.n_single": COUNT,
+    "model.renderer.near": optional(real(0), "from the scene"),
+    "model.renderer.far": optional(POSITIVE, "from the scene"),
+    "model.renderer.background": choice(*BACKGROUNDS),
+    "model.renderer.field.depth": COUNT,
+    "model.renderer.field.width": COUNT,
+    "model.renderer.field.skips": SKIPS,
+    "model.renderer.field.density_activation": choice(*DENSITY_ACTIVATIONS),
+    "model.renderer.field.density_bias": real(-math.inf, above=True),
+    "model.renderer.field.density_noise_std": real(0),
+    # encodings and view dependence
+    "encoding.*.n_freqs": NONNEGATIVE_COUNT,  # and the float32 limit (check_frequencies)
+    "encoding.*.input_scale": POSITIVE,
+    "encoding.position.n_levels": COUNT,
+    "encoding.position.features_per_level": COUNT,
+    "encoding.position.log2_table_size": whole(1, 62),
+    "encoding.position.coarsest": COUNT,
+    "encoding.position.finest": COUNT,
+    "encoding.position.include_input": BOOLEAN,
+    "view_dependence.degree": whole(0, SH_MAX_DEGREE),
+    "view_dependence.hidden": COUNT,
+    # data
+    "data.root": PATH,
+    "data.video": optional(PATH, "the photographs in images/"),
+    "data.fps": POSITIVE,
+    "data.image_size": COUNT,
+    "data.supersample": COUNT,
+    "data.downscale": COUNT,
+    "data.factor": COUNT,
+    "data.max_side": optional(COUNT, "never shrink"),
+    "data.n_train": optional(COUNT, "all"),
+    "data.n_val": COUNT,
+    "data.n_test": COUNT,
+    "data.test_stride": COUNT,
+    "data.holdout": whole(2),
+    "data.ndc": BOOLEAN,
+    "data.bound": POSITIVE,
+    "data.near": optional(real(0), "from the scene"),
+    "data.far": optional(POSITIVE, "from the scene"),
+    "data.background": choice(*BACKGROUNDS),
+    "data.aabb": BOX,
+    "data.camera_model": TEXT,  # COLMAP's model names (checked against pycolmap's list when it runs)
+    "data.matcher": optional(choice("exhaustive", "sequential"), "sequential for a video, else exhaustive"),
+    "data.max_features": COUNT,
+    "data.threads": ("-1 (every core) or a whole number >= 1", lambda v: v == -1 or COUNT[1](v)),
+    "data.min_registered": real(0, 1, above=True),
+    "data.verbose": BOOLEAN,
+    "datamodule.batch_rays": COUNT,
+    "datamodule.seed": whole(0, SEED_LIMIT - 1),
+    # acceleration
+    "acceleration.grid": NULL,
+    "acceleration.grid.resolution": COUNT,
+    "acceleration.grid.threshold": real(0, 1, above=True),
+    "acceleration.grid.decay": FRACTION,
+    "acceleration.grid.warmup_steps": NONNEGATIVE_COUNT,
+    "acceleration.grid.update_every": COUNT,
+    "acceleration.grid.early_stop_transmittance": real(0, 1),
+    "acceleration.grid.segments": COUNT,
+    # trainer
+    "trainer.accelerator": ACCELERATORS,
+    "trainer.strategy": STRATEGIES,
+    "trainer.devices": DEVICES,
+    "trainer.num_nodes": COUNT,
+    "trainer.precision": PRECISIONS,
+    "trainer.max_steps": COUNT,
+    "trainer.val_check_interval": COUNT,
+    "trainer.check_val_every_n_epoch": optional(COUNT, "validate by steps"),
+    "trainer.num_sanity_val_steps": NONNEGATIVE_COUNT,
+    "trainer.log_every_n_steps": COUNT,
+    "trainer.default_root_dir": PATH,
+    "trainer.enable_progress_bar": BOOLEAN,
+    "trainer.enable_model_summary": BOOLEAN,
+    "trainer.plugins": PLUGINS,
+    # callbacks
+    "callbacks.checkpoint.dirpath": PATH,
+    "callbacks.checkpoint.save_last": BOOLEAN,
+    "callbacks.checkpoint.save_top_k": whole(-1),
+    "callbacks.checkpoint.every_n_train_steps": COUNT,
+    "callbacks.checkpoint.enable_version_counter": BOOLEAN,
+    "callbacks.guard.dirpath": optional(PATH, "no debug files"),
+    "callbacks.guard.on_nonfinite": choice(*NONFINITE_ACTIONS),
+    "callbacks.guard.max_skips": NONNEGATIVE_COUNT,
+    "callbacks.guard.on_collapse": choice(*COLLAPSE_ACTIONS),
+    "callbacks.guard.collapse_patience": COUNT,
+    "callbacks.guard.collapse_opacity": real(0, 1, above=True),
+    # logger
+    "logger": NULL,
+    "logger.save_dir": PATH,
+    "logger.name": TEXT,
+    "logger.version": ("a text (empty: none)", lambda v: isinstance(v, str)),
+    "logger.experiment_name": TEXT,
+    "logger.tracking_uri": TEXT,
+    "logger.artifact_location": PATH,
+    "logger.project": TEXT,
+    "logger.offline": BOOLEAN,
+}
+
+# Sections handed to a class as keyword arguments: keys a user adds there (+trainer.gradient_clip_val=1,
+# +callbacks.NAME._target_=...) are that class's to check when it is built.
+PASSED_ON = ("trainer.*", "callbacks.*", "logger.*", "model.optimizer.*")
+
+# Keys that stand for a whole section of the config through an interpolation (checked where it is set).
+REFERENCES = ("datamodule.scene", "model.renderer.field.position_encoding", "model.renderer.field.view_head",
+              "view_dependence.direction_encoding", "model.renderer.grid")
+
+
+def matching(patterns, key: str):
+    """The first of ``patterns`` that ``key`` matches, or None."""
+    return next((p for p in patterns if fnmatchcase(key, p)), None)

@@ -1,0 +1,268 @@
+"""``nerfexp-view``: the viewer's cameras against nerfexp's ``look_at`` and viser's own conversions, the
+progressive schedule and its abandoned refinements, and the command in a real headless browser."""
+
+import json
+import math
+import queue
+import re
+import signal
+import subprocess
+import threading
+import time
+from types import SimpleNamespace
+
+import numpy as np
+import pytest
+import torch
+from hydra.utils import instantiate
+from PIL import Image
+from viser import transforms as viser_transforms
+from viser._viser import CameraHandle
+
+from nerfexp.geometry import viewer_cameras
+from nerfexp.geometry.cameras import camera_rays, focal_from_fov, look_at
+from nerfexp.geometry.viewer_cameras import matrix_quaternion, quaternion_matrix, vertical_fov, viewer_pose
+from nerfexp.products.camera_files import read_camera_path
+from nerfexp.products.viewer import (
+    ProgressiveRenderer,
+    ViewRequest,
+    refinement_sizes,
+    render_request,
+    saved_camera_path,
+    target_size,
+)
+from nerfexp.rundir.layout import CAMERA_PATH
+from nerfexp.rundir.trained import load_run, run_config
+from tests.browser import close_page, open_page, page_screenshot
+from tests.helpers import command
+
+POSES = [  # (eye, target, world up)
+    ([4.0, 0.0, 1.0], [0.0, 0.0, 0.0], [0.0, 0.0, 1.0]),
+    ([-1.4416, 3.1499, 2.0], [0.0, 0.0, 0.0], [0.0, 0.0, 1.0]),
+    ([0.5, -2.0, 0.3], [1.0, 1.0, -1.0], [0.0, 1.0, 0.0]),
+    ([0.0, 0.0, 3.0], [0.2, 0.1, 0.0], [0.0, 1.0, 0.0]),  # looking almost straight down the z axis
+]
+
+
+def viser_wxyz(eye, target, up) -> np.ndarray:
+    """The orientation viser gives a camera at ``eye`` looking at ``target`` with up direction ``up``: its
+    own ``CameraHandle._update_wxyz`` (what the server computes when a program sets look_at), on a camera
+    handle whose client is never reached."""
+    camera = CameraHandle(SimpleNamespace())
+    camera._state.position, camera._state.look_at = np.array(eye), np.array(target)
+    camera._state.up_direction = np.array(up)
+    camera._update_wxyz()
+    return camera._state.wxyz
+
+
+@pytest.mark.parametrize("eye, target, up", POSES)
+def test_a_viewer_camera_looking_at_a_point_is_the_camera_look_at_gives(eye, target, up):
+    eye, target, up = (torch.tensor(v, dtype=torch.float64) for v in (eye, target, up))
+    expected = look_at(eye, target, up)
+    # viser's own orientation of the camera
+    c2w = viewer_cameras.viewer_c2w(torch.from_numpy(viser_wxyz(eye.numpy(), target.numpy(), up.numpy())), eye)
+    torch.testing.assert_close(c2w, expected, atol=1e-9, rtol=0)
+    # by hand, OpenCV's axes: x right, y down, z forward; its rotation as viser makes a quaternion of it
+    forward = (target - eye) / (target - eye).norm()
+    right = torch.linalg.cross(forward, up)
+    right = right / right.norm()
+    down = torch.linalg.cross(forward, right)
+    wxyz = viser_transforms.SO3.from_matrix(torch.stack([right, down, forward], -1).numpy()).wxyz
+    torch.testing.assert_close(viewer_cameras.viewer_c2w(torch.from_numpy(wxyz), eye), expected, atol=1e-9, rtol=0)
+    # and back: the pose a frustum is drawn at
+    back_wxyz, position = viewer_pose(expected)
+    torch.testing.assert_close(position, eye)
+    torch.testing.assert_close(viewer_cameras.viewer_c2w(back_wxyz, position), expected, atol=1e-12, rtol=0)
+
+
+def test_the_viewers_centre_pixel_sees_the_point_looked_at_and_its_top_row_sees_up():
+    eye, target, up = torch.tensor([3.0, 1.0, 2.0]), torch.tensor([0.5, -0.5, 0.25]), torch.tensor([0.0, 0.0, 1.0])
+    wxyz = torch.from_numpy(viser_wxyz(eye.double().numpy(), target.double().numpy(), up.double().numpy()))
+    origins, directions = camera_rays(viewer_cameras.viewer_c2w(wxyz, eye), 3, 3, 2.0)
+    torch.testing.assert_close(origins[1, 1], eye.double())
+    torch.testing.assert_close(directions[1, 1], ((target - eye) / (target - eye).norm()).double())
+    assert directions[0, 1] @ up.double() > directions[1, 1] @ up.double() > directions[2, 1] @ up.double()
+    assert (directions[1, 2] - directions[1, 0]) @ torch.linalg.cross(target - eye, up).double() > 0  # right
+
+
+def test_quaternions_agree_with_visers():
+    generator = torch.Generator().manual_seed(0)
+    wxyz = torch.randn(200, 4, dtype=torch.float64, generator=generator)
+    wxyz = torch.cat([wxyz, torch.eye(4, dtype=torch.float64), -torch.eye(4, dtype=torch.float64)])  # half turns
+    wxyz = wxyz / wxyz.norm(dim=-1, keepdim=True)
+    rotations = quaternion_matrix(wxyz)
+    for q, rotation in zip(wxyz, rotations):
+        np.testing.assert_allclose(rotation.numpy(), viser_transforms.SO3(q.numpy()).as_matrix(), atol=1e-12)
+    back = matrix_quaternion(rotations)
+    same_sign = torch.where((back * wxyz).sum(-1, keepdim=True) < 0, -1.0, 1.0)  # q and -q: one rotation
+    torch.testing.assert_close(back, same_sign * wxyz, atol=1e-12, rtol=0)
+    assert (back[:, 0] >= 0).all()
+    quarter_turn_about_z = torch.tensor([math.cos(math.pi / 4), 0, 0, math.sin(math.pi / 4)], dtype=torch.float64)
+    torch.testing.assert_close(quaternion_matrix(quarter_turn_about_z),
+                               torch.tensor([[0.0, -1, 0], [1, 0, 0], [0, 0, 1]], dtype=torch.float64))
+
+
+def test_vertical_field_of_view_and_focal_length_are_inverses():
+    assert vertical_fov(100, 50.0) == pytest.approx(math.pi / 2)  # 2 atan(50 / 50)
+    assert focal_from_fov(100, math.pi / 2) == pytest.approx(50.0)
+    assert focal_from_fov(37, vertical_fov(37, 81.5)) == pytest.approx(81.5)
+
+
+def test_the_progressive_schedule_goes_from_an_eighth_of_the_width_to_all_of_it():
+    assert refinement_sizes(48, 64) == [(6, 8), (12, 16), (24, 32), (48, 64)]
+    assert refinement_sizes(18, 24) == [(2, 3), (4, 6), (9, 12), (18, 24)]
+    assert refinement_sizes(6, 8) == [(1, 1), (2, 2), (3, 4), (6, 8)]
+    assert refinement_sizes(2, 3) == [(1, 1), (1, 2), (2, 3)]  # 1/8 and 1/4 are both one pixel
+    assert refinement_sizes(1, 1) == [(1, 1)]
+    assert target_size(4 / 3, 640, 24) == (18, 24)  # the canvas is wider than --max-width
+    assert target_size(2.0, 100, 800) == (50, 100)  # narrower: its own width
+    assert target_size(640 / 337, 640, 24) == (13, 24)
+
+
+def request(x: float, kind: str = "rgb") -> ViewRequest:
+    c2w = torch.eye(4, dtype=torch.float64)
+    c2w[0, 3] = x
+    return ViewRequest(c2w, 1.0, 16, 32, kind)
+
+
+def test_a_camera_that_moves_abandons_the_refinement_and_the_new_camera_is_rendered_coarse_to_fine():
+    """A fake render that moves the camera once, while rendering camera 0 at 1/4 of the width, and then
+    renders in bands, as the viewer does, checking stale() between them."""
+    renders, shown, finished = [], [], threading.Event()
+    moved = threading.Event()
+
+    def render(req, height, width, stale):
+        renders.append((float(req.c2w[0, 3]), height, width))
+        if (float(req.c2w[0, 3]), width) == (0.0, 8) and not moved.is_set():
+            moved.set()
+            progressive.request(request(1.0))  # the camera moves while this size is rendered
+        for _ in range(height):  # bands of rows
+            if stale():
+                return None
+        return np.zeros((height, width, 3), np.uint8)
+
+    def show(req, pixels):
+        shown.append((float(req.c2w[0, 3]), pixels.shape[:2]))
+        if pixels.shape[:2] == (req.height, req.width) and float(req.c2w[0, 3]) == 1.0:
+            finished.set()
+
+    progressive = ProgressiveRenderer(render, show, report=pytest.fail)
+    progressive.request(request(0.0))
+    assert finished.wait(10)
+    progressive.close()
+    assert renders == [(0.0, 2, 4), (0.0, 4, 8), (1.0, 2, 4), (1.0, 4, 8), (1.0, 8, 16), (1.0, 16, 32)]
+    assert shown == [(0.0, (2, 4)), (1.0, (2, 4)), (1.0, (4, 8)), (1.0, (8, 16)), (1.0, (16, 32))]
+    assert not progressive._thread.is_alive()
+
+
+def test_a_failed_render_is_reported_and_the_next_camera_still_rendered():
+    reports, shown, done = [], [], threading.Event()
+
+    def render(req, height, width, stale):
+        if float(req.c2w[0, 3]) == 0.0:
+            raise RuntimeError("out of memory")
+        return np.zeros((height, width, 3), np.uint8)
+
+    def show(req, pixels):
+        shown.append(pixels.shape[:2])
+        if pixels.shape[:2] == (16, 32):
+            done.set()
+
+    progressive = ProgressiveRenderer(render, show, reports.append)
+    progressive.request(request(0.0))
+    time.sleep(0.2)
+    progressive.request(request(1.0))
+    assert done.wait(10)
+    progressive.close()
+    assert reports == ["rendering failed: RuntimeError: out of memory"] and shown[-1] == (16, 32)
+
+
+def test_a_saved_camera_path_is_read_back_by_nerfexp_render(tmp_path):
+    keyframes = [request(0.0), request(2.0, "depth")]
+    path = saved_camera_path(keyframes, max_width=25)
+    # 25 made even (12.5 pairs round to 12); the first keyframe's 32 x 16 aspect and vertical field of view, 1 rad
+    assert (path.name, path.width, path.height) == ("viewer", 24, 12)
+    assert path.focal == pytest.approx(6 / math.tan(0.5))
+    (tmp_path / CAMERA_PATH.name).write_text(json.dumps(path.record()))
+    read = read_camera_path(tmp_path / CAMERA_PATH.name)
+    assert (read.name, read.height, read.width, read.focal, read.fps) == (
+        path.name, path.height, path.width, path.focal, path.fps)
+    torch.testing.assert_close(read.c2w, torch.stack([k.c2w for k in keyframes]))
+
+
+FRAME = re.compile(r"frame (\d+) \((\d+) x (\d+), (\w+), camera at \(([^)]*)\) looking along \(([^)]*)\)\) "
+                   r"sent to client (\d+)")
+
+
+def read_lines(stream, lines: queue.Queue) -> None:
+    for line in stream:
+        lines.put(line.rstrip("\n"))
+
+
+def wait_for(lines: queue.Queue, seen: list[str], pattern: re.Pattern, timeout: float) -> re.Match | None:
+    """The first line (of those seen, then of those to come, within ``timeout`` seconds) matching ``pattern``."""
+    deadline = time.monotonic() + timeout
+    for line in seen:
+        if match := pattern.search(line):
+            return match
+    while time.monotonic() < deadline:
+        try:
+            line = lines.get(timeout=max(0.01, deadline - time.monotonic()))
+        except queue.Empty:
+            return None
+        seen.append(line)
+        if match := pattern.search(line):
+            return match
+    return None
+
+
+@pytest.mark.slow
+def test_the_viewer_sends_renders_of_the_first_test_camera_to_a_real_browser(tiny_run, tmp_path):
+    argv, env = command("nerfexp-view", str(tiny_run), "--port", "0", "--image", "opacity")
+    server = subprocess.Popen(argv, cwd=tmp_path, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
+                              env=env)
+    lines, seen = queue.Queue(), []
+    threading.Thread(target=read_lines, args=(server.stdout, lines), daemon=True).start()
+    try:
+        serving = wait_for(lines, seen, re.compile(r"at (http://127\.0\.0\.1:\d+) \(Ctrl-C to stop\)"), 60)
+        assert serving, "\n".join(seen)
+        browser = open_page(serving[1], tmp_path / "profile", 1280, 960)
+        # the finest render (the test views' 24 pixels wide) of the first test camera reached the browser
+        views = instantiate(run_config(tiny_run).data).views("test")
+        first = views.c2w[0].double()
+        finest = re.compile(FRAME.pattern.replace(r"(\d+) x", f"({views.width}) x"))
+        match = None
+        while (match := wait_for(lines, seen, finest, 40)) is not None:
+            position, direction = (torch.tensor([float(v) for v in match[i].split(", ")]) for i in (5, 6))
+            if torch.allclose(position, first[:3, 3].float(), atol=1e-3):
+                break
+            seen.remove(match.string)  # a frame of the camera before the initial one arrived: look further
+        assert match, "\n".join(seen)
+        time.sleep(1)  # the frame is drawn at the browser's next animation frame
+        shot = page_screenshot(tmp_path / "profile")
+        close_page(browser)
+        torch.testing.assert_close(direction, -first[:3, 2].float(), atol=1e-3, rtol=0)  # the same rotation
+        assert match[4] == "opacity" and match[7] == "0"
+        # the page shows that frame: the screenshot, averaged down to the frame's pixels, is the viewer's
+        # render of the same camera, apart from where the page's panels lie over it
+        width, height = int(match[2]), int(match[3])
+        loaded = load_run(tiny_run)
+        request = ViewRequest(first, vertical_fov(views.height, views.focal), height, width, "opacity")
+        expected = render_request(loaded.module, instantiate(loaded.cfg.data), threading.Lock(), request, height,
+                                  width, lambda: False).astype(int)
+        shown = np.asarray(Image.fromarray(shot).resize((width, height), Image.Resampling.BOX)).astype(int)
+        difference = np.abs(shown - expected).max(-1)  # [H, W]
+        assert np.median(np.abs(255 - expected).max(-1)) > 48  # the frame is far from viser's white page
+        # measured: 3/4 of the pixels within 4 levels; the rest under the panels (a notice, the controls)
+        assert np.percentile(difference, 75) < 10, difference
+        frames = [FRAME.search(line) for line in seen if FRAME.search(line)]
+        assert int(frames[0][2]) <= 3  # the first image sent is the coarse one: 24 / 8 pixels wide
+    finally:
+        server.send_signal(signal.SIGINT)
+        try:
+            code = server.wait(timeout=30)
+        except subprocess.TimeoutExpired:
+            server.kill()
+            raise
+    stopped = wait_for(lines, seen, re.compile(r"nerfexp-view: stopped \(SIGINT\)"), 5)
+    assert code == 130 and stopped, "\n".join(seen)  # ended by SIGINT, as shells report it

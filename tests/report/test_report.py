@@ -1,0 +1,296 @@
+"""nerfexp-report on hand-made run directories whose numbers are known, checked exactly."""
+
+import csv
+import json
+import math
+import os
+import socket
+import subprocess
+import sys
+from pathlib import Path
+
+import imageio.v3 as iio
+import pytest
+
+from nerfexp.commands.report import main
+from nerfexp.report.folder import write_report
+from nerfexp.report.plots import mean_curve
+from nerfexp.report.runs import Run, find_runs
+from nerfexp.report.variants import PAPER_ABLATION, group_variants
+from nerfexp.rundir.layout import process_start
+from tests.helpers import make_run
+
+
+def dead_pid() -> int:
+    """The id of a process that has exited (as a job killed by the system leaves behind)."""
+    process = subprocess.Popen([sys.executable, "-c", "pass"])
+    process.wait()
+    return process.pid
+
+
+@pytest.fixture
+def sweep(tmp_path):
+    """Variant A: three seeds at 20, 22, 24 dB. Variant B: one finished (25 dB), one failed, one
+    killed. Variant C: its only job still running (this test's own process)."""
+    root = tmp_path / "sweep"
+    for seed, (psnr, ssim, time_s) in enumerate([(20, 0.80, 90), (22, 0.85, 100), (24, 0.90, 110)]):
+        make_run(root, f"{seed}", ["hierarchical=true", f"seed={seed}"], psnr=psnr, ssim=ssim, time_s=time_s)
+    make_run(root, "3", ["hierarchical=false", "seed=0"], psnr=25.0, ssim=0.95, time_s=50)
+    make_run(root, "4", ["hierarchical=false", "seed=1"], state="failed",
+             error="NonFiniteError: step 7: the fine network's colour loss is nan")
+    make_run(root, "5", ["hierarchical=false", "seed=2"], state="running", pid=dead_pid())
+    make_run(root, "6", ["encoding=none", "seed=0"], state="running")
+    return root
+
+
+def read_csv(path: Path) -> list[dict]:
+    with open(path) as file:
+        return list(csv.DictReader(file))
+
+
+def test_means_stds_and_unfinished_jobs_exactly(sweep):
+    write_report([sweep], sweep)
+    rows = {row["variant"]: row for row in read_csv(sweep / "report.csv")}
+    assert list(rows) == ["hierarchical=false", "hierarchical=true", "encoding=none"]  # ranked by PSNR
+    a, b, c = rows["hierarchical=true"], rows["hierarchical=false"], rows["encoding=none"]
+    # 20, 22, 24: mean 22, sample std sqrt(((-2)^2 + 0 + 2^2) / 2) = 2; SSIM 0.85 +- 0.05; time 100 +- 10
+    assert (a["runs"], a["finished"]) == ("3", "3")
+    assert float(a["test_psnr_mean"]) == 22.0 and float(a["test_psnr_std"]) == 2.0
+    assert math.isclose(float(a["test_ssim_mean"]), 0.85) and math.isclose(float(a["test_ssim_std"]), 0.05)
+    assert float(a["train_time_s"]) == 100.0 and float(a["time_per_step_s"]) == 5.0
+    # the failed and the killed job count as runs, not as results: one finished, std undefined
+    assert (b["runs"], b["finished"], float(b["test_psnr_mean"])) == ("3", "1", 25.0)
+    assert math.isnan(float(b["test_psnr_std"]))
+    assert (c["runs"], c["finished"]) == ("1", "0") and math.isnan(float(c["test_psnr_mean"]))
+    report = (sweep / "report.md").read_text()
+    assert "| hierarchical=true | 3/3 | 22.00 ± 2.00 | 0.850 ± 0.050 | 100 |" in report
+    assert "Runs: 7 (4 finished, 1 failed, 1 killed, 1 running)" in report
+    assert "failed: NonFiniteError: step 7: the fine network's colour loss is nan" in report
+    assert "killed: process" in report and f"running: on {socket.gethostname()}, process {os.getpid()}" in report
+    # one seed of hierarchical=false pairs with one of hierarchical=true: no interval, so one line
+    assert "1. hierarchical=false (25.00 dB), hierarchical=true (22.00 dB)" in report
+    assert "No reference variant" in report and "PSNR - reference" not in report
+
+
+def test_plots_are_pngs_of_the_stated_size(sweep):
+    write_report([sweep], sweep)
+    for name in ("psnr_vs_time.png", "pareto.png"):
+        image = iio.imread(sweep / name)
+        assert image.shape[:2] == (500, 800) and image.std() > 0  # 8 x 5 inches at 100 dpi, not blank
+
+
+def test_paper_rows_beside_ours_with_the_difference_on_blender_data(tmp_path):
+    rows = ["complete", "no_posenc", "no_view_dependence"]
+    for i, (row, psnr) in enumerate(zip(rows, [30.0, 29.5, 27.0])):
+        make_run(tmp_path, str(i), [f"ablation={row}", "seed=0"], psnr=psnr,
+                 choices={"ablation": row, "data": "blender"})
+    write_report([tmp_path], tmp_path)
+    table = {row["variant"]: row for row in read_csv(tmp_path / "report.csv")}
+    complete = table["ablation=complete"]
+    assert complete["paper_row"] == "Complete Model" and float(complete["paper_psnr"]) == 31.01
+    assert math.isclose(float(complete["psnr_minus_paper"]), 30.0 - 31.01)
+    assert math.isclose(float(table["ablation=no_view_dependence"]["psnr_minus_paper"]), 27.0 - 27.66)
+    # one seed each: every pair of rows is unresolved, whatever the means say
+    assert "0 resolved in the paper's order, 0 resolved in the other order, 3 not resolved" in (
+        tmp_path / "report.md").read_text()
+
+
+T_975_2 = 4.3027  # Student's t, two-sided 95%, 2 degrees of freedom (a t table)
+
+
+@pytest.fixture
+def ablation(tmp_path):
+    """Four ablation rows x seeds 0, 1, 2 on the built-in scene, test PSNR chosen so that, against
+    complete (28.0, 28.2, 27.8): no_posenc is +1.0, +1.1, +0.9 (resolved better), fewer_images +0.1, -0.1,
+    +0.2 (not resolved), no_view_dependence -3.0, -2.7, -3.3 (resolved worse)."""
+    rows = {"complete": (28.0, 28.2, 27.8), "no_posenc": (29.0, 29.3, 28.7), "fewer_images": (28.1, 28.1, 28.0),
+            "no_view_dependence": (25.0, 25.5, 24.5)}
+    for row, psnrs in rows.items():
+        for seed, psnr in enumerate(psnrs):
+            make_run(tmp_path, f"{row}_{seed}", [f"ablation={row}", f"seed={seed}"], psnr=psnr,
+                     choices={"ablation": row, "data": "procedural"})
+    return tmp_path
+
+
+def test_each_variant_against_the_complete_model_paired_by_seed(ablation):
+    write_report([ablation], ablation)
+    table = {row["variant"]: row for row in read_csv(ablation / "report.csv")}
+    assert table["ablation=complete"]["reference"] == "reference"
+    no_pe = table["ablation=no_posenc"]
+    half = T_975_2 * 0.1 / math.sqrt(3)  # differences 1.0, 1.1, 0.9: s = 0.1
+    assert (no_pe["reference"], no_pe["paired_seeds"], no_pe["verdict"]) == ("ablation=complete", "3", "better")
+    assert [float(no_pe[k]) for k in ("psnr_diff", "psnr_diff_low", "psnr_diff_high")] == pytest.approx(
+        [1.0, 1.0 - half, 1.0 + half], abs=1e-4)
+    assert table["ablation=fewer_images"]["verdict"] == "not resolved with 3 seeds"
+    assert table["ablation=no_view_dependence"]["verdict"] == "worse"
+    assert float(table["ablation=no_view_dependence"]["ssim_diff"]) == 0.0  # every run's SSIM is 0.8
+    report = (ablation / "report.md").read_text()
+    assert "| ablation=no_posenc | 3/3 | 29.00 ± 0.30 | 0.800 ± 0.000 | +1.00 [+0.75, +1.25] |" in report
+    assert "Differences are to the reference, `ablation=complete`" in report
+    # no_posenc is resolved above fewer_images (0.9, 1.2, 0.7); complete is not resolved from fewer_images
+    assert ("1. ablation=no_posenc (29.00 dB)\n2. ablation=fewer_images (28.07 dB), ablation=complete (28.00 dB)\n"
+            "3. ablation=no_view_dependence (25.00 dB)") in report
+
+
+def test_the_papers_order_counts_agreements_reversals_and_unresolved_pairs_each_named(ablation):
+    write_report([ablation], ablation)
+    report = (ablation / "report.md").read_text()
+    # the paper: complete 31.01 > fewer images 29.79 > no PE 28.77 > no VD 27.66
+    assert "Of the 6 pairs the paper orders: 3 resolved in the paper's order, 2 resolved in the other order, " \
+           "1 not resolved by these seeds." in report
+    reversed_ = report.split("**Resolved in the other order** (2):")[1].split("**Not resolved**")[0]
+    assert "- Complete Model above No Pos. Encoding: -1.00 [-1.25, -0.75] dB" in reversed_
+    assert "- Fewer Images above No Pos. Encoding: -0.93" in reversed_
+    unresolved = report.split("**Not resolved** (1):")[1]
+    assert "- Complete Model above Fewer Images: -0.07 [" in unresolved
+    # and the difference to the paper's own numbers only for Blender scenes
+    assert all(math.isnan(float(row["psnr_minus_paper"])) for row in read_csv(ablation / "report.csv"))
+    assert [PAPER_ABLATION[k][1] for k in ("complete", "no_pe_vd_h")] == [31.01, 26.67]
+
+
+def test_a_named_reference_and_a_variant_with_one_seed(sweep):
+    write_report([sweep], sweep, reference="hierarchical=true")
+    report = (sweep / "report.md").read_text()
+    # hierarchical=false finished only seed 0: one pair, no interval
+    assert "| hierarchical=false | 1/3 | 25.00 | 0.950 | 1 seed: no interval | 1 seed: no interval | " \
+           "not resolved with 1 seed |" in report
+    assert "| encoding=none | 0/1 | – | – | – | – | – |" in report  # nothing finished: nothing to compare
+    with pytest.raises(SystemExit, match="--reference 'hierarchical=maybe': no such variant; the variants are "):
+        write_report([sweep], sweep, reference="hierarchical=maybe")
+
+
+def test_mean_curves_use_the_steps_every_run_reached():
+    runs = [Run(Path(str(i)), "finished", [], curve=curve) for i, curve in enumerate([
+        [(10, 5.0, 20.0), (20, 10.0, 24.0)], [(10, 7.0, 22.0), (20, 12.0, 25.0), (30, 17.0, 26.0)]])]
+    assert mean_curve(runs) == [(6.0, 21.0, 20.0, 22.0), (11.0, 24.5, 24.0, 25.0)]
+    assert mean_curve([]) == []
+
+
+def test_averaging_over_scenes_and_machines_are_named(tmp_path):
+    for i, (root, psnr, host) in enumerate([("/d/lego", 30.0, "gpu-a"), ("/d/ship", 26.0, "gpu-b")]):
+        make_run(tmp_path, str(i), ["ablation=complete", f"data.root={root}", "seed=0"], psnr=psnr, host=host)
+    variants = group_variants(find_runs([tmp_path]), over=("seed", "data.root"))
+    assert [(v.label, v.mean("test_psnr")) for v in variants] == [("ablation=complete", 28.0)]
+    assert len(group_variants(find_runs([tmp_path]))) == 2  # by default each scene is its own variant
+    write_report([tmp_path], tmp_path)
+    assert "not comparable with each other" in (tmp_path / "report.md").read_text()
+
+
+def test_the_command_line(tmp_path, sweep):
+    out = tmp_path / "out"
+    main([str(sweep), "--out", str(out)])
+    assert {p.name for p in out.iterdir()} == {"report.md", "report.csv", "psnr_vs_time.png", "pareto.png",
+                                              "report.html", "report_images"}
+    empty = tmp_path / "empty"
+    empty.mkdir()
+    with pytest.raises(SystemExit, match="no runs"):
+        main([str(empty)])
+    with pytest.raises(SystemExit, match="is not a directory"):
+        main([str(tmp_path / "missing")])
+
+
+def test_jobs_a_stopped_sweep_never_started_are_counted(tmp_path):
+    # multirun.yaml plans hierarchical x seed = 2 x 3 = 6 jobs (as Hydra's basic sweeper writes it);
+    # four job directories exist.
+    (tmp_path / "multirun.yaml").write_text(
+        "hydra:\n  sweeper:\n    _target_: hydra._internal.core_plugins.basic_sweeper.BasicSweeper\n"
+        "    params:\n      hierarchical: true,false\n      seed: 0,1,2\n  overrides:\n    task: [scale.steps=10]\n")
+    for i in range(4):
+        make_run(tmp_path, str(i), [f"hierarchical={'true' if i < 3 else 'false'}", f"seed={i % 3}", "scale.steps=10"])
+    write_report([tmp_path], tmp_path)
+    assert f"`{tmp_path}` plans 6 jobs, 4 started: the rest never started" in (tmp_path / "report.md").read_text()
+
+
+def test_the_order_of_overrides_does_not_split_a_variant(tmp_path):
+    make_run(tmp_path, "0", ["ablation=complete", "seed=0", "+sweeps=cpu_ablation"], psnr=20.0)
+    make_run(tmp_path, "1", ["+sweeps=cpu_ablation", "seed=1", "ablation=complete"], psnr=22.0)
+    make_run(tmp_path, "2", ["ablation=no_posenc", "seed=0", "+sweeps=cpu_ablation"], psnr=18.0)
+    variants = group_variants(find_runs([tmp_path]))
+    assert [(v.label, v.mean("test_psnr")) for v in variants] == [("ablation=complete", 21.0),
+                                                                  ("ablation=no_posenc", 18.0)]
+
+
+def test_a_running_job_whose_pid_now_belongs_to_another_process_was_killed(tmp_path):
+    # the status names this test's own pid, but a process started at another time: the system reused
+    # the pid of the job's process, which is gone
+    run = make_run(tmp_path, "0", ["seed=0"], state="running", pid=os.getpid())
+    status = json.loads((run / "status.json").read_text())
+    (run / "status.json").write_text(json.dumps({**status, "process_start": process_start(os.getpid()) + 1}))
+    (job,) = find_runs([tmp_path])
+    assert job.state == "killed" and f"process {os.getpid()} is gone" in job.detail
+    (run / "status.json").write_text(json.dumps({**status, "process_start": process_start(os.getpid())}))
+    assert find_runs([tmp_path])[0].state == "running"
+
+
+def test_damaged_runs_are_listed_with_the_file_and_the_reason_and_the_rest_is_reported(sweep):
+    (sweep / "0" / "results.json").write_text('{"test_psnr": 20.0, "test_ss')  # truncated
+    metrics = (sweep / "1" / "metrics.jsonl").read_text().splitlines()
+    (sweep / "1" / "metrics.jsonl").write_text("\n".join([metrics[0][:15], *metrics[1:]]) + "\n")  # a torn line
+    (sweep / "3" / "status.json").write_text("")  # empty: the overrides are read from results.json
+    write_report([sweep], sweep)
+    report = (sweep / "report.md").read_text()
+    assert "Runs: 7 (1 finished, 1 failed, 1 killed, 1 running, 3 damaged)" in report
+    assert f"- `{sweep / '0'}` (hierarchical=true, seed=0): damaged: results.json: not readable as JSON (" in report
+    assert f"- `{sweep / '1'}` (hierarchical=true, seed=1): damaged: metrics.jsonl: line 1 is not JSON (" in report
+    assert f"- `{sweep / '3'}` (hierarchical=false, seed=0): damaged: status.json: not readable as JSON (" in report
+    rows = {row["variant"]: row for row in read_csv(sweep / "report.csv")}
+    assert float(rows["hierarchical=true"]["test_psnr_mean"]) == 24.0  # seed 2 alone is counted
+    # damaged jobs count against their variant; one whose jobs are all unusable stays in the table
+    assert {name: (row["finished"], row["runs"]) for name, row in rows.items()} == {
+        "hierarchical=true": ("1", "3"), "hierarchical=false": ("0", "3"), "encoding=none": ("0", "1")}
+    # the same through the command line: exit status 0 and the report written
+    (sweep / "report.md").unlink()
+    result = subprocess.run([str(Path(sys.executable).with_name("nerfexp-report")), str(sweep)],
+                            capture_output=True, text=True, timeout=300)
+    assert result.returncode == 0 and "Traceback" not in result.stderr, result.stderr[-2000:]
+    report = (sweep / "report.md").read_text()
+    assert "3 damaged" in report
+    assert "| hierarchical=true | 1/3 |" in report and "| hierarchical=false | 0/3 |" in report
+
+
+def test_a_damaged_job_whose_overrides_cannot_be_read_joins_no_variant(sweep):
+    (sweep / "3" / "status.json").write_text("[")
+    (sweep / "3" / "results.json").write_text("")
+    runs = find_runs([sweep])
+    assert [run.overrides for run in runs if run.state == "damaged"] == [None]
+    write_report([sweep], sweep)
+    report = (sweep / "report.md").read_text()
+    assert f"- `{sweep / '3'}` (overrides unreadable): damaged: status.json: not readable as JSON (" in report
+    rows = {row["variant"]: row for row in read_csv(sweep / "report.csv")}
+    assert set(rows) == {"hierarchical=true", "hierarchical=false", "encoding=none"}
+    assert (rows["hierarchical=false"]["finished"], rows["hierarchical=false"]["runs"]) == ("0", "2")
+
+
+def cut_last_line(run: Path) -> None:
+    """Cut the last line of a run's ``metrics.jsonl`` short, as a full disk or a kill mid-write leaves it."""
+    text = (run / "metrics.jsonl").read_text()
+    (run / "metrics.jsonl").write_text(text[:-10])
+
+
+def test_a_cut_last_metrics_line_is_damage_in_a_run_that_ended_not_in_one_that_runs(sweep):
+    for name in ("0", "4", "6"):  # finished, failed, running (this test's own process)
+        cut_last_line(sweep / name)
+    result = subprocess.run([str(Path(sys.executable).with_name("nerfexp-report")), str(sweep)],
+                            capture_output=True, text=True, timeout=300)
+    assert result.returncode == 0 and "Traceback" not in result.stderr, result.stderr[-2000:]
+    report = (sweep / "report.md").read_text()
+    assert "Runs: 7 (3 finished, 1 killed, 1 running, 2 damaged)" in report
+    assert (f"- `{sweep / '0'}` (hierarchical=true, seed=0): damaged: metrics.jsonl: line 3, the last, is cut "
+            "(no newline, and the run has ended)") in report
+    assert (f"- `{sweep / '4'}` (hierarchical=false, seed=1): damaged: metrics.jsonl: line 2, the last, is cut "
+            "(no newline, and the run has ended) (the job failed: NonFiniteError: step 7:") in report
+    running = next(run for run in find_runs([sweep]) if run.path.name == "6")
+    assert running.state == "running" and running.curve == [(10, 50.0, 15.0)]  # the line being written left out
+    assert "| hierarchical=true | 2/3 | 23.00 ± 1.41 |" in report
+
+
+def test_a_report_into_a_folder_holding_a_users_files_is_refused_and_writes_nothing(tiny_run, tmp_path):
+    out = tmp_path / "out"
+    (out / "0").mkdir(parents=True)  # a run in the folder is nerfexp's; the user's file is not
+    (out / "0" / "status.json").write_text("{}")
+    (out / "notes.txt").write_text("mine")
+    with pytest.raises(SystemExit) as exit:
+        main([str(tiny_run), "--out", str(out)])
+    assert exit.value.code == (f"nerfexp-report: error: {out} holds files nerfexp-report did not make (notes.txt): "
+                               "choose another folder for the report (--out DIR)")
+    assert sorted(p.relative_to(out).as_posix() for p in out.rglob("*")) == ["0", "0/status.json", "notes.txt"]

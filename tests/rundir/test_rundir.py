@@ -1,0 +1,284 @@
+"""The run directory: finding a run, reading the config of a run made before the package's layers,
+metrics appended by several processes at once, and telling a run's process from a reused pid."""
+
+import hashlib
+import json
+import os
+import re
+import socket
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+from hydra.utils import get_class, instantiate
+from omegaconf import OmegaConf
+
+from nerfexp.commands import scene
+from nerfexp.errors import NerfexpError
+from nerfexp.rundir.claim import admit_run, claim, held_run
+from nerfexp.rundir.layout import (
+    LAST_CHECKPOINT,
+    RUN_CONFIG,
+    append_metrics,
+    process_alive,
+    process_start,
+    read_metrics,
+)
+from nerfexp.rundir.trained import find_run, run_config
+from tests.helpers import one_error_line, run_nerfexp
+
+# The config an LLFF run saved before the layers (as nerfexp wrote it then, abridged to what builds
+# objects): the old module paths of every class, and the field's noise read from the data group.
+OLD_CONFIG = """
+model:
+  _target_: nerfexp.module.NeRFModule
+  renderer:
+    _target_: nerfexp.renderer.VolumeRenderer
+    field:
+      _target_: nerfexp.fields.NeRFField
+      _partial_: true
+      position_encoding:
+        _target_: nerfexp.encodings.PositionalEncoding
+        n_freqs: 4
+      view_head:
+        _target_: nerfexp.fields.ViewMLPHead
+        _partial_: true
+        direction_encoding:
+          _target_: nerfexp.encodings.IdentityEncoding
+        hidden: 8
+      depth: 2
+      width: 16
+      skips: [1]
+      density_noise_std: ${oc.select:data.density_noise_std,0.0}
+    hierarchical: true
+    n_coarse: 4
+    n_fine: 4
+    n_single: 8
+    near: ${data.near}
+    far: ${data.far}
+    background: ${data.background}
+    grid:
+      _target_: nerfexp.occupancy.OccupancyGrid
+  optimizer:
+    _target_: torch.optim.Adam
+    _partial_: true
+    lr: 0.001
+  lr_final: 0.0001
+data:
+  _target_: nerfexp.data.llff.LLFFScene
+  root: /somewhere
+  near: 0.0
+  far: 1.0
+  background: black
+  density_noise_std: 1.0
+callbacks:
+  flush_denormals:
+    _target_: nerfexp.module.FlushDenormals
+  guard:
+    _target_: nerfexp.guards.TrainingGuard
+"""
+
+
+def test_a_run_made_before_the_layers_is_read_with_the_current_classes(tmp_path):
+    (tmp_path / RUN_CONFIG).parent.mkdir()
+    (tmp_path / RUN_CONFIG).write_text(OLD_CONFIG)
+    cfg = run_config(tmp_path, ["data.root=/moved"])
+    assert "density_noise_std" not in cfg.data and cfg.data.root == "/moved"
+    for path in ("model", "model.renderer", "model.renderer.field.position_encoding", "model.renderer.grid"):
+        get_class(OmegaConf.select(cfg, path)._target_)  # importable where the class lives now
+    model = instantiate(cfg.model)
+    assert model.renderer.coarse.density_noise_std == 1.0 and model.renderer.grid is not None
+    assert "callbacks" not in cfg  # only training builds them (nerfexp.rundir.saved_configs.TRAINING_ONLY)
+
+
+def test_a_run_is_found_by_its_directory_or_a_checkpoint_in_it(tmp_path):
+    (tmp_path / RUN_CONFIG).parent.mkdir()
+    (tmp_path / RUN_CONFIG).write_text(OLD_CONFIG)
+    with pytest.raises(NerfexpError, match="has saved no checkpoint"):
+        find_run(tmp_path)
+    (tmp_path / LAST_CHECKPOINT).parent.mkdir()
+    (tmp_path / LAST_CHECKPOINT).write_bytes(b"")
+    assert find_run(tmp_path) == find_run(tmp_path / LAST_CHECKPOINT) == (tmp_path, tmp_path / LAST_CHECKPOINT)
+    with pytest.raises(NerfexpError, match="is not a run directory"):
+        find_run(tmp_path / "checkpoints")
+
+
+APPENDER = """
+import sys, time
+from pathlib import Path
+from nerfexp.rundir.layout import append_metrics
+run_dir, writer, go = Path(sys.argv[1]), int(sys.argv[2]), Path(sys.argv[3])
+while not go.exists():  # start together
+    time.sleep(0.01)
+for line in range(150):
+    append_metrics(run_dir, {"writer": writer, "line": line, "padding": "x" * 200})
+"""
+
+
+def test_several_processes_appending_metrics_keep_every_line_whole(tmp_path):
+    # 4 processes x 150 lines at once: read-then-replace kept about half; appends must keep all 600
+    go = tmp_path / "go"
+    writers = [subprocess.Popen([sys.executable, "-c", APPENDER, str(tmp_path), str(w), str(go)]) for w in range(4)]
+    time.sleep(0.5)
+    go.touch()
+    assert all(w.wait(timeout=300) == 0 for w in writers)
+    records = read_metrics(tmp_path)  # every line parses: none torn
+    assert sorted((r["writer"], r["line"]) for r in records) == [(w, i) for w in range(4) for i in range(150)]
+    for w in range(4):  # each writer's lines in its own order
+        assert [r["line"] for r in records if r["writer"] == w] == list(range(150))
+
+
+def test_a_line_still_being_written_is_not_read(tmp_path):
+    append_metrics(tmp_path, {"step": 1})
+    with open(tmp_path / "metrics.jsonl", "a") as file:
+        file.write('{"step": 2, "ps')  # a writer's line, half there
+    assert read_metrics(tmp_path) == [{"step": 1}]
+
+
+@pytest.mark.skipif(not Path("/proc/self/stat").exists(), reason="process start times come from Linux's /proc")
+def test_a_process_is_its_pid_and_its_start_and_a_reused_pid_is_another_process():
+    started = process_start(os.getpid())
+    child = subprocess.Popen([sys.executable, "-c", "import time; time.sleep(30)"])
+    try:
+        child_started = process_start(child.pid)
+        assert isinstance(started, int) and child_started >= started  # clock ticks since boot: later
+        assert process_alive(child.pid, child_started) and process_alive(child.pid, None)
+        assert not process_alive(child.pid, child_started + 1)  # the pid, but not the process recorded
+    finally:
+        child.kill()
+        child.wait()
+    assert process_start(child.pid) is None and not process_alive(child.pid, child_started)
+
+
+def test_a_directory_is_claimed_once_and_then_holds_a_run(tmp_path):
+    run_dir = tmp_path / "run"
+    assert held_run(run_dir) is None
+    assert claim(run_dir, ["seed=1"]) and not claim(run_dir, ["seed=2"])  # the second run finds it taken
+    assert held_run(run_dir) == "a running run (seed=1)"
+    assert [p.name for p in run_dir.iterdir()] == ["status.json"]  # whole, and no draft left beside it
+    status = json.loads((run_dir / "status.json").read_text())
+    assert (status["pid"], status["process_start"]) == (os.getpid(), process_start(os.getpid()))
+    results_only = tmp_path / "old"  # a run's results without a status (a run's files copied elsewhere)
+    (results_only / "checkpoints").mkdir(parents=True)
+    assert held_run(results_only) == "a run's results"
+
+
+def test_a_run_directory_leads_to_the_checkpoint_its_test_scored(tmp_path):
+    (tmp_path / RUN_CONFIG).parent.mkdir()
+    (tmp_path / RUN_CONFIG).write_text(OLD_CONFIG)
+    (tmp_path / "checkpoints").mkdir()
+    (tmp_path / LAST_CHECKPOINT).write_bytes(b"another run's weights")
+    scored = tmp_path / "checkpoints" / "last-v1.ckpt"
+    scored.write_bytes(b"the weights the test scored")
+    digest = hashlib.sha256(b"the weights the test scored").hexdigest()
+    (tmp_path / "results.json").write_text(json.dumps({"checkpoint": {"path": "checkpoints/last-v1.ckpt",
+                                                                      "sha256": digest}}))
+    assert find_run(tmp_path) == (tmp_path, scored)
+    assert find_run(tmp_path / LAST_CHECKPOINT) == (tmp_path, tmp_path / LAST_CHECKPOINT)  # named: used as is
+    scored.write_bytes(b"weights written over it since")
+    with pytest.raises(NerfexpError, match="is not the checkpoint the run's test scored"):
+        find_run(tmp_path)
+
+
+def test_a_directory_is_claimed_once_where_the_file_system_has_no_hard_links(tmp_path, monkeypatch):
+    def no_links(source, target):
+        raise PermissionError(f"{target}: no hard links here")
+
+    monkeypatch.setattr(os, "link", no_links)
+    assert claim(tmp_path / "run", ["seed=1"]) and not claim(tmp_path / "run", ["seed=2"])
+    assert [p.name for p in (tmp_path / "run").iterdir()] == ["status.json"]
+    assert held_run(tmp_path / "run") == "a running run (seed=1)"
+
+
+def digests(folder: Path) -> dict[str, str]:
+    """Every file under ``folder`` (relative path) with the SHA-256 of its bytes: to show nothing changed."""
+    return {p.relative_to(folder).as_posix(): hashlib.sha256(p.read_bytes()).hexdigest()
+            for p in sorted(folder.rglob("*")) if p.is_file()}
+
+
+def a_failed_run(run_dir: Path, **status) -> Path:
+    """A run directory as a run that failed on bad data leaves it: its status (``status``), config and log."""
+    (run_dir / ".hydra").mkdir(parents=True)
+    (run_dir / ".hydra" / "config.yaml").write_text("seed: 0\n")
+    (run_dir / "nerfexp.log").write_text("")
+    record = {"state": "failed", "overrides": ["seed=0"], "host": socket.gethostname(), "pid": 1} | status
+    (run_dir / "status.json").write_text(json.dumps(record))
+    return run_dir
+
+
+def test_a_run_into_a_blender_datasets_folder_is_one_line_and_changes_nothing(tmp_path):
+    dataset = tmp_path / "lego"
+    scene.main([str(dataset), "--resolution", "8", "--n-train", "2", "--n-val", "1", "--n-test", "2",
+                "--supersample", "1"])
+    (dataset / scene.MARKER).unlink()  # a dataset from elsewhere: the names nerfexp's test renders have
+    before = digests(dataset)
+    result = run_nerfexp("data=blender", f"data.root={dataset}", f"hydra.run.dir={dataset}", cwd=tmp_path)
+    assert one_error_line(result) == (f"nerfexp: error: {dataset} holds files nerfexp did not make (test/r_0.png, "
+                                      "test/r_1.png, train/r_0.png, ...): choose a new or empty directory "
+                                      "(hydra.run.dir=...)")
+    assert len(result.stderr.strip().splitlines()) == 1 and digests(dataset) == before
+
+
+def test_a_sweep_into_a_folder_holding_other_files_is_one_line_and_changes_nothing(tmp_path):
+    sweep = tmp_path / "sweep"
+    sweep.mkdir()
+    (sweep / "notes.txt").write_text("mine")
+    result = run_nerfexp("-m", "seed=0,1", f"hydra.sweep.dir={sweep}", cwd=tmp_path)
+    assert result.stderr.strip() == (f"nerfexp: error: {sweep} holds files this sweep did not make (notes.txt): "
+                                     "choose a new or empty directory (hydra.sweep.dir=...)")
+    assert result.returncode == 1 and digests(sweep) == {"notes.txt": hashlib.sha256(b"mine").hexdigest()}
+
+
+def test_a_run_that_failed_on_bad_data_is_replaced_and_only_its_files_removed(tmp_path):
+    run_dir = tmp_path / "run"
+    bad = ["data=blender", f"data.root={tmp_path / 'missing'}", "logger=none", f"hydra.run.dir={run_dir}"]
+    failed = run_nerfexp(*bad, cwd=tmp_path)
+    assert "does not exist" in one_error_line(failed) and json.loads((run_dir / "status.json").read_text())[
+        "state"] == "failed"
+    (run_dir / "empty").mkdir()  # holds nothing: kept, and no reason to refuse
+    again = run_nerfexp(*bad, "seed=7", cwd=tmp_path)
+    notice, error = again.stderr.strip().splitlines()  # the advice never names a checkpoint that does not exist
+    assert notice.startswith(f"nerfexp: {run_dir} holds a run that ended unfinished and saved no checkpoint: "
+                             "replacing it, removing its 5 files (.hydra/config.yaml, ") and "resume=" not in error
+    assert json.loads((run_dir / "status.json").read_text())["overrides"][-1] == "seed=7"
+    assert (run_dir / "empty").is_dir()
+
+    (run_dir / "notes.txt").write_text("mine")  # anything a user made there: refused, nothing removed
+    before = digests(run_dir)
+    with pytest.raises(NerfexpError, match=re.escape(f"{run_dir} holds files nerfexp did not make (notes.txt): ")):
+        admit_run(run_dir, None, "nerfexp.log")
+    assert digests(run_dir) == before
+
+
+def test_a_held_run_is_replaced_only_where_it_ended_unfinished_and_the_advice_names_a_saved_checkpoint(tmp_path):
+    # failed, or running in a process of this host that no longer runs: replaced, all of it
+    failed = a_failed_run(tmp_path / "failed")
+    assert admit_run(failed, None, "nerfexp.log") == [".hydra/config.yaml", "nerfexp.log", "status.json"]
+    dead = subprocess.Popen([sys.executable, "-c", ""])
+    dead.wait()
+    killed = a_failed_run(tmp_path / "killed", state="running", pid=dead.pid, process_start=None)
+    assert admit_run(killed, None, "nerfexp.log") == [".hydra/config.yaml", "nerfexp.log", "status.json"]
+    # running in this very process, or on another host: kept, and no checkpoint to resume from is named
+    for state in ({"state": "running", "pid": os.getpid(), "process_start": process_start(os.getpid())},
+                  {"state": "running", "host": "elsewhere"}, {"state": "finished"}):
+        held = a_failed_run(tmp_path / str(len(list(tmp_path.iterdir()))), **state)
+        with pytest.raises(NerfexpError, match=r"holds a \w+ run \(seed=0\): choose another directory") as error:
+            admit_run(held, None, "nerfexp.log")
+        assert "resume=" not in str(error.value)
+    # a failed run that saved a checkpoint is continued from the one it saved: never removed
+    (failed / "checkpoints").mkdir()
+    (failed / "checkpoints" / "epoch=0-step=30.ckpt").write_bytes(b"")
+    with pytest.raises(NerfexpError, match=re.escape(f"resume={failed}/checkpoints/epoch=0-step=30.ckpt ")):
+        admit_run(failed, None, "nerfexp.log")
+    (failed / LAST_CHECKPOINT).write_bytes(b"")
+    with pytest.raises(NerfexpError, match=re.escape(f"resume={failed / LAST_CHECKPOINT} ")):
+        admit_run(failed, None, "nerfexp.log")
+    assert admit_run(failed, str(failed / LAST_CHECKPOINT), "nerfexp.log") is None  # resume=: continued
+    # a checkpoint laid in a folder that holds no run is not a run to continue
+    elsewhere = tmp_path / "elsewhere"
+    elsewhere.mkdir()
+    (elsewhere / "model.ckpt").write_bytes(b"")
+    with pytest.raises(NerfexpError, match=r"holds files nerfexp did not make \(model.ckpt\)"):
+        admit_run(elsewhere, str(elsewhere / "model.ckpt"), "nerfexp.log")

@@ -1,0 +1,322 @@
+"""Run directories and checkpoints from others are read as data: a crafted config or checkpoint is an
+error before anything is built or unpickled, and its payload never runs."""
+
+import shutil
+from pathlib import Path
+
+import pytest
+import torch
+import yaml
+from hydra import compose, initialize_config_module
+from omegaconf import OmegaConf
+
+from nerfexp.commands import export, render, view
+from nerfexp.errors import ConfigError
+from nerfexp.rundir.layout import planned_jobs
+from nerfexp.rundir.saved_configs import buildable, targets
+from nerfexp.rundir.trained import run_config
+from tests.helpers import TINY, run_nerfexp
+
+
+class Payload:
+    """Unpickled, it creates the file ``marker`` (as a crafted pickle could run anything)."""
+
+    def __init__(self, marker: Path):
+        self.marker = marker
+
+    def __reduce__(self):
+        return open, (str(self.marker), "w")
+
+
+@pytest.mark.parametrize("overrides", [[], ["logger=csv", "acceleration=occupancy", "trainer=ddp"],
+                                       ["logger=mlflow", "view_dependence=sh", "encoding=none"],
+                                       ["logger=wandb", "data=blender", "data.root=/x", "view_dependence=none"]])
+def test_every_target_of_nerfexps_own_configs_may_be_built_from_a_saved_one(overrides):
+    with initialize_config_module("nerfexp.conf", version_base=None):
+        cfg = compose("config", overrides=overrides)
+    found = list(targets(OmegaConf.to_container(cfg, resolve=False)))
+    assert len(found) >= 8
+    assert [(key, target) for key, target in found if not buildable(target)] == []
+
+
+@pytest.mark.parametrize("target", [
+    "torch.load", "os.system", "builtins.eval", "subprocess.Popen",
+    "nerfexp.rundir.trained.torch.load",  # a function reached through a nerfexp module
+    "nerfexp.rundir.trained.Path",  # a class a nerfexp module imported, not nerfexp's
+    "nerfexp.files.atomic_write",  # nerfexp's, but a function that writes files
+    "torch.optim.adam.torch.nn.Module",  # reached from torch.optim, not an optimizer
+    "lightning.pytorch.loggers.tensorboard.os.system",
+    "nerfexp.no_such_module.Thing", "${oc.env:HOME}", 42, None])
+def test_anything_else_may_not(target):
+    assert not buildable(target)
+
+
+@pytest.fixture
+def crafted(tiny_run, tmp_path) -> tuple[Path, Path]:
+    """A copy of a finished run whose saved config builds ``torch.load`` of a crafted pickle
+    (``weights_only: false``) where the positional encoding should be; and the payload's marker file."""
+    run_dir, marker = tmp_path / "shared_run", tmp_path / "payload_ran"
+    shutil.copytree(tiny_run, run_dir)
+    torch.save({"weights": Payload(marker)}, tmp_path / "crafted.pt")
+    config_path = run_dir / ".hydra" / "config.yaml"
+    config = yaml.safe_load(config_path.read_text())
+    config["model"]["renderer"]["field"]["position_encoding"] = {
+        "_target_": "torch.load", "f": str(tmp_path / "crafted.pt"), "weights_only": False}
+    config_path.write_text(yaml.safe_dump(config))
+    return run_dir, marker
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("script", ["nerfexp-eval", "nerfexp-render"])
+def test_a_crafted_run_config_is_refused_before_anything_is_built(crafted, tmp_path, script):
+    run_dir, marker = crafted
+    before = sorted(p.name for p in run_dir.iterdir())
+    result = run_nerfexp(str(run_dir), cwd=tmp_path, script=script)
+    assert result.returncode != 0 and "Traceback" not in result.stderr, result.stderr[-3000:]
+    (line,) = [line for line in result.stderr.splitlines() if line.startswith(f"{script}: error:")]
+    assert f"{run_dir / '.hydra' / 'config.yaml'}: model.renderer.field.position_encoding._target_='torch.load'" in line
+    assert "read as data, never run" in line
+    assert not marker.exists() and sorted(p.name for p in run_dir.iterdir()) == before
+
+
+@pytest.mark.slow
+def test_a_crafted_checkpoint_is_refused_by_resume_eval_and_render(tiny_run, tmp_path, tiny):
+    marker = tmp_path / "payload_ran"
+    run_dir = tmp_path / "shared_run"
+    shutil.copytree(tiny_run, run_dir)
+    checkpoint = run_dir / "checkpoints" / "last.ckpt"
+    state = torch.load(checkpoint, weights_only=True)
+    state["payload"] = Payload(marker)  # a real checkpoint with one object that runs code when unpickled
+    torch.save(state, checkpoint)
+    for script, args in (("nerfexp-eval", [str(checkpoint)]), ("nerfexp-render", [str(checkpoint)]),
+                         ("nerfexp", [*tiny, f"resume={checkpoint}", f"hydra.run.dir={tmp_path / 'resumed'}"])):
+        result = run_nerfexp(*args, cwd=tmp_path, script=script)
+        assert result.returncode != 0 and "Traceback" not in result.stderr, (script, result.stderr[-3000:])
+        (line,) = [line for line in result.stderr.splitlines() if line.startswith(f"{script}: error:")]
+        assert f"{checkpoint}: not a checkpoint (it holds objects other than tensors" in line, (script, line)
+        assert "weights_only" not in result.stderr, (script, line)  # never torch's advice to load it as code
+        assert not marker.exists()
+    assert not (tmp_path / "resumed" / "metrics.jsonl").exists()
+
+
+@pytest.mark.parametrize("text", ["- a list\n- not a mapping\n", "model: {renderer: [unclosed\n", "\xff\xfe"])
+def test_a_saved_config_that_is_not_one_is_an_error_naming_the_file(tmp_path, text):
+    (tmp_path / ".hydra").mkdir()
+    (tmp_path / ".hydra" / "config.yaml").write_bytes(text.encode("latin-1"))
+    with pytest.raises(ConfigError, match=f"{tmp_path / '.hydra' / 'config.yaml'}: not a config nerfexp can read"):
+        run_config(tmp_path)
+
+
+# Interpolations: a saved config may only refer to its own keys; every resolver is refused wherever it is.
+
+RESOLVERS = {  # a call of each resolver OmegaConf and Hydra register, and of one the test registers
+    "oc.create": "${oc.create:{_target_: torch.load, f: payload.pt, weights_only: false}}",
+    "oc.decode": "${oc.decode:'{a: 1}'}",
+    "oc.env": "${oc.env:NERFEXP_TEST_SECRET}",
+    "oc.select": "${oc.select:scale.width,1}",
+    "oc.dict.keys": "${oc.dict.keys:scale}",
+    "oc.dict.values": "${oc.dict.values:scale}",
+    "oc.deprecated": "${oc.deprecated:scale.width}",
+    "now": "${now:%Y}",
+    "hydra": "${hydra:runtime.output_dir}",
+    "nerfexp_test_payload": "${nerfexp_test_payload:x}",
+}
+POSITIONS = {  # where in a saved config: the value there, given the resolver's call
+    "top level": ("seed", "{}"),
+    "nested dict": ("model.renderer.n_coarse", "{}"),
+    "list": ("scale.skips.0", "{}"),
+    "deeper list": ("model.optimizer.betas.1", "{}"),
+    "a _target_": ("encoding.position._target_", "{}"),
+    "inside a string": ("data.background", "white{}"),
+    "inside a reference's key": ("model.renderer.n_fine", "${{scale.{}}}"),
+    "inside a resolver's argument": ("model.chunk", "${{oc.select:scale.chunk,{}}}"),
+}
+
+
+@pytest.fixture(scope="module")
+def saved_text() -> str:
+    """A saved config as a TINY run's ``.hydra/config.yaml`` holds it (composed, nothing resolved)."""
+    with initialize_config_module("nerfexp.conf", version_base=None):
+        return OmegaConf.to_yaml(compose("config", overrides=list(TINY)))
+
+
+def put(config: dict, dotted: str, value) -> None:
+    """Set the value at ``dotted`` (list items by index) in the plain containers ``config``."""
+    *parents, leaf = dotted.split(".")
+    for key in parents:
+        config = config[int(key)] if isinstance(config, list) else config[key]
+    config[int(leaf) if isinstance(config, list) else leaf] = value
+
+
+def saved_run(tmp_path: Path, text: str, **values) -> Path:
+    """A run directory (only its saved config) whose config is ``text`` with ``values`` at dotted keys
+    (``__`` for ``.``)."""
+    config = yaml.safe_load(text)
+    for dotted, value in values.items():
+        put(config, dotted.replace("__", "."), value)
+    (tmp_path / ".hydra").mkdir(exist_ok=True)
+    (tmp_path / ".hydra" / "config.yaml").write_text(yaml.safe_dump(config))
+    return tmp_path
+
+
+@pytest.fixture
+def payload_resolver():
+    """The resolver ``nerfexp_test_payload``, registered for the test; the arguments of its calls."""
+    calls = []
+    OmegaConf.register_new_resolver("nerfexp_test_payload", lambda *args: calls.append(args) or 1)
+    yield calls
+    OmegaConf.clear_resolver("nerfexp_test_payload")
+
+
+@pytest.mark.parametrize("position", POSITIONS)
+@pytest.mark.parametrize("resolver", RESOLVERS)
+def test_every_resolver_is_refused_wherever_it_is(tmp_path, saved_text, payload_resolver, monkeypatch,
+                                                  resolver, position):
+    monkeypatch.setenv("NERFEXP_TEST_SECRET", "the reader's secret")
+    key, form = POSITIONS[position]
+    value = form.format(RESOLVERS[resolver])
+    run_dir = saved_run(tmp_path, saved_text, **{key.replace(".", "__"): value})
+    with pytest.raises(ConfigError) as raised:
+        run_config(run_dir)
+    first = "oc.select" if position == "inside a resolver's argument" else resolver
+    assert str(raised.value) == (
+        f"{run_dir / '.hydra' / 'config.yaml'}: {key}={value!r} uses the resolver {first}: a run directory from "
+        "elsewhere is read as data: only plain references ${key} to its own keys are followed")
+    assert payload_resolver == [] and "the reader's secret" not in str(raised.value)
+
+
+def test_plain_references_are_followed_and_escaped_interpolations_are_text(tmp_path, saved_text):
+    run_dir = saved_run(tmp_path, saved_text, model__renderer__n_fine="${.n_coarse}",
+                        model__chunk="${..scale.${which}}", which="chunk", note="\\${oc.env:HOME} and \\${x}")
+    cfg = run_config(run_dir)
+    assert cfg.model.renderer.n_fine == cfg.scale.n_coarse == 16  # TINY's scale.n_coarse=16
+    assert cfg.model.chunk == cfg.scale.chunk
+    assert cfg.note == "${oc.env:HOME} and ${x}"
+
+
+@pytest.mark.parametrize("overrides", [[], ["logger=csv", "trainer=ddp"], ["logger=mlflow"], ["logger=wandb"]])
+def test_nerfexps_own_saved_configs_read_back_without_what_only_training_builds(tmp_path, overrides):
+    with initialize_config_module("nerfexp.conf", version_base=None):
+        text = OmegaConf.to_yaml(compose("config", overrides=[*TINY, *overrides]))
+    assert "${hydra:runtime.output_dir}" in text
+    cfg = run_config(saved_run(tmp_path, text))
+    assert "callbacks" not in cfg and "logger" not in cfg and "default_root_dir" not in cfg.trainer
+    assert "${" not in OmegaConf.to_yaml(OmegaConf.to_container(cfg, resolve=True))
+
+
+def test_what_only_training_builds_is_never_read(tmp_path, saved_text, monkeypatch):
+    # a resolver there would be refused anywhere else; here nothing reads it
+    monkeypatch.setenv("NERFEXP_TEST_SECRET", "the reader's secret")
+    run_dir = saved_run(tmp_path, saved_text, logger__save_dir="${oc.env:NERFEXP_TEST_SECRET}",
+                        callbacks__guard__dirpath=RESOLVERS["oc.create"],
+                        trainer__default_root_dir="${oc.env:NERFEXP_TEST_SECRET}")
+    assert "the reader's secret" not in OmegaConf.to_yaml(OmegaConf.to_container(run_config(run_dir), resolve=True))
+
+
+def test_a_reference_the_config_cannot_follow_is_an_error_naming_the_key(tmp_path, saved_text):
+    run_dir = saved_run(tmp_path, saved_text, model__renderer__n_fine="${callbacks.checkpoint.every_n_train_steps}")
+    with pytest.raises(ConfigError, match=f"^{run_dir / '.hydra' / 'config.yaml'}: cannot resolve the config at "
+                                          r"model\.renderer\.n_fine: Interpolation key 'callbacks\.checkpoint"):
+        run_config(run_dir)
+
+
+@pytest.mark.parametrize(("data_noise", "expected"), [(None, 0.0), (1.0, 1.0)])
+def test_a_run_of_a_version_whose_field_selected_the_datas_noise_reads_back(tmp_path, saved_text, data_noise,
+                                                                              expected):
+    text = saved_text.replace("density_noise_std: 0.0", "density_noise_std: ${oc.select:data.density_noise_std,0.0}")
+    assert "oc.select" in text
+    run_dir = saved_run(tmp_path, text, **({} if data_noise is None else {"data__density_noise_std": data_noise}))
+    assert run_config(run_dir).model.renderer.field.density_noise_std == expected
+
+
+@pytest.mark.parametrize(("sweeper", "expected"), [
+    ("_target_: hydra._internal.core_plugins.basic_sweeper.BasicSweeper\n    params:\n"
+     "      seed: ${oc.env:NERFEXP_TEST_SECRET}\n      hierarchical: true,false", 2),
+    ("_target_: hydra_plugins.hydra_optuna_sweeper.optuna_sweeper.OptunaSweeper\n"
+     "    n_trials: ${oc.decode:'7'}", None),
+    ("_target_: ${oc.env:NERFEXP_TEST_SECRET}\n    n_trials: 5", 5),
+])
+def test_a_sweeps_multirun_yaml_is_read_as_data(tmp_path, monkeypatch, sweeper, expected):
+    monkeypatch.setenv("NERFEXP_TEST_SECRET", "0,1,2")  # three seeds, were it read: 6 jobs
+    (tmp_path / "multirun.yaml").write_text(f"hydra:\n  sweeper:\n    {sweeper}\n  overrides:\n    task: []\n")
+    assert planned_jobs(tmp_path) == expected
+
+
+def snapshot(folder: Path) -> dict:
+    """Every file under ``folder``: its size and modification time, to show nothing was written or replaced."""
+    return {p.relative_to(folder): (p.stat().st_size, p.stat().st_mtime_ns) for p in folder.rglob("*")}
+
+
+@pytest.fixture
+def created(tiny_run, tmp_path) -> tuple[Path, Path, str]:
+    """A copy of a finished run whose saved config makes, with the resolver ``oc.create``, a node that builds
+    ``torch.load`` of a crafted pickle (``weights_only: false``) where the direction encoding should be; the
+    payload's marker file; the value written."""
+    run_dir, marker = tmp_path / "shared_run", tmp_path / "payload_ran"
+    shutil.copytree(tiny_run, run_dir)
+    torch.save({"weights": Payload(marker)}, tmp_path / "crafted.pt")
+    value = f"${{oc.create:{{_target_: torch.load, f: '{tmp_path / 'crafted.pt'}', weights_only: false}}}}"
+    config_path = run_dir / ".hydra" / "config.yaml"
+    config = yaml.safe_load(config_path.read_text())
+    config["view_dependence"]["direction_encoding"] = value
+    config_path.write_text(yaml.safe_dump(config))
+    return run_dir, marker, value
+
+
+def refused_line(script: str, run_dir: Path, value: str) -> str:
+    return (f"{script}: error: {run_dir / '.hydra' / 'config.yaml'}: view_dependence.direction_encoding={value!r} "
+            "uses the resolver oc.create: a run directory from elsewhere is read as data: only plain references "
+            "${key} to its own keys are followed")
+
+
+@pytest.mark.slow
+def test_a_node_a_resolver_creates_is_refused_before_anything_is_built(created, tmp_path):
+    run_dir, marker, value = created
+    before = snapshot(run_dir)
+    result = run_nerfexp(str(run_dir), cwd=tmp_path, script="nerfexp-eval")
+    assert result.returncode == 1 and "Traceback" not in result.stderr, result.stderr[-3000:]
+    assert [line for line in result.stderr.splitlines() if "error" in line] == [
+        refused_line("nerfexp-eval", run_dir, value)]
+    assert not marker.exists() and snapshot(run_dir) == before
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("script", ["nerfexp-render", "nerfexp-export", "nerfexp-view"])
+def test_so_it_is_by_every_command_that_reads_a_run_back(created, script):
+    # in the process (the same one line as above, as eval's subprocess shows): the view never starts serving
+    run_dir, marker, value = created
+    main = {"nerfexp-render": render.main, "nerfexp-export": export.main, "nerfexp-view": view.main}[script]
+    before = snapshot(run_dir)
+    with pytest.raises(SystemExit) as ended:
+        main([str(run_dir)])
+    assert str(ended.value) == refused_line(script, run_dir, value)
+    assert not marker.exists() and snapshot(run_dir) == before
+
+
+@pytest.mark.slow
+def test_the_readers_environment_never_reaches_what_is_built_or_written(tiny_run, tmp_path, monkeypatch, capsys):
+    from nerfexp.commands.evaluate import main  # in the process: the environment is the test's
+
+    secret = "the-readers-secret"
+    monkeypatch.setenv("NERFEXP_TEST_SECRET", secret)
+    run_dir = tmp_path / "shared_run"
+    shutil.copytree(tiny_run, run_dir)
+    config_path = run_dir / ".hydra" / "config.yaml"
+    config = yaml.safe_load(config_path.read_text())
+    config["data"]["n_test"] = "${oc.env:NERFEXP_TEST_SECRET}"  # built: refused
+    config_path.write_text(yaml.safe_dump(config))
+    before = snapshot(run_dir)
+    with pytest.raises(SystemExit) as ended:
+        main([str(run_dir)])
+    assert str(ended.value).startswith(f"nerfexp-eval: error: {config_path}: data.n_test=")
+    assert secret not in str(ended.value)
+    assert snapshot(run_dir) == before
+    config["data"]["n_test"] = 2  # now only where training alone reads it: never read
+    config["logger"]["save_dir"] = config["trainer"]["default_root_dir"] = "${oc.env:NERFEXP_TEST_SECRET}"
+    config_path.write_text(yaml.safe_dump(config))
+    before = snapshot(run_dir)
+    main([str(run_dir)])
+    written = [run_dir / path for path, stat in snapshot(run_dir).items() if before.get(path) != stat]
+    assert run_dir / "eval.json" in written and secret not in capsys.readouterr().out
+    assert not [path for path in written if path.is_file() and secret.encode() in path.read_bytes()]
+    assert not [path for path in tmp_path.rglob("*") if secret in str(path)]

@@ -1,0 +1,62 @@
+import math
+
+import numpy as np
+import pytest
+import torch
+
+from nerfexp.pixels import quantize
+from nerfexp.training.metrics import psnr, ssim
+
+
+def test_psnr_of_a_known_error():
+    target = torch.full((8, 8, 3), 100 / 255)
+    image = torch.full((8, 8, 3), 110 / 255)  # error 10/255 everywhere: PSNR = 20 log10(25.5)
+    assert math.isclose(psnr(image, target), 20 * math.log10(25.5), rel_tol=1e-9)
+
+
+def test_psnr_quantizes_like_a_saved_png():
+    target = torch.full((4, 4, 3), 0.5)
+    assert psnr(target + 0.4 / 255, target) == math.inf  # rounds to the same 8-bit value
+    assert torch.equal(quantize(torch.tensor([-1.0, 0.5 / 255 - 1e-6, 2.0])), torch.tensor([0.0, 0.0, 1.0]))
+
+
+def test_ssim_identical_and_known_structure():
+    rng = np.random.default_rng(0)
+    image = torch.from_numpy(rng.random((32, 32, 3))).float()
+    assert ssim(image, image) == pytest.approx(1.0)
+    # A constant image against itself shifted by c: only the luminance term differs. With the
+    # population statistics every window has mu_x = a, mu_y = a + c, sigma = 0, so
+    # SSIM = (2 a (a + c) + C1) / (a^2 + (a + c)^2 + C1), C1 = (0.01)^2.
+    a, c = 102 / 255, 51 / 255
+    value = ssim(torch.full((32, 32, 3), a + c), torch.full((32, 32, 3), a))
+    c1 = 0.01 ** 2
+    assert value == pytest.approx((2 * a * (a + c) + c1) / (a * a + (a + c) ** 2 + c1), rel=1e-9)
+
+
+def _reference_ssim(a: np.ndarray, b: np.ndarray) -> float:
+    """SSIM as tf.image.ssim(max_val=1) defines it, written out: an 11-tap Gaussian of sigma 1.5,
+    'valid' filtering, population (co)variances, K1 = 0.01, K2 = 0.03, mean over pixels and channels."""
+    x = np.arange(11) - 5.0
+    g = np.exp(-x ** 2 / (2 * 1.5 ** 2))
+    g /= g.sum()
+
+    def blur(img):  # separable valid convolution over rows then columns, per channel
+        rows = np.stack([np.convolve(r, g, "valid") for r in img.reshape(img.shape[0], -1).T], 1)
+        rows = rows.reshape(-1, img.shape[1], img.shape[2])
+        return np.stack([[np.convolve(rows[i, :, c], g, "valid") for c in range(img.shape[2])]
+                         for i in range(rows.shape[0])]).transpose(0, 2, 1)
+
+    c1, c2 = 0.01 ** 2, 0.03 ** 2
+    mu_a, mu_b = blur(a), blur(b)
+    var_a, var_b = blur(a * a) - mu_a ** 2, blur(b * b) - mu_b ** 2
+    cov = blur(a * b) - mu_a * mu_b
+    ssim_map = (2 * mu_a * mu_b + c1) * (2 * cov + c2) / ((mu_a ** 2 + mu_b ** 2 + c1) * (var_a + var_b + c2))
+    return float(ssim_map.mean())
+
+
+def test_ssim_matches_a_written_out_tensorflow_convention_reference():
+    rng = np.random.default_rng(1)
+    a = rng.random((40, 36, 3))
+    b = np.clip(a + rng.normal(0, 0.1, a.shape), 0, 1)
+    qa, qb = (quantize(torch.from_numpy(x)) for x in (a, b))
+    assert ssim(qa, qb) == pytest.approx(_reference_ssim(qa.numpy(), qb.numpy()), abs=1e-9)
