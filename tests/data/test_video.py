@@ -35,7 +35,7 @@ from nerfexp.data.video import (
 from nerfexp.errors import ConfigError, DatasetError
 from nerfexp.extras import MissingExtraError
 from nerfexp.geometry.cameras import focal_from_fov
-from tests.data.test_colmap import (
+from tests.data.photographs import (
     SIZE,
     digest,
     render_photographs,

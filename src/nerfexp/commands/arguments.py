@@ -51,3 +51,10 @@ def add_run_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("run", type=Path, help="a run directory (its checkpoints/last.ckpt), or a checkpoint file")
     parser.add_argument("overrides", nargs="*", metavar="KEY=VALUE",
                         help="changes to the run's config, e.g. data.root=/new/place/of/the/scene")
+
+
+def add_chunk_argument(parser: argparse.ArgumentParser, also: str = "") -> None:
+    """``--chunk N``: the rays a command that renders a trained run renders at once, which bounds its memory
+    (checked when the run is loaded: ``nerfexp.rundir.trained.load_run``); ``also``: what else it sets there."""
+    parser.add_argument("--chunk", type=positive(int),
+                        help=f"rays rendered at once, which bounds the memory (default: the run's model.chunk){also}")

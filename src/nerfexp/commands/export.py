@@ -27,7 +27,7 @@ from pathlib import Path
 from hydra.utils import instantiate
 from omegaconf import DictConfig
 
-from nerfexp.commands.arguments import add_run_arguments, command_parser, fitting, positive
+from nerfexp.commands.arguments import add_chunk_argument, add_run_arguments, command_parser, fitting, positive
 from nerfexp.commands.console import run_command
 from nerfexp.data.base import Scene
 from nerfexp.errors import NerfexpError
@@ -134,9 +134,7 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--min-opacity", type=_opacity, default=0.5,
                         help="points: the test views' pixels whose rendered opacity is at least this, in (0, 1], "
                              "become points (default 0.5)")
-    parser.add_argument("--chunk", type=positive(int),
-                        help="rays rendered at once for the points (default: the run's model.chunk); the mesh's "
-                             "grid is evaluated as many points at a time as CHUNK rays evaluate")
+    add_chunk_argument(parser, "; the mesh's grid is evaluated as many points at a time as CHUNK rays evaluate")
     return parser
 
 

@@ -18,7 +18,7 @@ from pathlib import Path
 
 from hydra.utils import instantiate
 
-from nerfexp.commands.arguments import add_run_arguments, command_parser, fitting, positive
+from nerfexp.commands.arguments import add_chunk_argument, add_run_arguments, command_parser, fitting, positive
 from nerfexp.commands.console import run_command
 from nerfexp.errors import NerfexpError
 from nerfexp.extras import require
@@ -82,7 +82,7 @@ def build_parser() -> argparse.ArgumentParser:
                         "--cameras file's fps, else 30)")
     parser.add_argument("--size", type=_even, help="frame width in pixels, even; the height keeps the "
                         "cameras' aspect ratio (default: the training views' width, or the --cameras file's)")
-    parser.add_argument("--chunk", type=positive(int), help="rays rendered at once (default: the run's model.chunk)")
+    add_chunk_argument(parser)
     parser.add_argument("--focus", type=positive(float), help="spiral only: the depth its cameras look at "
                         "(default: from the scene's depth bounds)")
     return parser

@@ -8,7 +8,7 @@ from typing import NoReturn
 
 from hydra.utils import instantiate
 
-from nerfexp.commands.arguments import add_run_arguments, command_parser, port, positive
+from nerfexp.commands.arguments import add_chunk_argument, add_run_arguments, command_parser, port, positive
 from nerfexp.commands.console import run_command
 from nerfexp.commands.signals import ending_signals, received_signal
 from nerfexp.errors import NerfexpError
@@ -58,9 +58,7 @@ def build_parser() -> argparse.ArgumentParser:
                              "forward the port over SSH: docs/viewer.md)")
     parser.add_argument("--port", type=port, default=8080,
                         help="port to serve on (default 8080; the next free one where it is taken; 0: any free one)")
-    parser.add_argument("--chunk", type=positive(int),
-                        help="rays rendered at once, and between which a render is abandoned when the camera "
-                             "moves (default: the run's model.chunk)")
+    add_chunk_argument(parser, "; a render is abandoned between chunks when the camera moves")
     parser.add_argument("--max-width", type=positive(int),
                         help="the finest render's width in pixels at most (default: the test views' width); "
                              "the browser's canvas sets it where narrower, and the height")

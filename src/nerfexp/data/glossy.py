@@ -31,15 +31,15 @@ from torch import Tensor
 
 from nerfexp.data.procedural import (
     LIGHT_DIRECTION,
-    _checker,
-    _hit_or_miss,
-    _nearest,
-    _unit,
+    checker,
+    hit_or_miss,
     intersect_cylinder,
     intersect_sphere,
     load_procedural,
+    nearest_hit,
     render_rgba,
     shade,
+    unit,
 )
 from nerfexp.data.views import Views
 
@@ -99,9 +99,9 @@ SURFACE_OFFSET = 1e-4
 def torus_frame(axis, dtype=torch.float64) -> Tensor:
     """Rotation [3, 3] whose rows are an orthonormal frame (u, v, a), a = unit(axis): ``x @ frame.T``
     writes world vectors in the torus's frame, where its axis is z; ``x_local @ frame`` maps them back."""
-    a = _unit(torch.as_tensor(axis, dtype=dtype))
+    a = unit(torch.as_tensor(axis, dtype=dtype))
     helper = torch.tensor([1.0, 0.0, 0.0] if abs(float(a[0])) < 0.9 else [0.0, 1.0, 0.0], dtype=dtype)
-    u = _unit(torch.linalg.cross(helper, a))
+    u = unit(torch.linalg.cross(helper, a))
     return torch.stack([u, torch.linalg.cross(a, u), a])
 
 
@@ -117,7 +117,7 @@ def torus_normal(points: Tensor, major: float) -> Tensor:
     the nearest point of the centre circle, R (x, y, 0) / rho, to the point."""
     rho = torch.linalg.vector_norm(points[..., :2], dim=-1, keepdim=True).clamp_min(torch.finfo(points.dtype).tiny)
     core = torch.cat([major * points[..., :2] / rho, torch.zeros_like(rho)], -1)
-    return _unit(points - core)
+    return unit(points - core)
 
 
 def _torus_bounds(q: Tensor, d: Tensor, major: float, minor: float) -> tuple[Tensor, Tensor]:
@@ -189,12 +189,12 @@ def intersect_torus(
     t[hit] = _newton(q[hit], d[hit], t[hit], major, minor)
     normal = torch.zeros_like(q)
     normal[hit] = torus_normal(q[hit] + t[hit, None] * d[hit], major) @ frame
-    return _hit_or_miss(hit.reshape(shape), t.reshape(shape), normal.reshape(*shape, 3))
+    return hit_or_miss(hit.reshape(shape), t.reshape(shape), normal.reshape(*shape, 3))
 
 
 def intersect_glossy(origins: Tensor, directions: Tensor) -> tuple[Tensor, Tensor, Tensor]:
     """First hit with the scene: (t [...], normal [..., 3], object index [...]): base, mirror, torus."""
-    return _nearest([
+    return nearest_hit([
         intersect_cylinder(origins, directions, *BASE),
         intersect_sphere(origins, directions, *MIRROR),
         intersect_torus(origins, directions, TORUS_CENTRE, TORUS_MAJOR, TORUS_MINOR, TORUS_AXIS),
@@ -230,7 +230,7 @@ def environment(directions: Tensor) -> Tensor:
         weight = _soft_box(across, half_width) * _soft_box(elevation - centre_elevation, half_height)
         rgb = rgb + weight[..., None] * torch.tensor(window_colour, dtype=dtype)
     sun_radius, sun_colour = SUN
-    light = _unit(torch.tensor(LIGHT_DIRECTION, dtype=dtype))
+    light = unit(torch.tensor(LIGHT_DIRECTION, dtype=dtype))
     sun = torch.exp(-2 * (1 - (directions * light).sum(-1)) / sun_radius**2)  # 2 (1 - cos a) ~ a^2
     return (rgb + sun[..., None] * torch.tensor(sun_colour, dtype=dtype)).clamp(0, 1)
 
@@ -249,7 +249,7 @@ def albedo(points: Tensor, normals: Tensor, index: Tensor) -> Tensor:
     """Diffuse colour [..., 3] of the surface points [..., 3] of objects ``index`` [...]: the base's 3-D
     checker (cubes sampled half a cube inside the surface, away from the faces they would flicker on), a
     black mirror, the torus's colour."""
-    base = _checker((points - 0.5 * BASE_CHECKER_SIZE * normals) / BASE_CHECKER_SIZE, BASE_COLOURS)
+    base = checker((points - 0.5 * BASE_CHECKER_SIZE * normals) / BASE_CHECKER_SIZE, BASE_COLOURS)
     mirror, torus = (torch.tensor(c, dtype=points.dtype) for c in ((0.0, 0.0, 0.0), TORUS_COLOUR))
     colours = torch.stack(torch.broadcast_tensors(base, mirror, torus), -2)  # [..., 3 objects, 3]
     return torch.gather(colours, -2, index[..., None, None].expand(*index.shape, 1, 3)).squeeze(-2)
@@ -262,8 +262,8 @@ def surface_colour(points: Tensor, normals: Tensor, view_dirs: Tensor, index: Te
     dtype = points.dtype
     diffuse = shade(normals, view_dirs, albedo(points, normals, index), torch.zeros_like(index, dtype=dtype))
     fresnel = schlick((normals * view_dirs).sum(-1).clamp(0, 1), torch.tensor(F0, dtype=dtype)[index])[..., None]
-    light = _unit(torch.tensor(LIGHT_DIRECTION, dtype=dtype))
-    n_dot_h = (normals * _unit(light + view_dirs)).sum(-1).clamp_min(0)
+    light = unit(torch.tensor(LIGHT_DIRECTION, dtype=dtype))
+    n_dot_h = (normals * unit(light + view_dirs)).sum(-1).clamp_min(0)
     highlight = torch.tensor(SPECULAR, dtype=dtype)[index] * n_dot_h**SHININESS * ((normals * light).sum(-1) > 0)
     tint = torch.tensor(TINT, dtype=dtype)[index]
     return ((1 - fresnel) * diffuse + fresnel * tint * incoming + highlight[..., None]).clamp(0, 1)

@@ -56,7 +56,7 @@ RAY_CHUNK = 2**16  # rays traced at once
 RAYS_PER_GROUP = 2**20  # sub-pixel rays per rendered group of views
 
 
-def _unit(v: Tensor) -> Tensor:
+def unit(v: Tensor) -> Tensor:
     return v / torch.linalg.vector_norm(v, dim=-1, keepdim=True).clamp_min(torch.finfo(v.dtype).tiny)
 
 
@@ -73,7 +73,7 @@ def objects_box() -> Tensor:
     return torch.stack([torch.tensor(lower).amin(0), torch.tensor(upper).amax(0)])
 
 
-def _hit_or_miss(hit: Tensor, t: Tensor, normal: Tensor) -> tuple[Tensor, Tensor]:
+def hit_or_miss(hit: Tensor, t: Tensor, normal: Tensor) -> tuple[Tensor, Tensor]:
     return torch.where(hit, t, torch.inf), torch.where(hit[..., None], normal, 0.0)
 
 
@@ -87,7 +87,7 @@ def intersect_sphere(origins: Tensor, directions: Tensor, centre, radius: float)
     b = (directions * q).sum(-1)
     disc = b * b - ((q * q).sum(-1) - radius**2)
     t = -b - torch.sqrt(disc.clamp_min(0))
-    return _hit_or_miss((disc >= 0) & (t > 0), t, (q + t[..., None] * directions) / radius)
+    return hit_or_miss((disc >= 0) & (t > 0), t, (q + t[..., None] * directions) / radius)
 
 
 def intersect_box(origins: Tensor, directions: Tensor, lo, hi) -> tuple[Tensor, Tensor]:
@@ -103,7 +103,7 @@ def intersect_box(origins: Tensor, directions: Tensor, lo, hi) -> tuple[Tensor, 
     t_in, axis = torch.minimum(t_lo, t_hi).max(-1)
     t_out = torch.maximum(t_lo, t_hi).amin(-1)
     normal = -torch.sign(directions) * torch.nn.functional.one_hot(axis, 3).to(origins.dtype)
-    return _hit_or_miss((t_in > 0) & (t_in <= t_out), t_in, normal)
+    return hit_or_miss((t_in > 0) & (t_in <= t_out), t_in, normal)
 
 
 def intersect_cylinder(
@@ -125,16 +125,16 @@ def intersect_cylinder(
     t_side = (-b - torch.sqrt(disc.clamp_min(0))) / a.clamp_min(torch.finfo(a.dtype).tiny)
     z_side = qz + t_side * dz
     side = (a > 0) & (disc >= 0) & (t_side > 0) & (z_side >= z_bottom) & (z_side <= z_top)
-    candidates = [_hit_or_miss(side, t_side, torch.stack([qx + t_side * dx, qy + t_side * dy, 0 * qz], -1) / radius)]
+    candidates = [hit_or_miss(side, t_side, torch.stack([qx + t_side * dx, qy + t_side * dy, 0 * qz], -1) / radius)]
     for z_cap, up in ((z_top, 1.0), (z_bottom, -1.0)):
         t_cap = (z_cap - qz) / torch.where(dz == 0, 1.0, dz)
         in_disc = (qx + t_cap * dx) ** 2 + (qy + t_cap * dy) ** 2 <= radius**2
         normal = torch.tensor([0.0, 0.0, up], dtype=origins.dtype).expand_as(q)
-        candidates.append(_hit_or_miss((dz != 0) & (t_cap > 0) & in_disc, t_cap, normal))
-    return _nearest(candidates)[:2]
+        candidates.append(hit_or_miss((dz != 0) & (t_cap > 0) & in_disc, t_cap, normal))
+    return nearest_hit(candidates)[:2]
 
 
-def _nearest(hits: list[tuple[Tensor, Tensor]]) -> tuple[Tensor, Tensor, Tensor]:
+def nearest_hit(hits: list[tuple[Tensor, Tensor]]) -> tuple[Tensor, Tensor, Tensor]:
     """The nearest of K intersections ``(t, normal)``: (t [...], normal [..., 3], index [...])."""
     ts = torch.stack([t for t, _ in hits], -1)  # [..., K]
     normals = torch.stack([n for _, n in hits], -2)  # [..., K, 3]
@@ -154,7 +154,7 @@ def intersect_scene(origins: Tensor, directions: Tensor) -> tuple[Tensor, Tensor
         intersect_sphere(origins, directions, *STRIPED),
     ]
     hits += [intersect_cylinder(origins, directions, xy, r, SLAB[1][2], top) for xy, r, top, _ in RODS]
-    return _nearest(hits)
+    return nearest_hit(hits)
 
 
 def _box_distance(points: Tensor, lower, upper) -> Tensor:
@@ -184,7 +184,7 @@ def signed_distances(points: Tensor) -> Tensor:
     return torch.stack(columns, -1)
 
 
-def _checker(cells: Tensor, colours) -> Tensor:
+def checker(cells: Tensor, colours) -> Tensor:
     """Alternating colours [..., 3] by the parity of the summed integer cell coordinates [..., D]."""
     odd = (torch.floor(cells).sum(-1) % 2)[..., None]
     first, second = (torch.tensor(c, dtype=cells.dtype) for c in colours)
@@ -194,12 +194,12 @@ def _checker(cells: Tensor, colours) -> Tensor:
 def albedo(points: Tensor, normals: Tensor, index: Tensor) -> Tensor:
     """Diffuse colour [..., 3] of the surface points [..., 3] of objects ``index`` [...]."""
     # Half a square inside the surface, cells are away from the face planes they would flicker on.
-    slab = _checker((points - 0.5 * CHECKER_SIZE * normals) / CHECKER_SIZE, CHECKER_COLOURS)
+    slab = checker((points - 0.5 * CHECKER_SIZE * normals) / CHECKER_SIZE, CHECKER_COLOURS)
     longitude = torch.atan2(normals[..., 1], normals[..., 0]) + math.pi  # [0, 2 pi]
     latitude = torch.acos(normals[..., 2].clamp(-1, 1))  # [0, pi]
     cells = torch.stack([longitude / (2 * math.pi) * STRIPED_CELLS[0], latitude / math.pi * STRIPED_CELLS[1]], -1)
     glossy, rods = (torch.tensor(c, dtype=points.dtype) for c in (GLOSSY[2], [c for *_, c in RODS]))
-    table = [slab, glossy, _checker(cells, STRIPED_COLOURS), *rods]  # the order of intersect_scene
+    table = [slab, glossy, checker(cells, STRIPED_COLOURS), *rods]  # the order of intersect_scene
     colours = torch.stack(torch.broadcast_tensors(*table), -2)  # [..., K, 3]
     return torch.gather(colours, -2, index[..., None, None].expand(*index.shape, 1, 3)).squeeze(-2)
 
@@ -210,9 +210,9 @@ def shade(normals: Tensor, view_dirs: Tensor, albedo: Tensor, specular: Tensor) 
     rgb = albedo (A + (1 - A) max(n.l, 0)) + k_s max(n.h, 0)^p [n.l > 0], h = unit(l + v).
     ``view_dirs`` [..., 3] point from the surface to the eye; ``specular`` [...] is k_s.
     """
-    light = _unit(torch.tensor(LIGHT_DIRECTION, dtype=normals.dtype))
+    light = unit(torch.tensor(LIGHT_DIRECTION, dtype=normals.dtype))
     n_dot_l = (normals * light).sum(-1)
-    n_dot_h = (normals * _unit(light + view_dirs)).sum(-1).clamp_min(0)
+    n_dot_h = (normals * unit(light + view_dirs)).sum(-1).clamp_min(0)
     highlight = specular * n_dot_h**SHININESS * (n_dot_l > 0)
     rgb = albedo * (AMBIENT + (1 - AMBIENT) * n_dot_l.clamp_min(0))[..., None] + highlight[..., None]
     return rgb.clamp(0, 1)

@@ -157,6 +157,10 @@ class HashGridEncoding(Bounded):
         self.hashed = nn.Parameter(torch.empty(len(hashed), self.table_size, features_per_level)
                                    .uniform_(-init_range, init_range))
         self.register_buffer("hashed_resolutions", torch.tensor(hashed, dtype=torch.float32), persistent=False)
+        # the hash's constants, built once and moved with the module (not saved: checkpoints keep their keys)
+        self.register_buffer("hash_primes", torch.tensor(HASH_PRIMES), persistent=False)  # [3] int64
+        self.register_buffer("level_offsets", self.table_size * torch.arange(len(hashed))[:, None],
+                             persistent=False)  # [L_h, 1]: the first row of each level in the flat table
 
     def forward(self, x: Tensor) -> Tensor:
         """x [..., 3] -> [..., out_dim]."""
@@ -173,18 +177,18 @@ class HashGridEncoding(Bounded):
 
     def _hashed_features(self, unit: Tensor) -> Tensor:
         """unit positions [N, 3] in [0, 1] -> interpolated features of the hashed levels [N, L_h, F]."""
-        levels, table_size, n_features = self.hashed.shape
+        _, table_size, n_features = self.hashed.shape
         scaled = unit[:, None, :] * self.hashed_resolutions[:, None].to(unit.dtype)  # [N, L_h, 3]
         lower = scaled.floor().clamp(max=self.hashed_resolutions[:, None].to(unit.dtype) - 1)  # 1 -> the last cell
         frac = scaled - lower
         vertices = lower.long()
-        primes = torch.tensor(HASH_PRIMES, device=unit.device)
         # hashed per axis, then combined: (a xor b) mod 2^n = (a mod 2^n) xor (b mod 2^n); int64 products of
         # vertices below 2^20 cannot overflow
-        rows = (torch.stack([vertices, vertices + 1], -1) * primes[:, None]) & (table_size - 1)  # [N, L_h, 3, 2]
+        corner_pairs = torch.stack([vertices, vertices + 1], -1)  # [N, L_h, 3, 2]
+        rows = (corner_pairs * self.hash_primes[:, None]) & (table_size - 1)  # [N, L_h, 3, 2]
         rx, ry, rz = rows.unbind(-2)  # [N, L_h, 2]: the lower and upper vertex along each axis
         corners = (rx[..., :, None, None] ^ ry[..., None, :, None] ^ rz[..., None, None, :]).flatten(-3)  # [N, L_h, 8]
-        corners = corners + table_size * torch.arange(levels, device=unit.device)[:, None]  # rows of the flat table
+        corners = corners + self.level_offsets  # rows of the flat table
         linear = torch.stack([1 - frac, frac], -1)  # [N, L_h, 3, 2]: weights of the lower and upper vertex
         wx, wy, wz = linear.unbind(-2)
         weights = (wx[..., :, None, None] * wy[..., None, :, None] * wz[..., None, None, :]).flatten(-3)

@@ -28,10 +28,11 @@ import torch
 from torch import Tensor
 
 from nerfexp.data.base import Scene
+from nerfexp.extras import require
 from nerfexp.files import atomic_write
 from nerfexp.geometry.camera_paths import mean_up
 from nerfexp.geometry.cameras import focal_from_fov
-from nerfexp.geometry.viewer_cameras import vertical_fov, viewer_c2w, viewer_pose
+from nerfexp.geometry.viewer_cameras import flip_camera_axes, vertical_fov
 from nerfexp.products.camera_files import CameraPath
 from nerfexp.products.frames import KINDS, frame_bands, frame_images, rgb_pixels, scene_depth_range
 from nerfexp.rundir.layout import CAMERA_PATH
@@ -55,6 +56,26 @@ def refinement_sizes(height: int, width: int, divisors: tuple[int, ...] = DIVISO
         if size not in sizes:
             sizes.append(size)
     return sizes
+
+
+def viewer_c2w(wxyz: Tensor, position: Tensor) -> Tensor:
+    """nerfexp's camera-to-world matrix [..., 4, 4] (OpenGL, float64) of a viewer's camera (OpenCV): its
+    orientation ``wxyz`` [..., 4] (a unit quaternion w + xi + yj + zk, the rotation R in p_world = R p_camera +
+    t, as viser's ``SO3`` reads it) and ``position`` t [..., 3]."""
+    so3 = require("viser", "nerfexp-view").transforms.SO3
+    opencv = torch.zeros(*position.shape[:-1], 4, 4, dtype=torch.float64)
+    opencv[..., :3, :3] = torch.from_numpy(so3(wxyz.double().numpy()).as_matrix())
+    opencv[..., :3, 3] = position.double()
+    opencv[..., 3, 3] = 1
+    return flip_camera_axes(opencv)
+
+
+def viewer_pose(c2w: Tensor) -> tuple[Tensor, Tensor]:
+    """A viewer's ``(wxyz [..., 4], position [..., 3])`` (OpenCV, float64) of nerfexp's cameras ``c2w``
+    [..., 4, 4] (OpenGL): the inverse of ``viewer_c2w``, the quaternion by viser's ``SO3.from_matrix``."""
+    so3 = require("viser", "nerfexp-view").transforms.SO3
+    opencv = flip_camera_axes(c2w)
+    return torch.from_numpy(so3.from_matrix(opencv[..., :3, :3].numpy()).wxyz), opencv[..., :3, 3]
 
 
 def target_size(aspect: float, canvas_width: int, max_width: int) -> tuple[int, int]:
