@@ -106,7 +106,8 @@ def one_error_line(result, prog: str = "nerfexp") -> str:
 
 def make_run(root: Path, name: str, overrides: list[str], state: str = "finished", psnr: float = 20.0,
              ssim: float = 0.8, time_s: float = 100.0, choices: dict | None = None, pid: int | None = None,
-             error: str = "", host: str | None = None, curve=((50.0, 15.0), (100.0, 18.0))) -> Path:
+             error: str = "", host: str | None = None, curve=((50.0, 15.0), (100.0, 18.0)),
+             precision: str = "32-true") -> Path:
     """A run directory ``root/name`` as nerfexp leaves it, with known numbers: its status, its validation
     ``curve`` (wall seconds, PSNR), and where ``state`` is finished its test scores and results.json."""
     run = root / name
@@ -124,7 +125,7 @@ def make_run(root: Path, name: str, overrides: list[str], state: str = "finished
                    "steps": 20, "time_per_step_s": time_s / 20, "rays_per_s": 256 * 20 / time_s,
                    "batch_rays": 256, "n_params": 1000, "evaluations_per_ray": 96,
                    "machine": {"host": host or "lab-pc", "device": "CPU (2 cores, 2 torch threads)"},
-                   "choices": choices or {}, "overrides": overrides}
+                   "choices": choices or {}, "overrides": overrides, "precision": precision}
         (run / "results.json").write_text(json.dumps(results))
     (run / "metrics.jsonl").write_text("".join(json.dumps(line) + "\n" for line in lines))
     return run

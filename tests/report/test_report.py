@@ -15,7 +15,7 @@ import pytest
 from nerfexp.commands.report import main
 from nerfexp.report.folder import write_report
 from nerfexp.report.plots import mean_curve
-from nerfexp.report.runs import Run, find_runs
+from nerfexp.report.runs import Run, find_runs, run_precision
 from nerfexp.report.variants import PAPER_ABLATION, group_variants
 from nerfexp.rundir.layout import process_start
 from tests.helpers import make_run
@@ -70,6 +70,31 @@ def test_means_stds_and_unfinished_jobs_exactly(sweep):
     # one seed of hierarchical=false pairs with one of hierarchical=true: no interval, so one line
     assert "1. hierarchical=false (25.00 dB), hierarchical=true (22.00 dB)" in report
     assert "No reference variant" in report and "PSNR - reference" not in report
+
+
+def test_runs_in_different_precisions_are_said_to_differ(tmp_path):
+    # one sweep in float32 throughout; another whose bf16 variant has a float32 run among its seeds
+    uniform, mixed = tmp_path / "uniform", tmp_path / "mixed"
+    for seed in range(2):
+        make_run(uniform, f"{seed}", ["encoding=posenc", f"seed={seed}"])
+        make_run(mixed, f"a{seed}", ["trainer=bf16", f"seed={seed}"], precision="bf16-mixed" if seed else "32-true")
+        make_run(mixed, f"b{seed}", ["trainer=default", f"seed={seed}"])
+    write_report([uniform], uniform)
+    report = (uniform / "report.md").read_text()
+    assert "Every run trained in 32-true precision." in report and "| precision |" not in report
+    write_report([mixed], mixed)
+    report = (mixed / "report.md").read_text()
+    assert "Runs trained in different precisions (32-true, bf16-mixed)" in report
+    assert "Variants whose own runs differ in precision: trainer=bf16." in report
+    assert "| trainer=bf16 | 2/2 | 20.00 ± 0.00 | 0.800 ± 0.000 | 32-true (1), bf16-mixed (1) |" in report
+    rows = {row["variant"]: row["precision"] for row in read_csv(mixed / "report.csv")}
+    assert rows == {"trainer=bf16": "32-true (1), bf16-mixed (1)", "trainer=default": "32-true"}
+
+
+def test_an_earlier_nerfexps_run_has_its_precision_read_from_its_config():
+    assert run_precision({"config": {"trainer": {"precision": "16-mixed"}}}) == "16-mixed"
+    assert run_precision({"precision": "bf16-mixed", "config": {"trainer": {"precision": "auto"}}}) == "bf16-mixed"
+    assert run_precision({}) == "unrecorded"
 
 
 def test_plots_are_pngs_of_the_stated_size(sweep):

@@ -32,6 +32,7 @@ from nerfexp.settings.checks import check_settings
 from nerfexp.settings.schema import PASSED_ON, matching
 from nerfexp.settings.unused import unused_settings, without_unused
 from nerfexp.training.loggers import finish
+from nerfexp.training.precision import fill_precision
 from nerfexp.training.progress import progress_bars
 from nerfexp.training.recorders import RunRecorder
 from nerfexp.training.resume import check_resume, checkpoint_settings, group_choices, read_resumed, resume_record
@@ -57,6 +58,7 @@ def train(cfg: DictConfig) -> dict | None:
         log.warning("%s: not used with %s; results.json records it as null", override, reason)
     quiet_dependencies()
     fill_ray_bounds(cfg)
+    fill_precision(cfg)
     L.seed_everything(cfg.seed, workers=True, verbose=False)
     runtime = HydraConfig.get().runtime
     choices = {k: v for k, v in runtime.choices.items() if not k.startswith("hydra") and v is not None}
@@ -93,8 +95,9 @@ def train(cfg: DictConfig) -> dict | None:
     if not trainer.is_global_zero:
         return None
     results = read_json(recorder.output_dir / RESULTS)
-    log.info("test PSNR %.2f dB, SSIM %.4f after %d steps in %.0f s; outputs in %s", results["test_psnr"],
-             results["test_ssim"], results["steps"], results["train_time_s"], recorder.output_dir)
+    log.info("test PSNR %.2f dB, SSIM %.4f after %d steps in %.0f s (%s); outputs in %s", results["test_psnr"],
+             results["test_ssim"], results["steps"], results["train_time_s"], results["precision"],
+             recorder.output_dir)
     return results
 
 

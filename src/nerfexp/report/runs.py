@@ -29,6 +29,14 @@ class Run:
     curve: list[tuple[int, float, float]] = field(default_factory=list)  # (step, wall seconds, validation PSNR)
 
 
+def run_precision(results: dict) -> str:
+    """The precision a finished run trained in, from its results.json: ``precision``, else (an earlier
+    nerfexp's) its recorded config's ``trainer.precision``; "unrecorded" where neither says."""
+    trainer = (results.get("config") or {}).get("trainer") or {}
+    recorded = results.get("precision", trainer.get("precision"))
+    return "unrecorded" if recorded is None else str(recorded)
+
+
 class Damaged(Exception):
     """A run's file that cannot be read as nerfexp writes it; the message names the file and why."""
 

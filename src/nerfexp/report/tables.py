@@ -8,7 +8,7 @@ import math
 from pathlib import Path
 
 from nerfexp.report.comparison import Difference, compare_order, tiers
-from nerfexp.report.runs import Run
+from nerfexp.report.runs import Run, run_precision
 from nerfexp.report.variants import PAPER_ABLATION, Variant, difference
 from nerfexp.rundir.layout import PARETO_PLOT, PSNR_PLOT, planned_jobs
 
@@ -26,7 +26,7 @@ COLUMNS = ("variant", "runs", "finished", "test_psnr_mean", "test_psnr_std", "te
            "reference", "paired_seeds", "psnr_diff", "psnr_diff_low", "psnr_diff_high",
            "ssim_diff", "ssim_diff_low", "ssim_diff_high", "verdict",
            "train_time_s", "time_per_step_s", "rays_per_s", "n_params", "evaluations_per_ray",
-           "paper_row", "paper_psnr", "paper_ssim", "psnr_minus_paper")
+           "paper_row", "paper_psnr", "paper_ssim", "psnr_minus_paper", "precision")
 
 
 METRICS = ("psnr", "ssim")  # the test scores compared with the reference
@@ -72,7 +72,7 @@ def table_rows(variants: list[Variant], reference: Variant | None = None) -> lis
                "evaluations_per_ray": v.mean("evaluations_per_ray"),
                "paper_row": paper[0] if paper else "", "paper_psnr": paper[1] if paper else math.nan,
                "paper_ssim": paper[2] if paper else math.nan, "psnr_minus_paper": math.nan,
-               "differences": differences}
+               "precision": v.precision, "differences": differences}
         if paper and v.choice("data") == "blender":
             row["psnr_minus_paper"] = row["test_psnr_mean"] - paper[1]
         rows.append(row)
@@ -133,6 +133,19 @@ def machines_text(runs: list[Run]) -> str:
             f"preparing the data and the final test not), on {where}.{note}")
 
 
+def precision_text(variants: list[Variant]) -> tuple[str, bool]:
+    """What the finished runs trained in, and whether they differ (then report.md gives each variant's)."""
+    seen = sorted({run_precision(run.results) for v in variants for run in v.finished})
+    if len(seen) <= 1:
+        return (f"Every run trained in {seen[0]} precision." if seen else ""), False
+    mixed = [v.label for v in variants if len({run_precision(run.results) for run in v.finished}) > 1]
+    text = (f"Runs trained in different precisions ({', '.join(seen)}): the precision column says which, and "
+            "differences between them are partly the precision's.")
+    if mixed:
+        text += f" Variants whose own runs differ in precision: {'; '.join(mixed)}."
+    return text, True
+
+
 def markdown(variants: list[Variant], rows: list[dict], runs: list[Run], sources: list[Path],
              reference: Variant | None = None) -> str:
     """report.md: the ``variants`` with their ``rows`` (``table_rows`` against ``reference``), the ranking,
@@ -144,7 +157,8 @@ def markdown(variants: list[Variant], rows: list[dict], runs: list[Run], sources
     order = ["finished", "failed", "killed", "running", "damaged", "unknown"]
     states = {state: n for state in order if (n := sum(run.state == state for run in runs))}
     has_paper = any(row["paper_row"] for row in rows)
-    header = ["variant", "runs", "test PSNR (dB)", "test SSIM"]
+    precisions, mixed = precision_text(variants)
+    header = ["variant", "runs", "test PSNR (dB)", "test SSIM"] + (["precision"] if mixed else [])
     if reference is not None:
         header += ["PSNR - reference (95% CI)", "SSIM - reference (95% CI)", "verdict (PSNR)"]
     header += ["train time (s)", "s / step", "rays / s", "params", "evals / ray"]
@@ -154,11 +168,13 @@ def markdown(variants: list[Variant], rows: list[dict], runs: list[Run], sources
         "# nerfexp report", "",
         f"Runs: {len(runs)} ({', '.join(f'{n} {s}' for s, n in states.items())}) from "
         f"{', '.join(f'`{s}`' for s in sources)}. Means ± sample standard deviation over each variant's "
-        "finished runs. " + machines_text(runs), "", reference_text(reference), "",
+        "finished runs. " + machines_text(runs) + (f" {precisions}" if precisions else ""), "",
+        reference_text(reference), "",
         "| " + " | ".join(header) + " |", "|" + "---|" * len(header),
     ]
     for v, row in zip(variants, rows):
         cells = [row["variant"], f"{row['finished']}/{row['runs']}", _pm(v, "test_psnr", 2), _pm(v, "test_ssim", 3)]
+        cells += [row["precision"]] if mixed else []
         if reference is not None:
             if v is reference or not v.finished:
                 cells += ["reference" if v is reference else "–"] * 3

@@ -4,10 +4,11 @@ their differences paired by seed (``nerfexp.report.comparison``)."""
 
 import math
 import statistics
+from collections import Counter
 from dataclasses import dataclass
 
 from nerfexp.report.comparison import Difference, paired_difference
-from nerfexp.report.runs import Run
+from nerfexp.report.runs import Run, run_precision
 
 PAPER_ABLATION = {
     "no_pe_vd_h": ("No PE, VD, H", 26.67, 0.906),
@@ -56,6 +57,14 @@ class Variant:
         """The variant's choice of a config group, where all its finished runs agree."""
         values = {run.results["choices"].get(key) for run in self.finished}
         return values.pop() if len(values) == 1 else None
+
+    @property
+    def precision(self) -> str:
+        """The precision its finished runs trained in (``run_precision``): one, or each with its count."""
+        counts = Counter(run_precision(run.results) for run in self.finished)
+        if len(counts) == 1:
+            return next(iter(counts))
+        return ", ".join(f"{precision} ({n})" for precision, n in sorted(counts.items()))
 
     @property
     def paper(self) -> tuple[str, float, float] | None:

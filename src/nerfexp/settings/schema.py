@@ -80,7 +80,8 @@ DEVICES = ("a whole number >= 1, a list of device indices, or auto",
            lambda v: v == "auto" or COUNT[1](v) or (isinstance(v, list) and v != [] and all(map(is_whole, v))))
 PLUGINS = ("a list of plugin configs ({_target_: ...}), or null",
            lambda v: v is None or (isinstance(v, list) and all(isinstance(p, dict) and "_target_" in p for p in v)))
-PRECISIONS = choice(*get_args(_PRECISION_INPUT_STR), *get_args(_PRECISION_INPUT_STR_ALIAS))
+# "auto": bf16-mixed where this machine runs bf16 fast, else 32-true (nerfexp.training.precision)
+PRECISIONS = choice("auto", *get_args(_PRECISION_INPUT_STR), *get_args(_PRECISION_INPUT_STR_ALIAS))
 ACCELERATORS = choice("auto", "gpu", *sorted(AcceleratorRegistry.available_accelerators()))
 STRATEGIES = choice("auto", *StrategyRegistry.available_strategies())
 SKIPS = whole_list(0)

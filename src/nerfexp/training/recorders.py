@@ -222,7 +222,7 @@ class RunRecorder(L.Callback):
             "train_time_s": self.elapsed_s, "steps": steps,
             "time_per_step_s": self.elapsed_s / max(steps, 1),
             "rays_per_s": batch_rays * steps / self.elapsed_s if batch_rays and self.elapsed_s > 0 else None,
-            "batch_rays": batch_rays, "processes": trainer.world_size,
+            "batch_rays": batch_rays, "processes": trainer.world_size, "precision": str(trainer.precision),
             "n_params": sum(p.numel() for p in pl_module.parameters()),
             "evaluations_per_ray": renderer.evaluations_per_ray,
             "machine": machine(), "choices": self.choices, "overrides": self.overrides,

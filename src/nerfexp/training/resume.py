@@ -14,6 +14,7 @@ A job reads the checkpoint once (``read_resumed``), keeping of it only what resu
 Lightning reads it again, whole, to continue training from it.
 """
 
+import copy
 import functools
 import json
 from collections.abc import Mapping
@@ -28,6 +29,7 @@ from nerfexp.config_keys import leaves, source_key
 from nerfexp.errors import NerfexpError
 from nerfexp.rundir.layout import RUN_CONFIG
 from nerfexp.rundir.trained import read_checkpoint, run_config
+from nerfexp.training.precision import fill_precision
 
 SETTINGS = "nerfexp_settings"  # a checkpoint's key: {"settings": flat_settings, "choices": config group -> option}
 RESUMES = "nerfexp_resumes"  # a checkpoint's key: the record of each resume that led to it (``resume_record``)
@@ -201,6 +203,8 @@ class ResumeCheck(Callback):
     def on_run_start(self, config: DictConfig, **kwargs) -> None:
         if config.get("resume") is None:
             return
+        config = copy.deepcopy(config)
+        fill_precision(config)  # as the job will: a checkpoint records the precision auto chose
         try:
             check_resume(config, group_choices(config.hydra.runtime.choices), Path(config.resume))
         except NerfexpError as error:
