@@ -139,11 +139,12 @@ def profile_step(model, datamodule, n_steps: int) -> dict:
     matrix products take in them (self time of ``MATMUL_OPS``; on a GPU, their kernels' device time).
 
     The grid is updated at the first of the steps timed and of the steps profiled (in training: every
-    ``update_every`` steps), so with fewer than ``update_every`` steps its cost is overstated a little."""
+    ``update_every`` steps), so with fewer than ``update_every`` steps its cost is overstated a little.
+    The optimizer is the model's own (the config's: sparse table gradients need ``LazyAdam``)."""
     model.train()
     device = model.device
     batches = [move_data_to_device(b, device) for b, _ in zip(datamodule.train_dataloader(), range(2 * n_steps))]
-    optimizer = torch.optim.Adam(model.parameters(), lr=1e-5)
+    optimizer = model.optimizer(model.parameter_groups())
     for i, batch in enumerate(batches[:n_steps]):  # warm-up: allocator, kernels, caches
         plain_step(model, optimizer, batch, i + 1)
     synchronize(device)

@@ -37,6 +37,10 @@ from tests.helpers import one_error_line, run_nerfexp
                       "width, skips, view_hidden, n_coarse, n_fine, n_single, chunk, val_every, image_size, "
                       "position_input_scale, max_side, test_stride, hash_log2_table_size, hash_finest; the closest: "
                       "scale.lr)"),
+    (["encoding=hashgrid", "encoding.position.sparse_gradients=true"],
+     "encoding.position.sparse_gradients=true and model.optimizer._target_=torch.optim.Adam: expected an optimizer "
+     "that takes sparse gradients (nerfexp.training.optimizers.LazyAdam), or set "
+     "encoding.position.sparse_gradients=false"),
     (["trainer.max_step=3"], "trainer.max_step=3: no such key (trainer has _target_, accelerator, devices, precision, "
                              "max_steps, val_check_interval, check_val_every_n_epoch, num_sanity_val_steps, "
                              "log_every_n_steps, default_root_dir, enable_progress_bar, enable_model_summary, "

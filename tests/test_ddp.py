@@ -142,3 +142,21 @@ def test_distributed_evaluation_of_a_checkpoint_scores_as_one_process(ddp_sweep,
     assert evaluation["test_ssim_per_view"] == pytest.approx([s for _, s in truth], abs=1e-6)
     assert results["test_psnr_per_view"] == pytest.approx([p for p, _ in truth], abs=1e-6)
     assert (evaluation["test_psnr"], evaluation["test_ssim"]) == (results["test_psnr"], results["test_ssim"])
+
+
+@pytest.mark.slow
+def test_hash_tables_train_with_dense_gradients_under_ddp(tmp_path):
+    # DDP all-reduces dense gradients (a sparse one stops its reducer: "Cannot access storage of
+    # SparseTensorImpl"): with several processes the module makes the tables' gradients dense, once, and says so
+    done = run_nerfexp(*TINY, *DDP, "encoding=hashgrid", "encoding.position.sparse_gradients=true",
+                       "model.optimizer._target_=nerfexp.training.optimizers.LazyAdam",
+                       "scale.hash_log2_table_size=12", "scale.hash_finest=64", "scale.steps=10", "scale.val_every=10",
+                       f"hydra.run.dir={tmp_path}", cwd=tmp_path)
+    assert done.returncode == 0, done.stderr[-3000:]
+    results = read_json(tmp_path / "results.json")
+    assert (results["processes"], results["steps"]) == (2, 10)
+    assert results["config"]["encoding"]["position"]["sparse_gradients"] is True
+    lines = [line for line in (tmp_path / "nerfexp.log").read_text().splitlines() if "gradients are dense" in line]
+    assert len(lines) == 1 and lines[0].endswith("2 processes: the hash tables' gradients are dense (DDP all-reduces "
+                                                 "dense gradients); encoding.position.sparse_gradients=true applies "
+                                                 "to one process")

@@ -40,10 +40,15 @@ def entry(enc: HashGridEncoding, level: int, vertex: list[int]) -> torch.Tensor:
     if level < len(enc.dense):
         i, j, k = vertex
         return enc.dense[level][0, :, i, j, k].double()
+    return enc.hashed[hashed_row(enc, level, vertex)].double()
+
+
+def hashed_row(enc: HashGridEncoding, level: int, vertex: list[int]) -> tuple[int, int]:
+    """Where a hashed ``level`` stores ``vertex``: (its index among the hashed levels, its row in the table)."""
     row = 0
     for v, prime in zip(vertex, HASH_PRIMES, strict=True):
         row ^= v * prime  # Python integers: no overflow, no masking before the end
-    return enc.hashed[level - len(enc.dense), row % enc.table_size].double()
+    return level - len(enc.dense), row % enc.table_size
 
 
 def small_encoding(**kwargs) -> HashGridEncoding:
@@ -180,3 +185,46 @@ def test_the_box_travels_with_the_weights():
     assert loaded.position_encoding.has_bounds
     x = torch.rand(5, 3)
     torch.testing.assert_close(loaded.density(x), trained.density(x))
+
+
+def test_under_bf16_autocast_the_lookups_stay_in_float32():
+    # the table's features are read and interpolated in its own precision: the same numbers as without autocast
+    enc = small_encoding(log2_table_size=8)
+    points = torch.rand(64, 3, generator=torch.Generator().manual_seed(1)) * 2 - 1
+    expected = enc(points)
+    with torch.autocast("cpu", dtype=torch.bfloat16):
+        features = enc(points)
+    assert features.dtype == torch.float32
+    torch.testing.assert_close(features, expected, atol=0, rtol=0)
+
+
+def rows_read(enc: HashGridEncoding, points: torch.Tensor) -> set[tuple[int, int]]:
+    """The (hashed level, row) entries the encoding of points [N, 3] reads: every corner of every hashed level."""
+    lo, hi = torch.tensor(BOX, dtype=torch.float64)
+    read = set()
+    for p in points.double():
+        unit = ((p - lo) / (hi - lo)).clamp(0, 1).tolist()
+        for level, n in enumerate(enc.resolutions[len(enc.dense):], start=len(enc.dense)):
+            cell = [min(math.floor(u * n), n - 1) for u in unit]
+            for corner in itertools.product((0, 1), repeat=3):
+                read.add(hashed_row(enc, level, [c + o for c, o in zip(cell, corner, strict=True)]))
+    return read
+
+
+def test_sparse_gradients_hold_each_row_read_once_with_the_dense_gradients_sum():
+    dense, sparse = small_encoding(), small_encoding(sparse_gradients=True)  # the same tables (seeded)
+    assert sparse.state_dict().keys() == dense.state_dict().keys()  # checkpoints of either load in the other
+    generator = torch.Generator().manual_seed(2)
+    lo, hi = torch.tensor(BOX)
+    points = lo + torch.rand(40, 3, generator=generator) * (hi - lo)
+    weights = torch.randn(dense.out_dim, generator=generator)
+    for enc in (dense, sparse):
+        (enc(points) @ weights).sum().backward()
+    grad = sparse.hashed.grad
+    assert grad.is_sparse and (grad.sparse_dim(), grad.dense_dim()) == (2, 1) and grad.shape == sparse.hashed.shape
+    rows = [tuple(index) for index in grad._indices().T.tolist()]
+    assert len(rows) == len(set(rows))  # summed: each row once
+    assert set(rows) == rows_read(sparse, points) and len(rows) < sparse.hashed[..., 0].numel()
+    torch.testing.assert_close(grad.to_dense(), dense.hashed.grad)  # the dense gradient, up to summation order
+    for a, b in zip(dense.dense, sparse.dense, strict=True):  # the dense levels keep dense gradients
+        assert not b.grad.is_sparse and torch.equal(a.grad, b.grad)

@@ -2,6 +2,7 @@
 against analytic density fields whose densities are known everywhere."""
 
 import math
+from types import SimpleNamespace
 
 import pytest
 import torch
@@ -164,3 +165,20 @@ def test_the_warm_up_follows_a_falling_density_at_once_and_then_remembers():
     assert seen.sum() == 16
     grid.update(3, [lambda x: torch.zeros(len(x))])  # those re-evaluated now halve, the others keep theirs
     assert set(grid.density[seen].tolist()) <= {8.0, 4.0} and (grid.density[seen] == 4.0).any()
+
+
+def test_a_faint_density_floor_everywhere_leaves_empty_cells_empty():
+    # A trained field's softplus density is never 0: the hash grid's coarse network keeps a faint floor in
+    # empty space (on the glossy scene a median of about 0.005: benchmarks/occupancy_hashgrid.py). With a
+    # floor of 0.02 under sigma_t = 0.0464 (16 cells over BOX) and the blob's mean 0.27 + 0.02 above it,
+    # the threshold is sigma_t: a cell is empty exactly where the blob adds less than sigma_t - 0.02.
+    floor = 0.02
+    blob = GaussianBlob(peak=5.0, radius=0.3)
+    grid = trained_grid(SimpleNamespace(density=lambda x: blob.density(x) + floor))
+    sigma_t = density_threshold(0.01, math.sqrt(3) * 2 / 16)
+    smallest, largest = blob_density_range(blob, grid)
+    empty, solid = largest + floor < sigma_t, smallest + floor > sigma_t
+    assert empty.sum() > 1500 and solid.sum() > 100
+    assert not grid.occupied[empty].any() and grid.occupied[solid].all()
+    # a floor above sigma_t fills the box: the grid leaves nothing out
+    assert trained_grid(SimpleNamespace(density=lambda x: blob.density(x) + 2 * sigma_t)).occupied.all()

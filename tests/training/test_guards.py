@@ -13,9 +13,11 @@ from torch import nn
 from torch.utils.data import DataLoader
 
 from nerfexp.errors import FieldCollapseError, NonFiniteError
+from nerfexp.nerf.encodings import HashGridEncoding
 from nerfexp.nerf.volume_renderer import VolumeRenderer
 from nerfexp.training.guards import TrainingGuard
 from nerfexp.training.module import NeRFModule
+from nerfexp.training.optimizers import LazyAdam
 from tests.helpers import nan_targets, run_nerfexp
 
 
@@ -61,11 +63,26 @@ class EmptyBut(nn.Module):
         return torch.sigmoid(self.raw).expand(*positions.shape[:-1], 3), sigma
 
 
-def module(coarse: nn.Module, fine: nn.Module) -> NeRFModule:
+class HashField(nn.Module):
+    """rgb and sigma from one linear map of a hash grid's features: a table position_encoding.hashed [2, 16, 2]
+    (two hashed levels of 16 rows; with ``sparse_gradients``, a sparse gradient) and layer.weight [4, 4]."""
+
+    def __init__(self, sparse_gradients: bool):
+        super().__init__()
+        self.position_encoding = HashGridEncoding(n_levels=2, log2_table_size=4, coarsest=4, finest=8, init_range=0.5,
+                                                  aabb=[[-4.0] * 3, [4.0] * 3], sparse_gradients=sparse_gradients)
+        self.layer = nn.Linear(4, 4)
+
+    def forward(self, positions, directions):
+        out = self.layer(self.position_encoding(positions))
+        return torch.sigmoid(out[..., :3]), F.softplus(out[..., 3])
+
+
+def module(coarse: nn.Module, fine: nn.Module, optimizer=torch.optim.Adam) -> NeRFModule:
     fields = iter([coarse, fine])
     renderer = VolumeRenderer(lambda: next(fields), hierarchical=True, n_coarse=4, n_fine=4, n_single=8,
                               near=2.0, far=6.0)
-    return NeRFModule(renderer, functools.partial(torch.optim.Adam, lr=1e-2), lr_final=1e-2)
+    return NeRFModule(renderer, functools.partial(optimizer, lr=1e-2), lr_final=1e-2)
 
 
 def batches(n: int) -> list[dict]:
@@ -99,6 +116,25 @@ def poison(parameter: nn.Parameter, trainer_of, steps: set[int]) -> None:
             grad[:] = math.nan
         return grad
     parameter.register_hook(hook)
+
+
+def poison_rows(table: nn.Parameter, trainer_of, steps: set[int]) -> None:
+    """At ``steps``, the gradient of hash table ``table`` [L, T, F] (dense or sparse) gets nan in the first row
+    the batch touched and inf in the first feature of the second (rows in row-major order)."""
+    def hook(grad):
+        if trainer_of().global_step not in steps:
+            return grad
+        if grad.is_sparse:
+            grad = grad.coalesce()
+            values = grad.values().clone()
+            values[0], values[1, 0] = math.nan, math.inf
+            return torch.sparse_coo_tensor(grad.indices(), values, grad.shape, check_invariants=True)
+        grad = grad.clone()
+        rows = grad.view(-1, grad.shape[-1])
+        first, second = rows.any(-1).nonzero()[:2, 0].tolist()
+        rows[first], rows[second, 0] = math.nan, math.inf
+        return grad
+    table.register_hook(hook)
 
 
 class Snapshots(L.Callback):
@@ -141,6 +177,37 @@ def test_a_nan_gradient_stops_naming_step_parameter_network_and_counts(tmp_path)
     grad = saved["gradients"]["renderer.fine.layer.weight"]
     assert int(grad.isnan().sum()) == 3 and int(grad.isinf().sum()) == 1
     assert torch.isfinite(saved["gradients"]["renderer.coarse.layer.weight"]).all()
+
+
+@pytest.mark.parametrize("sparse", [False, True])
+def test_a_nan_in_a_hash_tables_gradient_stops_dense_or_sparse(tmp_path, sparse):
+    torch.manual_seed(0)
+    m = module(HashField(sparse), HashField(sparse), LazyAdam)
+    table = m.renderer.fine.position_encoding.hashed
+    poison_rows(table, lambda: m.trainer, {2})
+    with pytest.raises(NonFiniteError) as error:
+        fit(m, TrainingGuard(), 5, tmp_path)
+    path = tmp_path / "debug" / "nonfinite_step2.pt"
+    grad = torch.load(path, weights_only=True)["gradients"]["renderer.fine.position_encoding.hashed"]
+    assert grad.is_sparse == sparse and grad.shape == (2, 16, 2)
+    held = grad._values() if sparse else grad  # sparse: the rows the batch touched (fewer than the table's 32)
+    assert int(held.isnan().sum()) == 2 and int(held.isinf().sum()) == 1
+    entries = f"{held.numel()} entries it holds (the rows the batch touched)" if sparse else "64 entries"
+    assert str(error.value) == (f"step 2: the gradient of renderer.fine.position_encoding.hashed (fine network) is "
+                                f"nan in 2 and infinite in 1 of {entries}; batch and weights saved to {path}; "
+                                "the run stopped here")
+    assert not sparse or held.numel() < 64
+
+
+def test_a_skipped_batch_leaves_a_sparse_table_and_its_moments_alone(tmp_path):
+    torch.manual_seed(0)
+    m = module(HashField(True), HashField(True), LazyAdam)
+    table = m.renderer.fine.position_encoding.hashed
+    poison_rows(table, lambda: m.trainer, {2})
+    snapshots = Snapshots()
+    trainer = fit(m, TrainingGuard(on_nonfinite="skip"), 4, tmp_path, callbacks=[snapshots])
+    assert [step for step, (before, after) in sorted(snapshots.steps.items()) if unchanged(before, after)] == [2]
+    assert trainer.optimizers[0].state[table]["step"] == 3
 
 
 def test_several_bad_gradients_name_the_first_and_count_the_rest(tmp_path):

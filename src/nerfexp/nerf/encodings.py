@@ -58,26 +58,46 @@ class PositionalEncoding(nn.Module):
 
 
 class _GatherRows(torch.autograd.Function):
-    """rows [M] of a table [R, F] -> [M, F], whose backward sums the gradients of repeated rows with one
-    ``bincount`` per feature: on a CPU several times faster than ``index_select``'s scatter-add backward."""
+    """rows [M] of a table [..., F] (flat indices into its leading dims, row-major) -> [M, F].
+
+    The backward sums the gradients of repeated rows. Dense (``sparse=False``): one ``bincount`` per
+    feature over every row of the table, on a CPU several times faster than ``index_select``'s
+    scatter-add backward. Sparse (``sparse=True``): a sparse COO gradient holding only the rows gathered,
+    coalesced (each row once, its gradients summed; indices sorted), with the table's leading dims as its
+    sparse dims and F as its dense dim: its cost follows M, not the table's size.
+    """
 
     @staticmethod
-    def forward(ctx, table: Tensor, rows: Tensor) -> Tensor:
+    def forward(ctx, table: Tensor, rows: Tensor, sparse: bool) -> Tensor:
         ctx.save_for_backward(rows)
-        ctx.n_rows = table.shape[0]
-        return table.index_select(0, rows)
+        ctx.table_shape = table.shape
+        ctx.sparse = sparse
+        return table.reshape(-1, table.shape[-1]).index_select(0, rows)
 
     @staticmethod
-    def backward(ctx, grad: Tensor) -> tuple[Tensor, None]:
+    def backward(ctx, grad: Tensor) -> tuple[Tensor, None, None]:
         (rows,) = ctx.saved_tensors
+        if ctx.sparse:
+            return summed_rows(rows, grad, ctx.table_shape), None, None
         columns = grad.T.contiguous()  # [F, M]
-        sums = [torch.bincount(rows, weights=column, minlength=ctx.n_rows) for column in columns]
-        return torch.stack(sums, -1).to(grad.dtype), None
+        n_rows = math.prod(ctx.table_shape[:-1])
+        sums = [torch.bincount(rows, weights=column, minlength=n_rows) for column in columns]
+        return torch.stack(sums, -1).to(grad.dtype).view(ctx.table_shape), None, None
 
 
-def gather_rows(table: Tensor, rows: Tensor) -> Tensor:
-    """table [R, F] at rows [M] (int64) -> [M, F], differentiable in ``table`` (``_GatherRows``)."""
-    return _GatherRows.apply(table, rows)
+def summed_rows(rows: Tensor, grad: Tensor, table_shape: torch.Size) -> Tensor:
+    """Gradients grad [M, F] of rows [M] (flat indices into ``table_shape``'s leading dims) summed per
+    row, as a coalesced sparse COO tensor of ``table_shape`` [..., F] (hybrid: the leading dims sparse)."""
+    touched, slot = torch.unique(rows, sorted=True, return_inverse=True)  # [U] ascending, [M] into it
+    sums = grad.new_zeros(len(touched), grad.shape[-1]).index_add_(0, slot, grad)  # [U, F]
+    indices = torch.stack(torch.unravel_index(touched, table_shape[:-1]))  # [S, U], lexicographic order
+    return torch.sparse_coo_tensor(indices, sums, table_shape, is_coalesced=True, check_invariants=False)
+
+
+def gather_rows(table: Tensor, rows: Tensor, sparse: bool = False) -> Tensor:
+    """table [..., F] at rows [M] (int64, flat indices into its leading dims) -> [M, F], differentiable
+    in ``table``: a dense gradient, or with ``sparse`` a sparse one of the rows gathered (``_GatherRows``)."""
+    return _GatherRows.apply(table, rows, sparse)
 
 
 def level_resolutions(n_levels: int, coarsest: int, finest: int) -> list[int]:
@@ -127,11 +147,16 @@ class HashGridEncoding(Bounded):
 
     Layout: ``dense`` is a ParameterList of the dense levels (coarsest first), ``hashed`` the [L_h, T, F]
     table of the others; the output follows the levels in order.
+
+    ``sparse_gradients``: the hashed table's gradient is a sparse COO tensor of the rows the batch read
+    (sparse dims level and row, dense dim F; coalesced), so that an optimizer that takes one
+    (``nerfexp.training.optimizers.LazyAdam``) reads and updates those rows only, whatever T; the dense
+    levels keep dense gradients. torch.optim.Adam refuses sparse gradients.
     """
 
     def __init__(self, n_levels: int = 16, features_per_level: int = 2, log2_table_size: int = 19,
                  coarsest: int = 16, finest: int = 2048, include_input: bool = False, init_range: float = 1e-4,
-                 aabb: Sequence[Sequence[float]] | None = None):
+                 aabb: Sequence[Sequence[float]] | None = None, sparse_gradients: bool = False):
         values = {"n_levels": n_levels, "features_per_level": features_per_level, "log2_table_size": log2_table_size,
                   "coarsest": coarsest, "finest": finest, "init_range": init_range}
         checks = {"n_levels": n_levels >= 1, "features_per_level": features_per_level >= 1,
@@ -145,6 +170,7 @@ class HashGridEncoding(Bounded):
         super().__init__(aabb)
         self.in_dim = 3
         self.include_input = include_input
+        self.sparse_gradients = sparse_gradients
         self.features_per_level = features_per_level
         self.table_size = 2**log2_table_size
         self.resolutions = level_resolutions(n_levels, coarsest, finest)
@@ -163,8 +189,17 @@ class HashGridEncoding(Bounded):
                              persistent=False)  # [L_h, 1]: the first row of each level in the flat table
 
     def forward(self, x: Tensor) -> Tensor:
-        """x [..., 3] -> [..., out_dim]."""
+        """x [..., 3] -> [..., out_dim] in the table's dtype (float32 in training), autocast or not.
+
+        The lookups and their interpolation are gather- and scatter-bound, not matrix products: under
+        bf16 autocast they would only add casts of the gathered corners (and round the table's
+        features to 8 bits), so they run in the table's precision; the network after them autocasts."""
         self.require_bounds()
+        with torch.autocast(x.device.type, enabled=False):
+            return self._features(x.to(self.hashed.dtype))
+
+    def _features(self, x: Tensor) -> Tensor:
+        """``forward`` outside autocast."""
         points = x.reshape(-1, 3)
         unit = ((points - self.aabb[0]) / (self.aabb[1] - self.aabb[0])).clamp(0, 1)  # [N, 3]
         parts = [points] if self.include_input else []
@@ -192,5 +227,5 @@ class HashGridEncoding(Bounded):
         linear = torch.stack([1 - frac, frac], -1)  # [N, L_h, 3, 2]: weights of the lower and upper vertex
         wx, wy, wz = linear.unbind(-2)
         weights = (wx[..., :, None, None] * wy[..., None, :, None] * wz[..., None, None, :]).flatten(-3)
-        values = gather_rows(self.hashed.view(-1, n_features), corners.flatten())
+        values = gather_rows(self.hashed, corners.flatten(), sparse=self.sparse_gradients)  # [N L_h 8, F]
         return (weights[..., None, :] @ values.view(*corners.shape, n_features)).squeeze(-2)  # [N, L_h, F]

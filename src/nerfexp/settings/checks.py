@@ -123,6 +123,22 @@ def check_memory(cfg: DictConfig) -> None:
                        f"hash tables of {position.n_levels} levels", needed)
 
 
+SPARSE_OPTIMIZERS = ("nerfexp.training.optimizers.LazyAdam",)  # take the hash table's sparse gradients
+
+
+def check_sparse_gradients(cfg: DictConfig) -> None:
+    """A ConfigError where the hash table's gradients are sparse and the optimizer is not one of
+    ``SPARSE_OPTIMIZERS`` (torch.optim.Adam stops at the first step on a sparse gradient)."""
+    if not OmegaConf.select(cfg, "encoding.position.sparse_gradients", default=False):
+        return
+    target = OmegaConf.select(cfg, "model.optimizer._target_")
+    if target not in SPARSE_OPTIMIZERS:
+        optimizer = named(cfg, "model.optimizer._target_", target)
+        raise ConfigError(f"encoding.position.sparse_gradients=true and {optimizer}: expected an optimizer that "
+                          f"takes sparse gradients ({', '.join(SPARSE_OPTIMIZERS)}), or set "
+                          "encoding.position.sparse_gradients=false")
+
+
 def check_extras(cfg: DictConfig) -> None:
     """A MissingExtraError (a ConfigError) where the config asks for a part of nerfexp whose optional
     package is not installed (``nerfexp.extras``)."""
@@ -135,7 +151,8 @@ def check_extras(cfg: DictConfig) -> None:
 def check_settings(cfg: DictConfig) -> None:
     """A ConfigError for the first setting that is out of its domain (``check_rules``), a frequency
     float32 cannot resolve, a skip connection past the field's depth, ray bounds with near not before far,
-    a size that would not fit in memory, or a missing optional package."""
+    sparse gradients without an optimizer that takes them, a size that would not fit in memory, or a missing
+    optional package."""
     missing = sorted(key for key, value in checked_settings(cfg) if value is MISSING)
     if missing:
         raise ConfigError(f"missing mandatory value: {', '.join(missing)} (set it on the command line, "
@@ -144,6 +161,7 @@ def check_settings(cfg: DictConfig) -> None:
     check_frequencies(cfg)
     check_skips(cfg)
     check_ray_bounds(cfg)
+    check_sparse_gradients(cfg)
     check_memory(cfg)
     check_extras(cfg)
 

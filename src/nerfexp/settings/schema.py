@@ -145,6 +145,7 @@ SCHEMA: dict[str, Rule] = {
     "encoding.position.coarsest": COUNT,
     "encoding.position.finest": COUNT,
     "encoding.position.include_input": BOOLEAN,
+    "encoding.position.sparse_gradients": BOOLEAN,  # and an optimizer that takes them (check_sparse_gradients)
     "view_dependence.degree": whole(0, SH_MAX_DEGREE),
     "view_dependence.hidden": COUNT,
     # data

@@ -10,6 +10,8 @@ A healthy step costs one device-to-host copy of a few numbers: the losses, each 
 opacity in the batch and the total gradient norm (one fused ``torch._foreach_norm``, the kernel
 ``clip_grad_norm_`` uses; a NaN or inf in any entry makes the norm non-finite). Parameters are walked
 by name only when that norm is not finite (finite gradients whose norm overflowed pass that walk).
+A sparse gradient (a hash table's, ``HashGridEncoding(sparse_gradients=True)``) is checked by the entries
+it holds (``held_entries``), its rows the batch touched.
 With gradient accumulation, the losses and the batch seen are those of the last accumulated batch.
 """
 
@@ -35,6 +37,12 @@ def count_nonfinite(values: Tensor) -> str:
     """How ``values`` fail to be finite, e.g. "nan in 3 and infinite in 1" (of its entries)."""
     counts = {"nan": int(torch.isnan(values).sum()), "infinite": int(torch.isinf(values).sum())}
     return " and ".join(f"{kind} in {n}" for kind, n in counts.items() if n)
+
+
+def held_entries(grad: Tensor) -> Tensor:
+    """The entries a gradient holds: a dense gradient itself; a sparse COO one's values [nnz, ...] (its rows,
+    repeated rows not summed where it is not coalesced). A NaN or infinity in the gradient is in them."""
+    return grad._values() if grad.is_sparse else grad
 
 
 def networks_phrase(names: list[str]) -> str:
@@ -109,7 +117,8 @@ class TrainingGuard(L.Callback):
         names = list(diagnostics)
         losses = torch.stack([diagnostics[name]["loss"] for name in names])
         opacities = torch.stack([diagnostics[name]["opacity"].max() for name in names])
-        grads = [p.grad for group in optimizer.param_groups for p in group["params"] if p.grad is not None]
+        grads = [held_entries(p.grad) for group in optimizer.param_groups for p in group["params"]
+                 if p.grad is not None]
         if not self._check_gradients:
             grads = []
         grad_norm = torch.linalg.vector_norm(torch.stack(torch._foreach_norm(grads))) if grads else losses.new_zeros(())
@@ -136,12 +145,14 @@ class TrainingGuard(L.Callback):
             return None
         network_of = {p: name for name, net in pl_module.networks.items() for p in net.parameters()}
         bad = [(name, p) for name, p in pl_module.named_parameters()
-               if p.grad is not None and not torch.isfinite(p.grad).all()]
+               if p.grad is not None and not torch.isfinite(held_entries(p.grad)).all()]
         if not bad:  # finite entries whose 2-norm overflowed the dtype: nothing is NaN or infinite
             return None
         (name, p), rest = bad[0], bad[1:]
         where = f" ({network_of[p]} network)" if p in network_of else ""
-        text = f"the gradient of {name}{where} is {count_nonfinite(p.grad)} of {p.grad.numel()} entries"
+        entries = held_entries(p.grad)
+        held = " it holds (the rows the batch touched)" if p.grad.is_sparse else ""
+        text = f"the gradient of {name}{where} is {count_nonfinite(entries)} of {entries.numel()} entries{held}"
         if rest:
             nets = [net for net in pl_module.networks if any(network_of.get(q) == net for _, q in rest)]
             text += f"; so are the gradients of {len(rest)} more parameter{'s' if len(rest) > 1 else ''}" + (

@@ -14,6 +14,7 @@ from torch import Tensor, nn
 
 from nerfexp.errors import ConfigError
 from nerfexp.nerf.bounds import Bounded
+from nerfexp.nerf.encodings import HashGridEncoding
 from nerfexp.nerf.volume_renderer import VolumeRenderer, final_output
 from nerfexp.training.metrics import psnr, ssim
 
@@ -42,6 +43,8 @@ class NeRFModule(L.LightningModule):
     Each step logs ``train/samples_per_ray`` (evaluated by the networks, all of them together) and
     ``train/rays_per_s`` (rays over the step's host wall-clock time).
     ``compile``: each network is compiled with ``torch.compile`` (in place, so checkpoints keep their keys).
+    Hash tables with sparse gradients (``HashGridEncoding(sparse_gradients=True)``) get dense ones when more
+    than one process trains (``on_fit_start``).
     """
 
     def __init__(self, renderer: VolumeRenderer, optimizer: Callable[..., torch.optim.Optimizer],
@@ -80,6 +83,18 @@ class NeRFModule(L.LightningModule):
         for key, value in self.renderer.stats.items():
             self.log(f"train/{key}", value)
         return loss
+
+    def on_fit_start(self) -> None:
+        """With several processes (DDP), the hash tables' gradients are made dense: DDP all-reduces the
+        gradients it expects dense (sparse ones only of nn.Embedding) and stops at a sparse one, and NCCL
+        has no sparse all-reduce. LazyAdam then updates the tables as torch.optim.Adam does."""
+        sparse = [m for m in self.renderer.modules() if isinstance(m, HashGridEncoding) and m.sparse_gradients]
+        if self.trainer.world_size > 1 and sparse:
+            for module in sparse:
+                module.sparse_gradients = False
+            if self.global_rank == 0:
+                log.info("%d processes: the hash tables' gradients are dense (DDP all-reduces dense gradients); "
+                         "encoding.position.sparse_gradients=true applies to one process", self.trainer.world_size)
 
     def on_train_start(self) -> None:
         unbounded = [m for m in self.renderer.modules() if isinstance(m, Bounded) and not m.has_bounds]

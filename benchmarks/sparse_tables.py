@@ -1,0 +1,193 @@
+"""Sparse hash-table gradients with LazyAdam against dense gradients with torch.optim.Adam: the cost of a
+training step as the table grows, and the quality of whole runs. Writes benchmarks/results/sparse_tables.{json,md}.
+
+(a) Speed: one training step of the hash grid's field from the real config (``encoding=hashgrid`` at
+``scale=cpu``: 16 levels of 2 features, 16 to 256 cells, its 1 x 64 network and the colour head of
+``view_dependence``), one network of 96 samples per ray (``hierarchical=false``) on ``--rays`` rays of the
+built-in scene: render, colour loss, backward, optimizer step, with the optimizer's parameter groups
+(``NeRFModule.parameter_groups``), for each ``--log2-table-sizes`` and both variants:
+- ``dense``: ``model.optimizer._target_=torch.optim.Adam encoding.position.sparse_gradients=false``;
+- ``lazy``: the config's (``LazyAdam``, ``sparse_gradients=true``).
+The median of ``--repeats`` steps after ``--warmup`` steps, each variant from the same weights and on the same
+batches; the forward and backward pass and the optimizer step are timed apart. Levels whose vertices fit
+the table are dense (``F.grid_sample`` volumes) and keep dense gradients in both variants; the table rows
+of the hashed levels, and the rows one step touches, are counted.
+
+(b) Quality: runs of the real ``nerfexp`` command (two sweeps, one per variant, seeds 0, 1, 2; see the
+.md for the commands), read from their directories (``--runs DIR ...``): test PSNR per seed, the paired
+differences (lazy - dense) with their 95% t interval (``nerfexp.report``), and training seconds per step.
+
+    python benchmarks/sparse_tables.py [--log2-table-sizes 14 16 19 22] [--repeats 10] [--warmup 3]
+                                       [--threads N] [--runs DENSE_DIR LAZY_DIR]
+"""
+
+import argparse
+import json
+import os
+import platform
+import statistics
+import time
+from pathlib import Path
+
+import torch
+import torch.nn.functional as F
+from hydra import compose, initialize_config_module
+from hydra.utils import instantiate
+
+from nerfexp.files import atomic_write
+from nerfexp.nerf.bounds import Bounded
+from nerfexp.nerf.encodings import HashGridEncoding
+from nerfexp.report.runs import find_runs
+from nerfexp.report.variants import difference, group_variants
+
+RESULTS = Path(__file__).parent / "results"
+VARIANTS = {
+    "dense": ["model.optimizer._target_=torch.optim.Adam", "encoding.position.sparse_gradients=false"],
+    "lazy": ["model.optimizer._target_=nerfexp.training.optimizers.LazyAdam",
+             "encoding.position.sparse_gradients=true"],
+}
+SAMPLES = 96  # per ray: scale=cpu's hierarchical model evaluates 24 + (24 + 48)
+SWEEP = ("nerfexp -m encoding=hashgrid {overrides} seed=0,1,2 trainer.enable_progress_bar=false "
+         "hydra.sweep.dir=DIR/{name}")
+
+
+def model_and_optimizer(log2_table_size: int, variant: str, rays: int):
+    """The real config's model (one network of SAMPLES samples) and its optimizer, for ``variant``."""
+    overrides = ["encoding=hashgrid", "hierarchical=false", f"scale.n_single={SAMPLES}", f"scale.batch_rays={rays}",
+                 f"scale.hash_log2_table_size={log2_table_size}", *VARIANTS[variant]]
+    with initialize_config_module("nerfexp.conf", version_base=None):
+        cfg = compose("config", overrides=overrides)
+    torch.manual_seed(0)
+    model = instantiate(cfg.model)
+    return cfg, model, model.optimizer(model.parameter_groups())
+
+
+def timed_steps(model, optimizer, batches: list[dict], warmup: int) -> dict:
+    """Median seconds of a step and of its two parts over ``batches`` after ``warmup`` of them; the rows of
+    the hashed tables the last step touched (where their gradients are sparse)."""
+    renderer = model.renderer
+    passes, updates = [], []
+    for i, batch in enumerate(batches):
+        start = time.perf_counter()
+        outputs = renderer(batch["origins"], batch["directions"], deterministic=False, viewdirs=batch.get("viewdirs"))
+        loss = sum(F.mse_loss(out["rgb"], batch["rgb"]) for out in outputs.values())
+        optimizer.zero_grad(set_to_none=True)
+        loss.backward()
+        middle = time.perf_counter()
+        optimizer.step()
+        end = time.perf_counter()
+        if i >= warmup:
+            passes.append(middle - start)
+            updates.append(end - middle)
+    grads = [m.hashed.grad for m in renderer.modules() if isinstance(m, HashGridEncoding)]
+    touched = sum(grad._nnz() for grad in grads) if all(grad.is_sparse for grad in grads) else None
+    steps = [p + u for p, u in zip(passes, updates, strict=True)]
+    return {"step_s": statistics.median(steps), "forward_backward_s": statistics.median(passes),
+            "optimizer_s": statistics.median(updates), "rows_touched": touched}
+
+
+def speed(args) -> list[dict]:
+    rows = []
+    for log2 in args.log2_table_sizes:
+        row = {"log2_table_size": log2}
+        for variant in VARIANTS:
+            cfg, model, optimizer = model_and_optimizer(log2, variant, args.rays)
+            if variant == "dense":  # the same rays for both variants
+                datamodule = instantiate(cfg.datamodule)
+                datamodule.setup("fit")
+                loader = iter(datamodule.train_dataloader())
+                batches = [next(loader) for _ in range(args.warmup + args.repeats)]
+            box = datamodule.scene_box(model.renderer.near, model.renderer.far)
+            for module in model.renderer.modules():
+                if isinstance(module, Bounded):
+                    module.set_bounds(box)
+            encoding = model.renderer.coarse.position_encoding
+            row["hashed_levels"], row["table_rows"] = encoding.hashed.shape[0], encoding.hashed[..., 0].numel()
+            row["dense_level_entries"] = sum(v.numel() for v in encoding.dense)
+            row[variant] = timed_steps(model, optimizer, batches, args.warmup)
+            print(log2, variant, row[variant], flush=True)
+        row["lazy_over_dense"] = row["lazy"]["step_s"] / row["dense"]["step_s"]
+        rows.append(row)
+    return rows
+
+
+def quality(directories: list[Path]) -> dict:
+    """Each variant's test PSNR by seed and training seconds per step, and the paired difference lazy - dense."""
+    variants = {("lazy" if any(o == VARIANTS["lazy"][1] for o in v.runs[0].overrides) else "dense"): v
+                for v in group_variants(find_runs(directories))}
+    out = {}
+    for name, variant in variants.items():
+        runs = sorted(variant.finished, key=lambda run: run.overrides)
+        out[name] = {"label": variant.label,
+                     "test_psnr": {o: run.results["test_psnr"] for run in runs for o in run.overrides
+                                   if o.startswith("seed=")},
+                     "s_per_step": statistics.fmean(run.results["train_time_s"] / run.results["steps"]
+                                                    for run in runs)}
+    diff = difference(variants["lazy"], variants["dense"])
+    out["lazy_minus_dense_psnr"] = {"mean": diff.mean, "interval_95": diff.interval, "pairs": diff.n}
+    return out
+
+
+def markdown(report: dict, args) -> str:
+    lines = [f"(a) One training step of the hash grid's field ({args.rays} rays x {SAMPLES} samples, "
+             f"`encoding=hashgrid` at `scale=cpu`, one network): median of {args.repeats} after {args.warmup} "
+             "warm-up steps, seconds.", "",
+             "| log2 T | hashed levels | table rows | rows touched | dense-level entries | dense Adam step | "
+             "LazyAdam step | ratio | dense Adam: optimizer | LazyAdam: optimizer |", "|---" * 10 + "|"]
+    for row in report["speed"]:
+        dense, lazy = row["dense"], row["lazy"]
+        lines.append(f"| {row['log2_table_size']} | {row['hashed_levels']} | {row['table_rows']} | "
+                     f"{lazy['rows_touched']} | {row['dense_level_entries']} | {dense['step_s']:.3f} | "
+                     f"{lazy['step_s']:.3f} | {row['lazy_over_dense']:.2f} | {dense['optimizer_s']:.3f} | "
+                     f"{lazy['optimizer_s']:.3f} |")
+    lines += ["", f"Command: `python benchmarks/sparse_tables.py --log2-table-sizes "
+              f"{' '.join(map(str, args.log2_table_sizes))} --repeats {args.repeats} --warmup {args.warmup}"
+              + (f" --threads {args.threads}" if args.threads else "")
+              + (" --runs " + " ".join(map(str, args.runs)) if args.runs else "") + "`."]
+    if "quality" in report:
+        q = report["quality"]
+        seeds = sorted(q["dense"]["test_psnr"])
+        lines += ["", "(b) `encoding=hashgrid` on the built-in scene (`scale=cpu`, its 4,000 steps), test PSNR (dB):",
+                  "", "| variant | " + " | ".join(seeds) + " | s/step |", "|---|" + "---|" * (len(seeds) + 1)]
+        for name in VARIANTS:
+            v = q[name]
+            lines.append(f"| {name}: {v['label']} | " + " | ".join(f"{v['test_psnr'][s]:.2f}" for s in seeds)
+                         + f" | {v['s_per_step']:.4f} |")
+        d = q["lazy_minus_dense_psnr"]
+        low, high = d["interval_95"] or (float("nan"), float("nan"))
+        lines += ["", f"Paired difference lazy - dense over {d['pairs']} seeds: {d['mean']:+.3f} dB, "
+                  f"95% t interval [{low:+.3f}, {high:+.3f}].", "",
+                  "The runs (DIR a folder of their own):", ""]
+        lines += [f"    {SWEEP.format(overrides=' '.join(VARIANTS[name]), name=name)}" for name in VARIANTS]
+    lines += ["", f"Machine: {report['machine']}."]
+    return "\n".join(lines) + "\n"
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--log2-table-sizes", type=int, nargs="+", default=[14, 16, 19, 22])
+    parser.add_argument("--rays", type=int, default=256)
+    parser.add_argument("--repeats", type=int, default=10)
+    parser.add_argument("--warmup", type=int, default=3)
+    parser.add_argument("--threads", type=int, default=None)
+    parser.add_argument("--runs", type=Path, nargs="+", default=None, help="the two sweeps' directories (b)")
+    parser.add_argument("--out", type=Path, default=RESULTS)
+    args = parser.parse_args()
+    if args.threads:
+        torch.set_num_threads(args.threads)
+    torch.set_flush_denormal(True)  # as in training (nerfexp.training.callbacks.FlushDenormals)
+    machine = {"cpu_count": os.cpu_count(), "torch_threads": torch.get_num_threads(),
+               "processor": platform.processor() or platform.machine(), "torch": torch.__version__}
+    report = {"machine": machine, "rays": args.rays, "samples": SAMPLES, "repeats": args.repeats,
+              "warmup": args.warmup, "speed": speed(args)}
+    if args.runs:
+        report["quality"] = quality(args.runs)
+    text = markdown(report, args)
+    args.out.mkdir(parents=True, exist_ok=True)
+    atomic_write(args.out / "sparse_tables.json", (json.dumps(report, indent=2) + "\n").encode())
+    atomic_write(args.out / "sparse_tables.md", text.encode())
+    print(text)
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,110 @@
+"""Optimizers beyond torch's: ``LazyAdam``, Adam that also takes sparse gradients and updates only the rows
+they hold (the hash grid's tables, ``nerfexp.nerf.encodings.HashGridEncoding(sparse_gradients=True)``).
+
+Naming: a sparse gradient is a COO tensor of its parameter's shape [*S, *D], hybrid: its first
+``sparse_dim()`` dims S are sparse (for a hash table [L_h, T, F]: level and row), the others D dense
+(F); a "row" is one index into S, and ``values()`` [U, *D] hold the U rows it touches.
+"""
+
+import torch
+from torch import Tensor
+
+from nerfexp.errors import ConfigError
+
+
+def flat_rows(indices: Tensor, sizes: torch.Size) -> Tensor:
+    """Sparse indices [S, U] into dims of ``sizes`` (S of them) -> row-major flat indices [U].
+
+    >>> flat_rows(torch.tensor([[0, 1], [2, 0]]), torch.Size([2, 3]))
+    tensor([2, 3])
+    """
+    rows = indices[0]
+    for dim in range(1, len(sizes)):
+        rows = rows * sizes[dim] + indices[dim]
+    return rows
+
+
+def summed_rows(grad: Tensor) -> tuple[Tensor, Tensor]:
+    """A sparse gradient [*S, *D] as its touched rows, each once and in ascending order: flat row indices
+    [U] (``flat_rows``) and their summed values [U, *D]. Indices already so (``gather_rows`` makes them
+    that way; autograd's accumulation drops the coalesced flag) are taken as they are, checked in one pass
+    over them; others are coalesced (a sort)."""
+    sizes = grad.shape[:grad.sparse_dim()]
+    rows = flat_rows(grad._indices(), sizes)
+    if grad.is_coalesced() or bool((rows[1:] > rows[:-1]).all()):
+        return rows, grad._values()
+    grad = grad.coalesce()
+    return flat_rows(grad.indices(), sizes), grad.values()
+
+
+def lazy_adam_update(param: Tensor, grad: Tensor, exp_avg: Tensor, exp_avg_sq: Tensor, step: float, lr: float,
+                     beta1: float, beta2: float, eps: float) -> None:
+    """Adam's update of the rows the sparse ``grad`` holds, in place; every other row of ``param``,
+    ``exp_avg`` (m) and ``exp_avg_sq`` (v) is left as it is. With g a touched row's gradient (repeated
+    rows summed, ``summed_rows``) and t = ``step`` (the parameter's count, this one included):
+
+        m <- beta1 m + (1 - beta1) g,   v <- beta2 v + (1 - beta2) g^2,
+        p <- p - lr / (1 - beta1^t) * m / (sqrt(v) / sqrt(1 - beta2^t) + eps)
+
+    written with torch.optim.Adam's own operations (``lerp_``, ``addcmul_``, ``addcdiv_``), so that a
+    gradient that touches every row updates the parameter as Adam does. param, exp_avg, exp_avg_sq
+    [*S, *D] (contiguous), grad sparse COO [*S, *D]."""
+    rows, values = summed_rows(grad)  # [U], [U, *D]
+    dense_shape = param.shape[grad.sparse_dim():]
+
+    def flat(tensor: Tensor) -> Tensor:
+        return tensor.view(-1, *dense_shape)  # [rows, *D]
+
+    m = flat(exp_avg).index_select(0, rows).lerp_(values, 1 - beta1)
+    v = flat(exp_avg_sq).index_select(0, rows).mul_(beta2).addcmul_(values, values, value=1 - beta2)
+    bias_correction1 = 1 - beta1**step
+    bias_correction2 = 1 - beta2**step
+    denom = (v.sqrt() / bias_correction2**0.5).add_(eps)
+    updated = flat(param).index_select(0, rows).addcdiv_(m, denom, value=-lr / bias_correction1)
+    flat(exp_avg).index_copy_(0, rows, m)
+    flat(exp_avg_sq).index_copy_(0, rows, v)
+    flat(param).index_copy_(0, rows, updated)
+
+
+class LazyAdam(torch.optim.Adam):
+    """torch.optim.Adam, which also takes sparse gradients (like torch.optim.SparseAdam and TensorFlow
+    Addons' LazyAdam, in one optimizer with the dense parameters).
+
+    A parameter with a dense gradient gets torch.optim.Adam's update, run by Adam's own code with the
+    group's settings. A parameter with a sparse gradient gets the lazy update (``lazy_adam_update``): the
+    rows in the gradient have their moments and values updated; the other rows keep theirs and do not
+    move (dense Adam would go on moving a row by its decaying first moment after its last gradient). The
+    bias correction uses the parameter's step count (the steps it had a gradient), as SparseAdam does.
+
+    State: Adam's keys (``step``, ``exp_avg``, ``exp_avg_sq``; moments of the parameter's full shape), so
+    a checkpoint of torch.optim.Adam loads into it and continues, and back. A sparse gradient in a
+    group with ``weight_decay`` != 0 (decay changes every row) or ``amsgrad`` is refused (ConfigError).
+    """
+
+    def _init_group(self, group: dict, *lists) -> bool:
+        """Adam's ``_init_group`` over the group's parameters with dense gradients (``Adam.step`` updates
+        those next, as Adam does); the parameters with sparse gradients are updated here, lazily."""
+        sparse = [p for p in group["params"] if p.grad is not None and p.grad.is_sparse]
+        for param in sparse:
+            self._lazy_step(group, param)
+        dense = [p for p in group["params"] if p.grad is None or not p.grad.is_sparse]
+        return super()._init_group({**group, "params": dense}, *lists)
+
+    def _lazy_step(self, group: dict, param: Tensor) -> None:
+        """One lazy update of ``param`` by its sparse gradient, with ``group``'s settings."""
+        for key, off in (("weight_decay", 0), ("amsgrad", False)):
+            if group[key] != off:
+                raise ConfigError(f"LazyAdam: a sparse gradient (a parameter of shape {list(param.shape)}) in a "
+                                  f"parameter group with {key}={group[key]}: the lazy update has none; set "
+                                  f"{key}={off} for that group")
+        state = self.state[param]
+        if not state:  # as Adam's: the step count a float tensor, the moments zeros of the parameter's shape
+            scalar = torch.float64 if torch.get_default_dtype() == torch.float64 else torch.float32
+            state["step"] = torch.tensor(0.0, dtype=scalar, device=param.device if group["capturable"] else "cpu")
+            state["exp_avg"] = torch.zeros_like(param, memory_format=torch.contiguous_format)
+            state["exp_avg_sq"] = torch.zeros_like(param, memory_format=torch.contiguous_format)
+        state["step"] += 1
+        beta1, beta2 = group["betas"]
+        grad = -param.grad if group["maximize"] else param.grad
+        lazy_adam_update(param, grad, state["exp_avg"], state["exp_avg_sq"], float(state["step"]), float(group["lr"]),
+                         float(beta1), float(beta2), group["eps"])

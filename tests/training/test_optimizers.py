@@ -1,0 +1,221 @@
+"""LazyAdam against independent truth: torch.optim.Adam on dense gradients (bit for bit), a float64 reference
+of the lazy rule written one row at a time, and dense Adam where every row is touched every step."""
+
+import math
+
+import pytest
+import torch
+from hydra import compose, initialize_config_module
+from hydra.utils import get_class
+
+from nerfexp.errors import ConfigError
+from nerfexp.training.optimizers import LazyAdam, flat_rows, summed_rows
+
+SETTINGS = dict(lr=0.05, betas=(0.8, 0.95), eps=1e-6)
+
+
+def sparse(indices: list[list[int]], values: torch.Tensor, shape) -> torch.Tensor:
+    """A COO gradient of ``shape`` from indices [S, nnz] and values [nnz, *D], not coalesced."""
+    return torch.sparse_coo_tensor(torch.tensor(indices), values, shape, check_invariants=True)
+
+
+def test_flat_rows_count_row_major():
+    indices = torch.tensor([[0, 1, 2, 2], [0, 3, 1, 4]])  # rows of a [3, 5] grid
+    assert flat_rows(indices, torch.Size([3, 5])).tolist() == [0, 8, 11, 14]
+    assert flat_rows(torch.tensor([[4, 2]]), torch.Size([7])).tolist() == [4, 2]
+
+
+@pytest.mark.parametrize("options", [dict(weight_decay=0.1), dict(amsgrad=True), dict(maximize=True),
+                                     dict(weight_decay=0.01, decoupled_weight_decay=True)])
+def test_dense_gradients_get_torch_adams_update_bit_for_bit(options):
+    generator = torch.Generator().manual_seed(0)
+    start = [torch.randn(4, 3, generator=generator), torch.randn(5, generator=generator),
+             torch.randn(2, 3, 2, generator=generator)]
+    runs = []
+    for optimizer_class in (torch.optim.Adam, LazyAdam):
+        params = [torch.nn.Parameter(p.clone()) for p in start]
+        groups = [{"params": params[:2]}, {"params": params[2:], "lr": 0.2, "weight_decay": 0.0}]
+        optimizer = optimizer_class(groups, **SETTINGS, **options)
+        grads = torch.Generator().manual_seed(1)
+        for step in range(6):
+            for i, p in enumerate(params):  # parameter 1 has no gradient on odd steps: Adam skips it
+                p.grad = None if (i == 1 and step % 2) else torch.randn(p.shape, generator=grads)
+            optimizer.step()
+        runs.append((params, optimizer.state_dict()))
+    (adam_params, adam_state), (lazy_params, lazy_state) = runs
+    assert all(torch.equal(a, b) for a, b in zip(adam_params, lazy_params, strict=True))
+    assert adam_state["state"].keys() == lazy_state["state"].keys()
+    for key, state in adam_state["state"].items():
+        assert state.keys() == lazy_state["state"][key].keys()
+        assert all(torch.equal(value, lazy_state["state"][key][name]) for name, value in state.items())
+    assert lazy_state["state"][1]["step"] == 3  # counted on the steps it had a gradient
+
+
+def reference_lazy_adam(start: torch.Tensor, gradients: list[list[tuple[tuple[int, ...], list[float]]] | None],
+                        lr: float, betas: tuple[float, float], eps: float) -> tuple[torch.Tensor, dict]:
+    """The lazy rule one row at a time, in float64 Python numbers. ``gradients``: per step, None (no
+    gradient) or a list of (row index, row gradient [F]) pairs, a row possibly repeated (its gradients
+    add). Returns the parameter and {row: (m, v)} of every row ever touched."""
+    param = {row: list(map(float, start[row].tolist())) for row in _all_rows(start.shape[:-1])}
+    moments = {}
+    step = 0
+    beta1, beta2 = betas
+    for gradient in gradients:
+        if gradient is None:
+            continue
+        step += 1
+        summed = {}
+        for row, values in gradient:
+            summed[row] = [a + b for a, b in zip(summed.get(row, [0.0] * len(values)), values, strict=True)]
+        for row, g in summed.items():
+            m, v = moments.get(row, ([0.0] * len(g), [0.0] * len(g)))
+            m = [beta1 * mi + (1 - beta1) * gi for mi, gi in zip(m, g, strict=True)]
+            v = [beta2 * vi + (1 - beta2) * gi * gi for vi, gi in zip(v, g, strict=True)]
+            moments[row] = (m, v)
+            m_hat = [mi / (1 - beta1**step) for mi in m]
+            v_hat = [vi / (1 - beta2**step) for vi in v]
+            param[row] = [p - lr * mh / (math.sqrt(vh) + eps) for p, mh, vh in zip(param[row], m_hat, v_hat,
+                                                                                     strict=True)]
+    out = torch.tensor([param[row] for row in _all_rows(start.shape[:-1])], dtype=torch.float64)
+    return out.view(start.shape), moments
+
+
+def _all_rows(shape) -> list[tuple[int, ...]]:
+    return [tuple(index) for index in torch.cartesian_prod(*[torch.arange(n) for n in shape]).view(-1, len(shape))
+            .tolist()]
+
+
+def test_the_lazy_update_matches_a_float64_reference_row_by_row():
+    # a [2, 4, 3] table (2 sparse dims: level and row, 3 features); steps touch few rows, some twice in one
+    # gradient, one step none at all (no gradient: the step count stays)
+    shape = (2, 4, 3)
+    start = torch.randn(shape, dtype=torch.float64, generator=torch.Generator().manual_seed(0))
+    generator = torch.Generator().manual_seed(1)
+    touched = [[(0, 1), (1, 3), (0, 1)], [(1, 0)], None, [(0, 1), (1, 0), (1, 2), (1, 2), (1, 2)], [(0, 3)]]
+    gradients = [None if rows is None else [(row, torch.randn(3, generator=generator, dtype=torch.float64).tolist())
+                                            for row in rows] for rows in touched]
+    expected, moments = reference_lazy_adam(start, gradients, **SETTINGS)
+
+    param = torch.nn.Parameter(start.clone())
+    optimizer = LazyAdam([param], **SETTINGS)
+    for gradient in gradients:
+        param.grad = None if gradient is None else sparse(
+            [[row[0] for row, _ in gradient], [row[1] for row, _ in gradient]],
+            torch.tensor([values for _, values in gradient], dtype=torch.float64), shape)
+        optimizer.step()
+    state = optimizer.state[param]
+    assert state["step"] == 4
+    torch.testing.assert_close(param.detach(), expected, rtol=1e-12, atol=1e-12)
+    never = [row for row in _all_rows(shape[:2]) if row not in moments]
+    assert never == [(0, 0), (0, 2), (1, 1)]
+    for row in never:  # never touched: not moved, moments still zero
+        assert torch.equal(param[row].detach(), start[row]) and not state["exp_avg"][row].any()
+    for row, (m, v) in moments.items():
+        torch.testing.assert_close(state["exp_avg"][row], torch.tensor(m, dtype=torch.float64), rtol=1e-12, atol=0)
+        torch.testing.assert_close(state["exp_avg_sq"][row], torch.tensor(v, dtype=torch.float64), rtol=1e-12, atol=0)
+
+
+def test_a_row_left_alone_keeps_its_value_and_moments_where_dense_adam_moves_it():
+    param = torch.nn.Parameter(torch.zeros(3, 2))
+    dense = torch.nn.Parameter(torch.zeros(3, 2))
+    lazy_optimizer, dense_optimizer = LazyAdam([param], **SETTINGS), torch.optim.Adam([dense], **SETTINGS)
+    first = sparse([[0, 2]], torch.ones(2, 2), (3, 2))
+    param.grad, dense.grad = first, first.to_dense()
+    lazy_optimizer.step(), dense_optimizer.step()
+    after_first = param.detach().clone()
+    second = sparse([[2]], torch.ones(1, 2), (3, 2))  # row 0 not touched
+    param.grad, dense.grad = second, second.to_dense()
+    lazy_optimizer.step(), dense_optimizer.step()
+    assert torch.equal(param[0].detach(), after_first[0])  # lazy: row 0 stays
+    assert (dense[0] < after_first[0]).all()  # dense Adam: its decaying momentum moves it on
+    assert torch.equal(param[2].detach(), dense[2].detach())  # the row touched twice: the same update
+    assert torch.equal(param[1].detach(), torch.zeros(2))
+
+
+def test_lazy_equals_dense_adam_when_every_row_is_touched_every_step():
+    shape = (3, 8, 2)
+    start = torch.randn(shape, generator=torch.Generator().manual_seed(0))
+    lazy, dense = torch.nn.Parameter(start.clone()), torch.nn.Parameter(start.clone())
+    lazy_optimizer, dense_optimizer = LazyAdam([lazy], **SETTINGS), torch.optim.Adam([dense], **SETTINGS)
+    generator = torch.Generator().manual_seed(1)
+    rows = torch.cartesian_prod(torch.arange(3), torch.arange(8)).T  # [2, 24]: every row once
+    for _ in range(5):
+        order = torch.randperm(24, generator=generator)
+        gradient = torch.sparse_coo_tensor(rows[:, order], torch.randn(24, 2, generator=generator), shape,
+                                           check_invariants=True)
+        lazy.grad, dense.grad = gradient, gradient.to_dense()
+        lazy_optimizer.step(), dense_optimizer.step()
+    assert torch.equal(lazy.detach(), dense.detach())
+    assert all(torch.equal(lazy_optimizer.state[lazy][k], dense_optimizer.state[dense][k])
+               for k in ("step", "exp_avg", "exp_avg_sq"))
+
+
+def test_a_checkpoint_of_adam_continues_in_lazy_adam_and_back():
+    generator = torch.Generator().manual_seed(0)
+    start = torch.randn(4, 2, generator=generator)
+    gradients = [torch.randn(4, 2, generator=generator) for _ in range(6)]
+    reference = torch.nn.Parameter(start.clone())
+    adam = torch.optim.Adam([reference], **SETTINGS)
+    for g in gradients:  # six steps of Adam
+        reference.grad = g
+        adam.step()
+
+    param = torch.nn.Parameter(start.clone())
+    first = torch.optim.Adam([param], **SETTINGS)
+    for g in gradients[:3]:  # three steps of Adam, saved
+        param.grad = g
+        first.step()
+    checkpoint = first.state_dict()
+    lazy = LazyAdam([param], **SETTINGS)
+    lazy.load_state_dict(checkpoint)
+    for g in gradients[3:5]:  # every row touched: the same steps as Adam's, here through sparse gradients
+        param.grad = g.to_sparse(1)
+        lazy.step()
+    back = torch.optim.Adam([param], **SETTINGS)
+    back.load_state_dict(lazy.state_dict())
+    param.grad = gradients[5]
+    back.step()
+    assert torch.equal(param.detach(), reference.detach())
+    assert back.state[param]["step"] == 6
+
+
+@pytest.mark.parametrize(("options", "line"), [
+    (dict(weight_decay=1e-6), "weight_decay=1e-06 [...] set weight_decay=0 for that group"),
+    (dict(amsgrad=True), "amsgrad=True [...] set amsgrad=False for that group"),
+])
+def test_a_sparse_gradient_with_weight_decay_or_amsgrad_is_one_line(options, line):
+    table, other = torch.nn.Parameter(torch.zeros(4, 2)), torch.nn.Parameter(torch.zeros(3))
+    optimizer = LazyAdam([{"params": [other]}, {"params": [table], **options}], **SETTINGS)
+    table.grad, other.grad = sparse([[1]], torch.ones(1, 2), (4, 2)), torch.ones(3)
+    before, setting = line.split(" [...] ")
+    with pytest.raises(ConfigError) as error:
+        optimizer.step()
+    message = str(error.value)
+    assert message.startswith(f"LazyAdam: a sparse gradient (a parameter of shape [4, 2]) in a parameter group "
+                              f"with {before}") and message.endswith(setting) and "\n" not in message
+    assert not table.detach().any()
+
+
+def test_summed_rows_take_sorted_unique_indices_as_they_are_and_coalesce_others():
+    values = torch.tensor([[1.0, 2.0], [3.0, 4.0], [5.0, 6.0]])
+    ordered = torch.sparse_coo_tensor(torch.tensor([[0, 1, 1], [2, 0, 3]]), values, (2, 4, 2), check_invariants=True)
+    assert not ordered.is_coalesced()  # as autograd leaves a gradient, whatever its indices
+    rows, held = summed_rows(ordered)
+    assert rows.tolist() == [2, 4, 7] and held.data_ptr() == ordered._values().data_ptr()  # not copied
+    repeated = sparse([[1, 0, 1], [3, 2, 3]], values, (2, 4, 2))  # row (1, 3) twice, out of order
+    rows, held = summed_rows(repeated)
+    assert rows.tolist() == [2, 7] and held.tolist() == [[3.0, 4.0], [6.0, 8.0]]
+
+
+@pytest.mark.parametrize(("overrides", "optimizer", "sparse"), [
+    (["encoding=hashgrid"], "torch.optim.Adam", False),  # opt-in until measured against dense Adam
+    (["encoding=hashgrid", "encoding.position.sparse_gradients=true",
+      "model.optimizer._target_=nerfexp.training.optimizers.LazyAdam"], "nerfexp.training.optimizers.LazyAdam", True),
+    ([], "torch.optim.Adam", None),  # the paper's model: positional encoding, no table
+    (["encoding=posenc", "scale=paper"], "torch.optim.Adam", None),
+])
+def test_the_configs_choose_their_optimizer_and_gradients(overrides, optimizer, sparse):
+    with initialize_config_module("nerfexp.conf", version_base=None):
+        cfg = compose("config", overrides=overrides)
+    assert cfg.model.optimizer._target_ == optimizer and cfg.encoding.position.get("sparse_gradients") is sparse
+    assert issubclass(get_class(optimizer), torch.optim.Adam)
