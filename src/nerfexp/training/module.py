@@ -93,7 +93,7 @@ class NeRFModule(L.LightningModule):
             for module in sparse:
                 module.sparse_gradients = False
             if self.global_rank == 0:
-                log.info("%d processes: the hash tables' gradients are dense (DDP all-reduces dense gradients); "
+                log.warning("%d processes: the hash tables' gradients are dense (DDP all-reduces dense gradients); "
                          "encoding.position.sparse_gradients=true applies to one process", self.trainer.world_size)
 
     def on_train_start(self) -> None:
