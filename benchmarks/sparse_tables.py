@@ -7,18 +7,18 @@ training step as the table grows, and the quality of whole runs. Writes benchmar
 built-in scene: render, colour loss, backward, optimizer step, with the optimizer's parameter groups
 (``NeRFModule.parameter_groups``), for each ``--log2-table-sizes`` and both variants:
 - ``dense``: ``model.optimizer._target_=torch.optim.Adam encoding.position.sparse_gradients=false``;
-- ``lazy``: the config's (``LazyAdam``, ``sparse_gradients=true``).
-The median of ``--repeats`` steps after ``--warmup`` steps, each variant from the same weights and on the same
-batches; the forward and backward pass and the optimizer step are timed apart. Levels whose vertices fit
-the table are dense (``F.grid_sample`` volumes) and keep dense gradients in both variants; the table rows
-of the hashed levels, and the rows one step touches, are counted.
+- ``lazy``: ``model.optimizer._target_=nerfexp.training.optimizers.LazyAdam encoding.position.sparse_gradients=true``.
+The median of ``--repeats`` steps after ``--warmup`` steps, each variant from the same weights and on the
+same batches, their steps alternating; the forward and backward pass and the optimizer step are timed
+apart. Levels whose vertices fit the table are dense (``F.grid_sample`` volumes) and keep dense gradients
+in both variants; the table rows of the hashed levels, and the rows one step touches, are counted.
 
-(b) Quality: runs of the real ``nerfexp`` command (two sweeps, one per variant, seeds 0, 1, 2; see the
-.md for the commands), read from their directories (``--runs DIR ...``): test PSNR per seed, the paired
+(b) Quality: runs of the real ``nerfexp`` command (both variants, seeds 0, 1, 2, alternating; ``RUNS``
+gives the commands), read from their directories (``--runs DIR ...``): test PSNR per seed, the paired
 differences (lazy - dense) with their 95% t interval (``nerfexp.report``), and training seconds per step.
 
     python benchmarks/sparse_tables.py [--log2-table-sizes 14 16 19 22] [--repeats 10] [--warmup 3]
-                                       [--threads N] [--runs DENSE_DIR LAZY_DIR]
+                                       [--threads N] [--runs DIR]
 """
 
 import argparse
@@ -47,8 +47,9 @@ VARIANTS = {
              "encoding.position.sparse_gradients=true"],
 }
 SAMPLES = 96  # per ray: scale=cpu's hierarchical model evaluates 24 + (24 + 48)
-SWEEP = ("nerfexp -m encoding=hashgrid {overrides} seed=0,1,2 trainer.enable_progress_bar=false "
-         "hydra.sweep.dir=DIR/{name}")
+RUNS = ("for seed in 0 1 2; do  # alternating, so that the machine's drifts touch both variants alike",
+        *(f"  nerfexp encoding=hashgrid {' '.join(overrides)} seed=$seed trainer.enable_progress_bar=false "
+          f"hydra.run.dir=DIR/{name}/$seed" for name, overrides in VARIANTS.items()), "done")
 
 
 def model_and_optimizer(log2_table_size: int, variant: str, rays: int):
@@ -62,52 +63,60 @@ def model_and_optimizer(log2_table_size: int, variant: str, rays: int):
     return cfg, model, model.optimizer(model.parameter_groups())
 
 
-def timed_steps(model, optimizer, batches: list[dict], warmup: int) -> dict:
-    """Median seconds of a step and of its two parts over ``batches`` after ``warmup`` of them; the rows of
-    the hashed tables the last step touched (where their gradients are sparse)."""
-    renderer = model.renderer
-    passes, updates = [], []
-    for i, batch in enumerate(batches):
-        start = time.perf_counter()
-        outputs = renderer(batch["origins"], batch["directions"], deterministic=False, viewdirs=batch.get("viewdirs"))
-        loss = sum(F.mse_loss(out["rgb"], batch["rgb"]) for out in outputs.values())
-        optimizer.zero_grad(set_to_none=True)
-        loss.backward()
-        middle = time.perf_counter()
-        optimizer.step()
-        end = time.perf_counter()
-        if i >= warmup:
-            passes.append(middle - start)
-            updates.append(end - middle)
-    grads = [m.hashed.grad for m in renderer.modules() if isinstance(m, HashGridEncoding)]
-    touched = sum(grad._nnz() for grad in grads) if all(grad.is_sparse for grad in grads) else None
-    steps = [p + u for p, u in zip(passes, updates, strict=True)]
-    return {"step_s": statistics.median(steps), "forward_backward_s": statistics.median(passes),
-            "optimizer_s": statistics.median(updates), "rows_touched": touched}
+def timed_step(model, optimizer, batch: dict) -> tuple[float, float]:
+    """Seconds of one training step's forward and backward pass, and of its optimizer step."""
+    start = time.perf_counter()
+    outputs = model.renderer(batch["origins"], batch["directions"], deterministic=False,
+                             viewdirs=batch.get("viewdirs"))
+    loss = sum(F.mse_loss(out["rgb"], batch["rgb"]) for out in outputs.values())
+    optimizer.zero_grad(set_to_none=True)
+    loss.backward()
+    middle = time.perf_counter()
+    optimizer.step()
+    return middle - start, time.perf_counter() - middle
+
+
+def rows_touched(model) -> int | None:
+    """The rows of the hashed tables that the last step's sparse gradients hold; None for dense ones."""
+    grads = [m.hashed.grad for m in model.renderer.modules() if isinstance(m, HashGridEncoding)]
+    return sum(grad._nnz() for grad in grads) if all(grad.is_sparse for grad in grads) else None
 
 
 def speed(args) -> list[dict]:
+    """For each table size, both variants from the same weights on the same batches, their steps
+    alternating (dense, lazy, dense, ...), so that the machine's drifts touch both alike."""
     rows = []
     for log2 in args.log2_table_sizes:
-        row = {"log2_table_size": log2}
-        for variant in VARIANTS:
-            cfg, model, optimizer = model_and_optimizer(log2, variant, args.rays)
-            if variant == "dense":  # the same rays for both variants
-                datamodule = instantiate(cfg.datamodule)
-                datamodule.setup("fit")
-                loader = iter(datamodule.train_dataloader())
-                batches = [next(loader) for _ in range(args.warmup + args.repeats)]
-            box = datamodule.scene_box(model.renderer.near, model.renderer.far)
+        built = {variant: model_and_optimizer(log2, variant, args.rays) for variant in VARIANTS}
+        cfg, model, _ = built["dense"]
+        datamodule = instantiate(cfg.datamodule)
+        datamodule.setup("fit")
+        loader = iter(datamodule.train_dataloader())
+        batches = [next(loader) for _ in range(args.warmup + args.repeats)]
+        box = datamodule.scene_box(model.renderer.near, model.renderer.far)
+        for _, model, _ in built.values():
             for module in model.renderer.modules():
                 if isinstance(module, Bounded):
                     module.set_bounds(box)
-            encoding = model.renderer.coarse.position_encoding
-            row["hashed_levels"], row["table_rows"] = encoding.hashed.shape[0], encoding.hashed[..., 0].numel()
-            row["dense_level_entries"] = sum(v.numel() for v in encoding.dense)
-            row[variant] = timed_steps(model, optimizer, batches, args.warmup)
+        times = {variant: [] for variant in VARIANTS}
+        for i, batch in enumerate(batches):
+            for variant, (_, model, optimizer) in built.items():
+                seconds = timed_step(model, optimizer, batch)
+                if i >= args.warmup:
+                    times[variant].append(seconds)
+        encoding = built["lazy"][1].renderer.coarse.position_encoding
+        row = {"log2_table_size": log2, "hashed_levels": encoding.hashed.shape[0],
+               "table_rows": encoding.hashed[..., 0].numel(),
+               "dense_level_entries": sum(v.numel() for v in encoding.dense)}
+        for variant, pairs in times.items():
+            row[variant] = {"step_s": statistics.median(p + u for p, u in pairs),
+                            "forward_backward_s": statistics.median(p for p, _ in pairs),
+                            "optimizer_s": statistics.median(u for _, u in pairs),
+                            "rows_touched": rows_touched(built[variant][1])}
             print(log2, variant, row[variant], flush=True)
         row["lazy_over_dense"] = row["lazy"]["step_s"] / row["dense"]["step_s"]
         rows.append(row)
+        del built
     return rows
 
 
@@ -121,8 +130,7 @@ def quality(directories: list[Path]) -> dict:
         out[name] = {"label": variant.label,
                      "test_psnr": {o: run.results["test_psnr"] for run in runs for o in run.overrides
                                    if o.startswith("seed=")},
-                     "s_per_step": statistics.fmean(run.results["train_time_s"] / run.results["steps"]
-                                                    for run in runs)}
+                     "s_per_step": statistics.fmean(run.results["time_per_step_s"] for run in runs)}
     diff = difference(variants["lazy"], variants["dense"])
     out["lazy_minus_dense_psnr"] = {"mean": diff.mean, "interval_95": diff.interval, "pairs": diff.n}
     return out
@@ -157,8 +165,8 @@ def markdown(report: dict, args) -> str:
         low, high = d["interval_95"] or (float("nan"), float("nan"))
         lines += ["", f"Paired difference lazy - dense over {d['pairs']} seeds: {d['mean']:+.3f} dB, "
                   f"95% t interval [{low:+.3f}, {high:+.3f}].", "",
-                  "The runs (DIR a folder of their own):", ""]
-        lines += [f"    {SWEEP.format(overrides=' '.join(VARIANTS[name]), name=name)}" for name in VARIANTS]
+                  "The runs (DIR a folder of their own), one process at a time:", ""]
+        lines += [f"    {line}" for line in RUNS]
     lines += ["", f"Machine: {report['machine']}."]
     return "\n".join(lines) + "\n"
 
@@ -170,7 +178,7 @@ def main() -> None:
     parser.add_argument("--repeats", type=int, default=10)
     parser.add_argument("--warmup", type=int, default=3)
     parser.add_argument("--threads", type=int, default=None)
-    parser.add_argument("--runs", type=Path, nargs="+", default=None, help="the two sweeps' directories (b)")
+    parser.add_argument("--runs", type=Path, nargs="+", default=None, help="the folder of the runs of (b)")
     parser.add_argument("--out", type=Path, default=RESULTS)
     args = parser.parse_args()
     if args.threads:

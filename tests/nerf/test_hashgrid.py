@@ -211,19 +211,22 @@ def rows_read(enc: HashGridEncoding, points: torch.Tensor) -> set[tuple[int, int
     return read
 
 
-def test_sparse_gradients_hold_each_row_read_once_with_the_dense_gradients_sum():
+# 2 hashed levels of 1024 rows; 8 rows read per point and level: 40 points read fewer rows than the table
+# has (summed by sorting them), 400 more (summed over the whole table, the rows read picked out)
+@pytest.mark.parametrize("n_points", [40, 400])
+def test_sparse_gradients_hold_each_row_read_once_with_the_dense_gradients_sum(n_points):
     dense, sparse = small_encoding(), small_encoding(sparse_gradients=True)  # the same tables (seeded)
     assert sparse.state_dict().keys() == dense.state_dict().keys()  # checkpoints of either load in the other
     generator = torch.Generator().manual_seed(2)
     lo, hi = torch.tensor(BOX)
-    points = lo + torch.rand(40, 3, generator=generator) * (hi - lo)
+    points = lo + torch.rand(n_points, 3, generator=generator) * (hi - lo)
     weights = torch.randn(dense.out_dim, generator=generator)
     for enc in (dense, sparse):
         (enc(points) @ weights).sum().backward()
     grad = sparse.hashed.grad
     assert grad.is_sparse and (grad.sparse_dim(), grad.dense_dim()) == (2, 1) and grad.shape == sparse.hashed.shape
     rows = [tuple(index) for index in grad._indices().T.tolist()]
-    assert len(rows) == len(set(rows))  # summed: each row once
+    assert rows == sorted(set(rows))  # summed: each row once, in order
     assert set(rows) == rows_read(sparse, points) and len(rows) < sparse.hashed[..., 0].numel()
     torch.testing.assert_close(grad.to_dense(), dense.hashed.grad)  # the dense gradient, up to summation order
     for a, b in zip(dense.dense, sparse.dense, strict=True):  # the dense levels keep dense gradients

@@ -60,11 +60,9 @@ class PositionalEncoding(nn.Module):
 class _GatherRows(torch.autograd.Function):
     """rows [M] of a table [..., F] (flat indices into its leading dims, row-major) -> [M, F].
 
-    The backward sums the gradients of repeated rows. Dense (``sparse=False``): one ``bincount`` per
-    feature over every row of the table, on a CPU several times faster than ``index_select``'s
-    scatter-add backward. Sparse (``sparse=True``): a sparse COO gradient holding only the rows gathered,
-    coalesced (each row once, its gradients summed; indices sorted), with the table's leading dims as its
-    sparse dims and F as its dense dim: its cost follows M, not the table's size.
+    The backward sums the gradients of repeated rows. Dense (``sparse=False``): ``row_sums`` over every
+    row of the table. Sparse (``sparse=True``): a sparse COO gradient of the rows gathered, each once
+    (``touched_row_sums``), with the table's leading dims as its sparse dims and F as its dense dim.
     """
 
     @staticmethod
@@ -78,18 +76,33 @@ class _GatherRows(torch.autograd.Function):
     def backward(ctx, grad: Tensor) -> tuple[Tensor, None, None]:
         (rows,) = ctx.saved_tensors
         if ctx.sparse:
-            return summed_rows(rows, grad, ctx.table_shape), None, None
-        columns = grad.T.contiguous()  # [F, M]
-        n_rows = math.prod(ctx.table_shape[:-1])
-        sums = [torch.bincount(rows, weights=column, minlength=n_rows) for column in columns]
-        return torch.stack(sums, -1).to(grad.dtype).view(ctx.table_shape), None, None
+            return touched_row_sums(rows, grad, ctx.table_shape), None, None
+        return row_sums(rows, grad, math.prod(ctx.table_shape[:-1])).view(ctx.table_shape), None, None
 
 
-def summed_rows(rows: Tensor, grad: Tensor, table_shape: torch.Size) -> Tensor:
+def row_sums(rows: Tensor, grad: Tensor, n_rows: int) -> Tensor:
+    """Gradients grad [M, F] of rows [M] summed into every row of a table of ``n_rows``: [n_rows, F], by
+    one ``bincount`` per feature (on a CPU several times faster than ``index_select``'s scatter-add backward)."""
+    columns = grad.T.contiguous()  # [F, M]
+    sums = [torch.bincount(rows, weights=column, minlength=n_rows) for column in columns]
+    return torch.stack(sums, -1).to(grad.dtype)
+
+
+def touched_row_sums(rows: Tensor, grad: Tensor, table_shape: torch.Size) -> Tensor:
     """Gradients grad [M, F] of rows [M] (flat indices into ``table_shape``'s leading dims) summed per
-    row, as a coalesced sparse COO tensor of ``table_shape`` [..., F] (hybrid: the leading dims sparse)."""
-    touched, slot = torch.unique(rows, sorted=True, return_inverse=True)  # [U] ascending, [M] into it
-    sums = grad.new_zeros(len(touched), grad.shape[-1]).index_add_(0, slot, grad)  # [U, F]
+    row, as a sparse COO tensor of ``table_shape`` [..., F] (hybrid: the leading dims sparse) holding each
+    row read once, in ascending order (coalesced; autograd's accumulation drops the flag, not the order).
+
+    Whichever is cheaper: a table of at most M rows is summed whole (``row_sums``) and its rows read picked
+    out (a count per row, O(M + rows)); a larger one by sorting the rows read (``torch.unique``,
+    O(M log M)), whatever its size."""
+    n_rows = math.prod(table_shape[:-1])
+    if n_rows <= len(rows):
+        touched = torch.bincount(rows, minlength=n_rows).nonzero().squeeze(1)  # [U] ascending
+        sums = row_sums(rows, grad, n_rows).index_select(0, touched)  # [U, F]
+    else:
+        touched, slot = torch.unique(rows, sorted=True, return_inverse=True)  # [U] ascending, [M] into it
+        sums = grad.new_zeros(len(touched), grad.shape[-1]).index_add_(0, slot, grad)  # [U, F]
     indices = torch.stack(torch.unravel_index(touched, table_shape[:-1]))  # [S, U], lexicographic order
     return torch.sparse_coo_tensor(indices, sums, table_shape, is_coalesced=True, check_invariants=False)
 
