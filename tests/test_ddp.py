@@ -76,8 +76,11 @@ def single_process_scores(run_dir: Path) -> list[tuple[float, float]]:
     module, _ = load_module(cfg, run_dir / LAST_CHECKPOINT)
     datamodule = instantiate(cfg.datamodule)
     scores = []
+    precision = read_json(run_dir / "results.json")["precision"]  # the config holds the choice: auto
+    bf16 = torch.autocast("cpu", dtype=torch.bfloat16, enabled=precision == "bf16-mixed")
     for batch in datamodule.test_dataloader():
-        image = module.render_image(batch["origins"], batch["directions"], batch.get("viewdirs"))
+        with bf16:  # as the run's trainer evaluates
+            image = module.render_image(batch["origins"], batch["directions"], batch.get("viewdirs"))
         scores.append((psnr(image["rgb"], batch["rgb"]), ssim(image["rgb"], batch["rgb"])))
     return scores
 

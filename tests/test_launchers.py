@@ -12,6 +12,7 @@ from lightning.fabric.utilities import rank_zero as fabric_rank_zero
 from omegaconf import OmegaConf
 
 import nerfexp.nerf.volume_renderer as renderer_module
+from nerfexp.training.precision import fill_precision
 from tests.helpers import TINY, read_json, run_nerfexp
 
 
@@ -44,6 +45,7 @@ def test_under_slurm_lightning_joins_the_processes_srun_started(monkeypatch):
     for module in (utilities_rank_zero, fabric_rank_zero):  # the trainer sets this process's rank: put it back
         monkeypatch.setattr(module.rank_zero_only, "rank", module.rank_zero_only.rank)
     cfg = config("trainer=slurm", "trainer.accelerator=cpu", "trainer.devices=2", "trainer.num_nodes=2")
+    fill_precision(cfg)  # as a job does before it builds the trainer
     trainer = instantiate(cfg.trainer, logger=False, callbacks=[], default_root_dir=".", max_steps=1)
     environment = trainer.strategy.cluster_environment
     assert isinstance(environment, SLURMEnvironment) and environment.creates_processes_externally

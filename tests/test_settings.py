@@ -14,6 +14,7 @@ from nerfexp.errors import ConfigError
 from nerfexp.settings.checks import check_settings, checked_settings
 from nerfexp.settings.schema import SCHEMA, matching
 from nerfexp.settings.unused import unused_settings
+from nerfexp.training.precision import fill_precision
 from tests.helpers import TINY
 
 GROUPS = {  # every option of every group (conf/), and the sweeps' configs
@@ -114,5 +115,6 @@ def test_any_setting_is_refused_in_one_error_naming_it_or_builds(hydra_configs, 
         assert any(key in str(error) for key, _ in changes) or "which sets" in str(error), str(error)
         return
     instantiate(cfg.model)
+    fill_precision(cfg)  # as a job does before it builds the trainer
     instantiate(cfg.trainer, logger=False, callbacks=[], enable_checkpointing=False)
     instantiate(cfg.datamodule)  # the scene: small enough by the check's own estimate

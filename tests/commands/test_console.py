@@ -16,7 +16,7 @@ from nerfexp.commands import evaluate, render, report, scene, view
 from nerfexp.training.progress import StepProgressBar
 from tests.helpers import REPO, TINY, command, run_nerfexp
 
-OWN_LINE = re.compile(r"\[\d{4}-\d\d-\d\d \d\d:\d\d:\d\d,\d{3}\]\[nerfexp\]\[INFO\] - ")  # nerfexp's log format
+OWN_LINE = re.compile(r"\[\d{4}-\d\d-\d\d \d\d:\d\d:\d\d,\d{3}\]\[nerfexp[.\w]*\]\[INFO\] - ")  # nerfexp's log format
 
 
 def test_nerfexp_help_says_what_it_is_its_groups_sweeps_other_commands_and_outputs(tmp_path):
@@ -55,7 +55,8 @@ def test_a_run_prints_its_own_lines_only(tmp_path):
     assert done.returncode == 0, done.stderr[-3000:]
     lines = (done.stdout + done.stderr).splitlines()
     assert [line for line in lines if not OWN_LINE.match(line)] == []
-    assert [re.search(r"step \d+/60: validation", line)[0] for line in lines[:-1]] == [
+    assert re.search(r"trainer.precision=auto: (bf16-mixed|32-true) \(.+\)$", lines[0])  # chosen at start-up
+    assert [re.search(r"step \d+/60: validation", line)[0] for line in lines[1:-1]] == [
         "step 30/60: validation", "step 60/60: validation"]
     assert "test PSNR" in lines[-1]
 

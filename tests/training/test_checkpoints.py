@@ -16,6 +16,7 @@ from hydra.utils import instantiate
 from lightning.pytorch.plugins.io import TorchCheckpointIO
 
 from nerfexp.training.checkpoints import AtomicCheckpointIO
+from nerfexp.training.precision import fill_precision
 
 OTHER_FILE_SYSTEM = Path("/dev/shm")  # a tmpfs where /tmp and the runs are on a disk: a cluster node's scratch
 WEIGHTS = 8 * 2**20  # float32 values: a 32 MiB checkpoint, long enough to write that a kill lands inside it
@@ -153,5 +154,6 @@ def test_every_trainer_config_saves_through_nerfexps_checkpoint_io(trainer, tmp_
         cfg = compose("config", overrides=[f"trainer={trainer}", "trainer.accelerator=cpu",
                                            f"trainer.devices={2 if trainer == 'ddp' else 1}",
                                            f"trainer.default_root_dir={tmp_path}"])
+    fill_precision(cfg)  # as a job does before it builds the trainer
     built = instantiate(cfg.trainer, logger=False)
     assert isinstance(built.strategy.checkpoint_io, AtomicCheckpointIO)

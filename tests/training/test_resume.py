@@ -13,6 +13,7 @@ import torch
 import nerfexp.training.resume as resume
 from nerfexp.errors import NerfexpError
 from nerfexp.rundir.trained import read_checkpoint
+from nerfexp.training.precision import auto_precision
 from nerfexp.training.recorders import keep_metrics_through
 from tests.helpers import final_state, kill_at, one_error_line, read_json, run_nerfexp
 
@@ -92,6 +93,11 @@ def test_eval_of_a_missing_run_is_one_clear_line(tmp_path, make):
     assert len(lines) == 1 and lines[0].startswith("nerfexp-eval: error: ") and expected in lines[0], lines
 
 
+# the tiny run trains at the default precision (auto): what this machine chose, and the other one
+AUTO_PRECISION = auto_precision("cpu")[0]
+OTHER_PRECISION = {"bf16-mixed": "32-true", "32-true": "bf16-mixed"}[AUTO_PRECISION]
+
+
 def files_of(folder: Path) -> dict:
     """Every file under ``folder`` and its bytes: to show that nothing was written, replaced or removed."""
     return {path.relative_to(folder): path.read_bytes() for path in sorted(folder.rglob("*")) if path.is_file()}
@@ -104,8 +110,8 @@ def files_of(folder: Path) -> dict:
     (["encoding=hashgrid", "scale.steps=90"], "the checkpoint was trained with encoding=posenc, "),
     (["scale.width=64", "scale.steps=90"],
      "the checkpoint was trained with scale.width=32; this run sets scale.width=64:"),
-    (["trainer.precision=bf16-mixed", "scale.steps=90"], "trained with trainer.precision=32-true; this run sets "
-                                                         "trainer.precision=bf16-mixed:"),
+    ([f"trainer.precision={OTHER_PRECISION}", "scale.steps=90"],
+     f"trained with trainer.precision={AUTO_PRECISION}; this run sets trainer.precision={OTHER_PRECISION}:"),
     ([], "the checkpoint has taken 60 steps, all of this run's (scale.steps=60): raise scale.steps to train further, "
          "or score it with nerfexp-eval"),
 ])

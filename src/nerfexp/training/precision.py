@@ -4,7 +4,7 @@ hardware, float32 elsewhere, chosen when a job starts.
 bf16 is fast on GPUs from Ampere on (compute capability 8.0) and on CPUs with AMX or AVX-512 BF16 units
 (Intel from Cooper Lake and Sapphire Rapids, AMD from Zen 4): there ``bf16-mixed`` runs the networks' matrix
 products in bf16 (weights, optimizer and volume rendering stay float32, ``nerfexp.nerf``). Elsewhere ``auto``
-keeps ``32-true``. docs/acceleration.md has the measurements behind the choice (``benchmarks/precision.py``,
+keeps ``32-true``. docs/precision.md has the measurements behind the choice (``benchmarks/precision.py``,
 and quality paired by seed).
 """
 
