@@ -9,7 +9,7 @@ import torch
 
 from nerfexp.nerf.analytic import GaussianBlob, Slab, aimed_rays
 from nerfexp.nerf.occupancy import OccupancyGrid, cell_corners, cell_indices, density_threshold
-from nerfexp.nerf.volume_renderer import VolumeRenderer
+from nerfexp.nerf.volume_renderer import VolumeRenderer, padded_size, query_packed
 
 BOX = [[-1.0, -1.0, -1.0], [1.0, 1.0, 1.0]]
 NEAR, FAR = 2.0, 6.0
@@ -182,3 +182,34 @@ def test_a_faint_density_floor_everywhere_leaves_empty_cells_empty():
     assert not grid.occupied[empty].any() and grid.occupied[solid].all()
     # a floor above sigma_t fills the box: the grid leaves nothing out
     assert trained_grid(SimpleNamespace(density=lambda x: blob.density(x) + 2 * sigma_t)).occupied.all()
+
+
+def test_packed_sizes_are_few_per_doubling_and_less_than_an_eighth_above():
+    sizes = [padded_size(n) for n in range(20000)]
+    assert all(n <= p < n + max(n / 8, 1) for n, p in enumerate(sizes))
+    assert sizes[:9] == list(range(9))  # small batches as they are
+    for k in range(3, 14):  # the sizes from 2^k to 2^(k+1) - 1
+        assert len({p for p in sizes if 2**k <= p < 2 ** (k + 1)}) == 8
+
+
+def test_a_packed_batch_is_padded_with_kept_points_and_gives_each_kept_sample_its_own_answer():
+    # A field whose colour is the position itself and whose density is its x: every kept sample's answer
+    # is known, and a padded row that landed anywhere but the end would show
+    seen = []
+
+    class Positional(torch.nn.Module):
+        def forward(self, points, viewdirs):
+            seen.append((points.clone(), viewdirs.clone()))
+            return points * 2, points[:, 0]
+
+    generator = torch.Generator().manual_seed(0)
+    points, viewdirs = torch.randn(7, 40, 3, generator=generator), torch.randn(7, 3, generator=generator)
+    keep = torch.rand(7, 40, generator=generator) < 0.6
+    rgb, sigma = query_packed(Positional(), points, viewdirs, keep)
+    n = int(keep.sum())
+    assert len(seen) == 1 and len(seen[0][0]) == padded_size(n) > n  # 170 kept, padded to 176
+    batch, dirs = seen[0]
+    torch.testing.assert_close(batch[n:], batch[: padded_size(n) - n])  # the padding: kept points again
+    torch.testing.assert_close(dirs[n:], dirs[: padded_size(n) - n])
+    torch.testing.assert_close(rgb, torch.where(keep[..., None], points * 2, 0), rtol=0, atol=0)
+    torch.testing.assert_close(sigma, torch.where(keep, points[..., 0], 0), rtol=0, atol=0)

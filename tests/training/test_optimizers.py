@@ -26,7 +26,8 @@ def test_flat_rows_count_row_major():
 
 
 @pytest.mark.parametrize("options", [dict(weight_decay=0.1), dict(amsgrad=True), dict(maximize=True),
-                                     dict(weight_decay=0.01, decoupled_weight_decay=True)])
+                                     dict(weight_decay=0.01, decoupled_weight_decay=True),
+                                     dict(fused=True), dict(fused=True, weight_decay=0.1)])
 def test_dense_gradients_get_torch_adams_update_bit_for_bit(options):
     generator = torch.Generator().manual_seed(0)
     start = [torch.randn(4, 3, generator=generator), torch.randn(5, generator=generator),
@@ -148,6 +149,25 @@ def test_lazy_equals_dense_adam_when_every_row_is_touched_every_step():
     assert torch.equal(lazy.detach(), dense.detach())
     assert all(torch.equal(lazy_optimizer.state[lazy][k], dense_optimizer.state[dense][k])
                for k in ("step", "exp_avg", "exp_avg_sq"))
+
+
+def test_fused_lazy_adam_updates_sparse_rows_as_unfused_and_dense_parameters_as_fused_adam():
+    generator = torch.Generator().manual_seed(0)
+    start_table, start_dense = torch.randn(3, 8, 2, generator=generator), torch.randn(5, generator=generator)
+    runs = []
+    for optimizer_class, fused in ((LazyAdam, False), (LazyAdam, True), (torch.optim.Adam, True)):
+        table, dense = torch.nn.Parameter(start_table.clone()), torch.nn.Parameter(start_dense.clone())
+        optimizer = optimizer_class([dense] if optimizer_class is torch.optim.Adam else [table, dense],
+                                    **SETTINGS, fused=fused)
+        grads = torch.Generator().manual_seed(1)
+        for _ in range(4):
+            table.grad = sparse([[0, 2, 0], [1, 5, 1]], torch.randn(3, 2, generator=grads), table.shape)
+            dense.grad = torch.randn(5, generator=grads)
+            optimizer.step()
+        runs.append((table.detach(), dense.detach()))
+    (unfused_table, _), (fused_table, fused_dense), (_, adam_dense) = runs
+    assert torch.equal(fused_table, unfused_table) and not torch.equal(fused_table, start_table)
+    assert torch.equal(fused_dense, adam_dense)
 
 
 def test_a_checkpoint_of_adam_continues_in_lazy_adam_and_back():

@@ -16,18 +16,41 @@ def final_output(outputs: dict[str, dict[str, Tensor]]) -> dict[str, Tensor]:
     return outputs["fine"] if "fine" in outputs else outputs["coarse"]
 
 
+LOG2_SIZES_PER_OCTAVE = 3  # the packed batch sizes the networks see: at most 2^3 per doubling (``padded_size``)
+
+
+def padded_size(n: int) -> int:
+    """The packed batch size that evaluates n points: n rounded up to a multiple of 2^(floor(log2 n) - 3),
+    so at most 8 sizes per doubling, each less than n / 8 above n.
+
+    Why: on a CPU, a matrix product of a shape not met before costs oneDNN a new primitive (under bf16
+    autocast a JIT-compiled kernel, more than the product itself: docs/precision.md), and a packed batch
+    changes size every step; a few sizes, met again and again, come from its cache.
+
+    >>> [padded_size(n) for n in (1, 7, 8, 9, 17, 1000, 1025)]
+    [1, 7, 8, 9, 18, 1024, 1152]
+    """
+    quantum = 1 << max(n.bit_length() - 1 - LOG2_SIZES_PER_OCTAVE, 0)  # n.bit_length() - 1 = floor(log2 n)
+    return -(-n // quantum) * quantum
+
+
 def query_packed(field: nn.Module, points: Tensor, viewdirs: Tensor, keep: Tensor) -> tuple[Tensor, Tensor]:
     """Evaluate ``field`` only at the samples ``keep`` [B, S] (bool) of ``points`` [B, S, 3], rays' unit
     ``viewdirs`` [B, 3], as one flat batch of N = keep.sum() points; the others get sigma = 0 and rgb = 0.
+
+    The batch is ``padded_size(N)`` long: its first kept points again fill the rest, and their answers are
+    dropped (no gradient reaches them; a hash grid's sparse gradient holds the same rows).
 
     Returns (rgb [B, S, 3], sigma [B, S]) in the field's dtype. A skipped sample absorbs nothing, so its
     colour never reaches a pixel (``render_weights`` gives it weight exactly 0).
     """
     index = keep.nonzero(as_tuple=True)  # (ray [N], sample [N])
-    rgb, sigma = field(points[index], viewdirs[index[0]])  # [N, 3], [N]
+    n = len(index[0])
+    rays, samples = (torch.cat([i, i[: padded_size(n) - n]]) for i in index)  # [P]: the kept, then again
+    rgb, sigma = field(points[rays, samples], viewdirs[rays])  # [P, 3], [P]
     B, S = keep.shape  # rays, samples
-    rgbs = rgb.new_zeros(B, S, 3).index_put(index, rgb)
-    sigmas = sigma.new_zeros(B, S).index_put(index, sigma)
+    rgbs = rgb.new_zeros(B, S, 3).index_put(index, rgb[:n])
+    sigmas = sigma.new_zeros(B, S).index_put(index, sigma[:n])
     return rgbs, sigmas
 
 

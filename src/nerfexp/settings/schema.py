@@ -123,6 +123,7 @@ SCHEMA: dict[str, Rule] = {
     "model.optimizer.betas": BETAS,
     "model.optimizer.eps": POSITIVE,
     "model.optimizer.weight_decay": real(0),
+    "model.optimizer.fused": BOOLEAN,
     "model.renderer.hierarchical": BOOLEAN,
     "model.renderer.n_coarse": COUNT,
     "model.renderer.n_fine": COUNT,

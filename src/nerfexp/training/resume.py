@@ -48,6 +48,7 @@ MAY_DIFFER = (
     # where it runs: the processes share each global batch, the same objective (nerfexp.data.rays.RandomRays)
     "trainer.accelerator", "trainer.devices", "trainer.num_nodes", "trainer.strategy",
     "model.compile",  # the same networks, compiled
+    "model.optimizer.fused",  # the same update, by one kernel or a loop
     "trainer.plugins",  # how checkpoints are written (nerfexp.training.checkpoints), not what is trained
 )
 DERIVED = ("data.near", "data.far")  # null in a config: set from the scene (fill_ray_bounds), which is compared
