@@ -38,6 +38,7 @@ from torch.profiler import ProfilerActivity, profile
 from nerfexp.files import atomic_write
 from nerfexp.training.callbacks import FlushDenormals
 from nerfexp.training.module import seeded_random
+from nerfexp.training.precision import fill_precision
 
 RESULTS = Path(__file__).parent / "results"
 VARIANTS = ("none", "occupancy")
@@ -101,11 +102,13 @@ def config(variant: str, overrides: list[str]):
 
 
 def train(cfg, datamodule) -> tuple[L.LightningModule, dict]:
-    """Fit and test one variant; the module and its numbers."""
+    """Fit and test one variant, in the config's precision (``auto`` chosen for this machine as a run
+    does); the module and its numbers."""
+    fill_precision(cfg)
     L.seed_everything(cfg.seed, workers=True, verbose=False)
     model = instantiate(cfg.model)
     clock = TrainClock()
-    trainer = L.Trainer(accelerator="auto", devices=1, max_steps=cfg.trainer.max_steps,
+    trainer = L.Trainer(accelerator="auto", devices=1, precision=cfg.trainer.precision, max_steps=cfg.trainer.max_steps,
                         val_check_interval=cfg.trainer.val_check_interval, check_val_every_n_epoch=None,
                         num_sanity_val_steps=0, logger=False, enable_checkpointing=False, enable_progress_bar=False,
                         enable_model_summary=False, callbacks=[FlushDenormals(), clock])
@@ -113,7 +116,8 @@ def train(cfg, datamodule) -> tuple[L.LightningModule, dict]:
     trainer.test(model, datamodule=datamodule, verbose=False)
     steps = trainer.global_step
     return model, {
-        "steps": steps, "train_s": round(clock.train_s, 2), "s_per_step": clock.train_s / steps,
+        "precision": cfg.trainer.precision, "steps": steps, "train_s": round(clock.train_s, 2),
+        "s_per_step": clock.train_s / steps,
         "evaluations_per_ray": float(model.renderer.evaluations_per_ray),
         "final_val_psnr": clock.curve[-1][2], "test_psnr": clock.test_psnr,
         "curve": [{"step": s, "train_s": round(t, 2), "val_psnr": round(p, 3)} for s, t, p in clock.curve],
