@@ -24,7 +24,7 @@ def padded_size(n: int) -> int:
     so at most 8 sizes per doubling, each less than n / 8 above n.
 
     Why: on a CPU, a matrix product of a shape not met before costs oneDNN a new primitive (under bf16
-    autocast a JIT-compiled kernel, more than the product itself: docs/precision.md), and a packed batch
+    autocast a JIT-compiled kernel, more than the product itself: docs/acceleration.md), and a packed batch
     changes size every step; a few sizes, met again and again, come from its cache.
 
     >>> [padded_size(n) for n in (1, 7, 8, 9, 17, 1000, 1025)]
