@@ -95,7 +95,7 @@ def run(cfg, datamodule, n_profile_steps: int) -> dict:
         for i in range(n_profile_steps):  # past the warm-up: a random quarter of the cells through both networks
             grid.update(grid.update_every * (grid.warmup_steps + 1 + i), renderer.density_fns())
     result["grid_update_s"] = (time.perf_counter() - start) / n_profile_steps
-    result["profile"] = profile_step(model, datamodule, n_profile_steps)
+    result["profile"] = profile_step(model, datamodule, n_profile_steps, result["precision"])
     return result
 
 

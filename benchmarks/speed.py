@@ -124,11 +124,13 @@ def train(cfg, datamodule) -> tuple[L.LightningModule, dict]:
     }
 
 
-def plain_step(model, optimizer, batch, index: int) -> None:
+def plain_step(model, optimizer, batch, index: int, precision: str) -> None:
     """What training step ``index`` after the grid's warm-up computes (``NeRFModule.training_step``),
-    without Lightning: render, update the grid when due, the coarse + fine colour loss, backward, Adam."""
+    without Lightning: render, update the grid when due, the coarse + fine colour loss, backward, Adam;
+    the forward under bf16 autocast where ``precision`` is ``bf16-mixed``, as Lightning runs it."""
     renderer, grid = model.renderer, model.renderer.grid
-    with seeded_random(batch.get("seed"), model.device):
+    bf16 = torch.autocast(model.device.type, dtype=torch.bfloat16, enabled=precision == "bf16-mixed")
+    with bf16, seeded_random(batch.get("seed"), model.device):
         outputs = renderer(batch["origins"], batch["directions"], deterministic=False, viewdirs=batch.get("viewdirs"))
         if grid is not None:
             grid.update(grid.update_every * (grid.warmup_steps + 1) + index, renderer.density_fns())
@@ -138,8 +140,9 @@ def plain_step(model, optimizer, batch, index: int) -> None:
     optimizer.step()
 
 
-def profile_step(model, datamodule, n_steps: int) -> dict:
-    """Wall-clock time of ``n_steps`` plain training steps of the trained ``model`` and the time its
+def profile_step(model, datamodule, n_steps: int, precision: str) -> dict:
+    """Wall-clock time of ``n_steps`` plain training steps of the trained ``model`` in ``precision`` (as it
+    trained: ``train``'s "precision") and the time its
     matrix products take in them (self time of ``MATMUL_OPS``; on a GPU, their kernels' device time).
 
     The grid is updated at the first of the steps timed and of the steps profiled (in training: every
@@ -150,17 +153,17 @@ def profile_step(model, datamodule, n_steps: int) -> dict:
     batches = [move_data_to_device(b, device) for b, _ in zip(datamodule.train_dataloader(), range(2 * n_steps))]
     optimizer = model.optimizer(model.parameter_groups())
     for i, batch in enumerate(batches[:n_steps]):  # warm-up: allocator, kernels, caches
-        plain_step(model, optimizer, batch, i + 1)
+        plain_step(model, optimizer, batch, i + 1, precision)
     synchronize(device)
     start = time.perf_counter()
     for i, batch in enumerate(batches[n_steps:]):
-        plain_step(model, optimizer, batch, i)
+        plain_step(model, optimizer, batch, i, precision)
     synchronize(device)
     step_s = (time.perf_counter() - start) / n_steps
     activities = [ProfilerActivity.CPU] + ([ProfilerActivity.CUDA] if device.type == "cuda" else [])
     with profile(activities=activities) as prof:
         for i, batch in enumerate(batches[n_steps:]):
-            plain_step(model, optimizer, batch, i)
+            plain_step(model, optimizer, batch, i, precision)
         synchronize(device)
     events = prof.key_averages()
     attribute = "self_device_time_total" if device.type == "cuda" else "self_cpu_time_total"
@@ -248,7 +251,7 @@ def main() -> None:
         cfg = config(variant, overrides)
         datamodule = datamodule or instantiate(cfg.datamodule)  # the scene is rendered once
         model, runs[variant] = train(cfg, datamodule)
-        runs[variant]["profile"] = profile_step(model, datamodule, args.profile_steps)
+        runs[variant]["profile"] = profile_step(model, datamodule, args.profile_steps, runs[variant]["precision"])
         print(variant, {k: v for k, v in runs[variant].items() if k != "curve"}, flush=True)
     target = runs["none"]["final_val_psnr"] - TARGET_MARGIN_DB
     for run in runs.values():
