@@ -10,8 +10,9 @@ after a warm-up, for each formulation:
   per-sample weights (one fused gather and weighted sum);
 - ``one_gather``: all levels' corners in one ``index_select``, weights applied by one batched product;
   autograd's backward of ``index_select`` is a scatter-add;
-- ``nerfexp``: ``HashGridEncoding``: dense levels by ``F.grid_sample``, the hashed ones by one gather
-  whose backward sums rows by ``bincount`` (``nerfexp.nerf.encodings.gather_rows``).
+- ``nerfexp``: ``HashGridEncoding``: dense levels by ``F.grid_sample``, the hashed ones corner-first
+  ([8, L, N]) by one autograd node whose backward sums rows by one ``index_add_``
+  (``nerfexp.nerf.encodings.interpolate_rows``).
 The reference: ``PositionalEncoding(10)`` followed by the 4 x 128 MLP of ``scale=cpu`` (the encoding
 and the network it feeds, since the positional encoding alone costs nothing). The hash grid's own MLP
 (one layer of 64) is timed with it. Every formulation is checked against ``nerfexp``'s output first.
@@ -32,7 +33,8 @@ import torch.nn.functional as F
 from torch import nn
 
 from nerfexp.files import atomic_write
-from nerfexp.nerf.encodings import HASH_PRIMES, HashGridEncoding, PositionalEncoding
+from nerfexp.nerf import encodings
+from nerfexp.nerf.encodings import HASH_PRIMES, HashGridEncoding, PositionalEncoding, interpolate_rows
 
 OUT = Path(__file__).parent / "results"
 CORNERS = torch.tensor([[(c >> 2) & 1, (c >> 1) & 1, c & 1] for c in range(8)])  # [8, 3]: (i, j, k) offsets
@@ -89,6 +91,31 @@ def one_gather(table, enc, points, starts):
     return (weights[..., None, :] @ values).squeeze(-2).flatten(1)
 
 
+def scatter_ms(enc: HashGridEncoding, points: torch.Tensor, repeats: int) -> dict[str, float]:
+    """The hashed levels' backward sums (gradients per table entry) by ``bincount`` (nerfexp's,
+    ``entry_sums``) and by ``index_add_``, on the entries the encoding reads for ``points``, in its order."""
+    captured = {}
+
+    def capture(table, corners, weights, sparse=False):
+        captured["corners"] = corners
+        return interpolate_rows(table, corners, weights, sparse)
+
+    encodings.interpolate_rows = capture
+    try:
+        with torch.no_grad():
+            enc(points)
+    finally:
+        encodings.interpolate_rows = interpolate_rows
+    n_entries = enc.hashed.numel()
+    entries = encodings.flat_indices(captured["corners"], n_entries // enc.features_per_level,
+                                     enc.features_per_level).view(-1)
+    values = torch.randn(len(entries))
+    sums = {"bincount": lambda: encodings.entry_sums(entries, values, n_entries),
+            "index_add_": lambda: values.new_zeros(n_entries).index_add_(0, entries, values)}
+    torch.testing.assert_close(sums["bincount"](), sums["index_add_"](), rtol=1e-4, atol=1e-4)
+    return {name: median_ms(fn, repeats) for name, fn in sums.items()}
+
+
 def median_ms(fn, repeats: int) -> float:
     fn()
     times = []
@@ -129,17 +156,22 @@ def main() -> None:
         assert error < 1e-5, (name, error)  # the same encoding, up to rounding
         timings[name] = median_ms(lambda f=formulation: step(f(table, enc, points, starts), mlp_hash), args.repeats)
     timings["nerfexp"] = median_ms(lambda: step(enc(points), mlp_hash), args.repeats)
+    scatter = scatter_ms(enc, points, args.repeats)
     timings["posenc_mlp_4x128"] = median_ms(lambda: step(posenc(points), mlp_posenc), args.repeats)
     reference = timings["posenc_mlp_4x128"]
     machine = {"cpu_count": os.cpu_count(), "torch_threads": torch.get_num_threads(),
                "processor": platform.processor() or platform.machine(), "torch": torch.__version__}
     report = {"points": args.points, "repeats": args.repeats, "machine": machine,
               "forward_backward_ms": {k: round(v, 2) for k, v in timings.items()},
-              "relative_to_posenc_mlp": {k: round(v / reference, 2) for k, v in timings.items()}}
+              "relative_to_posenc_mlp": {k: round(v / reference, 2) for k, v in timings.items()},
+              "backward_sums_ms": {k: round(v, 2) for k, v in scatter.items()}}
     lines = [f"Forward and backward at {args.points} points (median of {args.repeats}); ratio to the positional "
              "encoding with its 4 x 128 MLP.", "", "| formulation | ms | ratio |", "|---|---|---|"]
     lines += [f"| {k} | {v:.1f} | {v / reference:.2f} |" for k, v in timings.items()]
+    lines += ["", "The backward's sums per table entry of the hashed levels (the entries the batch read, in the "
+              "encoding's order), ms: " + ", ".join(f"`{k}` {v:.1f}" for k, v in scatter.items()) + "."]
     lines += ["", f"Machine: {machine}. Command: `python benchmarks/hashgrid.py"
+              + (f" --points {args.points}" if args.points != 256 * 96 else "")
               + (f" --threads {args.threads}" if args.threads else "") + "`."]
     args.out.mkdir(parents=True, exist_ok=True)
     atomic_write(args.out / "hashgrid.json", (json.dumps(report, indent=2) + "\n").encode())

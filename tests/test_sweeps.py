@@ -10,9 +10,11 @@ from hydra import compose, initialize_config_module
 from hydra._internal.core_plugins.basic_sweeper import BasicSweeper
 from hydra.core.override_parser.overrides_parser import OverridesParser
 from hydra.types import RunMode
+from omegaconf import OmegaConf
 from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
 from tensorboard.plugins.hparams.plugin_data_pb2 import HParamsPluginData
 
+from nerfexp.settings.checks import check_settings
 from tests.helpers import TINY, read_json, run_nerfexp
 
 # The paper's Table 4, written out independently of conf/ablation/: position L (None: raw xyz),
@@ -67,6 +69,28 @@ def test_ablation_sweeps_are_the_nine_rows_of_table_4(name, scale):
             assert (cfg.scale.width, cfg.scale.depth, cfg.scale.batch_rays) == (256, 8, 4096)
         else:
             assert cfg.data._target_.endswith("ProceduralScene")
+
+
+def test_sparse_tables_sweep_pairs_dense_and_sparse_table_gradients_under_one_optimizer():
+    jobs = sweep_jobs("sparse_tables")
+    assert len(jobs) == 6 and {job[0] for job in jobs[:2]} == {"seed=0"}  # each seed's pair together
+    configs = []
+    for job in jobs[:2]:
+        with initialize_config_module("nerfexp.conf", version_base=None):
+            cfg = compose("config", overrides=["+sweeps=sparse_tables", *job])
+        check_settings(cfg)  # LazyAdam takes sparse gradients: no refusal
+        configs.append(cfg)
+    dense, sparse = ({key: OmegaConf.to_container(cfg[key], resolve=True) for key in ("encoding", "model", "scale")}
+                     for cfg in configs)
+    assert [job[1].lower() for job in jobs[:2]] == ["encoding.position.sparse_gradients=false",
+                                            "encoding.position.sparse_gradients=true"]
+    for config, flag in ((dense, False), (sparse, True)):
+        assert config["model"]["renderer"]["field"]["position_encoding"].pop("sparse_gradients") is flag
+        assert config["encoding"]["position"].pop("sparse_gradients") is flag
+    assert dense == sparse  # nothing else differs
+    assert dense["encoding"]["position"]["_target_"].endswith("HashGridEncoding")
+    assert dense["model"]["optimizer"]["_target_"] == "nerfexp.training.optimizers.LazyAdam"
+    assert dense["model"]["renderer"]["grid"]["_target_"].endswith("OccupancyGrid")
 
 
 def test_command_line_overrides_beat_the_sweeps_own_values():

@@ -129,11 +129,12 @@ def test_no_collisions_in_dense_levels_and_collisions_above_them():
     assert features[~hit].abs().max() < 1e-6
 
 
-def test_gradcheck_in_float64():
+@pytest.mark.parametrize("points_need_grad", [False, True])  # the tables' fast path; autograd's, as for normals
+def test_gradcheck_in_float64(points_need_grad):
     enc = small_encoding(log2_table_size=8, n_levels=3, finest=12).double()  # levels dense and hashed
     lo, hi = torch.tensor(BOX, dtype=torch.float64)
     points = lo + torch.rand(6, 3, generator=torch.Generator().manual_seed(3), dtype=torch.float64) * (hi - lo)
-    points.requires_grad_(True)
+    points.requires_grad_(points_need_grad)
     parameters = [enc.hashed] + list(enc.dense)
 
     # the tables enter as arguments (functional_call), so that gradcheck perturbs them too

@@ -57,39 +57,61 @@ class PositionalEncoding(nn.Module):
         return torch.cat(parts + [torch.sin(phase), torch.cos(phase)], dim=-1)
 
 
-class _GatherRows(torch.autograd.Function):
-    """rows [M] of a table [..., F] (flat indices into its leading dims, row-major) -> [M, F].
+class _InterpolateRows(torch.autograd.Function):
+    """Weighted sums of table rows: table [..., F], corner rows corners [C, *B] (flat indices into the
+    table's leading dims, row-major), weights [C, *B] -> [*B, F], sum over c of weights[c] table[corners[c]];
+    differentiable in ``table`` only.
 
-    The backward sums the gradients of repeated rows. Dense (``sparse=False``): ``row_sums`` over every
-    row of the table. Sparse (``sparse=True``): a sparse COO gradient of the rows gathered, each once
+    Laid out feature- and corner-first ([F, C, *B]) so that every elementwise step runs along the
+    contiguous batch dims, and the table is read in place by flat entry indices (``flat_indices``). The
+    backward sums each entry's weighted gradients: dense (``sparse=False``) by ``entry_sums`` over the
+    flat table; sparse (``sparse=True``) as a sparse COO gradient of the rows read, each once
     (``touched_row_sums``), with the table's leading dims as its sparse dims and F as its dense dim.
     """
 
     @staticmethod
-    def forward(ctx, table: Tensor, rows: Tensor, sparse: bool) -> Tensor:
-        ctx.save_for_backward(rows)
+    def forward(ctx, table: Tensor, corners: Tensor, weights: Tensor, sparse: bool) -> Tensor:
+        entries = flat_indices(corners, math.prod(table.shape[:-1]), table.shape[-1])  # [F, C, *B]
+        ctx.save_for_backward(corners, entries, weights)
         ctx.table_shape = table.shape
         ctx.sparse = sparse
-        return table.reshape(-1, table.shape[-1]).index_select(0, rows)
+        values = table.reshape(-1).index_select(0, entries.view(-1)).view(entries.shape)
+        return (values * weights).sum(1).movedim(0, -1)
 
     @staticmethod
-    def backward(ctx, grad: Tensor) -> tuple[Tensor, None, None]:
-        (rows,) = ctx.saved_tensors
+    def backward(ctx, grad: Tensor) -> tuple[Tensor, None, None, None]:
+        corners, entries, weights = ctx.saved_tensors
+        columns = weights * grad.movedim(-1, 0).contiguous()[:, None]  # [F, C, *B]
         if ctx.sparse:
-            return touched_row_sums(rows, grad, ctx.table_shape), None, None
-        return row_sums(rows, grad, math.prod(ctx.table_shape[:-1])).view(ctx.table_shape), None, None
+            return touched_row_sums(corners.reshape(-1), columns.flatten(1), ctx.table_shape), None, None, None
+        return entry_sums(entries, columns, math.prod(ctx.table_shape)).view(ctx.table_shape), None, None, None
 
 
-def row_sums(rows: Tensor, grad: Tensor, n_rows: int) -> Tensor:
-    """Gradients grad [M, F] of rows [M] summed into every row of a table of ``n_rows``: [n_rows, F], by
-    one ``bincount`` per feature (on a CPU several times faster than ``index_select``'s scatter-add backward)."""
-    columns = grad.T.contiguous()  # [F, M]
-    sums = [torch.bincount(rows, weights=column, minlength=n_rows) for column in columns]
-    return torch.stack(sums, -1).to(grad.dtype)
+def flat_indices(rows: Tensor, n_rows: int, n_features: int) -> Tensor:
+    """Rows [*R] of a table [n_rows, F] -> the flat indices [F, *R] of their entries, r F + f (in int64
+    where the table's entries pass int32's range)."""
+    if n_rows * n_features > 2**31:
+        rows = rows.long()
+    features = torch.arange(n_features, dtype=rows.dtype, device=rows.device).view(-1, *[1] * rows.dim())
+    return rows[None] * n_features + features
 
 
-def touched_row_sums(rows: Tensor, grad: Tensor, table_shape: torch.Size) -> Tensor:
-    """Gradients grad [M, F] of rows [M] (flat indices into ``table_shape``'s leading dims) summed per
+def entry_sums(entries: Tensor, values: Tensor, n_entries: int) -> Tensor:
+    """values [*M] summed per flat table entry, entries [*M] -> [n_entries], by one ``bincount``
+    (accumulated in float64, returned in the values' dtype). On a CPU it is faster than ``index_add_``
+    here: neighbouring samples hit the same entries one after the other, and ``index_add_``'s adds to
+    one address then wait on each other (``benchmarks/hashgrid.py``)."""
+    return torch.bincount(entries.reshape(-1), weights=values.reshape(-1), minlength=n_entries).to(values.dtype)
+
+
+def row_sums(rows: Tensor, columns: Tensor, n_rows: int) -> Tensor:
+    """Gradients columns [F, M] (one row of M values per feature) of rows [M] summed into every row of a
+    table of ``n_rows``: [n_rows, F] (``entry_sums`` over ``flat_indices``)."""
+    return entry_sums(flat_indices(rows, n_rows, len(columns)), columns, n_rows * len(columns)).view(n_rows, -1)
+
+
+def touched_row_sums(rows: Tensor, columns: Tensor, table_shape: torch.Size) -> Tensor:
+    """Gradients columns [F, M] of rows [M] (flat indices into ``table_shape``'s leading dims) summed per
     row, as a sparse COO tensor of ``table_shape`` [..., F] (hybrid: the leading dims sparse) holding each
     row read once, in ascending order (coalesced; autograd's accumulation drops the flag, not the order).
 
@@ -99,18 +121,26 @@ def touched_row_sums(rows: Tensor, grad: Tensor, table_shape: torch.Size) -> Ten
     n_rows = math.prod(table_shape[:-1])
     if n_rows <= len(rows):
         touched = torch.bincount(rows, minlength=n_rows).nonzero().squeeze(1)  # [U] ascending
-        sums = row_sums(rows, grad, n_rows).index_select(0, touched)  # [U, F]
+        sums = row_sums(rows, columns, n_rows).index_select(0, touched)  # [U, F]
     else:
         touched, slot = torch.unique(rows, sorted=True, return_inverse=True)  # [U] ascending, [M] into it
-        sums = grad.new_zeros(len(touched), grad.shape[-1]).index_add_(0, slot, grad)  # [U, F]
-    indices = torch.stack(torch.unravel_index(touched, table_shape[:-1]))  # [S, U], lexicographic order
+        sums = columns.new_zeros(len(touched), len(columns)).index_add_(0, slot, columns.T)  # [U, F]
+    indices = torch.stack(torch.unravel_index(touched.long(), table_shape[:-1]))  # [S, U], lexicographic order
     return torch.sparse_coo_tensor(indices, sums, table_shape, is_coalesced=True, check_invariants=False)
 
 
-def gather_rows(table: Tensor, rows: Tensor, sparse: bool = False) -> Tensor:
-    """table [..., F] at rows [M] (int64, flat indices into its leading dims) -> [M, F], differentiable
-    in ``table``: a dense gradient, or with ``sparse`` a sparse one of the rows gathered (``_GatherRows``)."""
-    return _GatherRows.apply(table, rows, sparse)
+def interpolate_rows(table: Tensor, corners: Tensor, weights: Tensor, sparse: bool = False) -> Tensor:
+    """table [..., F], corner rows [C, *B] (integer flat indices into its leading dims), weights [C, *B]
+    -> [*B, F], the weighted sum of each batch entry's C rows, differentiable in ``table``: a dense
+    gradient, or with ``sparse`` a sparse one of the rows read (``_InterpolateRows``).
+
+    Weights that need a gradient (positions differentiated, as for normals from the density) take
+    autograd's own gather and sum instead, differentiable in both and twice; the table's gradient is then
+    dense."""
+    if torch.is_grad_enabled() and weights.requires_grad:
+        values = table.reshape(-1, table.shape[-1]).index_select(0, corners.reshape(-1))  # [C B, F]
+        return (weights[..., None] * values.view(*corners.shape, -1)).sum(0)
+    return _InterpolateRows.apply(table, corners, weights, sparse)
 
 
 def level_resolutions(n_levels: int, coarsest: int, finest: int) -> list[int]:
@@ -154,9 +184,9 @@ class HashGridEncoding(Bounded):
 
     The fast formulation on a CPU (``benchmarks/hashgrid.py`` says what was tried): dense levels are
     ``F.grid_sample`` volumes [1, F, N+1, N+1, N+1] (trilinear, fused forward and backward kernels);
-    the hashed levels share one [L_h, T, F] table, read with one gather of all 8 corners of every level
-    (``gather_rows``: its backward sums repeated rows by ``bincount``), and interpolated by one batched
-    product of the weights [.., 1, 8] with the corners [.., 8, F].
+    the hashed levels share one [L_h, T, F] table, read for all 8 corners of every level at once and
+    interpolated in one autograd node (``interpolate_rows``: one gather of every entry read; its backward
+    sums repeated entries by one ``bincount``), corner-first so that the elementwise work runs along the points.
 
     Layout: ``dense`` is a ParameterList of the dense levels (coarsest first), ``hashed`` the [L_h, T, F]
     table of the others; the output follows the levels in order.
@@ -198,8 +228,10 @@ class HashGridEncoding(Bounded):
         self.register_buffer("hashed_resolutions", torch.tensor(hashed, dtype=torch.float32), persistent=False)
         # the hash's constants, built once and moved with the module (not saved: checkpoints keep their keys)
         self.register_buffer("hash_primes", torch.tensor(HASH_PRIMES), persistent=False)  # [3] int64
-        self.register_buffer("level_offsets", self.table_size * torch.arange(len(hashed))[:, None],
-                             persistent=False)  # [L_h, 1]: the first row of each level in the flat table
+        # corner rows in int32 where the flat table allows (narrower gathers and sums than int64)
+        self.row_dtype = torch.int32 if len(hashed) * self.table_size <= 2**31 else torch.int64
+        first_rows = self.table_size * torch.arange(len(hashed), dtype=self.row_dtype)[:, None]
+        self.register_buffer("level_offsets", first_rows, persistent=False)  # [L_h, 1]: each level's first row
 
     def forward(self, x: Tensor) -> Tensor:
         """x [..., 3] -> [..., out_dim] in the table's dtype (float32 in training), autocast or not.
@@ -224,21 +256,25 @@ class HashGridEncoding(Bounded):
         return torch.cat(parts, -1).view(*x.shape[:-1], self.out_dim)
 
     def _hashed_features(self, unit: Tensor) -> Tensor:
-        """unit positions [N, 3] in [0, 1] -> interpolated features of the hashed levels [N, L_h, F]."""
-        _, table_size, n_features = self.hashed.shape
-        scaled = unit[:, None, :] * self.hashed_resolutions[:, None].to(unit.dtype)  # [N, L_h, 3]
-        lower = scaled.floor().clamp(max=self.hashed_resolutions[:, None].to(unit.dtype) - 1)  # 1 -> the last cell
+        """unit positions [N, 3] in [0, 1] -> interpolated features of the hashed levels [N, L_h, F].
+
+        Computed level- and corner-first ([2, L_h, 3, N], [8, L_h, N]): every broadcast then runs along the
+        contiguous points (trailing dims of 2 or 8 made the elementwise kernels several times slower)."""
+        table_size = self.hashed.shape[1]
+        resolutions = self.hashed_resolutions.to(unit.dtype)[:, None, None]  # [L_h, 1, 1]
+        scaled = unit.T * resolutions  # [L_h, 3, N]
+        lower = scaled.floor().clamp(max=resolutions - 1)  # 1 -> the last cell
         frac = scaled - lower
         vertices = lower.long()
         # hashed per axis, then combined: (a xor b) mod 2^n = (a mod 2^n) xor (b mod 2^n); int64 products of
         # vertices below 2^20 cannot overflow
-        corner_pairs = torch.stack([vertices, vertices + 1], -1)  # [N, L_h, 3, 2]
-        rows = (corner_pairs * self.hash_primes[:, None]) & (table_size - 1)  # [N, L_h, 3, 2]
-        rx, ry, rz = rows.unbind(-2)  # [N, L_h, 2]: the lower and upper vertex along each axis
-        corners = (rx[..., :, None, None] ^ ry[..., None, :, None] ^ rz[..., None, None, :]).flatten(-3)  # [N, L_h, 8]
-        corners = corners + self.level_offsets  # rows of the flat table
-        linear = torch.stack([1 - frac, frac], -1)  # [N, L_h, 3, 2]: weights of the lower and upper vertex
-        wx, wy, wz = linear.unbind(-2)
-        weights = (wx[..., :, None, None] * wy[..., None, :, None] * wz[..., None, None, :]).flatten(-3)
-        values = gather_rows(self.hashed, corners.flatten(), sparse=self.sparse_gradients)  # [N L_h 8, F]
-        return (weights[..., None, :] @ values.view(*corners.shape, n_features)).squeeze(-2)  # [N, L_h, F]
+        corner_pairs = torch.stack([vertices, vertices + 1])  # [2, L_h, 3, N]: lower and upper vertex per axis
+        rows = (corner_pairs * self.hash_primes[:, None]) & (table_size - 1)
+        rx, ry, rz = rows.to(self.row_dtype).unbind(-2)  # [2, L_h, N]
+        # each level's first row of the flat table, added to one axis: rows < T and the offsets are multiples
+        # of T, so adding before the xor equals adding after
+        rz = rz + self.level_offsets
+        corners = (rx[:, None, None] ^ ry[None, :, None] ^ rz[None, None, :]).flatten(0, 2)  # [8, L_h, N]
+        wx, wy, wz = torch.stack([1 - frac, frac]).unbind(-2)  # [2, L_h, N]: weights of the lower and upper vertex
+        weights = (wx[:, None, None] * wy[None, :, None] * wz[None, None, :]).flatten(0, 2)  # [8, L_h, N]
+        return interpolate_rows(self.hashed, corners, weights, sparse=self.sparse_gradients).transpose(0, 1)

@@ -26,7 +26,7 @@ def flat_rows(indices: Tensor, sizes: torch.Size) -> Tensor:
 
 def summed_rows(grad: Tensor) -> tuple[Tensor, Tensor]:
     """A sparse gradient [*S, *D] as its touched rows, each once and in ascending order: flat row indices
-    [U] (``flat_rows``) and their summed values [U, *D]. Indices already so (``gather_rows`` makes them
+    [U] (``flat_rows``) and their summed values [U, *D]. Indices already so (``interpolate_rows`` makes them
     that way; autograd's accumulation drops the coalesced flag) are taken as they are, checked in one pass
     over them; others are coalesced (a sort)."""
     sizes = grad.shape[:grad.sparse_dim()]
