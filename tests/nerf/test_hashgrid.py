@@ -9,7 +9,7 @@ import math
 import pytest
 import torch
 
-from nerfexp.nerf.encodings import HASH_PRIMES, HashGridEncoding, PositionalEncoding, level_resolutions
+from nerfexp.nerf.encodings import HASH_PRIMES, HashGridEncoding, PositionalEncoding, flat_indices, level_resolutions
 from nerfexp.nerf.fields import NeRFField, ViewMLPHead
 
 BOX = [[-1.0, -0.5, 0.0], [1.0, 1.5, 3.0]]  # unequal sides: the axes must not be mixed up
@@ -232,3 +232,11 @@ def test_sparse_gradients_hold_each_row_read_once_with_the_dense_gradients_sum(n
     torch.testing.assert_close(grad.to_dense(), dense.hashed.grad)  # the dense gradient, up to summation order
     for a, b in zip(dense.dense, sparse.dense, strict=True):  # the dense levels keep dense gradients
         assert not b.grad.is_sparse and torch.equal(a.grad, b.grad)
+
+
+def test_flat_entry_indices_widen_to_int64_where_int32_would_overflow():
+    rows = torch.tensor([0, 5, 2**31 - 1], dtype=torch.int32)  # the last row of a table of 2^31 rows
+    small = flat_indices(rows[:2], n_rows=6, n_features=2)
+    assert small.dtype == torch.int32 and small.tolist() == [[0, 10], [1, 11]]  # r F + f, feature-first
+    large = flat_indices(rows, n_rows=2**31, n_features=2)
+    assert large.dtype == torch.int64 and large[:, -1].tolist() == [2**32 - 2, 2**32 - 1]
