@@ -234,9 +234,6 @@ def test_the_viewer_sends_renders_of_the_first_test_camera_to_a_real_browser(tin
                 break
             seen.remove(match.string)  # a frame of the camera before the initial one arrived: look further
         assert match, "\n".join(seen)
-        time.sleep(1)  # the frame is drawn at the browser's next animation frame
-        shot = page_screenshot(tmp_path / "profile")
-        close_page(browser)
         torch.testing.assert_close(direction, -first[:3, 2].float(), atol=1e-3, rtol=0)  # the same rotation
         assert match[4] == "opacity" and match[7] == "0"
         # the page shows that frame: the screenshot, averaged down to the frame's pixels, is the viewer's
@@ -246,11 +243,19 @@ def test_the_viewer_sends_renders_of_the_first_test_camera_to_a_real_browser(tin
         request = ViewRequest(first, vertical_fov(views.height, views.focal), height, width, "opacity")
         expected = render_request(loaded.module, instantiate(loaded.cfg.data), threading.Lock(), request, height,
                                   width, lambda: False).astype(int)
-        shown = np.asarray(Image.fromarray(shot).resize((width, height), Image.Resampling.BOX)).astype(int)
-        difference = np.abs(shown - expected).max(-1)  # [H, W]
         assert np.median(np.abs(255 - expected).max(-1)) > 48  # the frame is far from viser's white page
-        # measured: 3/4 of the pixels within 4 levels; the rest under the panels (a notice, the controls)
-        assert np.percentile(difference, 75) < 10, difference
+        # measured: 3/4 of the pixels within 4 levels; the rest under the panels (a notice, the controls). The
+        # first screenshot is often 25 to 30 levels lighter all over, frustums included (chromium 156, here and
+        # on CI); one half a second later shows the frame: look again until the page shows it
+        differences = []
+        deadline = time.monotonic() + 15
+        while not differences or (differences[-1] >= 10 and time.monotonic() < deadline):
+            time.sleep(0.5)
+            shot = page_screenshot(tmp_path / "profile")
+            shown = np.asarray(Image.fromarray(shot).resize((width, height), Image.Resampling.BOX)).astype(int)
+            differences.append(np.percentile(np.abs(shown - expected).max(-1), 75))  # over [H, W]
+        close_page(browser)
+        assert differences[-1] < 10, differences
         frames = [FRAME.search(line) for line in seen if FRAME.search(line)]
         assert int(frames[0][2]) <= 3  # the first image sent is the coarse one: 24 / 8 pixels wide
     finally:
