@@ -180,6 +180,9 @@ def test_a_named_reference_and_a_variant_with_one_seed(sweep):
     assert "| hierarchical=false | 1/3 | 25.00 | 0.950 | 1 seed: no interval | 1 seed: no interval | " \
            "not resolved with 1 seed |" in report
     assert "| encoding=none | 0/1 | – | – | – | – | – |" in report  # nothing finished: nothing to compare
+    # true, false and null in any case, as Hydra reads them (a sweep file's true,false reaches the runs as True, False)
+    write_report([sweep], sweep, reference="hierarchical=True")
+    assert (sweep / "report.md").read_text() == report
     with pytest.raises(SystemExit, match="--reference 'hierarchical=maybe': no such variant; the variants are "):
         write_report([sweep], sweep, reference="hierarchical=maybe")
 

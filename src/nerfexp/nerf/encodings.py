@@ -72,7 +72,7 @@ class _InterpolateRows(torch.autograd.Function):
     @staticmethod
     def forward(ctx, table: Tensor, corners: Tensor, weights: Tensor, sparse: bool) -> Tensor:
         entries = flat_indices(corners, math.prod(table.shape[:-1]), table.shape[-1])  # [F, C, *B]
-        ctx.save_for_backward(corners, entries, weights)
+        ctx.save_for_backward(corners if sparse else entries, weights)  # what each backward reads
         ctx.table_shape = table.shape
         ctx.sparse = sparse
         values = table.reshape(-1).index_select(0, entries.view(-1)).view(entries.shape)
@@ -80,11 +80,11 @@ class _InterpolateRows(torch.autograd.Function):
 
     @staticmethod
     def backward(ctx, grad: Tensor) -> tuple[Tensor, None, None, None]:
-        corners, entries, weights = ctx.saved_tensors
+        indices, weights = ctx.saved_tensors  # corners [C, *B] where sparse, else entries [F, C, *B]
         columns = weights * grad.movedim(-1, 0).contiguous()[:, None]  # [F, C, *B]
         if ctx.sparse:
-            return touched_row_sums(corners.reshape(-1), columns.flatten(1), ctx.table_shape), None, None, None
-        return entry_sums(entries, columns, math.prod(ctx.table_shape)).view(ctx.table_shape), None, None, None
+            return touched_row_sums(indices.reshape(-1), columns.flatten(1), ctx.table_shape), None, None, None
+        return entry_sums(indices, columns, math.prod(ctx.table_shape)).view(ctx.table_shape), None, None, None
 
 
 def flat_indices(rows: Tensor, n_rows: int, n_features: int) -> Tensor:

@@ -91,13 +91,23 @@ def group_variants(runs: list[Run], over: tuple[str, ...] = ("seed",)) -> list[V
     return sorted(variants, key=lambda v: (-v.mean("test_psnr") if v.finished else math.inf, v.label))
 
 
+def _override_set(label: str) -> frozenset[str]:
+    """A label's overrides, in any order, with the values Hydra's grammar reads whatever their case (true,
+    false, null) in lower case: ``"a=False, b=1"`` -> {"a=false", "b=1"}."""
+    overrides = set()
+    for part in label.split(","):
+        key, equals, value = part.strip().partition("=")
+        overrides.add(key + equals + (value.lower() if value.lower() in ("true", "false", "null") else value))
+    return frozenset(overrides)
+
+
 def reference_variant(variants: list[Variant], name: str | None = None) -> Variant | None:
     """The variant the others are compared with: the one named ``name`` (its label, or its overrides in
-    any order), else the paper's complete model (``ablation=complete``) if one variant is, else None."""
+    any order; true, false and null in any case, as Hydra reads them), else the paper's complete model
+    (``ablation=complete``) if one variant is, else None."""
     if name is not None:
-        wanted = frozenset(part.strip() for part in name.split(","))
         for variant in variants:
-            if frozenset(part.strip() for part in variant.label.split(",")) == wanted:
+            if _override_set(variant.label) == _override_set(name):
                 return variant
         raise SystemExit(f"nerfexp-report: error: --reference {name!r}: no such variant; the variants are "
                          + "; ".join(repr(v.label) for v in variants))
