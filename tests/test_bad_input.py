@@ -3,6 +3,8 @@ the user set (or the file) and what was expected, no traceback, and nothing writ
 
 import json
 import struct
+import subprocess
+import sys
 import zlib
 
 import pytest
@@ -211,3 +213,24 @@ def test_a_chunk_too_big_for_memory_is_one_line_before_any_rendering(tiny_run, t
     assert ended.value.code.startswith(f"{prog}: error: --chunk 99999999999: an evaluation of 99999999999 rays x 48 "
                                        "samples needs about")
     assert sorted(p.relative_to(tiny_run) for p in tiny_run.rglob("*")) == before
+
+
+@pytest.mark.parametrize(("entry", "args", "code", "said"), [
+    ("nerfexp.commands.train:cli", ["scale.image_size=-32"], 1, "nerfexp: error: scale.image_size=-32"),
+    ("nerfexp.commands.train:cli", ["trainer.precision=bogus"], 1, "nerfexp: error: trainer.precision=bogus"),
+    ("nerfexp.commands.train:cli", ["--help"], 0, "nerfexp"),
+    ("nerfexp.commands.render:main", ["no_run"], 1, "nerfexp-render: error: no_run does not exist"),
+    ("nerfexp.commands.evaluate:main", ["no_run"], 1, "nerfexp-eval: error: no_run does not exist"),
+])
+def test_a_command_that_stops_at_bad_input_or_help_does_not_import_lightning(entry, args, code, said, tmp_path):
+    # importing Lightning is most of a command's start-up (docs/testing.md): bad input is said without it;
+    # trainer.precision=bogus reads Lightning's own list of precisions to name them, and so imports it
+    module, function = entry.split(":")
+    program = ("import atexit, sys; atexit.register(lambda: print('lightning imported:', 'lightning' in sys.modules)); "
+               f"sys.argv = ['command', *{args!r}]; from {module} import {function}; {function}()")
+    result = subprocess.run([sys.executable, "-c", program], cwd=tmp_path, capture_output=True, text=True, timeout=300)
+    assert result.returncode == code, result.stderr[-2000:]
+    assert said in result.stdout + result.stderr
+    lightning = "precision" in args[0]
+    assert result.stdout.rstrip().endswith(f"lightning imported: {lightning}"), result.stdout[-2000:]
+    assert list(tmp_path.iterdir()) == []  # nothing made

@@ -10,15 +10,17 @@ from nerfexp.commands.arguments import add_run_arguments, command_parser
 from nerfexp.commands.console import run_command
 from nerfexp.rundir.layout import EVAL, read_json
 from nerfexp.rundir.trained import find_run, load_module, run_config
-from nerfexp.training.precision import fill_precision
-from nerfexp.training.progress import progress_bars
-from nerfexp.training.recorders import EvalRecorder
 
 
 def evaluate(cfg: DictConfig, run_dir: Path, checkpoint: Path) -> dict:
     """Score ``checkpoint`` on the test split of the run's data (``cfg``, the run's config), without
     training, on the run's trainer (``trainer=ddp``: its processes share the images); the scores go to
     ``RUN_DIR/eval.json`` (see ``EvalRecorder``) and are returned."""
+    # with Lightning: imported here, so that a missing run or a bad override is said without waiting for it
+    from nerfexp.training.precision import fill_precision
+    from nerfexp.training.progress import progress_bars
+    from nerfexp.training.recorders import EvalRecorder
+
     fill_precision(cfg)
     model, step = load_module(cfg, checkpoint)
     recorder = EvalRecorder(run_dir, checkpoint, step)

@@ -8,34 +8,28 @@ import re
 import sys
 from collections.abc import Iterator
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import hydra
-import lightning as L
 from hydra.core.hydra_config import HydraConfig
 from hydra.errors import HydraException, InstantiationException, MissingConfigException, OverrideParseException
 from hydra.types import RunMode
 from hydra.utils import instantiate
-from lightning.pytorch.loggers import Logger
-from lightning.pytorch.utilities.exceptions import SIGTERMException
 from omegaconf import DictConfig, OmegaConf
 from omegaconf.errors import ConfigAttributeError, ConfigKeyError, OmegaConfBaseException
 
 from nerfexp.commands.console import quiet_dependencies
 from nerfexp.commands.signals import ending_signals, received_signal
-from nerfexp.data.datamodule import fill_ray_bounds
 from nerfexp.data.rays import rank_slice
 from nerfexp.errors import ConfigError, NerfexpError
 from nerfexp.extras import require
 from nerfexp.rundir.layout import LAST_CHECKPOINT, RESULTS, is_global_zero, planned_jobs, read_json, write_status
-from nerfexp.rundir.trained import check_weights
 from nerfexp.settings.checks import check_settings
 from nerfexp.settings.schema import PASSED_ON, matching
 from nerfexp.settings.unused import unused_settings, without_unused
-from nerfexp.training.loggers import finish
-from nerfexp.training.precision import fill_precision
-from nerfexp.training.progress import progress_bars
-from nerfexp.training.recorders import RunRecorder
-from nerfexp.training.resume import check_resume, checkpoint_settings, group_choices, read_resumed, resume_record
+
+if TYPE_CHECKING:
+    from lightning.pytorch.loggers import Logger
 
 log = logging.getLogger("nerfexp")
 
@@ -49,7 +43,20 @@ def train(cfg: DictConfig) -> dict | None:
     the step, the training time and the last validation, and rank 0 leaves the results in ``results.json``.
 
     Hydra's callbacks checked a single run's settings and its checkpoint (``SettingsCheck``, ``ResumeCheck``)
-    before its directory was made; a sweep's job, which they do not see, is checked here."""
+    before its directory was made; a sweep's job, which they do not see, is checked here.
+
+    Lightning, and what builds on it, is imported here rather than at the top: importing it is most of a
+    command's start-up (8 of 12 s on a 2-core CPU, docs/testing.md), which a bad setting need not wait for."""
+    import lightning as L
+
+    from nerfexp.data.datamodule import fill_ray_bounds
+    from nerfexp.rundir.trained import check_weights
+    from nerfexp.training.loggers import finish
+    from nerfexp.training.precision import fill_precision
+    from nerfexp.training.progress import progress_bars
+    from nerfexp.training.recorders import RunRecorder
+    from nerfexp.training.resume import check_resume, checkpoint_settings, group_choices, read_resumed, resume_record
+
     sweep = HydraConfig.get().mode == RunMode.MULTIRUN
     if sweep:
         check_settings(cfg)  # missing mandatory values first
@@ -101,7 +108,7 @@ def train(cfg: DictConfig) -> dict | None:
     return results
 
 
-def build_logger(cfg: DictConfig | None) -> Logger | bool:
+def build_logger(cfg: DictConfig | None) -> "Logger | bool":
     """The run's Lightning logger (``conf/logger/``), or False for none; a ConfigError where the logger's
     package is not installed."""
     if not cfg:
@@ -137,7 +144,7 @@ def main(cfg: DictConfig) -> float | None:
     except BaseException as error:  # an interrupt too: the job did not finish
         if writes:
             # the signal: from nerfexp's handler (cli), else Lightning's SIGTERM handling (a job under submitit)
-            ended_by = received_signal() or ("SIGTERM" if isinstance(error, SIGTERMException) else None)
+            ended_by = received_signal() or ("SIGTERM" if lightning_sigterm(error) else None)
             details = {"signal": ended_by, "error": f"ended by {ended_by}"} if ended_by else {
                 "error": f"{type(error).__name__}: {error}"}
             write_status(output_dir, "failed", overrides, **details)
@@ -151,6 +158,13 @@ def main(cfg: DictConfig) -> float | None:
         return None
     write_status(output_dir, "finished", overrides)
     return results["val_psnr"]
+
+
+def lightning_sigterm(error: BaseException) -> bool:
+    """Whether ``error`` is Lightning's SIGTERMException (SIGTERM to a job under submitit), which only a
+    process that imported Lightning can raise: a bad setting's process is not made to import it to say no."""
+    exceptions = sys.modules.get("lightning.pytorch.utilities.exceptions")
+    return exceptions is not None and isinstance(error, exceptions.SIGTERMException)
 
 
 # hydra/launcher=slurm (conf/hydra/launcher/slurm.yaml) and the plugin's own submitit_slurm, submitit_local

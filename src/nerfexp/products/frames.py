@@ -2,9 +2,12 @@
 along a camera path into videos and PNG frames (``render_path``); the paths made from a scene's
 training cameras (``training_path``)."""
 
+from __future__ import annotations
+
 import contextlib
 from collections.abc import Iterator
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import imageio.v2 as imageio
 import numpy as np
@@ -19,7 +22,9 @@ from nerfexp.geometry.camera_paths import llff_focus_depth, orbit_path, spiral_p
 from nerfexp.geometry.cameras import camera_rays
 from nerfexp.pixels import depth_image, png_bytes, to_uint8
 from nerfexp.products.camera_files import CameraPath
-from nerfexp.training.module import NeRFModule
+
+if TYPE_CHECKING:  # annotations only: it imports Lightning, which a command stopping at bad input need not wait for
+    from nerfexp.training.module import NeRFModule
 
 PATHS = ("orbit", "spiral")
 KINDS = ("rgb", "depth", "opacity")  # what is rendered of each frame, each a video and a folder of PNGs

@@ -2,7 +2,10 @@
 threshold (marching cubes) with colours and outward normals, the threshold read from the field, and
 the points where the test views' rays end with the colour of the light they absorbed."""
 
+from __future__ import annotations
+
 import math
+from typing import TYPE_CHECKING
 
 import numpy as np
 import torch
@@ -17,7 +20,9 @@ from nerfexp.geometry.surfaces import Mesh, grid_points, grid_shape, isosurface,
 from nerfexp.nerf.bounds import Bounded
 from nerfexp.nerf.volume_renderer import VolumeRenderer
 from nerfexp.pixels import to_uint8
-from nerfexp.training.module import NeRFModule
+
+if TYPE_CHECKING:  # annotations only: it imports Lightning, which a command stopping at bad input need not wait for
+    from nerfexp.training.module import NeRFModule
 
 THRESHOLD_QUANTILE = 0.25  # the default threshold: this quantile of the density at the test views' depths
 

@@ -16,12 +16,15 @@ and "save camera path" writes the keyframes to ``RUN_DIR/view/camera_path.json``
 renders. Cameras: ``nerfexp.geometry.viewer_cameras``.
 """
 
+from __future__ import annotations
+
 import functools
 import json
 import threading
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 import torch
@@ -36,7 +39,9 @@ from nerfexp.geometry.viewer_cameras import flip_camera_axes, vertical_fov
 from nerfexp.products.camera_files import CameraPath
 from nerfexp.products.frames import KINDS, frame_bands, frame_images, rgb_pixels, scene_depth_range
 from nerfexp.rundir.layout import CAMERA_PATH
-from nerfexp.training.module import NeRFModule
+
+if TYPE_CHECKING:  # annotations only: it imports Lightning, which a command stopping at bad input need not wait for
+    from nerfexp.training.module import NeRFModule
 
 DIVISORS = (8, 4, 2, 1)  # the progressive schedule: the target width divided by each, in turn
 FPS = 30.0  # of a saved camera path

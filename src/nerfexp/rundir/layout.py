@@ -12,7 +12,6 @@ from pathlib import Path
 import torch
 from hydra._internal.core_plugins.basic_sweeper import BasicSweeper
 from hydra.core.override_parser.overrides_parser import OverridesParser
-from lightning.pytorch.utilities.rank_zero import rank_zero_only
 from omegaconf import OmegaConf
 
 from nerfexp.files import TEMPORARY, atomic_write
@@ -49,7 +48,9 @@ RUN_MADE = (STATUS, RESULTS, METRICS, f"{TEST_DIR}/r_*.png", RUN_CONFIG.parent.n
 def is_global_zero() -> bool:
     """Whether this process is global rank 0, the one that writes a run's files: always in a run of one
     process; known before any trainer exists from the environment a launcher sets (``RANK``,
-    ``LOCAL_RANK``, ``SLURM_PROCID``), and kept up to date by Lightning's strategies."""
+    ``LOCAL_RANK``, ``SLURM_PROCID``), and kept up to date by Lightning's strategies (imported here, not
+    at the top: a command that stops at a bad setting need not wait for Lightning, docs/testing.md)."""
+    from lightning.pytorch.utilities.rank_zero import rank_zero_only
     return rank_zero_only.rank == 0
 
 

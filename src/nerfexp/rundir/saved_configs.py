@@ -31,19 +31,18 @@ from collections.abc import Iterator
 from pathlib import Path
 
 from hydra.utils import get_class
-from lightning.pytorch.callbacks import Callback
-from lightning.pytorch.loggers import Logger
 from omegaconf import DictConfig, OmegaConf
 from omegaconf.grammar_parser import parse
 from omegaconf.grammar_visitor import OmegaConfGrammarParser
-from torch.optim import Optimizer
 
 from nerfexp.config_keys import entries
 from nerfexp.errors import ConfigError
 
 TRAINERS = ("lightning.Trainer", "lightning.pytorch.Trainer")
-FAMILIES = (("torch.optim.", Optimizer), ("lightning.pytorch.loggers.", Logger),
-            ("lightning.pytorch.callbacks.", Callback))  # (where the target and its class live, their base)
+# (where the target and its class live, their base): the bases imported only to check a target of theirs
+FAMILIES = (("nerfexp.", "builtins.object"), ("torch.optim.", "torch.optim.Optimizer"),
+            ("lightning.pytorch.loggers.", "lightning.pytorch.loggers.Logger"),
+            ("lightning.pytorch.callbacks.", "lightning.pytorch.callbacks.Callback"))
 TRAINING_ONLY = ("callbacks", "logger", "trainer.default_root_dir")  # what only training builds (dotted keys)
 
 
@@ -74,13 +73,13 @@ def buildable(target: object) -> bool:
     optimizers' and Lightning's own modules are imported to find out."""
     if not isinstance(target, str) or target in TRAINERS:
         return target in TRAINERS
-    for prefix, base in (("nerfexp.", object), *FAMILIES):
+    for prefix, base in FAMILIES:
         if target.startswith(prefix):
             try:
                 cls = get_class(target)
             except (ImportError, ValueError):  # no such class (a function, a module, a missing name)
                 return False
-            return issubclass(cls, base) and cls.__module__.startswith(prefix)
+            return issubclass(cls, get_class(base)) and cls.__module__.startswith(prefix)
     return False
 
 

@@ -7,20 +7,21 @@ import warnings
 import zipfile
 from collections.abc import Callable
 from pathlib import Path
-from typing import NamedTuple
+from typing import TYPE_CHECKING, NamedTuple
 
-import lightning as L
 import torch
 import yaml
 from hydra.utils import instantiate
 from omegaconf import DictConfig, OmegaConf, open_dict
 from omegaconf.errors import OmegaConfBaseException
 
-from nerfexp.data.datamodule import fill_ray_bounds
 from nerfexp.errors import ConfigError, NerfexpError
 from nerfexp.memory import network_bytes, require_memory
 from nerfexp.rundir.layout import LAST_CHECKPOINT, RESULTS, RUN_CONFIG, read_json, sha256
 from nerfexp.rundir.saved_configs import as_data
+
+if TYPE_CHECKING:
+    import lightning as L
 
 # Where the classes of a run's config lived before the package was split into layers (and the data group
 # held the field's density noise): a run made by an earlier nerfexp is read as if made by this one.
@@ -130,9 +131,11 @@ def read_checkpoint(path: Path) -> dict:
     return state
 
 
-def load_module(cfg: DictConfig, checkpoint: Path) -> tuple[L.LightningModule, int]:
+def load_module(cfg: DictConfig, checkpoint: Path) -> "tuple[L.LightningModule, int]":
     """The run's model (``cfg.model``) with the weights of ``checkpoint`` (``read_checkpoint``), on the
     CPU, and the number of optimizer steps it had taken."""
+    from nerfexp.data.datamodule import fill_ray_bounds  # with Lightning: imported where a module is loaded
+
     fill_ray_bounds(cfg)  # a run's saved config holds null where the scene chose near and far
     module = instantiate(cfg.model)
     state = read_checkpoint(checkpoint)
@@ -162,7 +165,7 @@ class TrainedRun(NamedTuple):
     run_dir: Path
     checkpoint: Path
     cfg: DictConfig  # the run's saved config, with the caller's overrides
-    module: L.LightningModule  # with the checkpoint's weights, in eval mode
+    module: "L.LightningModule"  # with the checkpoint's weights, in eval mode
     step: int  # optimizer steps the checkpoint had taken
 
 

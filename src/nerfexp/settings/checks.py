@@ -58,7 +58,7 @@ def check_rules(cfg: DictConfig) -> None:
             continue
         expected, valid = SCHEMA[pattern]
         if not valid(value):
-            raise ConfigError(f"{named(cfg, key, value)}: expected {expected}")
+            raise ConfigError(f"{named(cfg, key, value)}: expected {expected() if callable(expected) else expected}")
 
 
 def check_frequencies(cfg: DictConfig) -> None:

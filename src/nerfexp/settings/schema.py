@@ -14,17 +14,14 @@ from collections.abc import Callable
 from fnmatch import fnmatchcase
 from typing import get_args
 
-from lightning.fabric.plugins.precision.precision import _PRECISION_INPUT_STR, _PRECISION_INPUT_STR_ALIAS
-from lightning.pytorch.accelerators import AcceleratorRegistry
-from lightning.pytorch.strategies import StrategyRegistry
-
 from nerfexp.nerf.backgrounds import BACKGROUNDS
 from nerfexp.nerf.fields import DENSITY_ACTIVATIONS, SH_MAX_DEGREE
-from nerfexp.training.guards import COLLAPSE_ACTIONS, NONFINITE_ACTIONS
+from nerfexp.training.guard_actions import COLLAPSE_ACTIONS, NONFINITE_ACTIONS
 
 SEED_LIMIT = 2 ** 32  # seeds are whole numbers in [0, 2^32): numpy's and Lightning's range
 
-Rule = tuple[str, Callable[[object], bool]]  # (what is expected, the test)
+# (what is expected, the test); what is expected may be a function that says it, where saying it is dear
+Rule = tuple[str | Callable[[], str], Callable[[object], bool]]
 
 
 def is_whole(value) -> bool:
@@ -50,6 +47,30 @@ def real(low: float, high: float | None = None, *, above: bool = False) -> Rule:
 
 def choice(*values) -> Rule:
     return f"one of {', '.join(map(str, values))}", lambda v: isinstance(v, str | bool) and v in values
+
+
+def registered_choice(fixed: tuple[str, ...], registered: Callable[[], tuple[str, ...]]) -> Rule:
+    """One of ``fixed`` or of the names ``registered()`` gives (Lightning's registries), which are read only
+    for a value not in ``fixed``: a run with the defaults checks its settings without importing Lightning,
+    most of a command's start-up (docs/testing.md)."""
+    def values() -> tuple[str, ...]:
+        return (*fixed, *registered())
+    return (lambda: choice(*values())[0]), lambda v: isinstance(v, str | bool) and (v in fixed or v in values())
+
+
+def lightning_precisions() -> tuple[str, ...]:
+    from lightning.fabric.plugins.precision.precision import _PRECISION_INPUT_STR, _PRECISION_INPUT_STR_ALIAS
+    return (*get_args(_PRECISION_INPUT_STR), *get_args(_PRECISION_INPUT_STR_ALIAS))
+
+
+def lightning_accelerators() -> tuple[str, ...]:
+    from lightning.pytorch.accelerators import AcceleratorRegistry
+    return tuple(sorted(AcceleratorRegistry.available_accelerators()))
+
+
+def lightning_strategies() -> tuple[str, ...]:
+    from lightning.pytorch.strategies import StrategyRegistry
+    return tuple(StrategyRegistry.available_strategies())
 
 
 def optional(rule: Rule, meaning: str) -> Rule:
@@ -81,9 +102,9 @@ DEVICES = ("a whole number >= 1, a list of device indices, or auto",
 PLUGINS = ("a list of plugin configs ({_target_: ...}), or null",
            lambda v: v is None or (isinstance(v, list) and all(isinstance(p, dict) and "_target_" in p for p in v)))
 # "auto": bf16-mixed where this machine runs bf16 fast, else 32-true (nerfexp.training.precision)
-PRECISIONS = choice("auto", *get_args(_PRECISION_INPUT_STR), *get_args(_PRECISION_INPUT_STR_ALIAS))
-ACCELERATORS = choice("auto", "gpu", *sorted(AcceleratorRegistry.available_accelerators()))
-STRATEGIES = choice("auto", *StrategyRegistry.available_strategies())
+PRECISIONS = registered_choice(("auto",), lightning_precisions)
+ACCELERATORS = registered_choice(("auto", "gpu"), lightning_accelerators)
+STRATEGIES = registered_choice(("auto",), lightning_strategies)
 SKIPS = whole_list(0)
 
 # Every key of the composed config (fnmatch patterns, the first that matches rules), hydra.* aside.

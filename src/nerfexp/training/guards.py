@@ -26,11 +26,10 @@ from torch import Tensor
 
 from nerfexp.errors import FieldCollapseError, NonFiniteError
 from nerfexp.files import atomic_file
+from nerfexp.training.guard_actions import COLLAPSE_ACTIONS, NONFINITE_ACTIONS
 
 log = logging.getLogger(__name__)
 
-NONFINITE_ACTIONS = ("stop", "skip")
-COLLAPSE_ACTIONS = ("stop", "warn")
 
 
 def count_nonfinite(values: Tensor) -> str:
