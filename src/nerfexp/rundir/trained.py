@@ -134,7 +134,7 @@ def read_checkpoint(path: Path) -> dict:
 def load_module(cfg: DictConfig, checkpoint: Path) -> "tuple[L.LightningModule, int]":
     """The run's model (``cfg.model``) with the weights of ``checkpoint`` (``read_checkpoint``), on the
     CPU, and the number of optimizer steps it had taken."""
-    from nerfexp.data.datamodule import fill_ray_bounds  # with Lightning: imported where a module is loaded
+    from nerfexp.data.datamodule import fill_ray_bounds  # it imports Lightning: only where a module is loaded
 
     fill_ray_bounds(cfg)  # a run's saved config holds null where the scene chose near and far
     module = instantiate(cfg.model)

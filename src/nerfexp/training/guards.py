@@ -31,7 +31,6 @@ from nerfexp.training.guard_actions import COLLAPSE_ACTIONS, NONFINITE_ACTIONS
 log = logging.getLogger(__name__)
 
 
-
 def count_nonfinite(values: Tensor) -> str:
     """How ``values`` fail to be finite, e.g. "nan in 3 and infinite in 1" (of its entries)."""
     counts = {"nan": int(torch.isnan(values).sum()), "infinite": int(torch.isinf(values).sum())}
