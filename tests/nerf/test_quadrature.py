@@ -186,7 +186,7 @@ def test_depth_of_a_barely_absorbing_ray_is_its_true_depth():
 
 # ---- properties over the whole range a training run can produce (hypothesis) ---------------------------
 
-from hypothesis import given, settings  # noqa: E402
+from hypothesis import example, given, settings  # noqa: E402
 from hypothesis import strategies as st  # noqa: E402
 
 sigma_values = st.one_of(st.just(0.0), st.floats(0.0, 1e12, allow_subnormal=False),
@@ -234,6 +234,7 @@ def test_render_weights_properties(ray):
 
 @settings(max_examples=200, deadline=None)
 @given(rays(), st.floats(0.0, 1.0))
+@example(([1.401298464324817e-45, 0.0, 0.0, 0.0], [1.5, 2.5, 2.5, 2.5, 2.5]), 0.0)  # found: one denormal weight
 def test_composite_properties(ray, background):
     sigmas, edges = ray
     t = torch.tensor(edges, dtype=torch.float32)

@@ -227,9 +227,10 @@ class HashGridEncoding(Bounded):
         self.register_buffer("hashed_resolutions", torch.tensor(hashed, dtype=torch.float32), persistent=False)
         # the hash's constants, built once and moved with the module (not saved: checkpoints keep their keys)
         self.register_buffer("hash_primes", torch.tensor(HASH_PRIMES), persistent=False)  # [3] int64
-        # corner rows in int32 where the flat table allows (narrower gathers and sums than int64)
-        self.row_dtype = torch.int32 if len(hashed) * self.table_size <= 2**31 else torch.int64
-        first_rows = self.table_size * torch.arange(len(hashed), dtype=self.row_dtype)[:, None]
+        # corner rows in int32 where the flat table allows (narrower gathers and sums than int64): the
+        # offsets' dtype is the rows'
+        row_dtype = torch.int32 if len(hashed) * self.table_size <= 2**31 else torch.int64
+        first_rows = self.table_size * torch.arange(len(hashed), dtype=row_dtype)[:, None]
         self.register_buffer("level_offsets", first_rows, persistent=False)  # [L_h, 1]: each level's first row
 
     def forward(self, x: Tensor) -> Tensor:
@@ -269,7 +270,7 @@ class HashGridEncoding(Bounded):
         # vertices below 2^20 cannot overflow
         corner_pairs = torch.stack([vertices, vertices + 1])  # [2, L_h, 3, N]: lower and upper vertex per axis
         rows = (corner_pairs * self.hash_primes[:, None]) & (table_size - 1)
-        rx, ry, rz = rows.to(self.row_dtype).unbind(-2)  # [2, L_h, N]
+        rx, ry, rz = rows.to(self.level_offsets.dtype).unbind(-2)  # [2, L_h, N]
         # each level's first row of the flat table, added to one axis: rows < T and the offsets are multiples
         # of T, so adding before the xor equals adding after
         rz = rz + self.level_offsets

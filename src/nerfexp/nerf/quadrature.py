@@ -68,14 +68,16 @@ def composite(weights: Tensor, rgbs: Tensor, t: Tensor, background: Tensor, far:
     Returns: dict of ``rgb`` [..., 3], ``opacity`` [...] (sum of weights), ``depth`` [...] (expected
     termination distance of the absorbed part) and ``disparity`` [...] = 1 / depth.
 
-    Depth divides by the opacity only where it is positive (the division is guarded by selection, not
-    by an epsilon, so a barely absorbing ray keeps its true depth instead of one pulled towards 0);
+    Depth divides the weights by the opacity only where it is positive (the division is guarded by
+    selection, not by an epsilon, so a barely absorbing ray keeps its true depth instead of one pulled towards 0);
     a ray that absorbs nothing is reported at ``far``, so its disparity is 1 / far, not inf or nan.
     A depth of exactly 0 (a ray starting inside a surface) has disparity inf, its true value.
     """
     opacity = weights.sum(-1)
     rgb = (weights[..., None] * rgbs).sum(-2) + (1 - opacity[..., None]) * background
     absorbed = opacity > 0
-    depth_sum = (weights * t).sum(-1)
-    depth = torch.where(absorbed, depth_sum / torch.where(absorbed, opacity, 1), far)
+    # each weight's share of the opacity, taken before it meets t: denormal weights times t lose their
+    # ratio (one weight of 1.4e-45 at t = 1.5 gave depth 2 as sum(w t) / sum(w)); shares lie in [0, 1]
+    shares = weights / torch.where(absorbed, opacity, 1)[..., None]
+    depth = torch.where(absorbed, (shares * t).sum(-1), far)
     return {"rgb": rgb, "depth": depth, "disparity": torch.reciprocal(depth), "opacity": opacity}
