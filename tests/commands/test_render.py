@@ -190,10 +190,17 @@ def test_rendering_a_cameras_file_renders_exactly_its_cameras(tiny_run, tmp_path
     module, _ = load_module(run_config(tiny_run), tiny_run / "checkpoints" / "last.ckpt")
     scene = instantiate(run_config(tiny_run).data)
     near, far = module.renderer.near, module.renderer.far
+    # Within one level of 255 of this process's render, not bit for bit: the float matrix products of two
+    # processes may differ in their last bits (the BLAS may pick its kernels by the buffers' alignment), and a
+    # value that close to a rounding boundary lands one level apart (seen once in CI, in 'rgb' of frame 0).
+    # The frames differ from one another by far more, so a frame of another camera would not pass.
     for i, c2w in enumerate(written["c2w"]):
         truth = frame_images(render_frame(module.eval(), scene, torch.tensor(c2w), 16, 20, 20.0), near, far)
         for kind, image in truth.items():
-            assert np.array_equal(imageio.imread(out / kind / f"{i:04d}.png"), to_uint8(image)), (i, kind)
+            written_pixels = imageio.imread(out / kind / f"{i:04d}.png").astype(int)
+            assert np.abs(written_pixels - to_uint8(image)).max() <= 1, (i, kind)
+    frames = [imageio.imread(out / "rgb" / f"{i:04d}.png").astype(int) for i in range(3)]
+    assert min(np.abs(frames[i] - frames[j]).max() for i, j in ((0, 1), (1, 2), (0, 2))) > 10
 
     # --size rescales the file's frames, keeping the field of view; path options do not apply
     result = run_nerfexp(str(tiny_run), "--cameras", str(path), "--size", "10", cwd=tmp_path, script="nerfexp-render")
