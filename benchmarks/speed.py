@@ -37,7 +37,7 @@ from torch.profiler import ProfilerActivity, profile
 
 from nerfexp.files import atomic_write
 from nerfexp.training.callbacks import FlushDenormals
-from nerfexp.training.module import seeded_random
+from nerfexp.training.module import regularizer_sums, seeded_random
 from nerfexp.training.precision import fill_precision
 
 RESULTS = Path(__file__).parent / "results"
@@ -119,6 +119,8 @@ def train(cfg, datamodule) -> tuple[L.LightningModule, dict]:
         "precision": cfg.trainer.precision, "steps": steps, "train_s": round(clock.train_s, 2),
         "s_per_step": clock.train_s / steps,
         "evaluations_per_ray": float(model.renderer.evaluations_per_ray),
+        # of which by the proposal networks (hierarchical=proposal), small density-only ones
+        "proposal_samples_per_ray": sum(model.renderer.proposal.n_samples) if model.renderer.proposal else 0,
         "final_val_psnr": clock.curve[-1][2], "test_psnr": clock.test_psnr,
         "curve": [{"step": s, "train_s": round(t, 2), "val_psnr": round(p, 3)} for s, t, p in clock.curve],
     }
@@ -135,6 +137,7 @@ def plain_step(model, optimizer, batch, index: int, precision: str) -> None:
         if grid is not None:
             grid.update(grid.update_every * (grid.warmup_steps + 1) + index, renderer.density_fns())
     loss = sum(F.mse_loss(out["rgb"], batch["rgb"]) for out in outputs.values())
+    loss = loss + sum(regularizer_sums(outputs).values())  # proposal losses, Ref-NeRF's penalties
     optimizer.zero_grad(set_to_none=True)
     loss.backward()
     optimizer.step()

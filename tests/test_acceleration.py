@@ -20,12 +20,13 @@ def accelerated_configs():
         return {(e, v, h): compose("config", overrides=[
             "acceleration=occupancy", f"encoding={e}", f"view_dependence={v}", f"hierarchical={h}",
             "scale.depth=2", "scale.width=16", "scale.skips=[1]", "scale.view_hidden=8"])
-            for e, v, h in itertools.product(["none", "posenc"], ["mlp", "none", "sh"], [True, False])}
+            for e, v, h in itertools.product(["none", "posenc"], ["mlp", "none", "sh", "ref"],
+                                             [True, False, "proposal"])}
 
 
 @pytest.mark.parametrize("encoding", ["none", "posenc"])
-@pytest.mark.parametrize("view_dependence", ["mlp", "none", "sh"])
-@pytest.mark.parametrize("hierarchical", [True, False])
+@pytest.mark.parametrize("view_dependence", ["mlp", "none", "sh", "ref"])
+@pytest.mark.parametrize("hierarchical", [True, False, "proposal"])
 def test_every_component_trains_packed(accelerated_configs, encoding, view_dependence, hierarchical):
     cfg = accelerated_configs[(encoding, view_dependence, hierarchical)]
     torch.manual_seed(0)
@@ -34,7 +35,7 @@ def test_every_component_trains_packed(accelerated_configs, encoding, view_depen
     renderer.grid.update(0, renderer.density_fns())
     origins, directions = (t.float() for t in aimed_rays(64, torch.Generator().manual_seed(0), 0.8, (3.5, 4.5)))
     outputs = renderer(origins, directions, deterministic=False)
-    loss = sum(out["rgb"].square().mean() for out in outputs.values())
+    loss = sum(out["rgb"].square().mean() + sum(out.get("regularizers", {}).values()) for out in outputs.values())
     loss.backward()
     assert torch.isfinite(loss)
     assert all(torch.isfinite(p.grad).all() for p in renderer.parameters() if p.grad is not None)

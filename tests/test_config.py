@@ -14,6 +14,7 @@ from omegaconf import OmegaConf
 from nerfexp.nerf.bounds import Bounded
 from nerfexp.nerf.encodings import HashGridEncoding, IdentityEncoding, PositionalEncoding
 from nerfexp.nerf.fields import DiffuseHead, SphericalHarmonicsHead, ViewMLPHead
+from nerfexp.nerf.reflection import ReflectionHead
 
 
 def build(*overrides):
@@ -23,24 +24,37 @@ def build(*overrides):
 
 
 @pytest.mark.parametrize("encoding", ["none", "posenc", "hashgrid"])
-@pytest.mark.parametrize("view", ["mlp", "none", "sh"])
-@pytest.mark.parametrize("hierarchical", [True, False])
+@pytest.mark.parametrize("view", ["mlp", "none", "sh", "ref"])
+@pytest.mark.parametrize("hierarchical", [True, False, "proposal"])
 def test_every_combination_builds_and_renders(encoding, view, hierarchical):
     cfg, model = build(f"encoding={encoding}", f"view_dependence={view}", f"hierarchical={hierarchical}")
     renderer = model.renderer
-    assert (renderer.fine is not None) == hierarchical
+    assert (renderer.fine is not None) == (hierarchical is True)
+    assert (renderer.proposal is not None) == (hierarchical == "proposal")
+    if renderer.proposal is not None:  # one density network per round, each its own copy of the encoding axis's
+        kinds = {type(net.position_encoding) for net in renderer.proposal.networks}
+        assert len(renderer.proposal.networks) == 2 and kinds == {type(renderer.coarse.position_encoding)}
+        assert renderer.proposal.networks[0].trunk[0].weight is not renderer.proposal.networks[1].trunk[0].weight
     field = renderer.coarse
     kind = {"none": IdentityEncoding, "posenc": PositionalEncoding, "hashgrid": HashGridEncoding}[encoding]
     assert isinstance(field.position_encoding, kind)
     for bounded in (m for m in renderer.modules() if isinstance(m, Bounded)):
         bounded.set_bounds(torch.tensor([[-1.5] * 3, [1.5] * 3]))  # what training does from the scene
-    head = {"mlp": ViewMLPHead, "none": DiffuseHead, "sh": SphericalHarmonicsHead}[view]
+    head = {"mlp": ViewMLPHead, "none": DiffuseHead, "sh": SphericalHarmonicsHead, "ref": ReflectionHead}[view]
     assert isinstance(field.view_head, head)
-    if hierarchical:  # separate networks, not one shared
+    if hierarchical is True:  # separate networks, not one shared
         assert field is not renderer.fine and field.trunk[0].weight is not renderer.fine.trunk[0].weight
     directions = torch.nn.functional.normalize(torch.randn(4, 3), dim=-1)
     out = renderer(-4 * directions, directions, deterministic=True)
-    assert torch.isfinite(out["fine" if hierarchical else "coarse"]["rgb"]).all()
+    final = out["fine" if hierarchical is True else "coarse"]
+    assert torch.isfinite(final["rgb"]).all()
+    # the regularizers each choice adds, finite and trainable (Ref-NeRF's normals through a hash grid too)
+    names = ({"interlevel"} if hierarchical == "proposal" else set()) | ({"normals", "orientation"} if view == "ref"
+                                                                          else set())
+    assert set(final.get("regularizers", {})) == names
+    if names:
+        sum(final["regularizers"].values()).backward()
+        assert all(torch.isfinite(p.grad).all() for p in renderer.parameters() if p.grad is not None)
 
 
 def test_hashgrid_has_instant_ngps_field_and_optimizer_and_no_decay_on_its_tables():

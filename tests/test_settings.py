@@ -57,7 +57,10 @@ def composed(*overrides):
     (["callbacks.guard.on_nonfinite=ignore"], "callbacks.guard.on_nonfinite=ignore: expected one of stop, skip"),
     (["data.background=grey"], "data.background=grey (which sets model.renderer.background): expected one of "),
     (["data.aabb=[[0,0,0],[1,1]]"], "data.aabb=[[0, 0, 0], [1, 1]]: expected [[x0, y0, z0]"),
-    (["hierarchical=maybe"], "hierarchical=maybe: expected true or false"),
+    (["hierarchical=maybe"], "hierarchical=maybe: expected true, false or proposal"),
+    (["hierarchical=proposal", "proposal.n_samples=[]"], "proposal.n_samples=[]: expected a non-empty list of "),
+    (["hierarchical=proposal", "proposal.interlevel_weight=0"], "proposal.interlevel_weight=0: expected a finite "
+                                                                "number > 0"),
     (["scale.skips=[5]"], "scale.skips=[5] (which sets model.renderer.field.skips): layer indices must be in 1..1"),
     (["+foo=1"], "foo=1: not a setting nerfexp reads"),
     (["scale.lr=???"], "missing mandatory value: scale.lr (set it"),  # not model.optimizer.lr, which reads it
@@ -83,6 +86,14 @@ def test_an_override_that_does_not_apply_is_named_with_the_reason(hydra_configs)
     assert unused_settings(cfg, ["scale.n_single=8"]) == []  # used without the hierarchy
     assert [o for o, _ in unused_settings(composed("view_dependence=sh"), ["scale.view_hidden=8"])] \
         == ["scale.view_hidden=8"]
+    # the third choice on the sampling axis reads its own keys, and not the hierarchy's sample counts
+    proposal = composed("hierarchical=proposal")
+    assert unused_settings(proposal, ["proposal.n_final=16", "proposal.network.width=32"]) == []
+    assert [o for o, _ in unused_settings(proposal, ["scale.n_fine=64", "scale.n_single=8"])] \
+        == ["scale.n_fine=64", "scale.n_single=8"]
+    assert [reason for _, reason in unused_settings(composed(), ["proposal.n_final=16"])] == [
+        "hierarchical=true (a coarse network of model.renderer.n_coarse samples and a fine one of n_coarse + n_fine; "
+        "set scale.n_coarse and scale.n_fine)"]
 
 
 VALUES = st.one_of(  # across and beyond the domains: wrong types, negatives, zero, nan, huge, strings

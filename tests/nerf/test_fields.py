@@ -6,6 +6,7 @@ import torch
 
 from nerfexp.nerf.encodings import IdentityEncoding, PositionalEncoding
 from nerfexp.nerf.fields import DiffuseHead, NeRFField, SphericalHarmonicsHead, ViewMLPHead, sh_basis
+from nerfexp.nerf.reflection import ReflectionHead, normal_penalties
 
 
 def paper_field(view_head=None):
@@ -95,3 +96,41 @@ def test_density_activations_are_config_choices(activation):
     assert torch.isfinite(sigma).all() and (sigma >= 0).all()
     with pytest.raises(ValueError, match="field.density_activation: expected one of .*'trunc_exp'.*got 'exp'"):
         NeRFField(IdentityEncoding(), DiffuseHead, depth=2, width=16, skips=(), density_activation="exp")
+
+
+def reflection_field(dtype=torch.float64):
+    torch.manual_seed(0)
+    head = functools.partial(ReflectionHead, hidden=16, n_levels=3, normal_weight=0.5, orientation_weight=2.0)
+    return NeRFField(PositionalEncoding(2), head, depth=2, width=32, skips=(), density_activation="softplus").to(dtype)
+
+
+def test_the_reflection_head_s_penalties_use_the_density_normals_taken_by_finite_differences():
+    # The field's penalties are the weighted normal_penalties of the head's predicted normals against the
+    # density's normals -d raw / dx; here that gradient comes from central differences of the density alone.
+    field = reflection_field()
+    x = torch.randn(20, 3, dtype=torch.float64)
+    d = torch.nn.functional.normalize(torch.randn(20, 3, dtype=torch.float64), dim=-1)
+    rgb, sigma, penalties = field(x, d)
+    assert penalties.shape == (20, 2) and field.penalty_names == ("normals", "orientation")
+
+    def raw(points):  # the raw density: the activation inverted (softplus^-1 = log(expm1))
+        return torch.log(torch.expm1(field.density(points)))
+
+    h = 1e-6
+    gradient = torch.stack([(raw(x + h * e) - raw(x - h * e)) / (2 * h) for e in torch.eye(3, dtype=x.dtype)], -1)
+    _, predicted = field.view_head(field._trunk(x), d)
+    expected = normal_penalties(predicted, gradient, d) * torch.tensor([0.5, 2.0], dtype=x.dtype)
+    torch.testing.assert_close(penalties, expected.detach(), rtol=1e-6, atol=1e-8)
+    torch.testing.assert_close(sigma, field.density(x))
+
+
+def test_the_reflection_penalties_train_the_density_and_are_left_out_without_gradients():
+    field = reflection_field(torch.float32)
+    x, d = torch.randn(50, 3), torch.nn.functional.normalize(torch.randn(50, 3), dim=-1)
+    _, _, penalties = field(x, d)
+    penalties[:, 0].sum().backward()  # R_p: through the density's gradient (create_graph) and the predicted normals
+    assert field.trunk[0].weight.grad.abs().sum() > 0 and field.view_head.normal.weight.grad.abs().sum() > 0
+    assert all(torch.isfinite(p.grad).all() for p in field.parameters() if p.grad is not None)
+    with torch.no_grad():  # rendering for evaluation: colour and density only, no second pass
+        rgb, sigma = field(x, d)
+    assert rgb.shape == (50, 3) and ((rgb >= 0) & (rgb <= 1)).all() and sigma.shape == (50,)

@@ -7,6 +7,8 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
+from nerfexp.nerf.reflection import normal_penalties
+
 TRUNC_EXP_GRADIENT_CLAMP = 15.0  # the gradient of trunc_exp is at most e^15 = 3.3e6 per unit of upstream gradient
 
 
@@ -41,26 +43,22 @@ DENSITY_ACTIVATIONS: dict[str, Callable[[Tensor], Tensor]] = {
 }
 
 
-class NeRFField(nn.Module):
-    """sigma from the encoded position alone; rgb from a feature of it and the view direction.
+class DensityField(nn.Module):
+    """sigma from the encoded position alone: a trunk of ReLU layers and one linear density unit.
 
     Trunk: ``depth`` ReLU layers of ``width``; the encoded position is concatenated again to the
     input of each layer listed in ``skips`` (0-based: the paper's 8 x 256 joins it to the fifth
     layer's output, the sixth layer's input, so ``skips=[5]``). The density is
-    ``activation(raw + density_bias)`` of one linear unit on the trunk output; in training mode
-    (``self.training``) with ``density_noise_std`` > 0, noise ~ N(0, density_noise_std^2) is added to
-    the raw density before the activation, a regulariser against floaters (the paper: std 1 on real
-    scenes, none on synthetic ones). Evaluation is deterministic.
+    ``activation(raw + density_bias)`` of one linear unit on the trunk output. On its own, a proposal
+    network (``nerfexp.nerf.proposal``); with a colour head, ``NeRFField``.
 
     Args:
         position_encoding: module with ``out_dim``, maps [..., 3] -> [..., out_dim].
-        view_head: builds the colour head from the trunk width (see ``ViewMLPHead``).
         density_activation: a key of ``DENSITY_ACTIVATIONS``.
     """
 
-    def __init__(self, position_encoding: nn.Module, view_head: Callable[[int], nn.Module], depth: int = 8,
-                 width: int = 256, skips: tuple[int, ...] = (5,), density_activation: str = "relu",
-                 density_bias: float = 0.0, density_noise_std: float = 0.0):
+    def __init__(self, position_encoding: nn.Module, depth: int = 8, width: int = 256, skips: tuple[int, ...] = (5,),
+                 density_activation: str = "relu", density_bias: float = 0.0):
         super().__init__()
         if density_activation not in DENSITY_ACTIVATIONS:
             raise ValueError(f"field.density_activation: expected one of {sorted(DENSITY_ACTIVATIONS)}, "
@@ -68,10 +66,8 @@ class NeRFField(nn.Module):
         bad = [s for s in skips if not 0 < s < depth]
         if bad:
             raise ValueError(f"field.skips: layer indices must be in 1..{depth - 1} for depth {depth}, got {bad}")
-        if not density_noise_std >= 0:
-            raise ValueError(f"field.density_noise_std: expected a standard deviation >= 0, got {density_noise_std}")
-        # a copy: the renderer builds coarse and fine fields from one config, and trainable encodings
-        # (hash tables) must not be shared between them
+        # a copy: the renderer builds several fields from one config, and trainable encodings (hash
+        # tables) must not be shared between them
         self.position_encoding = copy.deepcopy(position_encoding)
         self.skips = set(skips)
         in_dim = position_encoding.out_dim
@@ -81,8 +77,6 @@ class NeRFField(nn.Module):
         self.sigma = nn.Linear(width, 1)
         self.activation = DENSITY_ACTIVATIONS[density_activation]
         self.density_bias = density_bias
-        self.density_noise_std = density_noise_std
-        self.view_head = view_head(width)
 
     def _trunk(self, positions: Tensor) -> Tensor:
         """positions [..., 3] -> the trunk's output features [..., width]."""
@@ -94,20 +88,67 @@ class NeRFField(nn.Module):
             h = F.relu(layer(h), inplace=True)  # in place: ReLU backward needs only its output
         return h
 
-    def forward(self, positions: Tensor, directions: Tensor) -> tuple[Tensor, Tensor]:
+    def density(self, positions: Tensor) -> Tensor:
+        """sigma [...] >= 0 at positions [..., 3], without training noise (what proposal sampling, the
+        occupancy grid and early ray termination look at)."""
+        return self.activation(self.sigma(self._trunk(positions)).squeeze(-1) + self.density_bias)
+
+
+class NeRFField(DensityField):
+    """sigma from the encoded position alone; rgb from a feature of it and the view direction.
+
+    The trunk and density of ``DensityField``; in training mode (``self.training``) with
+    ``density_noise_std`` > 0, noise ~ N(0, density_noise_std^2) is added to the raw density before the
+    activation, a regulariser against floaters (the paper: std 1 on real scenes, none on synthetic ones).
+    Evaluation is deterministic.
+
+    Args:
+        position_encoding: module with ``out_dim``, maps [..., 3] -> [..., out_dim].
+        view_head: builds the colour head from the trunk width (see ``ViewMLPHead``).
+        density_activation: a key of ``DENSITY_ACTIVATIONS``.
+    """
+
+    def __init__(self, position_encoding: nn.Module, view_head: Callable[[int], nn.Module], depth: int = 8,
+                 width: int = 256, skips: tuple[int, ...] = (5,), density_activation: str = "relu",
+                 density_bias: float = 0.0, density_noise_std: float = 0.0):
+        super().__init__(position_encoding, depth, width, skips, density_activation, density_bias)
+        if not density_noise_std >= 0:
+            raise ValueError(f"field.density_noise_std: expected a standard deviation >= 0, got {density_noise_std}")
+        self.density_noise_std = density_noise_std
+        self.view_head = view_head(width)
+        self.uses_normals = getattr(self.view_head, "uses_normals", False)
+
+    def forward(self, positions: Tensor, directions: Tensor) -> tuple[Tensor, ...]:
         """positions [..., S, 3] and unit directions [..., S or 1, 3] (one per ray broadcasts over
-        its samples) -> (rgb [..., S, 3] in [0, 1], sigma [..., S] >= 0)."""
+        its samples) -> (rgb [..., S, 3] in [0, 1], sigma [..., S] >= 0).
+
+        A head that predicts normals (``uses_normals``: Ref-NeRF's, ``nerfexp.nerf.reflection``) also gets,
+        while gradients are enabled (training), the density's normals from d raw / dx, and the field answers
+        a third tensor: the head's weighted penalties per sample [..., S, P] (``penalty_names``), which the
+        renderer composites. The gradient is taken with ``create_graph`` so the penalties train the density
+        too; it costs a second pass back through the trunk for every sample (docs/components.md)."""
+        with_normals = self.uses_normals and torch.is_grad_enabled()
+        if with_normals:  # positions from rays never carry a gradient of their own: a leaf to differentiate
+            positions = positions.detach().requires_grad_()
         h = self._trunk(positions)
         raw = self.sigma(h).squeeze(-1) + self.density_bias
+        if with_normals:
+            (gradient,) = torch.autograd.grad(raw.sum(), positions, create_graph=True)  # [..., S, 3]
         if self.training and self.density_noise_std > 0:
             raw = raw + self.density_noise_std * torch.randn_like(raw)
         sigma = self.activation(raw)
-        return self.view_head(h, directions), sigma
+        if not self.uses_normals:
+            return self.view_head(h, directions), sigma
+        rgb, normals = self.view_head(h, directions)
+        if not with_normals:
+            return rgb, sigma
+        penalties = normal_penalties(normals, gradient, directions) * self.view_head.penalty_weights.to(rgb.dtype)
+        return rgb, sigma, penalties
 
-    def density(self, positions: Tensor) -> Tensor:
-        """sigma [...] >= 0 at positions [..., 3], without the colour head and without training noise:
-        what the occupancy grid and early ray termination look at (``nerfexp.nerf.occupancy``)."""
-        return self.activation(self.sigma(self._trunk(positions)).squeeze(-1) + self.density_bias)
+    @property
+    def penalty_names(self) -> tuple[str, ...]:
+        """The names of the penalties ``forward`` answers per sample (none for the paper's heads)."""
+        return getattr(self.view_head, "penalty_names", ())
 
 
 class ViewMLPHead(nn.Module):

@@ -7,8 +7,11 @@ from torch import Tensor, nn
 
 from nerfexp.nerf.backgrounds import BACKGROUNDS
 from nerfexp.nerf.occupancy import OccupancyGrid
+from nerfexp.nerf.proposal import ProposalSampler
 from nerfexp.nerf.quadrature import composite, optical_depths, render_weights
 from nerfexp.nerf.sampling import dilate_weights, intervals, sample_pdf, stratified_samples
+
+HIERARCHIES = (True, False, "proposal")  # the sampling axis: the paper's coarse + fine, one network, proposals
 
 
 def final_output(outputs: dict[str, dict[str, Tensor]]) -> dict[str, Tensor]:
@@ -34,34 +37,54 @@ def padded_size(n: int) -> int:
     return -(-n // quantum) * quantum
 
 
-def query_packed(field: nn.Module, points: Tensor, viewdirs: Tensor, keep: Tensor) -> tuple[Tensor, Tensor]:
+def resampling_bins(t: Tensor, near: Tensor, far: Tensor) -> Tensor:
+    """The PDF bins [B, S+1] to resample from the weights of the intervals of samples t [B, S]: those
+    intervals, the first reaching back to ``near`` [B] (the first sample lies up to one spacing past near,
+    and what lies before it must still be reachable by the new samples, else a density at near is lost
+    however many are drawn), the last ending at ``far`` [B]."""
+    return torch.cat([near[:, None], t[:, 1:], far[:, None]], -1)
+
+
+def query_packed(field: Callable[[Tensor, Tensor], tuple[Tensor, ...]], points: Tensor, viewdirs: Tensor,
+                 keep: Tensor) -> tuple[Tensor, ...]:
     """Evaluate ``field`` only at the samples ``keep`` [B, S] (bool) of ``points`` [B, S, 3], rays' unit
-    ``viewdirs`` [B, 3], as one flat batch of N = keep.sum() points; the others get sigma = 0 and rgb = 0.
+    ``viewdirs`` [B, 3], as one flat batch of N = keep.sum() points; the others get zeros (sigma = 0,
+    rgb = 0).
 
     The batch is ``padded_size(N)`` long: its first kept points again fill the rest, and their answers are
     dropped (no gradient reaches them; a hash grid's sparse gradient holds the same rows).
 
-    Returns (rgb [B, S, 3], sigma [B, S]) in the field's dtype. A skipped sample absorbs nothing, so its
-    colour never reaches a pixel (``render_weights`` gives it weight exactly 0).
+    Returns the field's outputs, each [B, S, ...] in the field's dtype (rgb [B, S, 3], sigma [B, S], ...).
+    A skipped sample absorbs nothing, so its colour never reaches a pixel (``render_weights`` gives it
+    weight exactly 0).
     """
     index = keep.nonzero(as_tuple=True)  # (ray [N], sample [N])
     n = len(index[0])
     rays, samples = (torch.cat([i, i[: padded_size(n) - n]]) for i in index)  # [P]: the kept, then again
-    rgb, sigma = field(points[rays, samples], viewdirs[rays])  # [P, 3], [P]
+    outputs = field(points[rays, samples], viewdirs[rays])  # each [P, ...]
     B, S = keep.shape  # rays, samples
-    rgbs = rgb.new_zeros(B, S, 3).index_put(index, rgb[:n])
-    sigmas = sigma.new_zeros(B, S).index_put(index, sigma[:n])
-    return rgbs, sigmas
+    return tuple(out.new_zeros(B, S, *out.shape[1:]).index_put(index, out[:n]) for out in outputs)
+
+
+def density_query(net: nn.Module) -> Callable[[Tensor, Tensor], tuple[Tensor]]:
+    """A density-only network (``DensityField``) as a field the renderer queries: (positions, directions)
+    -> (sigma,), the directions unused."""
+    return lambda positions, directions: (net.density(positions),)
 
 
 class VolumeRenderer(nn.Module):
-    """Renders rays with one field (``hierarchical=False``) or a coarse and a fine field.
+    """Renders rays with one field (``hierarchical=False``), a coarse and a fine field (``True``), or
+    proposal networks and one field (``"proposal"``).
 
     Hierarchical: ``n_coarse`` stratified samples through the coarse field; its weights, dilated by
     one interval (``dilate_weights``) as a piecewise-constant PDF over the coarse intervals, give
     ``n_fine`` more samples by inverse-transform sampling; the fine field
     evaluates all n_coarse + n_fine. Without it, one field evaluates ``n_single`` stratified samples
     (the paper's "No Hierarchical" row: 256, the same network evaluations per ray as 64 + 192).
+    Proposal (mip-NeRF 360, ``nerfexp.nerf.proposal``): ``proposal``'s density-only networks resample the
+    ray in rounds, each from the dilated weights of the one before, and the one field (named "coarse", as
+    without hierarchy) evaluates only the last round's ``proposal.n_final`` samples; in training its output
+    holds the interlevel (and distortion) losses under ``regularizers``.
 
     With an occupancy ``grid`` (``acceleration=occupancy``) the samples stay where they are, but the
     networks evaluate only those in occupied cells of the grid, packed into one flat batch
@@ -69,26 +92,35 @@ class VolumeRenderer(nn.Module):
     the rays are also marched in ``grid.segments`` consecutive runs of samples: a run is evaluated
     only for the rays that still let through at least eps of the light after the runs before it, so
     the colour a stopped ray loses is at most eps (what could still reach the samples left out), and
-    no sample is evaluated twice. ``stats`` holds the last call's samples per ray evaluated.
+    no sample is evaluated twice. The proposal networks are queried through the grid too: the grid
+    learns the field's density, and a proposal need not place samples where the field is empty.
+    ``stats`` holds the last call's samples per ray evaluated.
 
     Args:
         field: builds a field (called once per network), e.g. a partial ``NeRFField``.
+        hierarchical: True, False or "proposal".
         near, far: ray distance bounds; background: a key of ``BACKGROUNDS``.
         grid: an ``OccupancyGrid``, or None to evaluate every sample.
+        proposal: builds the ``ProposalSampler`` (called only when hierarchical is "proposal").
     """
 
-    def __init__(self, field: Callable[[], nn.Module], hierarchical: bool, n_coarse: int, n_fine: int,
+    def __init__(self, field: Callable[[], nn.Module], hierarchical: bool | str, n_coarse: int, n_fine: int,
                  n_single: int, near: float, far: float, background: str = "white",
-                 grid: OccupancyGrid | None = None):
+                 grid: OccupancyGrid | None = None, proposal: Callable[[], ProposalSampler] | None = None):
         super().__init__()
         if background not in BACKGROUNDS:
             raise ValueError(f"data.background: expected one of {sorted(BACKGROUNDS)}, got {background!r}")
-        self.hierarchical = hierarchical
-        self.n_coarse = n_coarse if hierarchical else n_single
-        self.n_fine = n_fine if hierarchical else 0
+        if hierarchical not in HIERARCHIES:
+            raise ValueError(f"hierarchical: expected true, false or proposal, got {hierarchical!r}")
+        if hierarchical == "proposal" and proposal is None:
+            raise ValueError("hierarchical=proposal needs the proposal networks (model.renderer.proposal)")
+        self.hierarchical = hierarchical is True
+        self.proposal = proposal() if hierarchical == "proposal" else None
+        self.n_coarse = n_coarse if self.hierarchical else n_single
+        self.n_fine = n_fine if self.hierarchical else 0
         self.near, self.far = near, far
         self.coarse = field()
-        self.fine = field() if hierarchical else None
+        self.fine = field() if self.hierarchical else None
         self.register_buffer("background", torch.tensor(BACKGROUNDS[background]), persistent=False)
         self.grid = grid
         self.stats: dict[str, Tensor | float] = {}
@@ -96,7 +128,10 @@ class VolumeRenderer(nn.Module):
 
     @property
     def samples_per_ray(self) -> int:
-        """Samples per ray, all networks: n_coarse + (n_coarse + n_fine) hierarchical, else n_single."""
+        """Samples per ray, all networks: n_coarse + (n_coarse + n_fine) hierarchical, the proposal rounds'
+        and the field's with proposals, else n_single."""
+        if self.proposal is not None:
+            return sum(self.proposal.n_samples) + self.proposal.n_final
         return self.n_coarse + (self.n_coarse + self.n_fine if self.hierarchical else 0)
 
     @property
@@ -108,54 +143,76 @@ class VolumeRenderer(nn.Module):
         return float(self._trained["evaluations"]) / self._trained["rays"]
 
     def density_fns(self) -> list[Callable[[Tensor], Tensor]]:
-        """Each network's density (positions [N, 3] -> sigma [N]), for ``OccupancyGrid.update``."""
+        """Each colour network's density (positions [N, 3] -> sigma [N]), for ``OccupancyGrid.update``."""
         return [net.density for net in (self.coarse, self.fine) if net is not None]
 
-    def _query(self, field: nn.Module, points: Tensor, viewdirs: Tensor, starts: Tensor,
-               ends: Tensor) -> tuple[Tensor, Tensor, Tensor | float]:
-        """(rgb [B, S, 3], sigma [B, S], samples evaluated) of the points [B, S, 3], ``starts``, ``ends``
-        [B, S] their intervals in distance units: all of them without a grid, else those the grid keeps,
-        marched in segments for early termination (see the class docstring)."""
+    def _query(self, field: Callable[[Tensor, Tensor], tuple[Tensor, ...]], points: Tensor, viewdirs: Tensor,
+               starts: Tensor, ends: Tensor) -> tuple[tuple[Tensor, ...], Tensor | float]:
+        """The field's outputs (rgb [B, S, 3], sigma [B, S], ...: sigma second, or alone for a density
+        query) at the points [B, S, 3], ``starts``, ``ends`` [B, S] their intervals in distance units, and
+        the samples evaluated: all of them without a grid, else those the grid keeps, marched in segments for
+        early termination (see the class docstring)."""
         B, S, _ = points.shape  # rays, samples, xyz
         if self.grid is None:  # one flat batch [B S, 3]: 2-D matrix products, no copies of 3-D activations
             flat_dirs = viewdirs[:, None, :].expand(B, S, 3).reshape(B * S, 3)
-            rgbs, sigmas = field(points.reshape(B * S, 3), flat_dirs)
-            return rgbs.reshape(B, S, 3), sigmas.reshape(B, S), float(B * S)
+            outputs = field(points.reshape(B * S, 3), flat_dirs)
+            return tuple(out.reshape(B, S, *out.shape[1:]) for out in outputs), float(B * S)
         keep = self.grid.occupied_at(points)
         eps = self.grid.early_stop_transmittance
         if eps == 0:
-            rgbs, sigmas = query_packed(field, points, viewdirs, keep)
-            return rgbs, sigmas, keep.sum()
+            return query_packed(field, points, viewdirs, keep), keep.sum()
         parts, evaluated = [], 0
         depth_before = starts.new_zeros(B)  # optical depth in front of the segment, no gradient
         n_segments = min(self.grid.segments, S)
         for k in range(n_segments):
             segment = slice(k * S // n_segments, (k + 1) * S // n_segments)
             alive = keep[:, segment] & (torch.exp(-depth_before) >= eps)[:, None]
-            rgb, sigma = query_packed(field, points[:, segment], viewdirs, alive)
+            outputs = query_packed(field, points[:, segment], viewdirs, alive)
+            sigma = outputs[1] if len(outputs) > 1 else outputs[0]
             depth_before = depth_before + optical_depths(sigma.detach().to(starts.dtype), starts[:, segment],
                                                          ends[:, segment]).sum(-1)
-            parts.append((rgb, sigma))
+            parts.append(outputs)
             evaluated = evaluated + alive.sum()
-        return torch.cat([rgb for rgb, _ in parts], 1), torch.cat([sigma for _, sigma in parts], 1), evaluated
+        return tuple(torch.cat(column, 1) for column in zip(*parts)), evaluated
+
+    @staticmethod
+    def _points(origins: Tensor, directions: Tensor, t: Tensor) -> tuple[Tensor, Tensor]:
+        """The sample points [B, S, 3] of rays o + t d at t [B, S], and the distance per unit of t [B, 1]
+        (|d|: an interval [t_i, t_{i+1}] is (t_{i+1} - t_i) |d| long)."""
+        points = origins[:, None, :] + directions[:, None, :] * t[..., None]
+        return points, torch.linalg.vector_norm(directions, dim=-1, keepdim=True)
+
+    def _propose(self, net: nn.Module, origins: Tensor, directions: Tensor, viewdirs: Tensor, t: Tensor,
+                 far: Tensor) -> tuple[Tensor, Tensor | float]:
+        """A proposal network's interval weights [B, S] at samples t [B, S], and the samples it evaluated."""
+        t_starts, t_ends = intervals(t, far)
+        points, lengths = self._points(origins, directions, t)
+        starts, ends = t_starts * lengths, t_ends * lengths
+        (sigmas,), evaluated = self._query(density_query(net), points, viewdirs, starts, ends)
+        weights, _ = render_weights(sigmas.to(t.dtype), starts, ends)
+        return weights, evaluated
 
     def _render(self, field: nn.Module, origins: Tensor, directions: Tensor, viewdirs: Tensor, t: Tensor,
                 far: Tensor) -> dict[str, Tensor]:
         """Query ``field`` at samples t [B, S] of rays [B, 3]; each sample stands for its interval.
 
-        The field sees the unit ``viewdirs`` [B, 3]; an interval [t_i, t_{i+1}] is (t_{i+1} - t_i) |d| long.
+        The field sees the unit ``viewdirs`` [B, 3]. A field that also answers per-sample penalties [B, S, P]
+        (``penalty_names``, e.g. Ref-NeRF's normals, ``nerfexp.nerf.reflection``) has them composited with
+        the rendering weights and averaged over the rays into ``regularizers`` {name: value}.
         """
         t_starts, t_ends = intervals(t, far)
-        points = origins[:, None, :] + directions[:, None, :] * t[..., None]  # [B, S, 3]
-        lengths = torch.linalg.vector_norm(directions, dim=-1, keepdim=True)  # [B, 1]: distance per unit of t
+        points, lengths = self._points(origins, directions, t)
         starts, ends = t_starts * lengths, t_ends * lengths
-        rgbs, sigmas, evaluated = self._query(field, points, viewdirs, starts, ends)
+        (rgbs, sigmas, *penalties), evaluated = self._query(field, points, viewdirs, starts, ends)
         # Rendering runs in the rays' precision whatever the network's: under bf16 autocast the field
         # answers in bf16 (8 significant bits), too coarse for exp/cumsum of optical depths.
         rgbs, sigmas = rgbs.to(t.dtype), sigmas.to(t.dtype)
         weights, _ = render_weights(sigmas, starts, ends)
         out = composite(weights, rgbs, t, self.background, self.far)
         out.update(weights=weights, t_starts=t_starts, t_ends=t_ends, evaluated=evaluated)
+        if penalties:
+            per_ray = (weights[..., None] * penalties[0].to(t.dtype)).sum(-2).mean(0)  # [P]
+            out["regularizers"] = dict(zip(field.penalty_names, per_ray.unbind(), strict=True))
         return out
 
     def forward(self, origins: Tensor, directions: Tensor, deterministic: bool,
@@ -167,9 +224,10 @@ class VolumeRenderer(nn.Module):
         paper's code). The field's view direction is ``viewdirs`` [B, 3] (unit; for NDC rays the
         world direction), by default the unit ``directions``.
 
-        Returns {"coarse": out, "fine": out} (only "coarse" without hierarchy), each out holding
-        ``rgb`` [B, 3], ``depth`` [B] (in units of t), ``opacity`` [B], ``weights``, ``t_starts``,
-        ``t_ends`` [B, S].
+        Returns {"coarse": out, "fine": out} (only "coarse" without hierarchy or with proposals), each out
+        holding ``rgb`` [B, 3], ``depth`` [B] (in units of t), ``opacity`` [B], ``weights``, ``t_starts``,
+        ``t_ends`` [B, S], and ``regularizers`` {name: scalar} where its network or the proposals add losses
+        (only while gradients are enabled, for the proposals' ones).
         """
         B, _ = origins.shape  # rays, xyz
         if viewdirs is None:
@@ -177,20 +235,41 @@ class VolumeRenderer(nn.Module):
             viewdirs = directions / lengths.clamp_min(torch.finfo(lengths.dtype).tiny)
         near = torch.full((B,), self.near, dtype=origins.dtype, device=origins.device)
         far = torch.full_like(near, self.far)
+        if self.proposal is not None:
+            return self._render_proposed(origins, directions, viewdirs, near, far, deterministic)
         t_coarse = stratified_samples(near, far, self.n_coarse, deterministic)
         coarse = self._render(self.coarse, origins, directions, viewdirs, t_coarse, far)
         if not self.hierarchical:
             self._count({"coarse": coarse}, B)
             return {"coarse": coarse}
-        # PDF bins [B, Nc + 1]: the coarse intervals, the first one reaching back to near, since the
-        # coarse render's first sample lies up to one spacing past near and what lies before it must
-        # still be reachable by fine samples (else a density at near is lost however many are drawn)
-        bins = torch.cat([near[:, None], coarse["t_starts"][:, 1:], far[:, None]], -1)
+        bins = resampling_bins(t_coarse, near, far)
         t_fine = sample_pdf(bins, dilate_weights(coarse["weights"]), self.n_fine, deterministic)
         t_all = torch.sort(torch.cat([t_coarse, t_fine], -1), -1).values
         outputs = {"coarse": coarse, "fine": self._render(self.fine, origins, directions, viewdirs, t_all, far)}
         self._count(outputs, B)
         return outputs
+
+    def _render_proposed(self, origins: Tensor, directions: Tensor, viewdirs: Tensor, near: Tensor, far: Tensor,
+                         deterministic: bool) -> dict[str, dict[str, Tensor]]:
+        """Proposal sampling (see the class docstring): {"coarse": the field's output}; in training (with
+        gradients enabled) the output's ``regularizers`` hold the proposal losses."""
+        counts = [*self.proposal.n_samples, self.proposal.n_final]  # samples of each round, then the field's
+        t = stratified_samples(near, far, counts[0], deterministic)
+        histograms, evaluated = [], 0
+        for net, n_next in zip(self.proposal.networks, counts[1:]):
+            weights, evaluated_here = self._propose(net, origins, directions, viewdirs, t, far)
+            bins = resampling_bins(t, near, far)
+            histograms.append((bins, weights))
+            evaluated = evaluated + evaluated_here
+            t = sample_pdf(bins, dilate_weights(weights), n_next, deterministic)
+        out = self._render(self.coarse, origins, directions, viewdirs, t, far)
+        out["evaluated"] = out["evaluated"] + evaluated
+        if torch.is_grad_enabled():
+            edges = torch.cat([t, far[:, None]], -1)  # the field's intervals [t_i, t_{i+1}], the last ending at far
+            losses = self.proposal.losses(edges, out["weights"], histograms, near, far)
+            out["regularizers"] = {**out.get("regularizers", {}), **losses}
+        self._count({"coarse": out}, len(origins))
+        return {"coarse": out}
 
     def _count(self, outputs: dict[str, dict], n_rays: int) -> None:
         """``stats`` of the call (samples per ray evaluated, all networks), pulled out of ``outputs`` (left

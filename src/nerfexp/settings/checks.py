@@ -97,20 +97,24 @@ def check_skips(cfg: DictConfig) -> None:
                           f"1..{field.depth - 1} for depth {field.depth}")
 
 
-def samples_per_ray(renderer: DictConfig) -> int:
-    """The network evaluations per ray: coarse + (coarse + fine) samples, or the single network's."""
+def samples_per_ray(cfg: DictConfig) -> int:
+    """The network evaluations per ray: coarse + (coarse + fine) samples, the single network's, or the
+    proposal rounds' and the field's (counted as the field's, an upper bound on their memory)."""
+    renderer = cfg.model.renderer
+    if renderer.hierarchical == "proposal":
+        return sum(cfg.proposal.n_samples) + cfg.proposal.n_final
     return 2 * renderer.n_coarse + renderer.n_fine if renderer.hierarchical else renderer.n_single
 
 
 def check_memory(cfg: DictConfig) -> None:
     """A ConfigError naming the setting where the scene, a training batch, an evaluation chunk or the hash
     tables would need more than the machine's memory (``nerfexp.memory``)."""
-    data, renderer, field = cfg.data, cfg.model.renderer, cfg.model.renderer.field
+    data, field = cfg.data, cfg.model.renderer.field
     if "image_size" in data:
         views = (data.n_train or 0) + data.n_val + data.n_test
         needed = scene_bytes(views, data.image_size, data.image_size, data.get("supersample", 1))
         require_memory(named(cfg, "data.image_size", data.image_size), f"a scene of {views} views", needed)
-    samples = samples_per_ray(renderer)
+    samples = samples_per_ray(cfg)
     width = max(field.width, cfg.view_dependence.get("hidden", 0))
     for key, rays, what, training in (("datamodule.batch_rays", cfg.datamodule.batch_rays, "a training batch", True),
                                       ("model.chunk", cfg.model.chunk, "an evaluation chunk", False)):

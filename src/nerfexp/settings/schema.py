@@ -106,13 +106,14 @@ PRECISIONS = registered_choice(("auto",), lightning_precisions)
 ACCELERATORS = registered_choice(("auto", "gpu"), lightning_accelerators)
 STRATEGIES = registered_choice(("auto",), lightning_strategies)
 SKIPS = whole_list(0)
+HIERARCHY = ("true, false or proposal", lambda v: isinstance(v, bool) or v == "proposal")
 
 # Every key of the composed config (fnmatch patterns, the first that matches rules), hydra.* aside.
 SCHEMA: dict[str, Rule] = {
     "*._target_": TARGET,
     "*._partial_": BOOLEAN,
     "seed": whole(0, SEED_LIMIT - 1),
-    "hierarchical": BOOLEAN,
+    "hierarchical": HIERARCHY,
     "resume": optional(PATH, "train from scratch"),
     # scale: the sizes the groups read (each checked again where it lands)
     "scale.steps": COUNT,
@@ -145,7 +146,7 @@ SCHEMA: dict[str, Rule] = {
     "model.optimizer.eps": POSITIVE,
     "model.optimizer.weight_decay": real(0),
     "model.optimizer.fused": BOOLEAN,
-    "model.renderer.hierarchical": BOOLEAN,
+    "model.renderer.hierarchical": HIERARCHY,
     "model.renderer.n_coarse": COUNT,
     "model.renderer.n_fine": COUNT,
     "model.renderer.n_single": COUNT,
@@ -158,6 +159,16 @@ SCHEMA: dict[str, Rule] = {
     "model.renderer.field.density_activation": choice(*DENSITY_ACTIVATIONS),
     "model.renderer.field.density_bias": real(-math.inf, above=True),
     "model.renderer.field.density_noise_std": real(0),
+    "proposal.network.depth": COUNT,
+    "proposal.network.width": COUNT,
+    "proposal.network.skips": SKIPS,
+    "proposal.network.density_activation": choice(*DENSITY_ACTIVATIONS),
+    "proposal.network.density_bias": real(-math.inf, above=True),
+    "proposal.n_samples": ("a non-empty list of sample counts, each a whole number >= 1",
+                           lambda v: isinstance(v, list) and v != [] and all(COUNT[1](n) for n in v)),
+    "proposal.n_final": COUNT,
+    "proposal.interlevel_weight": POSITIVE,  # it alone trains the proposal networks
+    "proposal.distortion_weight": real(0),
     # encodings and view dependence
     "encoding.*.n_freqs": NONNEGATIVE_COUNT,  # and the float32 limit (check_frequencies)
     "encoding.*.input_scale": POSITIVE,
@@ -170,6 +181,10 @@ SCHEMA: dict[str, Rule] = {
     "encoding.position.sparse_gradients": BOOLEAN,  # and an optimizer that takes them (check_sparse_gradients)
     "view_dependence.degree": whole(0, SH_MAX_DEGREE),
     "view_dependence.hidden": COUNT,
+    "view_dependence.n_levels": whole(1, 6),  # bands up to l = 32, where the float32 basis is still accurate
+    "view_dependence.roughness_bias": real(-math.inf, above=True),
+    "view_dependence.normal_weight": real(0),
+    "view_dependence.orientation_weight": real(0),
     # data
     "data.root": PATH,
     "data.video": optional(PATH, "the photographs in images/"),
@@ -252,7 +267,8 @@ PASSED_ON = ("trainer.*", "callbacks.*", "logger.*", "model.optimizer.*")
 
 # Keys that stand for a whole section of the config through an interpolation (checked where it is set).
 REFERENCES = ("datamodule.scene", "model.renderer.field.position_encoding", "model.renderer.field.view_head",
-              "view_dependence.direction_encoding", "model.renderer.grid")
+              "view_dependence.direction_encoding", "model.renderer.grid", "model.renderer.proposal",
+              "proposal.network.position_encoding")
 
 
 def matching(patterns, key: str):

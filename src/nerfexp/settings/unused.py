@@ -12,16 +12,23 @@ from nerfexp.config_keys import entries, reference
 from nerfexp.errors import ConfigError
 from nerfexp.settings.schema import matching
 
+HIERARCHY_SAMPLES = {  # what each choice of the sampling axis reads, as said when another key is set
+    True: "hierarchical=true (a coarse network of model.renderer.n_coarse samples and a fine one of n_coarse + "
+          "n_fine; set scale.n_coarse and scale.n_fine)",
+    False: "hierarchical=false (one network of model.renderer.n_single samples; set scale.n_single)",
+    "proposal": "hierarchical=proposal (proposal networks choose the samples; set proposal.n_samples and "
+                "proposal.n_final)",
+}
 
-def hierarchical_only(cfg: DictConfig) -> str | None:
-    return None if cfg.hierarchical else ("hierarchical=false (one network of model.renderer.n_single samples; "
-                                          "set scale.n_single)")
+
+def hierarchy_reads(choice: bool | str) -> Callable[[DictConfig], str | None]:
+    """The reason a key is unused unless ``hierarchical`` is ``choice``."""
+    def reason(cfg: DictConfig) -> str | None:
+        return None if cfg.hierarchical == choice else HIERARCHY_SAMPLES[cfg.hierarchical]
+    return reason
 
 
-def single_only(cfg: DictConfig) -> str | None:
-    return None if not cfg.hierarchical else ("hierarchical=true (a coarse network of model.renderer.n_coarse "
-                                              "samples and a fine one of n_coarse + n_fine; set scale.n_coarse "
-                                              "and scale.n_fine)")
+hierarchical_only, single_only, proposal_only = (hierarchy_reads(c) for c in (True, False, "proposal"))
 
 
 def needs(section: str, key: str, group: str) -> Callable[[DictConfig], str | None]:
@@ -49,6 +56,7 @@ APPLIES: dict[str, Callable[[DictConfig], str | None]] = {
     "model.renderer.n_fine": hierarchical_only,
     "scale.n_single": single_only,
     "model.renderer.n_single": single_only,
+    "proposal.*": proposal_only,
     "scale.view_hidden": needs("view_dependence", "hidden", "view_dependence"),
     "scale.position_input_scale": needs("encoding.position", "input_scale", "encoding"),
     "scale.hash_*": needs("encoding.position", "log2_table_size", "encoding"),

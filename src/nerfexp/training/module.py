@@ -22,7 +22,9 @@ log = logging.getLogger(__name__)
 
 
 class NeRFModule(L.LightningModule):
-    """Loss = sum over networks of the MSE of their colours (coarse + fine); Adam whose learning
+    """Loss = sum over networks of the MSE of their colours (coarse + fine), plus the regularizers the
+    renderer's outputs hold (``regularizer_sums``: the proposal networks' losses, Ref-NeRF's normal
+    penalties), each logged as ``train/<name>``; Adam whose learning
     rate decays exponentially from the optimizer's ``lr`` to ``lr_final`` over ``trainer.max_steps``,
     ramped up linearly over the first ``lr_warmup_steps`` (0: none, as in the paper).
 
@@ -75,12 +77,15 @@ class NeRFModule(L.LightningModule):
         losses = {name: F.mse_loss(out["rgb"], batch["rgb"]) for name, out in outputs.items()}
         self.diagnostics = {name: {"loss": losses[name].detach(), "opacity": out["opacity"].detach()}
                             for name, out in outputs.items()}
-        loss = sum(losses.values())
+        regularizers = regularizer_sums(outputs)
+        loss = sum(losses.values()) + sum(regularizers.values())
         if self.writes_logs:
             final = final_output(losses)
             self.log("train/loss", loss, prog_bar=True)
             self.log("train/psnr", -10 * torch.log10(final.detach()), prog_bar=True)
             self.log("train/lr", self.optimizers().param_groups[0]["lr"])
+            for key, value in regularizers.items():
+                self.log(f"train/{key}", value.detach())
             for key, value in self.renderer.stats.items():
                 self.log(f"train/{key}", value)
         return loss
@@ -175,6 +180,16 @@ class NeRFModule(L.LightningModule):
 
         schedule = torch.optim.lr_scheduler.LambdaLR(optimizer, factor)
         return {"optimizer": optimizer, "lr_scheduler": {"scheduler": schedule, "interval": "step"}}
+
+
+def regularizer_sums(outputs: dict[str, dict]) -> dict[str, Tensor]:
+    """Each regularizer of the networks' ``outputs`` (their ``regularizers``: proposal losses, Ref-NeRF's
+    normal penalties), weighted already, summed over the networks that have it."""
+    sums: dict[str, Tensor] = {}
+    for out in outputs.values():
+        for name, value in out.get("regularizers", {}).items():
+            sums[name] = sums[name] + value if name in sums else value
+    return sums
 
 
 def check_compiler() -> None:
