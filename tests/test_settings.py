@@ -18,13 +18,13 @@ from nerfexp.training.precision import fill_precision
 from tests.helpers import TINY
 
 GROUPS = {  # every option of every group (conf/), and the sweeps' configs
-    "encoding": ["hashgrid", "none", "posenc"], "view_dependence": ["mlp", "none", "sh"],
+    "encoding": ["hashgrid", "none", "posenc"], "view_dependence": ["mlp", "none", "ref", "sh"],
     "data": ["blender", "colmap", "llff", "procedural"], "scale": ["cpu", "paper"],
     "trainer": ["bf16", "ddp", "default", "slurm"], "acceleration": ["none", "occupancy"],
     "callbacks": ["default"], "logger": ["csv", "mlflow", "none", "tensorboard", "wandb"],
     "ablation": ["complete", "far_fewer_images", "fewer_frequencies", "fewer_images", "more_frequencies",
                  "no_hierarchical", "no_pe_vd_h", "no_posenc", "no_view_dependence"],
-    "+sweeps": ["components", "cpu_ablation", "paper_ablation", "smoke"],
+    "+sweeps": ["components", "cpu_ablation", "paper_ablation", "smoke", "successors"],
 }
 
 

@@ -86,11 +86,28 @@ def test_sparse_tables_sweep_pairs_dense_and_sparse_table_gradients_under_one_op
                                             "encoding.position.sparse_gradients=true"]
     for config, flag in ((dense, False), (sparse, True)):
         assert config["model"]["renderer"]["field"]["position_encoding"].pop("sparse_gradients") is flag
+        # the proposal networks (built only with hierarchical=proposal) take the encoding axis's encoding too
+        assert config["model"]["renderer"]["proposal"]["network"]["position_encoding"].pop("sparse_gradients") is flag
         assert config["encoding"]["position"].pop("sparse_gradients") is flag
     assert dense == sparse  # nothing else differs
     assert dense["encoding"]["position"]["_target_"].endswith("HashGridEncoding")
     assert dense["model"]["optimizer"]["_target_"] == "nerfexp.training.optimizers.LazyAdam"
     assert dense["model"]["renderer"]["grid"]["_target_"].endswith("OccupancyGrid")
+
+
+def test_successors_sweep_crosses_the_papers_sampling_and_view_head_with_their_successors():
+    jobs = sweep_jobs("successors")
+    assert len(jobs) == 12
+    seen = set()
+    for job in jobs:
+        with initialize_config_module("nerfexp.conf", version_base=None):
+            cfg = compose("config", overrides=["+sweeps=successors", *job])
+        check_settings(cfg)
+        renderer = cfg.model.renderer
+        seen.add((renderer.hierarchical, renderer.field.view_head._target_.rsplit(".", 1)[1], cfg.seed))
+        assert cfg.trainer.max_steps == 1000 and cfg.data._target_.endswith("ProceduralScene")
+    assert seen == {(h, head, seed) for h in (True, "proposal") for head in ("ViewMLPHead", "ReflectionHead")
+                    for seed in (0, 1, 2)}
 
 
 def test_command_line_overrides_beat_the_sweeps_own_values():
