@@ -57,11 +57,14 @@ def composed(*overrides):
     (["callbacks.guard.on_nonfinite=ignore"], "callbacks.guard.on_nonfinite=ignore: expected one of stop, skip"),
     (["data.background=grey"], "data.background=grey (which sets model.renderer.background): expected one of "),
     (["data.aabb=[[0,0,0],[1,1]]"], "data.aabb=[[0, 0, 0], [1, 1]]: expected [[x0, y0, z0]"),
-    (["hierarchical=maybe"], "hierarchical=maybe: expected true, false or proposal"),
+    (["hierarchical=maybe"], "hierarchical=maybe: expected one of true, false, proposal"),
+    (["hierarchical=1"], "hierarchical=1: expected one of true, false, proposal"),
     (["hierarchical=proposal", "proposal.n_samples=[]"], "proposal.n_samples=[]: expected a non-empty list of "),
     (["hierarchical=proposal", "proposal.interlevel_weight=0"], "proposal.interlevel_weight=0: expected a finite "
                                                                 "number > 0"),
     (["scale.skips=[5]"], "scale.skips=[5] (which sets model.renderer.field.skips): layer indices must be in 1..1"),
+    (["hierarchical=proposal", "proposal.network.skips=[2]"], "proposal.network.skips=[2]: layer indices must be "
+                                                              "in 1..1 for depth 2"),
     (["+foo=1"], "foo=1: not a setting nerfexp reads"),
     (["scale.lr=???"], "missing mandatory value: scale.lr (set it"),  # not model.optimizer.lr, which reads it
     (["data.near=5", "data.far=2"], "data.near=5 (which sets model.renderer.near) and data.far=2 (which sets "

@@ -111,7 +111,7 @@ def test_the_field_evaluates_only_samples_drawn_from_the_last_proposal_histogram
     near, far = torch.full((1,), 2.0, dtype=torch.float64), torch.full((1,), 6.0, dtype=torch.float64)
     t = stratified_samples(near, far, 8, deterministic=True)
     for n_next in (16, 24):
-        weights, _ = renderer._propose(renderer.proposal.networks[0], origins, directions, directions, t, far)
+        weights, _ = renderer._propose(renderer.proposal.networks[0], origins, directions, t, far)
         t = sample_pdf(resampling_bins(t, near, far), dilate_weights(weights), n_next, deterministic=True)
     torch.testing.assert_close(out["coarse"]["t_starts"], t, rtol=0, atol=0)
     # the slab lies at t in (3.5, 4.5): every sample the field evaluates is within a first-round spacing of it

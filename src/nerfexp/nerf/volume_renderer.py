@@ -45,11 +45,11 @@ def resampling_bins(t: Tensor, near: Tensor, far: Tensor) -> Tensor:
     return torch.cat([near[:, None], t[:, 1:], far[:, None]], -1)
 
 
-def query_packed(field: Callable[[Tensor, Tensor], tuple[Tensor, ...]], points: Tensor, viewdirs: Tensor,
-                 keep: Tensor) -> tuple[Tensor, ...]:
+def query_packed(field: Callable[[Tensor, Tensor | None], tuple[Tensor, ...]], points: Tensor,
+                 viewdirs: Tensor | None, keep: Tensor) -> tuple[Tensor, ...]:
     """Evaluate ``field`` only at the samples ``keep`` [B, S] (bool) of ``points`` [B, S, 3], rays' unit
-    ``viewdirs`` [B, 3], as one flat batch of N = keep.sum() points; the others get zeros (sigma = 0,
-    rgb = 0).
+    ``viewdirs`` [B, 3] (None for a density query, ``density_query``), as one flat batch of N = keep.sum()
+    points; the others get zeros (sigma = 0, rgb = 0).
 
     The batch is ``padded_size(N)`` long: its first kept points again fill the rest, and their answers are
     dropped (no gradient reaches them; a hash grid's sparse gradient holds the same rows).
@@ -61,14 +61,14 @@ def query_packed(field: Callable[[Tensor, Tensor], tuple[Tensor, ...]], points: 
     index = keep.nonzero(as_tuple=True)  # (ray [N], sample [N])
     n = len(index[0])
     rays, samples = (torch.cat([i, i[: padded_size(n) - n]]) for i in index)  # [P]: the kept, then again
-    outputs = field(points[rays, samples], viewdirs[rays])  # each [P, ...]
+    outputs = field(points[rays, samples], None if viewdirs is None else viewdirs[rays])  # each [P, ...]
     B, S = keep.shape  # rays, samples
     return tuple(out.new_zeros(B, S, *out.shape[1:]).index_put(index, out[:n]) for out in outputs)
 
 
-def density_query(net: nn.Module) -> Callable[[Tensor, Tensor], tuple[Tensor]]:
-    """A density-only network (``DensityField``) as a field the renderer queries: (positions, directions)
-    -> (sigma,), the directions unused."""
+def density_query(net: nn.Module) -> Callable[[Tensor, Tensor | None], tuple[Tensor]]:
+    """A density-only network (``DensityField``) as a field the renderer queries: (positions, None)
+    -> (sigma,); it is queried without directions."""
     return lambda positions, directions: (net.density(positions),)
 
 
@@ -146,15 +146,15 @@ class VolumeRenderer(nn.Module):
         """Each colour network's density (positions [N, 3] -> sigma [N]), for ``OccupancyGrid.update``."""
         return [net.density for net in (self.coarse, self.fine) if net is not None]
 
-    def _query(self, field: Callable[[Tensor, Tensor], tuple[Tensor, ...]], points: Tensor, viewdirs: Tensor,
-               starts: Tensor, ends: Tensor) -> tuple[tuple[Tensor, ...], Tensor | float]:
+    def _query(self, field: Callable[[Tensor, Tensor | None], tuple[Tensor, ...]], points: Tensor,
+               viewdirs: Tensor | None, starts: Tensor, ends: Tensor) -> tuple[tuple[Tensor, ...], Tensor | float]:
         """The field's outputs (rgb [B, S, 3], sigma [B, S], ...: sigma second, or alone for a density
-        query) at the points [B, S, 3], ``starts``, ``ends`` [B, S] their intervals in distance units, and
-        the samples evaluated: all of them without a grid, else those the grid keeps, marched in segments for
-        early termination (see the class docstring)."""
+        query, whose ``viewdirs`` are None) at the points [B, S, 3], ``starts``, ``ends`` [B, S] their
+        intervals in distance units, and the samples evaluated: all of them without a grid, else those the
+        grid keeps, marched in segments for early termination (see the class docstring)."""
         B, S, _ = points.shape  # rays, samples, xyz
         if self.grid is None:  # one flat batch [B S, 3]: 2-D matrix products, no copies of 3-D activations
-            flat_dirs = viewdirs[:, None, :].expand(B, S, 3).reshape(B * S, 3)
+            flat_dirs = None if viewdirs is None else viewdirs[:, None, :].expand(B, S, 3).reshape(B * S, 3)
             outputs = field(points.reshape(B * S, 3), flat_dirs)
             return tuple(out.reshape(B, S, *out.shape[1:]) for out in outputs), float(B * S)
         keep = self.grid.occupied_at(points)
@@ -176,19 +176,20 @@ class VolumeRenderer(nn.Module):
         return tuple(torch.cat(column, 1) for column in zip(*parts)), evaluated
 
     @staticmethod
-    def _points(origins: Tensor, directions: Tensor, t: Tensor) -> tuple[Tensor, Tensor]:
-        """The sample points [B, S, 3] of rays o + t d at t [B, S], and the distance per unit of t [B, 1]
-        (|d|: an interval [t_i, t_{i+1}] is (t_{i+1} - t_i) |d| long)."""
+    def _samples(origins: Tensor, directions: Tensor, t: Tensor, far: Tensor) -> tuple[Tensor, ...]:
+        """The sample points [B, S, 3] of rays o + t d at t [B, S], and the intervals they stand for
+        (``intervals``, the last ending at far [B]): in units of t, ``t_starts``, ``t_ends`` [B, S], and in
+        distance, ``starts``, ``ends`` [B, S] (an interval [t_i, t_{i+1}] is (t_{i+1} - t_i) |d| long)."""
         points = origins[:, None, :] + directions[:, None, :] * t[..., None]
-        return points, torch.linalg.vector_norm(directions, dim=-1, keepdim=True)
+        lengths = torch.linalg.vector_norm(directions, dim=-1, keepdim=True)  # [B, 1]
+        t_starts, t_ends = intervals(t, far)
+        return points, t_starts, t_ends, t_starts * lengths, t_ends * lengths
 
-    def _propose(self, net: nn.Module, origins: Tensor, directions: Tensor, viewdirs: Tensor, t: Tensor,
+    def _propose(self, net: nn.Module, origins: Tensor, directions: Tensor, t: Tensor,
                  far: Tensor) -> tuple[Tensor, Tensor | float]:
         """A proposal network's interval weights [B, S] at samples t [B, S], and the samples it evaluated."""
-        t_starts, t_ends = intervals(t, far)
-        points, lengths = self._points(origins, directions, t)
-        starts, ends = t_starts * lengths, t_ends * lengths
-        (sigmas,), evaluated = self._query(density_query(net), points, viewdirs, starts, ends)
+        points, _, _, starts, ends = self._samples(origins, directions, t, far)
+        (sigmas,), evaluated = self._query(density_query(net), points, None, starts, ends)
         weights, _ = render_weights(sigmas.to(t.dtype), starts, ends)
         return weights, evaluated
 
@@ -200,9 +201,7 @@ class VolumeRenderer(nn.Module):
         (``penalty_names``, e.g. Ref-NeRF's normals, ``nerfexp.nerf.reflection``) has them composited with
         the rendering weights and averaged over the rays into ``regularizers`` {name: value}.
         """
-        t_starts, t_ends = intervals(t, far)
-        points, lengths = self._points(origins, directions, t)
-        starts, ends = t_starts * lengths, t_ends * lengths
+        points, t_starts, t_ends, starts, ends = self._samples(origins, directions, t, far)
         (rgbs, sigmas, *penalties), evaluated = self._query(field, points, viewdirs, starts, ends)
         # Rendering runs in the rays' precision whatever the network's: under bf16 autocast the field
         # answers in bf16 (8 significant bits), too coarse for exp/cumsum of optical depths.
@@ -257,7 +256,7 @@ class VolumeRenderer(nn.Module):
         t = stratified_samples(near, far, counts[0], deterministic)
         histograms, evaluated = [], 0
         for net, n_next in zip(self.proposal.networks, counts[1:]):
-            weights, evaluated_here = self._propose(net, origins, directions, viewdirs, t, far)
+            weights, evaluated_here = self._propose(net, origins, directions, t, far)
             bins = resampling_bins(t, near, far)
             histograms.append((bins, weights))
             evaluated = evaluated + evaluated_here

@@ -89,12 +89,16 @@ def check_ray_bounds(cfg: DictConfig) -> None:
 
 
 def check_skips(cfg: DictConfig) -> None:
-    """A ConfigError where the field's skip connections name a layer it does not have (1..depth-1)."""
-    field = cfg.model.renderer.field
-    skips = list(field.skips)
-    if not all(1 <= s < field.depth for s in skips):
-        raise ConfigError(f"{named(cfg, 'model.renderer.field.skips', skips)}: layer indices must be in "
-                          f"1..{field.depth - 1} for depth {field.depth}")
+    """A ConfigError where a network's skip connections name a layer it does not have (1..depth-1): the
+    field's, and with ``hierarchical=proposal`` the proposal networks'."""
+    networks = {"model.renderer.field": cfg.model.renderer.field}
+    if cfg.model.renderer.hierarchical == "proposal":
+        networks["proposal.network"] = cfg.proposal.network
+    for key, network in networks.items():
+        skips = list(network.skips)
+        if not all(1 <= s < network.depth for s in skips):
+            raise ConfigError(f"{named(cfg, f'{key}.skips', skips)}: layer indices must be in "
+                              f"1..{network.depth - 1} for depth {network.depth}")
 
 
 def samples_per_ray(cfg: DictConfig) -> int:

@@ -16,6 +16,7 @@ from typing import get_args
 
 from nerfexp.nerf.backgrounds import BACKGROUNDS
 from nerfexp.nerf.fields import DENSITY_ACTIVATIONS, SH_MAX_DEGREE
+from nerfexp.nerf.volume_renderer import HIERARCHIES
 from nerfexp.training.guard_actions import COLLAPSE_ACTIONS, NONFINITE_ACTIONS
 
 SEED_LIMIT = 2 ** 32  # seeds are whole numbers in [0, 2^32): numpy's and Lightning's range
@@ -45,8 +46,14 @@ def real(low: float, high: float | None = None, *, above: bool = False) -> Rule:
                                 and (high is None or v <= high))
 
 
+def yaml_word(value) -> str:
+    """``value`` as a config writes it: true and false for booleans."""
+    return str(value).lower() if isinstance(value, bool) else str(value)
+
+
 def choice(*values) -> Rule:
-    return f"one of {', '.join(map(str, values))}", lambda v: isinstance(v, str | bool) and v in values
+    """One of ``values`` (strings or booleans: 1 and 0, equal to True and False, are neither)."""
+    return f"one of {', '.join(map(yaml_word, values))}", lambda v: isinstance(v, str | bool) and v in values
 
 
 def registered_choice(fixed: tuple[str, ...], registered: Callable[[], tuple[str, ...]]) -> Rule:
@@ -106,7 +113,7 @@ PRECISIONS = registered_choice(("auto",), lightning_precisions)
 ACCELERATORS = registered_choice(("auto", "gpu"), lightning_accelerators)
 STRATEGIES = registered_choice(("auto",), lightning_strategies)
 SKIPS = whole_list(0)
-HIERARCHY = ("true, false or proposal", lambda v: isinstance(v, bool) or v == "proposal")
+HIERARCHY = choice(*HIERARCHIES)
 
 # Every key of the composed config (fnmatch patterns, the first that matches rules), hydra.* aside.
 SCHEMA: dict[str, Rule] = {
