@@ -1,6 +1,9 @@
 """Trainer choices and Hydra launchers: mixed precision, SLURM through submitit (its config and Lightning's
 SLURM environment), and a sweep run in parallel by the submitit local launcher."""
 
+import os
+from unittest import mock
+
 import lightning as L
 import lightning_utilities.core.rank_zero as utilities_rank_zero
 import pytest
@@ -32,6 +35,12 @@ def test_slurm_launcher_asks_for_a_task_and_a_gpu_per_device_on_every_node():
     assert config("trainer=ddp").trainer.strategy == "ddp_spawn"
 
 
+def test_slurm_jobs_of_cpu_processes_ask_for_no_gpus():
+    cfg = config("hydra/launcher=slurm", "trainer=slurm", "trainer.accelerator=cpu", "trainer.devices=2", hydra=True)
+    launcher = OmegaConf.to_container(cfg.hydra.launcher, resolve=True)
+    assert (launcher["tasks_per_node"], launcher["gpus_per_node"]) == (2, None)  # sbatch: no --gpus-per-node
+
+
 SLURM_TASK = {  # what srun sets for task 3 of a job of 2 nodes x 2 tasks
     "SLURM_NTASKS": "4", "SLURM_NTASKS_PER_NODE": "2", "SLURM_NNODES": "2", "SLURM_PROCID": "3",
     "SLURM_LOCALID": "1", "SLURM_NODEID": "1", "SLURM_NODELIST": "gpu[07-08]", "SLURM_JOB_ID": "4242",
@@ -39,6 +48,9 @@ SLURM_TASK = {  # what srun sets for task 3 of a job of 2 nodes x 2 tasks
 }
 
 
+# the whole environment put back after the test: Lightning writes MASTER_ADDR (gpu07) into it, which would
+# reach every distributed run the test session starts later
+@mock.patch.dict(os.environ)
 def test_under_slurm_lightning_joins_the_processes_srun_started(monkeypatch):
     for key, value in SLURM_TASK.items():
         monkeypatch.setenv(key, value)

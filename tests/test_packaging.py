@@ -52,6 +52,14 @@ def test_every_imported_package_is_declared():
     assert {"pillow", "pyyaml"} <= declared  # imported as PIL and yaml
 
 
+def test_lpips_needs_neither_torchvision_nor_the_lpips_package():
+    # PyPI's torchvision wheels are CUDA builds: beside the CPU torch they fail to import (and would break
+    # torchmetrics, which Lightning imports), and an unpinned one replaces torch (docs/metrics.md)
+    assert not {"torchvision", "lpips"} & imported_top_levels()
+    every = [*PYPROJECT["project"]["dependencies"], *sum(PYPROJECT["project"]["optional-dependencies"].values(), [])]
+    assert not {"torchvision", "lpips"} & {distribution_name(r) for r in every}
+
+
 def test_the_heavy_optional_parts_are_extras_the_tests_install():
     declared = {distribution_name(r) for r in PYPROJECT["project"]["dependencies"]}
     optional = PYPROJECT["project"]["optional-dependencies"]
@@ -133,7 +141,9 @@ def test_the_wheel_builds_without_warnings_and_holds_every_config(tmp_path):
     log = done.stdout + done.stderr
     assert not re.findall(r".*(?:is absent from the `packages`|Installing 'nerfexp[.\w]*' as data).*", log)
     (wheel,) = (tmp_path / "dist").glob("nerfexp-*.whl")
-    in_wheel = {name for name in zipfile.ZipFile(wheel).namelist() if name.startswith("nerfexp/conf/")}
+    names = set(zipfile.ZipFile(wheel).namelist())
+    assert {"nerfexp/training/lpips_alex_v0.1.pth", "nerfexp/training/lpips_LICENSE.txt"} <= names  # LPIPS's heads
+    in_wheel = {name for name in names if name.startswith("nerfexp/conf/")}
     configs = {"nerfexp/conf/" + os.path.relpath(os.path.join(folder, f), REPO / "conf").replace(os.sep, "/")
                for folder, _, files in os.walk(REPO / "conf", followlinks=True) for f in files if f.endswith(".yaml")}
     assert configs and configs <= in_wheel

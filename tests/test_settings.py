@@ -99,6 +99,24 @@ def test_an_override_that_does_not_apply_is_named_with_the_reason(hydra_configs)
         "set scale.n_coarse and scale.n_fine)"]
 
 
+def test_lpips_settings_are_checked_before_any_work_and_may_change_on_resume(hydra_configs, tmp_path, monkeypatch):
+    from nerfexp.training.resume import may_differ
+
+    monkeypatch.setenv("TORCH_HOME", str(tmp_path))  # an empty torch hub cache
+    check_settings(composed())  # auto: the run goes on without the weights, and says so when it starts
+    check_settings(composed("model.lpips=false"))
+    with pytest.raises(ConfigError, match=f"^model.lpips=true: no AlexNet ImageNet weights at {tmp_path}/hub/"):
+        check_settings(composed("model.lpips=true"))
+    with pytest.raises(ConfigError, match="^model.lpips_weights=/no/such.pth: no such file; expected torchvision's "
+                                          r"AlexNet ImageNet weights \(alexnet-owt-7be5be79.pth\)"):
+        check_settings(composed("model.lpips_weights=/no/such.pth"))
+    with pytest.raises(ConfigError, match="^model.lpips=maybe: expected one of auto, true, false$"):
+        check_settings(composed("model.lpips=maybe"))
+    assert unused_settings(composed("model.lpips=false"), ["model.lpips=false", "model.lpips_weights=/x.pth"]) == [
+        ("model.lpips_weights=/x.pth", "model.lpips=false (LPIPS is not scored)")]
+    assert may_differ("model.lpips") and may_differ("model.lpips_weights")  # what is scored, not what is trained
+
+
 VALUES = st.one_of(  # across and beyond the domains: wrong types, negatives, zero, nan, huge, strings
     st.integers(-3, 5), st.integers(2 ** 31, 2 ** 64), st.floats(allow_nan=True, allow_infinity=True),
     st.booleans(), st.sampled_from(["abc", "", "null", "stop", "skip", "white", "32-true", "auto"]),
@@ -108,7 +126,7 @@ KEYS = ["seed", "hierarchical", "scale.lr", "scale.batch_rays", "scale.depth", "
         "data.n_train", "data.n_val", "data.supersample", "data.near", "data.far", "data.background",
         "encoding.position.n_freqs", "encoding.direction.n_freqs", "view_dependence.hidden",
         "callbacks.guard.on_nonfinite", "callbacks.guard.max_skips", "trainer.precision", "trainer.max_steps",
-        "model.renderer.field.density_bias", "model.optimizer.eps"]
+        "model.renderer.field.density_bias", "model.optimizer.eps", "model.lpips"]
 
 
 def override(key, value) -> str:

@@ -1,11 +1,14 @@
 """A run or a sweep ended by a signal exits with 128 + the signal, and the job's status names it."""
 
+import logging
+import os
 import signal
 import time
 from pathlib import Path
 
 import pytest
 
+from nerfexp.commands.signals import Signalled, job_signals, received_signal
 from tests.helpers import read_json, start_nerfexp
 
 LONG = ["scale.steps=100000", "scale.val_every=5"]  # far longer than the test waits; a validation every 5 steps
@@ -43,3 +46,30 @@ def test_sigterm_ends_a_sweep_with_143_and_no_later_job_starts(tmp_path, tiny):
     assert process.returncode == 143, stderr[-3000:]
     assert read_json(tmp_path / "0" / "status.json")["signal"] == "SIGTERM"
     assert not (tmp_path / "1").exists()
+
+
+def test_in_a_launchers_job_sigterm_raises_and_the_time_limit_notice_is_only_logged(monkeypatch, caplog):
+    monkeypatch.setenv("SUBMITIT_EXECUTOR", "slurm")  # as submitit's sbatch script exports it
+    before = signal.getsignal(signal.SIGTERM), signal.getsignal(signal.SIGUSR2)
+    with caplog.at_level(logging.WARNING, logger="nerfexp"), job_signals():
+        os.kill(os.getpid(), signal.SIGUSR2)
+        time.sleep(0.05)  # the handler runs in this thread at its next instruction
+        assert "SIGUSR2: SLURM's notice that the job nears its time limit" in caplog.text
+        with pytest.raises(Signalled):
+            os.kill(os.getpid(), signal.SIGTERM)
+            time.sleep(5)
+        assert received_signal() == "SIGTERM"
+    assert (signal.getsignal(signal.SIGTERM), signal.getsignal(signal.SIGUSR2)) == before
+
+
+def test_the_notice_is_the_signal_submitit_is_told_to_use_and_outside_a_job_nothing_changes(monkeypatch, caplog):
+    before = {s: signal.getsignal(s) for s in (signal.SIGTERM, signal.SIGUSR1, signal.SIGUSR2)}
+    with job_signals():
+        assert {s: signal.getsignal(s) for s in before} == before
+    monkeypatch.setenv("SUBMITIT_EXECUTOR", "slurm")
+    monkeypatch.setenv("SUBMITIT_PREEMPT_SIGNAL", "USR1")
+    with caplog.at_level(logging.WARNING, logger="nerfexp"), job_signals():
+        assert signal.getsignal(signal.SIGUSR2) == before[signal.SIGUSR2]
+        os.kill(os.getpid(), signal.SIGUSR1)
+        time.sleep(0.05)
+    assert "SIGUSR1: SLURM's notice" in caplog.text

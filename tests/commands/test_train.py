@@ -180,3 +180,42 @@ def test_default_run_directories_of_runs_started_at_once_differ(tmp_path):
     for shown in (first, second):
         date, time_of_day = shown.split("/")[1:]
         assert len(date) == len("2026-11-23") and len(time_of_day) == len("10-00-00-123456")
+
+
+@pytest.mark.slow
+def test_lpips_is_recorded_in_every_file_where_alexnets_weights_are_given(tmp_path, tiny):
+    from nerfexp.training.perceptual import LpipsScorer, lpips_network
+    from tests.training.test_perceptual import alexnet_state
+
+    weights, run = tmp_path / "alexnet.pth", tmp_path / "run"
+    torch.save(alexnet_state(), weights)  # made here: no test reads the ImageNet weights
+    result = run_nerfexp(*tiny, "scale.image_size=32", "model.lpips=true", f"model.lpips_weights={weights}",
+                         f"hydra.run.dir={run}", cwd=tmp_path)
+    assert result.returncode == 0, result.stderr[-3000:]
+    results = read_json(run / "results.json")
+    records = [json.loads(line) for line in (run / "metrics.jsonl").read_text().splitlines()]
+    assert [r["split"] for r in records] == ["val", "val", "test"] and all(r["lpips"] > 0 for r in records)
+    assert records[-1]["lpips"] == results["test_lpips"] == pytest.approx(np.mean(results["test_lpips_per_view"]))
+    # each view's score is LPIPS of the saved 8-bit render against its saved target
+    scorer = LpipsScorer(lpips_network(weights))
+    for view, score in zip(results["test_views"], results["test_lpips_per_view"], strict=True):
+        render, target = (torch.from_numpy(np.asarray(Image.open(run / "test" / f"r_{view}{suffix}.png"),
+                                                      dtype=np.float32) / 255) for suffix in ("", "_target"))
+        assert scorer(render, target) == pytest.approx(score, rel=1e-4)
+    log = (run / "nerfexp.log").read_text()
+    assert f"LPIPS {records[1]['lpips']:.4f} after" in log and f"LPIPS {results['test_lpips']:.4f} after 60" in log
+    # nerfexp-eval scores the checkpoint with the run's config: the same LPIPS
+    evaluated = run_nerfexp(str(run), cwd=tmp_path, script="nerfexp-eval")
+    assert evaluated.returncode == 0, evaluated.stderr[-3000:]
+    scores = read_json(run / "eval.json")
+    assert scores["test_lpips_per_view"] == results["test_lpips_per_view"]
+    assert f"LPIPS {scores['test_lpips']:.4f} of " in evaluated.stdout
+
+
+def test_a_run_without_lpips_records_none_and_says_why_in_one_line(tiny_run):
+    # TINY's 24-pixel images are below AlexNet's 31, and CI has no AlexNet weights: either way, one line
+    results = read_json(tiny_run / "results.json")
+    assert not [key for key in results if "lpips" in key]
+    assert not [r for r in map(json.loads, (tiny_run / "metrics.jsonl").read_text().splitlines()) if "lpips" in r]
+    lines = [line for line in (tiny_run / "nerfexp.log").read_text().splitlines() if "LPIPS" in line]
+    assert len(lines) == 1 and "LPIPS not scored: " in lines[0], lines

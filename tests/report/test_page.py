@@ -71,6 +71,17 @@ def test_the_page_in_a_real_browser_shows_every_picture_at_its_size(pictured, tm
     assert "PSNR 27.00 dB, SSIM 0.500, seed 0" in html and "PSNR 20.00 dB" in html  # view 7, reversed
 
 
+def test_a_view_is_captioned_with_its_lpips_where_the_run_scored_it(pictured):
+    results_file = pictured / "0" / "results.json"
+    results = json.loads(results_file.read_text())
+    results.update(test_lpips=0.2, test_lpips_per_view=[0.125 + i / 100 for i in range(N_VIEWS)])
+    results_file.write_text(json.dumps(results))
+    write_report([pictured], pictured, views=[0, 7])
+    html = (pictured / "report.html").read_text()
+    assert "PSNR 20.00 dB, SSIM 0.500, LPIPS 0.125, seed 0" in html and "LPIPS 0.195, seed 0" in html
+    assert "PSNR 27.00 dB, SSIM 0.500, seed 2" in html  # the other variant's run did not score LPIPS
+
+
 def test_the_page_fetches_nothing_and_shows_labels_as_text(tmp_path):
     root = tmp_path / "sweep"
     add_test_views(make_run(root, "0", ["note=<script>alert(1)</script>", "seed=0"]), RED, (0, 0, 0), [20.0] * 8)

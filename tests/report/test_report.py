@@ -157,6 +157,42 @@ def test_each_variant_against_the_complete_model_paired_by_seed(ablation):
             "3. ablation=no_view_dependence (25.00 dB)") in report
 
 
+def test_lpips_beside_psnr_and_ssim_where_runs_scored_it_lower_being_better(tmp_path):
+    # complete: 0.20, 0.22, 0.18; no_posenc 0.05, 0.06, 0.04 higher (worse); fewer_images from before LPIPS
+    lpips = {"complete": (0.20, 0.22, 0.18), "no_posenc": (0.25, 0.28, 0.22), "fewer_images": (None,) * 3}
+    psnrs = {"complete": (28.0, 28.2, 27.8), "no_posenc": (29.0, 29.3, 28.7), "fewer_images": (28.1, 28.1, 28.0)}
+    for row in lpips:
+        for seed in range(3):
+            make_run(tmp_path, f"{row}_{seed}", [f"ablation={row}", f"seed={seed}"], psnr=psnrs[row][seed],
+                     lpips=lpips[row][seed], choices={"ablation": row, "data": "procedural"})
+    write_report([tmp_path], tmp_path)
+    table = {row["variant"]: row for row in read_csv(tmp_path / "report.csv")}
+    no_pe, complete, fewer = (table[f"ablation={r}"] for r in ("no_posenc", "complete", "fewer_images"))
+    assert [float(complete[k]) for k in ("test_lpips_mean", "test_lpips_std")] == pytest.approx([0.20, 0.02])
+    half = T_975_2 * 0.01 / math.sqrt(3)  # differences 0.05, 0.06, 0.04: s = 0.01
+    assert [float(no_pe[k]) for k in ("lpips_diff", "lpips_diff_low", "lpips_diff_high")] == pytest.approx(
+        [0.05, 0.05 - half, 0.05 + half], abs=1e-6)  # the table's t to 5 figures
+    assert no_pe["verdict"] == "better"  # the verdict is PSNR's; LPIPS rose: worse, which the table's sign says
+    assert all(math.isnan(float(fewer[k])) for k in ("test_lpips_mean", "lpips_diff", "lpips_diff_low"))
+    report = (tmp_path / "report.md").read_text()
+    assert "| test SSIM | test LPIPS | PSNR - reference (95% CI) | SSIM - reference (95% CI) | LPIPS - reference " \
+           "(95% CI; lower is better) | verdict (PSNR) |" in report
+    assert "| ablation=no_posenc | 3/3 | 29.00 ± 0.30 | 0.800 ± 0.000 | 0.250 ± 0.030 | +1.00 [+0.75, +1.25] | " \
+           "+0.000 [+0.000, +0.000] | +0.050 [+0.025, +0.075] | better |" in report
+    assert "| ablation=fewer_images | 3/3 | 28.07 ± 0.06 | 0.800 ± 0.000 | – | +0.07 [-0.31, +0.45] | " \
+           "+0.000 [+0.000, +0.000] | – | not resolved with 3 seeds |" in report
+    assert "| ablation=complete | 3/3 | 28.00 ± 0.20 | 0.800 ± 0.000 | 0.200 ± 0.020 | reference | reference | " \
+           "reference | reference |" in report
+    assert "LPIPS is AlexNet's (v0.1" in report and "the paper's LPIPS is VGG's" in report
+
+
+def test_without_lpips_the_report_has_no_lpips_column(ablation):
+    write_report([ablation], ablation)
+    assert "LPIPS" not in (ablation / "report.md").read_text()
+    assert all(math.isnan(float(row["test_lpips_mean"])) and math.isnan(float(row["lpips_diff"]))
+               for row in read_csv(ablation / "report.csv"))
+
+
 def test_the_papers_order_counts_agreements_reversals_and_unresolved_pairs_each_named(ablation):
     write_report([ablation], ablation)
     report = (ablation / "report.md").read_text()

@@ -1,4 +1,5 @@
 import functools
+import math
 
 import lightning as L
 import pytest
@@ -6,6 +7,7 @@ import torch
 from torch import nn
 from torch.utils.data import DataLoader
 
+from nerfexp.errors import ConfigError
 from nerfexp.nerf.volume_renderer import VolumeRenderer
 from nerfexp.training.module import NeRFModule, seeded_random
 
@@ -133,6 +135,38 @@ def test_denormals_are_flushed_during_fit_only_and_restored_after_a_failure():
         assert not flushes_denormals()  # and restored afterwards
 
 
+def test_a_launcher_jobs_sigterm_handler_stays_in_place_of_lightnings_while_it_trains():
+    import signal
+
+    from torch.utils.data import DataLoader
+
+    from nerfexp.training.callbacks import KeepSigtermHandler
+
+    def ours(signum, frame):  # stands in for nerfexp.commands.signals' handler
+        raise AssertionError("never called here")
+
+    class Probe(L.Callback):
+        def __init__(self):
+            self.seen = []
+
+        def on_train_batch_start(self, trainer, pl_module, batch, batch_idx):
+            self.seen.append(signal.getsignal(signal.SIGTERM))
+
+    previous = signal.signal(signal.SIGTERM, ours)
+    try:
+        for keep in (False, True):
+            probe = Probe()
+            trainer = L.Trainer(max_steps=2, logger=False, enable_checkpointing=False, enable_progress_bar=False,
+                                enable_model_summary=False, limit_val_batches=0,
+                                callbacks=[probe, *([KeepSigtermHandler()] if keep else [])])
+            trainer.fit(module(ConstantField), train_dataloaders=DataLoader([batch()] * 2, batch_size=None))
+            # Lightning's own handler while it trains, unless the callback put ours back; ours after fit
+            assert all((handler is ours) == keep for handler in probe.seen) and len(probe.seen) == 2
+            assert signal.getsignal(signal.SIGTERM) is ours
+    finally:
+        signal.signal(signal.SIGTERM, previous)
+
+
 def test_a_seeded_block_repeats_its_numbers_and_leaves_the_global_stream_alone():
     before = torch.get_rng_state()
     with seeded_random(5, torch.device("cpu")):
@@ -193,3 +227,50 @@ def test_bf16_mixed_training_keeps_rendering_in_float32(monkeypatch):
             mixed = renderer(batch["origins"], directions, deterministic=True)["fine"]
     assert mixed["rgb"].dtype == torch.float32 and mixed["depth"].dtype == torch.float32
     torch.testing.assert_close(mixed["rgb"], exact["rgb"], atol=0.03, rtol=0)
+
+
+def whole_image(size: int) -> dict:
+    """An evaluation batch: one image of ``size`` x ``size`` rays (each towards the origin) and a random target."""
+    rays = batch(size * size)
+    return {"origins": rays["origins"].reshape(size, size, 3), "directions": rays["directions"].reshape(size, size, 3),
+            "rgb": torch.rand(size, size, 3), "index": torch.tensor(0)}
+
+
+def test_lpips_is_scored_once_built_and_kept_out_of_the_model(tmp_path, caplog):
+    from nerfexp.training.perceptual import LpipsScorer, lpips_network
+    from tests.training.test_perceptual import alexnet_state
+
+    torch.manual_seed(0)
+    torch.save(alexnet_state(), tmp_path / "alexnet.pth")
+    plain = module(lambda: OpaqueField(0.5))
+    m = module(lambda: OpaqueField(0.5))
+    m.lpips_weights = str(tmp_path / "alexnet.pth")
+    m.setup("fit")
+    scorer = m.lpips_scorer
+    m.setup("test")  # built once per process
+    assert isinstance(scorer, LpipsScorer) and m.lpips_scorer is scorer
+    assert m.state_dict().keys() == plain.state_dict().keys()  # not in checkpoints, not trained
+    images = whole_image(32)
+    scored = m._evaluate(images)
+    expected = LpipsScorer(lpips_network(tmp_path / "alexnet.pth"))(scored["rgb"], images["rgb"])
+    assert scored["lpips"] == expected > 0
+    # images smaller than AlexNet takes: under auto one line, then no more scoring; under true an error
+    with caplog.at_level("INFO"):
+        assert math.isnan(m._evaluate(whole_image(16))["lpips"]) and math.isnan(m._evaluate(whole_image(32))["lpips"])
+    lines = [r.getMessage() for r in caplog.records if "LPIPS" in r.getMessage()]
+    assert lines == ["LPIPS not scored: LPIPS needs images of at least 31 x 31 pixels (AlexNet's strides and pools), "
+                     "these are 16 x 16"]
+    m.lpips, m.lpips_scorer = True, scorer
+    with pytest.raises(ConfigError, match=r"^model.lpips=true: LPIPS needs images of at least 31 x 31 pixels"):
+        m._evaluate(whole_image(16))
+
+
+def test_without_lpips_an_image_is_scored_nan_there(monkeypatch, tmp_path):
+    monkeypatch.setenv("TORCH_HOME", str(tmp_path))  # an empty hub cache: auto finds no weights
+    m = module(lambda: OpaqueField(0.5))
+    m.setup("test")
+    assert m.lpips_scorer is None and math.isnan(m._evaluate(whole_image(32))["lpips"])
+    off = module(lambda: OpaqueField(0.5))
+    off.lpips = False
+    off.setup("test")
+    assert off.lpips_scorer is None

@@ -23,6 +23,11 @@ LIGHTNING_NOTICES = (  # loggers whose INFO lines are Lightning's notices (their
 DEPENDENCY_WARNINGS = (  # (message regex, category, module regex): warnings about a dependency's own code
     # torch deprecated LeafSpec (2.13 warns), which Lightning 2.6 still builds (lightning/pytorch/utilities/_pytree.py)
     (r"`isinstance\(treespec, LeafSpec\)` is deprecated", FutureWarning, r"lightning\.pytorch\.utilities\._pytree"),
+    # Lightning's advice, on any machine with SLURM's commands, to start a run with srun (a PossibleUserWarning):
+    # nerfexp's runs on SLURM go through hydra/launcher=slurm, which starts them with srun; one started
+    # otherwise, on a login node or the test machine's own cluster, is meant to run where it is
+    (r"The `srun` command is available on your system but is not used", Warning,
+     r"lightning\.fabric\.plugins\.environments\.slurm"),
 )
 
 

@@ -43,8 +43,8 @@ def evaluate_run(run: Path, overrides: list[str]) -> str:
     by ``overrides`` (``evaluate``); returns a one-line summary."""
     run_dir, checkpoint = find_run(run)
     results = evaluate(run_config(run_dir, overrides), run_dir, checkpoint)
-    return (f"test PSNR {results['test_psnr']:.2f} dB, SSIM {results['test_ssim']:.4f} of {checkpoint} "
-            f"(step {results['step']}); written to {run_dir / EVAL}")
+    from nerfexp.training.recorders import scores_text  # imports Lightning: not before bad input is refused
+    return f"{scores_text(results)} of {checkpoint} (step {results['step']}); written to {run_dir / EVAL}"
 
 
 def main(argv: list[str] | None = None) -> None:

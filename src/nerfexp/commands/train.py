@@ -19,7 +19,7 @@ from omegaconf import DictConfig, OmegaConf
 from omegaconf.errors import ConfigAttributeError, ConfigKeyError, OmegaConfBaseException
 
 from nerfexp.commands.console import quiet_dependencies
-from nerfexp.commands.signals import ending_signals, received_signal
+from nerfexp.commands.signals import JobSignalled, ending_signals, in_launcher_job, job_signals, received_signal
 from nerfexp.data.rays import rank_slice
 from nerfexp.errors import ConfigError, NerfexpError
 from nerfexp.extras import require
@@ -51,10 +51,11 @@ def train(cfg: DictConfig) -> dict | None:
 
     from nerfexp.data.datamodule import fill_ray_bounds
     from nerfexp.rundir.trained import check_weights
+    from nerfexp.training.callbacks import KeepSigtermHandler
     from nerfexp.training.loggers import finish
     from nerfexp.training.precision import fill_precision
     from nerfexp.training.progress import progress_bars
-    from nerfexp.training.recorders import RunRecorder
+    from nerfexp.training.recorders import RunRecorder, scores_text
     from nerfexp.training.resume import check_resume, checkpoint_settings, group_choices, read_resumed, resume_record
 
     sweep = HydraConfig.get().mode == RunMode.MULTIRUN
@@ -86,6 +87,8 @@ def train(cfg: DictConfig) -> dict | None:
     recorded = without_unused(cfg, resolved, [override for override, _ in unused])
     recorder = RunRecorder(runtime.output_dir, choices, recorded, overrides, settings, resumes)
     callbacks = [instantiate(c) for c in cfg.callbacks.values()] + [recorder] + progress_bars(cfg.trainer)
+    if in_launcher_job():  # SIGTERM handled by job_signals, not by Lightning (see KeepSigtermHandler)
+        callbacks.append(KeepSigtermHandler())
     trainer = instantiate(cfg.trainer, logger=logger, callbacks=callbacks)
     rank_slice(datamodule.batch_rays, 0, trainer.world_size)  # a batch that the processes cannot share: an error now
     succeeded = False
@@ -102,9 +105,8 @@ def train(cfg: DictConfig) -> dict | None:
     if not trainer.is_global_zero:
         return None
     results = read_json(recorder.output_dir / RESULTS)
-    log.info("test PSNR %.2f dB, SSIM %.4f after %d steps in %.0f s (%s); outputs in %s", results["test_psnr"],
-             results["test_ssim"], results["steps"], results["train_time_s"], results["precision"],
-             recorder.output_dir)
+    log.info("%s after %d steps in %.0f s (%s); outputs in %s", scores_text(results), results["steps"],
+             results["train_time_s"], results["precision"], recorder.output_dir)
     return results
 
 
@@ -140,14 +142,19 @@ def main(cfg: DictConfig) -> float | None:
             planned = planned_jobs(Path(hydra_config.runtime.cwd) / hydra_config.sweep.dir)
             log.info("job %d%s: %s", hydra_config.job.num + 1, f" of {planned}" if planned else "", output_dir)
     try:
-        results = train(cfg)
+        with job_signals():  # a launcher's job (SLURM): SIGTERM handled as cli handles it
+            results = train(cfg)
     except BaseException as error:  # an interrupt too: the job did not finish
+        # the signal: from nerfexp's handlers (cli, job_signals), else Lightning's SIGTERM handling
+        ended_by = received_signal() or ("SIGTERM" if lightning_sigterm(error) else None)
         if writes:
-            # the signal: from nerfexp's handler (cli), else Lightning's SIGTERM handling (a job under submitit)
-            ended_by = received_signal() or ("SIGTERM" if lightning_sigterm(error) else None)
             details = {"signal": ended_by, "error": f"ended by {ended_by}"} if ended_by else {
                 "error": f"{type(error).__name__}: {error}"}
             write_status(output_dir, "failed", overrides, **details)
+        if ended_by and in_launcher_job():  # an Exception, which the launcher returns to the sweep
+            line = signalled_job_line(Path(output_dir), ended_by)
+            log.error("job failed: %s", line)
+            raise JobSignalled(line) from None
         if isinstance(error, NerfexpError | InstantiationException):  # bad input, or a class the config names
             line = hydra_error_line(error)
             if hydra_config.mode == RunMode.RUN:
@@ -158,6 +165,14 @@ def main(cfg: DictConfig) -> float | None:
         return None
     write_status(output_dir, "finished", overrides)
     return results["val_psnr"]
+
+
+def signalled_job_line(run_dir: Path, signal_name: str) -> str:
+    """What a launcher's job ended by ``signal_name`` says: the run and how to continue it."""
+    checkpoint = run_dir / LAST_CHECKPOINT
+    advice = (f"the job's overrides with resume={checkpoint} continue it" if checkpoint.is_file()
+              else "it saved no checkpoint")
+    return f"{run_dir}: ended by {signal_name} (SLURM's time limit, scancel or preemption); {advice}"
 
 
 def lightning_sigterm(error: BaseException) -> bool:

@@ -3,8 +3,9 @@
 Reads every run under the given directories (a run is a folder holding ``status.json`` or
 ``results.json``, as ``nerfexp`` writes them), groups runs into variants and writes
 
-- ``report.md`` / ``report.csv``: one row per variant: test PSNR and SSIM (mean and sample standard
-  deviation over the runs of the variant, usually its seeds), the difference to a reference variant
+- ``report.md`` / ``report.csv``: one row per variant: test PSNR and SSIM, and LPIPS where runs scored
+  it (mean and sample standard deviation over the runs of the variant, usually its seeds; LPIPS is
+  AlexNet's, never compared with the paper's VGG LPIPS), the difference to a reference variant
   paired by seed with its 95% interval and verdict (``nerfexp.report.comparison``), training time, time per
   step, rays/s, parameters, network evaluations per ray, and for rows of the paper's ablation table
   the paper's numbers beside ours; then the ranking in groups the seeds cannot tell apart, and which
@@ -17,7 +18,7 @@ Reads every run under the given directories (a run is a folder holding ``status.
   seeds), the Pareto front drawn through the means;
 - ``report.html``: all of the above as a page that opens from disk (``nerfexp.report.page``), and a few
   test views (``--views``) rendered by each variant beside the ground truth, with the render's error
-  image and its PSNR and SSIM; its pictures in ``report_images/``, decoded from the runs' ``test/``
+  image and its PSNR and SSIM (and LPIPS); its pictures in ``report_images/``, decoded from the runs' ``test/``
   PNGs and written anew.
 
 The reference is the paper's complete model (``ablation=complete``) where the sweep has it, else the

@@ -72,7 +72,8 @@ def copy_picture(source: Path, folder: Path, name: str, alt: str,
 
 def view_tiles(variants: list[Variant], views: list[int], folder: Path) -> dict[int, list[Tile]]:
     """For each test view in ``views``: a ground-truth tile, then each variant's render and error image
-    (``shown_run``) with that view's PSNR and SSIM; the pictures written into ``folder``."""
+    (``shown_run``) with that view's PSNR and SSIM, and LPIPS where the run scored it; the pictures written
+    into ``folder``."""
     shown = [(variant, shown_run(variant)) for variant in variants]
     tiles = {}
     for index in views:
@@ -93,7 +94,9 @@ def view_tiles(variants: list[Variant], views: list[int], folder: Path) -> dict[
                 at = views_run.index(index)
                 psnr, ssim = (run.results.get(f"test_{m}_per_view", [math.nan] * len(views_run))[at]
                               for m in ("psnr", "ssim"))
-                caption = f"PSNR {psnr:.2f} dB, SSIM {ssim:.3f}, {caption}"
+                lpips = run.results.get("test_lpips_per_view")  # absent where the run did not score LPIPS
+                lpips_text = f", LPIPS {lpips[at]:.3f}" if lpips else ""
+                caption = f"PSNR {psnr:.2f} dB, SSIM {ssim:.3f}{lpips_text}, {caption}"
             row.append(Tile(variant.label, pictures, caption))
         tiles[index] = row
     return tiles
@@ -114,5 +117,5 @@ def check_views(variants: list[Variant], views: list[int] | None) -> list[int]:
 
 VIEWS_NOTE = ("Each variant's run with the lowest seed: its render of the view (top) and its error (below): "
               "the absolute difference to the ground truth averaged over the colour channels, black 0, white "
-              f"{ERROR_WHITE:g} and above (magma). The PSNR and SSIM are that run's on that view. Small images "
-              "are enlarged with visible pixels.")
+              f"{ERROR_WHITE:g} and above (magma). The PSNR and SSIM (and LPIPS, where the run scored it) are that "
+              "run's on that view. Small images are enlarged with visible pixels.")

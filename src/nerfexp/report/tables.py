@@ -23,13 +23,16 @@ def _pm(variant: Variant, key: str, digits: int) -> str:
 
 
 COLUMNS = ("variant", "runs", "finished", "test_psnr_mean", "test_psnr_std", "test_ssim_mean", "test_ssim_std",
+           "test_lpips_mean", "test_lpips_std",
            "reference", "paired_seeds", "psnr_diff", "psnr_diff_low", "psnr_diff_high",
-           "ssim_diff", "ssim_diff_low", "ssim_diff_high", "verdict",
+           "ssim_diff", "ssim_diff_low", "ssim_diff_high", "lpips_diff", "lpips_diff_low", "lpips_diff_high", "verdict",
            "train_time_s", "time_per_step_s", "rays_per_s", "n_params", "evaluations_per_ray",
            "paper_row", "paper_psnr", "paper_ssim", "psnr_minus_paper", "precision")
 
 
-METRICS = ("psnr", "ssim")  # the test scores compared with the reference
+# The test scores compared with the reference: higher PSNR and SSIM are better, lower LPIPS (AlexNet's, which
+# runs without its weights do not have: NaN in report.csv, no column in report.md where no run has it).
+METRICS = ("psnr", "ssim", "lpips")
 
 
 def reference_differences(variant: Variant, reference: Variant | None) -> dict[str, Difference]:
@@ -41,9 +44,9 @@ def reference_differences(variant: Variant, reference: Variant | None) -> dict[s
 
 
 def reference_columns(differences: dict[str, Difference], reference: Variant | None) -> dict:
-    """The CSV's columns of a variant's ``differences`` to ``reference`` (``reference_differences``): PSNR
-    and SSIM differences paired by seed, their 95% intervals (NaN for fewer than two seeds) and the PSNR
-    verdict."""
+    """The CSV's columns of a variant's ``differences`` to ``reference`` (``reference_differences``): PSNR,
+    SSIM and LPIPS differences paired by seed, their 95% intervals (NaN for fewer than two seeds, or
+    none where a side has no LPIPS) and the PSNR verdict."""
     if not differences:
         return {"reference": "" if reference is None else "reference", "paired_seeds": "", "verdict": "",
                 **{f"{m}_diff{end}": math.nan for m in METRICS for end in ("", "_low", "_high")}}
@@ -66,6 +69,7 @@ def table_rows(variants: list[Variant], reference: Variant | None = None) -> lis
         row = {"variant": v.label, "runs": len(v.runs), "finished": len(v.finished),
                "test_psnr_mean": v.mean("test_psnr"), "test_psnr_std": v.std("test_psnr"),
                "test_ssim_mean": v.mean("test_ssim"), "test_ssim_std": v.std("test_ssim"),
+               "test_lpips_mean": v.mean("test_lpips"), "test_lpips_std": v.std("test_lpips"),
                **reference_columns(differences, reference),
                "train_time_s": v.mean("train_time_s"), "time_per_step_s": v.mean("time_per_step_s"),
                "rays_per_s": v.mean("rays_per_s"), "n_params": v.mean("n_params"),
@@ -157,10 +161,14 @@ def markdown(variants: list[Variant], rows: list[dict], runs: list[Run], sources
     order = ["finished", "failed", "killed", "running", "damaged", "unknown"]
     states = {state: n for state in order if (n := sum(run.state == state for run in runs))}
     has_paper = any(row["paper_row"] for row in rows)
+    has_lpips = any(v.values("test_lpips") for v in variants)
     precisions, mixed = precision_text(variants)
-    header = ["variant", "runs", "test PSNR (dB)", "test SSIM"] + (["precision"] if mixed else [])
+    header = ["variant", "runs", "test PSNR (dB)", "test SSIM"] + (["test LPIPS"] if has_lpips else [])
+    header += ["precision"] if mixed else []
     if reference is not None:
-        header += ["PSNR - reference (95% CI)", "SSIM - reference (95% CI)", "verdict (PSNR)"]
+        header += ["PSNR - reference (95% CI)", "SSIM - reference (95% CI)"]
+        header += ["LPIPS - reference (95% CI; lower is better)"] if has_lpips else []
+        header += ["verdict (PSNR)"]
     header += ["train time (s)", "s / step", "rays / s", "params", "evals / ray"]
     if has_paper:
         header += ["paper row", "paper PSNR", "paper SSIM", "PSNR - paper"]
@@ -174,13 +182,17 @@ def markdown(variants: list[Variant], rows: list[dict], runs: list[Run], sources
     ]
     for v, row in zip(variants, rows):
         cells = [row["variant"], f"{row['finished']}/{row['runs']}", _pm(v, "test_psnr", 2), _pm(v, "test_ssim", 3)]
+        cells += [_pm(v, "test_lpips", 3)] if has_lpips else []
         cells += [row["precision"]] if mixed else []
         if reference is not None:
             if v is reference or not v.finished:
-                cells += ["reference" if v is reference else "–"] * 3
+                cells += ["reference" if v is reference else "–"] * (4 if has_lpips else 3)
             else:
                 differences = row["differences"]
-                cells += [differences["psnr"].describe(2), differences["ssim"].describe(3), row["verdict"]]
+                cells += [differences["psnr"].describe(2), differences["ssim"].describe(3)]
+                lpips = differences["lpips"]  # none where either side has no LPIPS
+                cells += [lpips.describe(3) if lpips.n else "–"] if has_lpips else []
+                cells += [row["verdict"]]
         cells += [_fmt(row["train_time_s"], 0), _fmt(row["time_per_step_s"], 4), _fmt(row["rays_per_s"], 0),
                  _fmt(row["n_params"], 0), _fmt(row["evaluations_per_ray"], 0)]
         if has_paper:
@@ -190,6 +202,9 @@ def markdown(variants: list[Variant], rows: list[dict], runs: list[Run], sources
     if has_paper:
         lines += ["", "The paper's numbers are means over its 8 Realistic Synthetic scenes at 800 x 800; the "
                   "difference is given only for runs on Blender data."]
+    if has_lpips:
+        lines += ["", "LPIPS is AlexNet's (v0.1; lower is more alike), on the runs that scored it (docs/metrics.md); "
+                  "the paper's LPIPS is VGG's, on another scale, and is not compared."]
     lines += [""] + ranking_text(variants)
     unfinished = [run for run in runs if run.state != "finished"]
     lines += ["", "## Jobs that did not finish, or whose files are damaged (not counted)", ""]

@@ -6,10 +6,11 @@ A run's directory holds (every file written atomically):
 - ``status.json``: ``running`` (with host, process id and the process's start), ``finished`` or
   ``failed`` (with the error), and the run's command-line overrides, so a report can list jobs that
   crashed or still run.
-- ``metrics.jsonl``: one JSON object per evaluation: step, wall_time_s, split, psnr, ssim (means).
-- ``results.json``: final test means and per-view scores, last validation PSNR, training time,
-  throughput, parameters, the machine, the resolved choices and overrides
-  (``nerfexp.training.recorders.RunRecorder``).
+- ``metrics.jsonl``: one JSON object per evaluation: step, wall_time_s, split, psnr, ssim (means), and
+  lpips where LPIPS was scored (``nerfexp.training.perceptual``; absent, never NaN, where it was not).
+- ``results.json``: final test means and per-view scores (``test_lpips`` too where scored), last
+  validation PSNR, training time, throughput, parameters, the machine, the resolved choices and
+  overrides (``nerfexp.training.recorders.RunRecorder``).
 - ``test/``: each test view's render (``r_{i}.png``), ground truth (``r_{i}_target.png``), absolute
   error (``r_{i}_error.png``) and depth (``r_{i}_depth.png``).
 - ``checkpoints/last.ckpt``, ``.hydra/config.yaml`` (the composed config, as Hydra saves it).

@@ -21,6 +21,7 @@ from nerfexp.extras import require
 from nerfexp.memory import hash_table_bytes, network_bytes, require_memory, scene_bytes
 from nerfexp.settings.schema import PASSED_ON, REFERENCES, SCHEMA, matching
 from nerfexp.settings.unused import check_used
+from nerfexp.training.perceptual import check_weights_file
 
 FLOAT32_TOP_OCTAVE = 18  # the largest k of sin(2^k pi x) still meaningful for float32 positions (see above)
 
@@ -156,11 +157,19 @@ def check_extras(cfg: DictConfig) -> None:
         require("imageio_ffmpeg", "data.video")
 
 
+def check_lpips(cfg: DictConfig) -> None:
+    """A ConfigError where LPIPS must be scored from a weights file that is not there: the one
+    ``model.lpips_weights`` names, or under ``model.lpips=true`` the torch hub cache's
+    (``nerfexp.training.perceptual.check_weights_file``); the file is read when the model is set up."""
+    check_weights_file(OmegaConf.select(cfg, "model.lpips", default=False),
+                       OmegaConf.select(cfg, "model.lpips_weights", default=None))
+
+
 def check_settings(cfg: DictConfig) -> None:
     """A ConfigError for the first setting that is out of its domain (``check_rules``), a frequency
     float32 cannot resolve, a skip connection past the field's depth, ray bounds with near not before far,
-    sparse gradients without an optimizer that takes them, a size that would not fit in memory, or a missing
-    optional package."""
+    sparse gradients without an optimizer that takes them, a size that would not fit in memory, a missing
+    optional package, or LPIPS weights that must be there and are not."""
     missing = sorted(key for key, value in checked_settings(cfg) if value is MISSING)
     if missing:
         raise ConfigError(f"missing mandatory value: {', '.join(missing)} (set it on the command line, "
@@ -172,6 +181,7 @@ def check_settings(cfg: DictConfig) -> None:
     check_sparse_gradients(cfg)
     check_memory(cfg)
     check_extras(cfg)
+    check_lpips(cfg)
 
 
 class SettingsCheck(Callback):

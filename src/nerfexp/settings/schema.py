@@ -18,6 +18,7 @@ from nerfexp.nerf.backgrounds import BACKGROUNDS
 from nerfexp.nerf.fields import DENSITY_ACTIVATIONS, SH_MAX_DEGREE
 from nerfexp.nerf.volume_renderer import HIERARCHIES
 from nerfexp.training.guard_actions import COLLAPSE_ACTIONS, NONFINITE_ACTIONS
+from nerfexp.training.perceptual import SETTINGS as LPIPS_SETTINGS
 
 SEED_LIMIT = 2 ** 32  # seeds are whole numbers in [0, 2^32): numpy's and Lightning's range
 
@@ -146,6 +147,8 @@ SCHEMA: dict[str, Rule] = {
     # the model
     "model.chunk": COUNT,
     "model.compile": BOOLEAN,
+    "model.lpips": choice(*LPIPS_SETTINGS),
+    "model.lpips_weights": optional(PATH, "the torch hub cache's"),  # and that the file is there (check_lpips)
     "model.lr_final": POSITIVE,
     "model.lr_warmup_steps": NONNEGATIVE_COUNT,
     "model.optimizer.lr": POSITIVE,

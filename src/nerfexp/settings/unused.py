@@ -43,6 +43,10 @@ def video_only(cfg: DictConfig) -> str | None:
     return None if OmegaConf.select(cfg, "data.video") is not None else "data.video=null (photographs, not a video)"
 
 
+def lpips_scored(cfg: DictConfig) -> str | None:
+    return None if cfg.model.lpips is not False else "model.lpips=false (LPIPS is not scored)"
+
+
 def boxed(cfg: DictConfig) -> str | None:
     uses = OmegaConf.select(cfg, "acceleration.grid") is not None or "log2_table_size" in cfg.encoding.position
     return None if uses else "acceleration=none and encoding other than hashgrid (nothing reads the box)"
@@ -65,6 +69,7 @@ APPLIES: dict[str, Callable[[DictConfig], str | None]] = {
     "scale.test_stride": needs("data", "test_stride", "data"),
     "data.fps": video_only,
     "data.aabb": boxed,
+    "model.lpips_weights": lpips_scored,
 }
 
 

@@ -19,7 +19,8 @@ from torch.utils.tensorboard.summary import hparams as hparams_summaries
 from nerfexp.files import atomic_write
 from nerfexp.pixels import png_bytes
 
-HPARAM_METRICS = ("val/psnr", "val/ssim", "test/psnr", "test/ssim")  # TensorBoard's HPARAMS metric columns
+# TensorBoard's HPARAMS metric columns (LPIPS's are empty for runs that do not score it)
+HPARAM_METRICS = ("val/psnr", "val/ssim", "val/lpips", "test/psnr", "test/ssim", "test/lpips")
 
 
 def hparam_value(value):

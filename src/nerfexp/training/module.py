@@ -17,6 +17,7 @@ from nerfexp.nerf.bounds import Bounded
 from nerfexp.nerf.encodings import HashGridEncoding
 from nerfexp.nerf.volume_renderer import VolumeRenderer, final_output
 from nerfexp.training.metrics import psnr, ssim
+from nerfexp.training.perceptual import NOT_SCORED, ImageTooSmall, LpipsScorer, lpips_scorer
 
 log = logging.getLogger(__name__)
 
@@ -29,7 +30,11 @@ class NeRFModule(L.LightningModule):
     ramped up linearly over the first ``lr_warmup_steps`` (0: none, as in the paper).
 
     Evaluation renders whole images in chunks of ``chunk`` rays (memory bounded at any resolution)
-    and scores the fine network's image (the only one without hierarchy).
+    and scores the fine network's image (the only one without hierarchy): PSNR, SSIM and LPIPS
+    (``nerfexp.training.perceptual``). ``lpips``: auto scores LPIPS where AlexNet's weights are found
+    (``lpips_weights``, else the torch hub cache) and images are large enough, and says once why not where
+    they are not; true requires it (a ConfigError otherwise); false leaves it out. Its network is built
+    once, at ``setup``, by the commands that evaluate (not by those that only render).
 
     ``diagnostics`` holds what the latest training batch showed of each network, detached (no graph,
     no copy): ``{"coarse": {"loss": [], "opacity": [B]}, "fine": {...}}`` (only "coarse" without
@@ -50,10 +55,14 @@ class NeRFModule(L.LightningModule):
     """
 
     def __init__(self, renderer: VolumeRenderer, optimizer: Callable[..., torch.optim.Optimizer],
-                 lr_final: float, chunk: int = 8192, lr_warmup_steps: int = 0, compile: bool = False):
+                 lr_final: float, chunk: int = 8192, lr_warmup_steps: int = 0, compile: bool = False,
+                 lpips: bool | str = "auto", lpips_weights: str | None = None):
         super().__init__()
         self.renderer, self.optimizer, self.lr_final, self.chunk = renderer, optimizer, lr_final, chunk
         self.lr_warmup_steps = lr_warmup_steps
+        self.lpips, self.lpips_weights = lpips, lpips_weights
+        self.lpips_scorer: LpipsScorer | None = None  # built by setup
+        self._lpips_decided = False
         self.diagnostics: dict[str, dict[str, Tensor]] = {}
         self._step_started: float | None = None
         if compile:
@@ -109,6 +118,16 @@ class NeRFModule(L.LightningModule):
                 log.warning("%d processes: the hash tables' gradients are dense (DDP all-reduces dense gradients); "
                          "encoding.position.sparse_gradients=true applies to one process", self.trainer.world_size)
 
+    def setup(self, stage: str) -> None:
+        """Build the LPIPS scorer (``nerfexp.training.perceptual.lpips_scorer``), once per process: before
+        training or a test, so that missing weights under ``lpips=true`` stop the run before any work."""
+        if self._lpips_decided:
+            return
+        self.lpips_scorer, missing = lpips_scorer(self.lpips, self.lpips_weights)
+        self._lpips_decided = True
+        if missing and self.global_rank == 0:
+            log.info("%s", missing)
+
     def on_train_start(self) -> None:
         unbounded = [m for m in self.renderer.modules() if isinstance(m, Bounded) and not m.has_bounds]
         if unbounded:
@@ -143,12 +162,29 @@ class NeRFModule(L.LightningModule):
                 for key in parts[0]}
 
     def _evaluate(self, batch: dict) -> dict:
-        """One whole image scored: its "index", "psnr", "ssim", the render ("rgb", "depth", "opacity") and
-        the "target". The means over images are logged by ``nerfexp.training.recorders.RunRecorder``, which gathers
-        the images of all processes in a distributed run (a mean per process would weigh them wrongly)."""
+        """One whole image scored: its "index", "psnr", "ssim", "lpips" (NaN where not scored), the render
+        ("rgb", "depth", "opacity") and the "target". The means over images are logged by
+        ``nerfexp.training.recorders.RunRecorder``, which gathers the images of all processes in a distributed
+        run (a mean per process would weigh them wrongly)."""
         image = self.render_image(batch["origins"], batch["directions"], batch.get("viewdirs"))
-        scores = {"psnr": psnr(image["rgb"], batch["rgb"]), "ssim": ssim(image["rgb"], batch["rgb"])}
+        scores = {"psnr": psnr(image["rgb"], batch["rgb"]), "ssim": ssim(image["rgb"], batch["rgb"]),
+                  "lpips": self._lpips(image["rgb"], batch["rgb"])}
         return {"index": int(batch["index"]), "target": batch["rgb"], **image, **scores}
+
+    def _lpips(self, image: Tensor, target: Tensor) -> float:
+        """LPIPS of ``image`` against ``target`` ([H, W, 3] each), or NaN where it is not scored: no scorer,
+        or (under ``lpips=auto``) images smaller than AlexNet takes, which is said once and ends the scoring."""
+        if self.lpips_scorer is None:
+            return NOT_SCORED
+        try:
+            return self.lpips_scorer(image, target)
+        except ImageTooSmall as error:
+            if self.lpips is True:
+                raise ImageTooSmall(f"model.lpips=true: {error}") from None
+            if self.global_rank == 0:
+                log.info("LPIPS not scored: %s", error)
+            self.lpips_scorer = None
+            return NOT_SCORED
 
     def validation_step(self, batch: dict, batch_idx: int) -> dict:
         return self._evaluate(batch)

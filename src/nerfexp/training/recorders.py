@@ -8,6 +8,7 @@ rank 0 writes files and logs, so the numbers are those of one process scoring ev
 
 import json
 import logging
+import math
 import time
 from pathlib import Path
 
@@ -36,37 +37,63 @@ log = logging.getLogger("nerfexp")
 IMAGES = ("rgb", "depth", "opacity", "target")  # what an evaluation step returns per image, besides its scores
 
 
+SCORES = ("psnr", "ssim", "lpips")  # each image's scores; lpips NaN where not scored (nerfexp.training.perceptual)
+ALWAYS_SCORED = ("psnr", "ssim")
+
+
 def gather_evaluations(trainer: L.Trainer, outputs: dict) -> list[dict]:
-    """The outputs of this evaluation step on every process (``NeRFModule._evaluate``: "index", "psnr",
-    "ssim" and the images ``IMAGES``), one dict per process in rank order; on one process ``[outputs]``.
+    """The outputs of this evaluation step on every process (``NeRFModule._evaluate``: "index", the
+    ``SCORES`` and the images ``IMAGES``), one dict per process in rank order; on one process ``[outputs]``.
 
     Every process must call it at every step (it is a collective): Lightning's distributed sampler
     gives each process the same number of images, repeating some where they do not divide evenly,
-    so callers keep the first result for each image index. Scores travel as float64, exactly."""
+    so callers keep the first result for each image index. Scores travel as float64, exactly (NaN too)."""
     if trainer.world_size == 1:
         return [outputs]
     images = outputs["rgb"]
-    numbers = torch.tensor([outputs["index"], outputs["psnr"], outputs["ssim"]], dtype=torch.float64,
+    numbers = torch.tensor([outputs["index"], *(outputs[name] for name in SCORES)], dtype=torch.float64,
                            device=images.device)
     gathered = {key: trainer.strategy.all_gather(outputs[key]) for key in IMAGES}  # each [world size, ...]
-    numbers = trainer.strategy.all_gather(numbers)  # [world size, 3]
-    return [{"index": int(numbers[r, 0]), "psnr": float(numbers[r, 1]), "ssim": float(numbers[r, 2]),
+    numbers = trainer.strategy.all_gather(numbers)  # [world size, 1 + len(SCORES)]
+    return [{"index": int(numbers[r, 0]), **{name: float(numbers[r, 1 + i]) for i, name in enumerate(SCORES)},
              **{key: gathered[key][r] for key in IMAGES}} for r in range(trainer.world_size)]
 
 
+def image_scores(item: dict) -> dict[str, float]:
+    """The ``SCORES`` of one evaluated image (``gather_evaluations``)."""
+    return {name: item[name] for name in SCORES}
+
+
+def scored(scores: dict[int, dict[str, float]]) -> tuple[str, ...]:
+    """The scores that the images ``{index: {"psnr": ..., "ssim": ..., "lpips": ...}}`` have: PSNR and SSIM,
+    and LPIPS where every image has it (none is NaN: not scored, as without AlexNet's weights)."""
+    def every_image_has(name: str) -> bool:
+        return bool(scores) and not any(math.isnan(s[name]) for s in scores.values())
+    return (*ALWAYS_SCORED, *(name for name in SCORES if name not in ALWAYS_SCORED and every_image_has(name)))
+
+
 def image_means(scores: dict[int, dict[str, float]]) -> dict[str, float]:
-    """Means of per-image scores ``{index: {"psnr": ..., "ssim": ...}}``, in image order."""
+    """Means of per-image scores ``{index: {"psnr": ..., "ssim": ..., "lpips": ...}}``, in image order, of
+    those ``scored``: LPIPS left out where it is not."""
     ordered = [scores[index] for index in sorted(scores)]
-    return {name: float(np.mean([s[name] for s in ordered])) for name in ("psnr", "ssim")}
+    return {name: float(np.mean([s[name] for s in ordered])) for name in scored(scores)}
 
 
 def scores_record(scores: dict[int, dict[str, float]]) -> dict:
-    """What ``results.json`` and ``eval.json`` say of the test views scored ``{index: {"psnr", "ssim"}}``:
+    """What ``results.json`` and ``eval.json`` say of the test views scored ``{index: {"psnr", "ssim", "lpips"}}``:
     the means ``test_psnr``, ``test_ssim`` and, in view order, ``test_views`` (the indices, which name the
-    renders ``test/r_{i}.png``), ``test_psnr_per_view`` and ``test_ssim_per_view``."""
+    renders ``test/r_{i}.png``), ``test_psnr_per_view`` and ``test_ssim_per_view``; with LPIPS scored
+    (``scored``), ``test_lpips`` and ``test_lpips_per_view`` too (absent otherwise, never NaN)."""
     views, means = sorted(scores), image_means(scores)
-    return {"test_psnr": means["psnr"], "test_ssim": means["ssim"], "test_views": views,
-            **{f"test_{name}_per_view": [scores[i][name] for i in views] for name in ("psnr", "ssim")}}
+    return {**{f"test_{name}": means[name] for name in means}, "test_views": views,
+            **{f"test_{name}_per_view": [scores[i][name] for i in views] for name in means}}
+
+
+def scores_text(results: dict) -> str:
+    """A run's test scores in words, from ``results.json`` or ``eval.json``: ``test PSNR 25.31 dB, SSIM
+    0.8123`` and ``, LPIPS 0.1234`` where it was scored."""
+    lpips = f", LPIPS {results['test_lpips']:.4f}" if "test_lpips" in results else ""
+    return f"test PSNR {results['test_psnr']:.2f} dB, SSIM {results['test_ssim']:.4f}{lpips}"
 
 
 def keep_metrics_through(output_dir: Path, step: int) -> None:
@@ -82,10 +109,11 @@ def keep_metrics_through(output_dir: Path, step: int) -> None:
 
 class RunRecorder(L.Callback):
     """Writes a run's metrics, results and test renders; times the training in wall-clock seconds;
-    logs ``val/psnr``, ``val/ssim``, ``test/psnr``, ``test/ssim`` (means over the images).
+    logs ``val/psnr``, ``val/ssim``, ``test/psnr``, ``test/ssim`` (means over the images), and
+    ``val/lpips``, ``test/lpips`` where LPIPS is scored.
 
     The last step is always validated (``val_psnr`` of a run shorter than ``scale.val_every`` too), and
-    each validation logs one line: step, PSNR, SSIM and the training's wall-clock seconds so far. Each
+    each validation logs one line: step, PSNR, SSIM (and LPIPS) and the training's wall-clock seconds so far. Each
     test view's render, its ground truth and their absolute difference (per channel, in [0, 1]) are
     saved as ``test/r_{i}.png``, ``r_{i}_target.png``, ``r_{i}_error.png``, with ``r_{i}_depth.png``.
 
@@ -111,7 +139,7 @@ class RunRecorder(L.Callback):
         self.resumes = list(resumes)
         self.last_val_psnr: float | None = None
         self.elapsed_s, self._started, self.steps, self.trained = 0.0, None, 0, False
-        self._scores: dict[int, dict[str, float]] = {}  # image index -> its psnr and ssim
+        self._scores: dict[int, dict[str, float]] = {}  # image index -> its scores (SCORES)
 
     def wall_time_s(self) -> float:
         return self.elapsed_s + (time.perf_counter() - self._started if self._started is not None else 0.0)
@@ -165,7 +193,7 @@ class RunRecorder(L.Callback):
             index = item["index"]
             if index in self._scores:  # a repeat of the distributed sampler's padding
                 continue
-            self._scores[index] = {"psnr": item["psnr"], "ssim": item["ssim"]}
+            self._scores[index] = image_scores(item)
             if trainer.is_global_zero:
                 self._write_images(trainer, pl_module, item, split)
 
@@ -195,8 +223,9 @@ class RunRecorder(L.Callback):
             record = {"step": self.steps, "wall_time_s": self.wall_time_s(), "split": split, **means}
             append_metrics(self.output_dir, record)
             if split == "val":
-                log.info("step %d/%d: validation PSNR %.2f dB, SSIM %.4f after %.0f s of training", self.steps,
-                         trainer.max_steps, means["psnr"], means["ssim"], record["wall_time_s"])
+                lpips = f", LPIPS {means['lpips']:.4f}" if "lpips" in means else ""
+                log.info("step %d/%d: validation PSNR %.2f dB, SSIM %.4f%s after %.0f s of training", self.steps,
+                         trainer.max_steps, means["psnr"], means["ssim"], lpips, record["wall_time_s"])
             for logger in trainer.loggers:
                 logger.log_metrics({f"{split}/{name}": value for name, value in means.items()}, self.steps)
         return scores
@@ -240,11 +269,11 @@ class EvalRecorder(L.Callback):
 
     def __init__(self, output_dir: str | Path, checkpoint: str | Path, step: int):
         self.output_dir, self.checkpoint, self.step = Path(output_dir), Path(checkpoint), step
-        self._scores: dict[int, dict[str, float]] = {}  # image index -> its psnr and ssim
+        self._scores: dict[int, dict[str, float]] = {}  # image index -> its scores (SCORES)
 
     def on_test_batch_end(self, trainer, pl_module, outputs, batch, batch_idx, dataloader_idx=0):
         for item in gather_evaluations(trainer, outputs):
-            self._scores.setdefault(item["index"], {"psnr": item["psnr"], "ssim": item["ssim"]})
+            self._scores.setdefault(item["index"], image_scores(item))
 
     def on_test_epoch_end(self, trainer, pl_module):
         if not trainer.is_global_zero:

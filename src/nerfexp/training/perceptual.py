@@ -1,0 +1,217 @@
+"""LPIPS (Zhang et al., CVPR 2018), version 0.1 on AlexNet: the perceptual distance NeRF papers report beside
+PSNR and SSIM (0 for identical images, larger for images less alike), written out in torch so that it needs
+neither the ``lpips`` package nor torchvision (docs/metrics.md says why).
+
+Images ``x``, ``y`` [N, 3, H, W] in [-1, 1] (the lpips package's convention; ``lpips_input`` makes them from
+[H, W, 3] in [0, 1]) are shifted and scaled per channel (``SHIFT``, ``SCALE``: LPIPS 0.1's ScalingLayer) and
+run through AlexNet's convolutions; at each of its five ReLUs l (``TAPS``, C_l = 64, 192, 384, 256, 256
+channels) every pixel's feature vector is divided by its length over the channels (+ 1e-10), and
+
+    LPIPS(x, y) = sum_l mean_{h, w} sum_c w_{l,c} (f_l(x) - f_l(y))_{c,h,w}^2
+
+with w_l >= 0 the linear heads LPIPS 0.1 learnt (``HEADS``: the lpips package's ``weights/v0.1/alex.pth``,
+shipped here unchanged with its BSD-2-Clause notice, ``lpips_LICENSE.txt``).
+
+AlexNet's weights are torchvision's ImageNet ones (``ALEXNET_FILE``), which torchvision downloads into the
+torch hub cache on first use; nerfexp reads them from that cache or from a file named in the config
+(``weights_file``), as data (``torch.load(weights_only=True)``), and downloads nothing.
+"""
+
+import math
+from pathlib import Path
+
+import torch
+import torch.nn.functional as F
+from torch import Tensor, nn
+
+from nerfexp.errors import ConfigError
+from nerfexp.pixels import quantize
+
+HEADS = Path(__file__).with_name("lpips_alex_v0.1.pth")  # LPIPS 0.1's linear heads for AlexNet
+ALEXNET_FILE = "alexnet-owt-7be5be79.pth"  # torchvision's AlexNet ImageNet weights, as its hub cache names them
+SHIFT = (-0.030, -0.088, -0.188)  # LPIPS 0.1's per-channel shift and scale of [-1, 1] inputs
+SCALE = (0.458, 0.448, 0.450)
+TAPS = (1, 4, 7, 9, 11)  # the layers of ``alexnet_features`` whose outputs are compared: its five ReLUs
+CHANNELS = (64, 192, 384, 256, 256)  # their channels
+MIN_SIDE = 31  # the smallest image side that leaves the last ReLU one pixel (``alexnet_features``)
+EPS = 1e-10  # added to each feature vector's length before dividing, as LPIPS does
+SETTINGS = ("auto", True, False)  # model.lpips: scored where the weights are found; required; off
+NOT_SCORED = math.nan  # an image's LPIPS where it is not scored (the recorders leave it out of their files)
+
+
+class ImageTooSmall(ConfigError):
+    """An image below ``MIN_SIDE`` pixels on a side, which AlexNet's strides and pools reduce to nothing."""
+
+
+def alexnet_features() -> nn.Sequential:
+    """torchvision's ``AlexNet.features`` up to its fifth ReLU, layer for layer, so that layer ``i`` here is
+    ``features.i`` in torchvision's state dict (its last max pool, which LPIPS does not use, left out).
+    A side of s pixels comes out of the first convolution (11 wide, stride 4, padding 2) as
+    floor((s - 7) / 4) + 1 and out of each 3-wide stride-2 pool as floor((s - 3) / 2) + 1: s = 31 is the
+    smallest that leaves the last layers a pixel (31 -> 7 -> 3 -> 3 -> 1), ``MIN_SIDE``."""
+    return nn.Sequential(
+        nn.Conv2d(3, 64, kernel_size=11, stride=4, padding=2), nn.ReLU(),
+        nn.MaxPool2d(kernel_size=3, stride=2),
+        nn.Conv2d(64, 192, kernel_size=5, padding=2), nn.ReLU(),
+        nn.MaxPool2d(kernel_size=3, stride=2),
+        nn.Conv2d(192, 384, kernel_size=3, padding=1), nn.ReLU(),
+        nn.Conv2d(384, 256, kernel_size=3, padding=1), nn.ReLU(),
+        nn.Conv2d(256, 256, kernel_size=3, padding=1), nn.ReLU(),
+    )
+
+
+def unit_features(features: Tensor) -> Tensor:
+    """Each pixel's feature vector of ``features`` [N, C, H, W] divided by its length over C (+ ``EPS``)."""
+    return features / (features.square().sum(1, keepdim=True).sqrt() + EPS)
+
+
+class LpipsNetwork(nn.Module):
+    """LPIPS 0.1 on AlexNet (the module's docstring): ``forward(x, y)`` of images [N, 3, H, W] in [-1, 1]
+    is their distances [N]. Its weights are fixed: ``features`` (``alexnet_features``, from torchvision's
+    state dict) and the heads ``head_{l}`` [1, C_l, 1, 1], buffers. Built empty; ``lpips_network`` loads it."""
+
+    def __init__(self):
+        super().__init__()
+        self.features = alexnet_features().requires_grad_(False)
+        self.register_buffer("shift", torch.tensor(SHIFT).view(1, 3, 1, 1))
+        self.register_buffer("scale", torch.tensor(SCALE).view(1, 3, 1, 1))
+        for layer, channels in enumerate(CHANNELS):
+            self.register_buffer(f"head_{layer}", torch.zeros(1, channels, 1, 1))
+
+    def taps(self, images: Tensor) -> list[Tensor]:
+        """The outputs of the five ReLUs (``TAPS``) for ``images`` [N, 3, H, W] in [-1, 1]."""
+        x, found = (images - self.shift) / self.scale, []
+        for index, layer in enumerate(self.features):
+            x = layer(x)
+            if index in TAPS:
+                found.append(x)
+        return found
+
+    def forward(self, x: Tensor, y: Tensor) -> Tensor:
+        N = x.shape[0]
+        distance = torch.zeros(N, dtype=x.dtype, device=x.device)
+        for layer, both in enumerate(self.taps(torch.cat([x, y]))):  # one pass for the two: [2N, C_l, H_l, W_l]
+            squared = (unit_features(both[:N]) - unit_features(both[N:])).square()
+            distance = distance + F.conv2d(squared, getattr(self, f"head_{layer}")).mean((1, 2, 3))
+        return distance
+
+
+def hub_weights_file() -> Path:
+    """Where torchvision keeps AlexNet's ImageNet weights once downloaded: the torch hub cache
+    (``$TORCH_HOME/hub``, by default ``~/.cache/torch/hub``), ``checkpoints/alexnet-owt-7be5be79.pth``."""
+    return Path(torch.hub.get_dir()) / "checkpoints" / ALEXNET_FILE
+
+
+def weights_file(weights: str | Path | None) -> Path:
+    """The file AlexNet's weights are read from: ``weights`` (``model.lpips_weights``), else the hub cache's."""
+    return Path(weights).expanduser() if weights is not None else hub_weights_file()
+
+
+def read_state(path: Path, what: str) -> dict:
+    """The state dict in ``path`` read as data (tensors and plain containers; a pickle that would run code is
+    refused), on the CPU; a ConfigError naming the file and ``what`` was expected otherwise."""
+    try:
+        state = torch.load(path, map_location="cpu", weights_only=True)
+    except OSError as error:
+        raise ConfigError(f"{path}: cannot read {what} ({error.strerror})") from None
+    except Exception:  # torch raises any type on bytes it cannot parse, or a pickle that is not data
+        raise ConfigError(f"{path}: not {what} (a state dict of tensors as torch.save writes it); nerfexp reads "
+                          "weight files as data only") from None
+    if not isinstance(state, dict):
+        raise ConfigError(f"{path}: not {what} (a state dict of tensors)")
+    return state
+
+
+def backbone_state(path: Path) -> dict[str, Tensor]:
+    """AlexNet's convolution weights ``features.{i}.weight``/``bias`` from torchvision's state dict in ``path``
+    (its classifier's entries, which LPIPS does not use, left aside); a ConfigError naming the file and the
+    first entry missing or of another shape."""
+    what = f"torchvision's AlexNet ImageNet weights ({ALEXNET_FILE})"
+    state = read_state(path, what)
+    expected = {f"features.{name}": value for name, value in alexnet_features().state_dict().items()}
+    for name, value in expected.items():
+        found = state.get(name)
+        if not isinstance(found, Tensor) or found.shape != value.shape:
+            got = "missing" if found is None else (
+                f"of shape {list(found.shape)}" if isinstance(found, Tensor) else "not a tensor")
+            raise ConfigError(f"{path}: not {what}: {name} is {got}, expected a tensor of shape {list(value.shape)}")
+    return {name: state[name].float() for name in expected}
+
+
+def head_state(path: Path = HEADS) -> dict[str, Tensor]:
+    """LPIPS 0.1's heads for AlexNet as ``LpipsNetwork`` names them (``head_{l}`` [1, C_l, 1, 1]) from the lpips
+    package's file (its keys ``lin{l}.model.1.weight``)."""
+    state = read_state(path, "LPIPS 0.1's heads for AlexNet")
+    return {f"head_{layer}": state[f"lin{layer}.model.1.weight"].float() for layer in range(len(CHANNELS))}
+
+
+def lpips_network(weights: Path) -> LpipsNetwork:
+    """``LpipsNetwork`` with AlexNet's weights from ``weights`` (torchvision's state dict) and LPIPS 0.1's
+    heads, in eval mode on the CPU."""
+    network = LpipsNetwork()
+    network.features.load_state_dict({name.removeprefix("features."): value
+                                      for name, value in backbone_state(weights).items()})
+    for name, head in head_state().items():
+        getattr(network, name).copy_(head)
+    return network.eval()
+
+
+def lpips_input(image: Tensor) -> Tensor:
+    """An image [H, W, 3] in [0, 1] as LPIPS takes it: quantized to 8 bits as PSNR and SSIM score it
+    (``nerfexp.pixels.quantize``, in float64), then 2 x - 1: [1, 3, H, W] in [-1, 1], float32 (black -1,
+    white +1)."""
+    return (2 * quantize(image.double()) - 1).float().permute(2, 0, 1).unsqueeze(0)
+
+
+class LpipsScorer:
+    """LPIPS of rendered images against their targets (``__call__``), on the images' device in float32 (autocast
+    off: a mixed-precision evaluation still scores in float32), without gradients. A plain object rather
+    than a module, so that it is no part of the model: not in its checkpoints, not trained, not wrapped
+    by DDP; its network moves to an image's device when one first arrives there."""
+
+    def __init__(self, network: LpipsNetwork):
+        self.network = network.eval()
+
+    def __call__(self, image: Tensor, target: Tensor) -> float:
+        """LPIPS of ``image`` against ``target``, [H, W, 3] in [0, 1] each (``lpips_input``); an
+        ``ImageTooSmall`` where a side is below ``MIN_SIDE``."""
+        H, W, _ = image.shape
+        if min(H, W) < MIN_SIDE:
+            raise ImageTooSmall(f"LPIPS needs images of at least {MIN_SIDE} x {MIN_SIDE} pixels (AlexNet's strides "
+                                f"and pools), these are {W} x {H}")
+        if self.network.shift.device != image.device:
+            self.network.to(image.device)
+        with torch.no_grad(), torch.autocast(image.device.type, enabled=False):
+            return float(self.network(lpips_input(image), lpips_input(target))[0])
+
+
+def lpips_scorer(setting: bool | str, weights: str | Path | None) -> tuple[LpipsScorer | None, str]:
+    """The scorer ``model.lpips`` (``setting``: auto, true or false) and ``model.lpips_weights`` (``weights``)
+    ask for, and a line saying why there is none where auto finds no weights (else ""). No weights at a
+    path the config names, or none at all under true, is a ConfigError (``check_weights_file``); a file that
+    is there but not AlexNet's weights is one under auto too."""
+    if setting is False:
+        return None, ""
+    path = weights_file(weights)
+    if not path.is_file() and setting == "auto" and weights is None:
+        return None, (f"LPIPS not scored: no AlexNet ImageNet weights at {path} (torchvision's {ALEXNET_FILE}: "
+                      "put the file there or set model.lpips_weights=FILE; model.lpips=false turns LPIPS off; "
+                      "docs/metrics.md)")
+    check_weights_file(setting, weights)
+    return LpipsScorer(lpips_network(path)), ""
+
+
+def check_weights_file(setting: bool | str, weights: str | Path | None) -> None:
+    """A ConfigError where LPIPS must be scored from a file that is not there: the file ``model.lpips_weights``
+    names (``weights``), or under ``model.lpips=true`` the hub cache's; nothing to check under false, or
+    under auto reading the hub cache (which may lack it)."""
+    if setting is False or (setting == "auto" and weights is None):
+        return
+    path = weights_file(weights)
+    if path.is_file():
+        return
+    if weights is not None:
+        raise ConfigError(f"model.lpips_weights={weights}: no such file; expected torchvision's AlexNet ImageNet "
+                          f"weights ({ALEXNET_FILE}) there (docs/metrics.md)")
+    raise ConfigError(f"model.lpips=true: no AlexNet ImageNet weights at {path}: put torchvision's {ALEXNET_FILE} "
+                      "there or set model.lpips_weights=FILE (docs/metrics.md)")

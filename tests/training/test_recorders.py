@@ -1,0 +1,48 @@
+"""What the recorders make of each image's scores: LPIPS recorded beside PSNR and SSIM where every image has
+it, left out (never NaN in a file) where it was not scored, and gathered across processes with them."""
+
+import json
+import math
+import types
+
+import pytest
+import torch
+
+from nerfexp.training.recorders import IMAGES, gather_evaluations, image_means, scores_record, scores_text
+
+NAN = math.nan
+
+
+def test_lpips_is_recorded_where_every_image_has_it():
+    scores = {3: {"psnr": 20.0, "ssim": 0.5, "lpips": 0.25}, 1: {"psnr": 30.0, "ssim": 0.7, "lpips": 0.125}}
+    assert image_means(scores) == {"psnr": 25.0, "ssim": 0.6, "lpips": 0.1875}
+    assert scores_record(scores) == {
+        "test_psnr": 25.0, "test_ssim": 0.6, "test_lpips": 0.1875, "test_views": [1, 3],
+        "test_psnr_per_view": [30.0, 20.0], "test_ssim_per_view": [0.7, 0.5], "test_lpips_per_view": [0.125, 0.25]}
+    assert scores_text(scores_record(scores)) == "test PSNR 25.00 dB, SSIM 0.6000, LPIPS 0.1875"
+
+
+@pytest.mark.parametrize("lpips", [(NAN, NAN), (0.1, NAN)])
+def test_lpips_not_scored_for_an_image_is_left_out_of_the_record(lpips):
+    scores = {0: {"psnr": 20.0, "ssim": 0.5, "lpips": lpips[0]}, 1: {"psnr": 30.0, "ssim": 0.7, "lpips": lpips[1]}}
+    record = scores_record(scores)
+    assert record == {"test_psnr": 25.0, "test_ssim": 0.6, "test_views": [0, 1], "test_psnr_per_view": [20.0, 30.0],
+                      "test_ssim_per_view": [0.5, 0.7]}
+    json.dumps(record, allow_nan=False)  # valid JSON: no NaN anywhere
+    assert image_means(scores) == {"psnr": 25.0, "ssim": 0.6}
+    assert scores_text(record) == "test PSNR 25.00 dB, SSIM 0.6000"
+
+
+def test_the_scores_travel_between_processes_as_float64_nan_included():
+    def all_gather(tensor):  # two processes that evaluated the same
+        return torch.stack([tensor, tensor])
+
+    trainer = types.SimpleNamespace(world_size=2, strategy=types.SimpleNamespace(all_gather=all_gather))
+    images = {key: torch.zeros(2, 2, 3) for key in IMAGES}
+    for lpips in (0.123456789012345, NAN):
+        outputs = {"index": 7, "psnr": 31.234567890123, "ssim": 0.91, "lpips": lpips, **images}
+        gathered = gather_evaluations(trainer, outputs)
+        assert len(gathered) == 2
+        for item in gathered:
+            assert (item["index"], item["psnr"], item["ssim"]) == (7, 31.234567890123, 0.91)
+            assert item["lpips"] == lpips or (math.isnan(lpips) and math.isnan(item["lpips"]))
