@@ -16,7 +16,7 @@ from tests.slurm_cluster import local_cluster, missing
 
 pytestmark = pytest.mark.slow
 
-# hydra/launcher=slurm sized for the test cluster: CPU processes over gloo, one CPU and 1 GB each
+# hydra/launcher=slurm sized for the test cluster: CPU processes over gloo, one CPU per process, 1 GB per job
 ON_SLURM = ["-m", "hydra/launcher=slurm", "trainer=slurm", "trainer.accelerator=cpu", "hydra.launcher.partition=debug",
             "hydra.launcher.cpus_per_task=1", "hydra.launcher.mem_gb=1", *TINY]
 
