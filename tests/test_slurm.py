@@ -104,7 +104,7 @@ def test_a_job_at_its_time_limit_records_sigterm_and_resume_continues_it(cluster
     checkpoint = run_dir / "checkpoints" / "last.ckpt"
     assert first.returncode == 1, first.stderr[-3000:]
     assert first.stderr.strip().splitlines()[-1] == (
-        f"nerfexp: error: {run_dir}: ended by SIGTERM (SLURM's time limit, scancel or preemption); "
+        f"nerfexp: error: {run_dir}: ended by SIGTERM (on SLURM: a time limit, scancel or preemption); "
         f"the job's overrides with resume={checkpoint} continue it")
     status = read_json(run_dir / "status.json")
     assert (status["state"], status["signal"], status["error"]) == ("failed", "SIGTERM", "ended by SIGTERM")

@@ -172,7 +172,7 @@ def signalled_job_line(run_dir: Path, signal_name: str) -> str:
     checkpoint = run_dir / LAST_CHECKPOINT
     advice = (f"the job's overrides with resume={checkpoint} continue it" if checkpoint.is_file()
               else "it saved no checkpoint")
-    return f"{run_dir}: ended by {signal_name} (SLURM's time limit, scancel or preemption); {advice}"
+    return f"{run_dir}: ended by {signal_name} (on SLURM: a time limit, scancel or preemption); {advice}"
 
 
 def lightning_sigterm(error: BaseException) -> bool:
