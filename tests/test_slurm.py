@@ -2,15 +2,14 @@
 slurmd and munged on this machine): jobs of several DDP processes started by srun, a job array throttled by
 ``array_parallelism``, a failing job among others, and a job ended by its time limit, then resumed."""
 
-import json
 import re
 import subprocess
 import time
-from pathlib import Path
 
 import pytest
 import torch
 
+from nerfexp.rundir.layout import read_metrics
 from tests.helpers import TINY, command, read_json, run_nerfexp
 from tests.slurm_cluster import local_cluster, missing
 
@@ -119,9 +118,5 @@ def test_a_job_at_its_time_limit_records_sigterm_and_resume_continues_it(cluster
     results = read_json(tmp_path / "resumed" / "0" / "results.json")
     assert results["steps"] == step + 30 and results["processes"] == 2
     assert [r["step"] for r in results["resumes"]] == [step]
-    first_logged = read_json_lines(tmp_path / "resumed" / "0" / "metrics.jsonl")[0]["step"]
+    first_logged = read_metrics(tmp_path / "resumed" / "0", ended=True)[0]["step"]
     assert first_logged > step  # trained on from the checkpoint, not from the start
-
-
-def read_json_lines(path: Path) -> list[dict]:
-    return [json.loads(line) for line in path.read_text().splitlines()]

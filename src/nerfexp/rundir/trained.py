@@ -111,21 +111,29 @@ def not_a_checkpoint(path: Path, error: Exception) -> str:
     return "a damaged zip archive"
 
 
-def read_checkpoint(path: Path) -> dict:
-    """A Lightning checkpoint's contents read as data (``weights_only``: tensors and plain containers;
-    a pickle that would run code is refused), on the CPU; a NerfexpError naming the file otherwise."""
-    path = Path(path)
-    if not path.is_file():
-        raise NerfexpError(f"{path}: no such checkpoint file")
+def load_as_data(path: Path, what: str, kind: str = "checkpoints",
+                 error_type: type[NerfexpError] = NerfexpError) -> object:
+    """What ``torch.save`` wrote to ``path``, read as data (``weights_only``: tensors and plain containers; a
+    pickle that would run code is refused), on the CPU; an ``error_type`` naming the file, ``what`` it
+    should be (e.g. "a checkpoint") and what it is, where it cannot be read so (``kind``: such files)."""
     try:
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")  # torch's notes on pickle protocols: the error below says what matters
-            state = torch.load(path, map_location="cpu", weights_only=True)
+            return torch.load(path, map_location="cpu", weights_only=True)
     except OSError as error:
-        raise NerfexpError(f"{path}: cannot read the checkpoint ({error.strerror})") from None
+        raise error_type(f"{path}: cannot read {what} ({error.strerror})") from None
     except Exception as error:  # torch raises any type (IndexError, KeyError, ...) on bytes it cannot parse
-        raise NerfexpError(f"{path}: not a checkpoint ({not_a_checkpoint(path, error)}); nerfexp reads checkpoints "
-                           "as data only, never running code in them") from None
+        raise error_type(f"{path}: not {what} ({not_a_checkpoint(path, error)}); nerfexp reads {kind} as data "
+                         "only, never running code in them") from None
+
+
+def read_checkpoint(path: Path) -> dict:
+    """A Lightning checkpoint's contents read as data (``load_as_data``); a NerfexpError naming the file
+    otherwise."""
+    path = Path(path)
+    if not path.is_file():
+        raise NerfexpError(f"{path}: no such checkpoint file")
+    state = load_as_data(path, "a checkpoint")
     if not isinstance(state, dict) or not isinstance(state.get("state_dict"), dict) or "global_step" not in state:
         raise NerfexpError(f"{path}: not a Lightning checkpoint (expected a state_dict and a global_step)")
     return state

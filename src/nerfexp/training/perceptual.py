@@ -26,6 +26,7 @@ from torch import Tensor, nn
 
 from nerfexp.errors import ConfigError
 from nerfexp.pixels import quantize
+from nerfexp.rundir.trained import load_as_data
 
 HEADS = Path(__file__).with_name("lpips_alex_v0.1.pth")  # LPIPS 0.1's linear heads for AlexNet
 ALEXNET_FILE = "alexnet-owt-7be5be79.pth"  # torchvision's AlexNet ImageNet weights, as its hub cache names them
@@ -108,15 +109,9 @@ def weights_file(weights: str | Path | None) -> Path:
 
 
 def read_state(path: Path, what: str) -> dict:
-    """The state dict in ``path`` read as data (tensors and plain containers; a pickle that would run code is
-    refused), on the CPU; a ConfigError naming the file and ``what`` was expected otherwise."""
-    try:
-        state = torch.load(path, map_location="cpu", weights_only=True)
-    except OSError as error:
-        raise ConfigError(f"{path}: cannot read {what} ({error.strerror})") from None
-    except Exception:  # torch raises any type on bytes it cannot parse, or a pickle that is not data
-        raise ConfigError(f"{path}: not {what} (a state dict of tensors as torch.save writes it); nerfexp reads "
-                          "weight files as data only") from None
+    """The state dict in ``path`` read as data (``nerfexp.rundir.trained.load_as_data``); a ConfigError naming
+    the file and ``what`` was expected otherwise."""
+    state = load_as_data(path, what, "weight files", ConfigError)
     if not isinstance(state, dict):
         raise ConfigError(f"{path}: not {what} (a state dict of tensors)")
     return state

@@ -90,8 +90,8 @@ def scores_record(scores: dict[int, dict[str, float]]) -> dict:
 
 
 def scores_text(results: dict) -> str:
-    """A run's test scores in words, from ``results.json`` or ``eval.json``: ``test PSNR 25.31 dB, SSIM
-    0.8123`` and ``, LPIPS 0.1234`` where it was scored."""
+    """A run's test scores in words, from ``results.json`` or ``eval.json``: the PSNR in dB (2 decimals), the
+    SSIM (4), and the LPIPS (4) where it was scored."""
     lpips = f", LPIPS {results['test_lpips']:.4f}" if "test_lpips" in results else ""
     return f"test PSNR {results['test_psnr']:.2f} dB, SSIM {results['test_ssim']:.4f}{lpips}"
 
