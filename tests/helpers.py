@@ -1,12 +1,16 @@
 """Helpers shared by the tests: the real config shrunk to run in seconds, and the console scripts run
 as a user runs them."""
 
+import contextlib
+import errno
+import hashlib
 import json
 import os
 import signal
 import socket
 import subprocess
 import sys
+from collections.abc import Iterator
 from pathlib import Path
 
 import lightning as L
@@ -50,6 +54,12 @@ def read_json(path: Path) -> dict:
     return json.loads(path.read_text())
 
 
+def digests(folder: Path) -> dict[str, str]:
+    """Every file under ``folder`` (relative path) with the SHA-256 of its bytes: to show nothing changed."""
+    return {p.relative_to(folder).as_posix(): hashlib.sha256(p.read_bytes()).hexdigest()
+            for p in sorted(folder.rglob("*")) if p.is_file()}
+
+
 class KillAtStep(L.Callback):
     """Kills its own process with SIGKILL (no clean-up, as a preempted or out-of-memory job dies) when
     training is about to take step ``step + 1``: after the checkpoint and validation of step ``step``.
@@ -66,6 +76,106 @@ class KillAtStep(L.Callback):
 def kill_at(step: int) -> list[str]:
     """Overrides that make a ``nerfexp`` run kill itself after step ``step`` (``KillAtStep``)."""
     return ["+callbacks.kill._target_=tests.helpers.KillAtStep", f"+callbacks.kill.step={step}"]
+
+
+def mount_or_skip(*argv: str) -> None:
+    """Run ``mount ARGV``; the test is skipped, saying why, where this machine does not permit it (not
+    root, a container without the capability, no ``mount``)."""
+    import pytest
+
+    try:
+        done = subprocess.run(["mount", *argv], capture_output=True, text=True)
+    except FileNotFoundError:
+        pytest.skip("no mount command here: the fault needs a mounted file system")
+    if done.returncode != 0:
+        pytest.skip(f"mount {' '.join(argv)} is not permitted here ({done.stderr.strip()}): the fault needs it")
+
+
+def unmount(folder: Path) -> None:
+    """Unmount whatever is mounted at ``folder`` (the last mount first), until nothing is."""
+    while subprocess.run(["mountpoint", "-q", str(folder)]).returncode == 0:
+        subprocess.run(["umount", str(folder)], check=True)
+
+
+@contextlib.contextmanager
+def small_disk(folder: Path, size: str = "64m") -> Iterator[Path]:
+    """A tmpfs of ``size`` mounted at ``folder`` (made where missing) for the block, to fill
+    (``fill_disk``); unmounted after it, with whatever it holds (``mount_or_skip``)."""
+    folder.mkdir(parents=True, exist_ok=True)
+    mount_or_skip("-t", "tmpfs", "-o", f"size={size}", "tmpfs", str(folder))
+    try:
+        yield folder
+    finally:
+        unmount(folder)
+
+
+def fill_disk(filler: Path, leave: int = 0) -> None:
+    """Fill the file system of ``filler``'s folder with the file ``filler`` to its last byte, then give
+    back ``leave`` bytes of it (a disk nearly full: small files fit, a checkpoint does not)."""
+    block = bytes(1 << 20)
+    with open(filler, "wb", buffering=0) as file:
+        while block:
+            try:
+                file.write(block)
+            except OSError as error:
+                if error.errno != errno.ENOSPC:
+                    raise
+                block = block[:len(block) // 2]
+    os.truncate(filler, max(0, filler.stat().st_size - leave))
+
+
+def make_read_only(folder: Path) -> None:
+    """Make ``folder`` a read-only file system: bind-mounted over itself, read-only (as root, a mode
+    stops no write); ``unmount`` ends it."""
+    mount_or_skip("--bind", str(folder), str(folder))
+    mount_or_skip("-o", "remount,bind,ro", str(folder))
+
+
+@contextlib.contextmanager
+def immutable(folder: Path) -> Iterator[Path]:
+    """``folder`` immutable (``chattr +i``: nothing in it made, removed or renamed, by root too) for the
+    block; the test is skipped, saying why, where its file system or this machine does not permit it."""
+    import pytest
+
+    try:
+        done = subprocess.run(["chattr", "+i", str(folder)], capture_output=True, text=True)
+    except FileNotFoundError:
+        pytest.skip("no chattr command here: the fault needs an immutable folder")
+    if done.returncode != 0:
+        pytest.skip(f"chattr +i {folder} is not permitted here ({done.stderr.strip()}): the fault needs it")
+    try:
+        yield folder
+    finally:
+        subprocess.run(["chattr", "-i", str(folder)], check=True)
+
+
+NEARLY = 64 << 10  # what a nearly full disk has left: less than a checkpoint of the TINY network
+
+
+class FaultAtStep(L.Callback):
+    """Where training is about to take step ``step + 1`` (as ``KillAtStep``), ``fault`` strikes ``folder``:
+    ``full`` fills its disk (``fill_disk``, with the file ``folder/filler``), ``nearly-full`` leaves
+    ``NEARLY`` bytes of it, ``read-only`` makes it a read-only file system (``make_read_only``; the test
+    unmounts it). Injected by ``fault_at``."""
+
+    def __init__(self, step: int, fault: str, folder: str):
+        self.step = step
+        self.fault = fault
+        self.folder = Path(folder)
+
+    def on_train_batch_start(self, trainer, pl_module, batch, batch_idx):
+        if trainer.global_step != self.step:
+            return
+        if self.fault == "read-only":
+            make_read_only(self.folder)
+        else:
+            fill_disk(self.folder / "filler", NEARLY if self.fault == "nearly-full" else 0)
+
+
+def fault_at(step: int, fault: str, folder: Path) -> list[str]:
+    """Overrides that make ``fault`` strike ``folder`` after step ``step`` of a ``nerfexp`` run (``FaultAtStep``)."""
+    return ["+callbacks.fault._target_=tests.helpers.FaultAtStep", f"+callbacks.fault.step={step}",
+            f"+callbacks.fault.fault={fault}", f"+callbacks.fault.folder={folder}"]
 
 
 class NanTargets(L.Callback):

@@ -15,23 +15,30 @@ from tests.helpers import one_error_line, run_nerfexp
 
 
 @pytest.mark.parametrize(("overrides", "message"), [
-    (["scale.lr=-1"], "scale.lr=-1 (which sets model.optimizer.lr): expected a finite number > 0"),
-    (["scale.batch_rays=0"], "scale.batch_rays=0 (which sets datamodule.batch_rays): expected a whole number >= 1"),
-    (["trainer.max_steps=0"], "trainer.max_steps=0: expected a whole number >= 1"),
-    (["scale.val_every=0"], "scale.val_every=0 (which sets trainer.val_check_interval): expected a whole number >= 1"),
-    (["scale.n_coarse=0"], "scale.n_coarse=0 (which sets model.renderer.n_coarse): expected a whole number >= 1"),
-    (["encoding.position.n_freqs=-1"], "encoding.position.n_freqs=-1: expected a whole number >= 0"),
+    (["scale.lr=-1"], "scale.lr=-1 (which sets model.optimizer.lr): expected a finite number > 0 and <= 1"),
+    (["scale.batch_rays=0"], "scale.batch_rays=0 (which sets datamodule.batch_rays): expected a whole number in "
+                             "[1, 2^63 - 1]"),
+    (["trainer.max_steps=0"], "trainer.max_steps=0: expected a whole number in [1, 2^63 - 1]"),
+    (["scale.val_every=0"], "scale.val_every=0 (which sets trainer.val_check_interval): expected a whole number in "
+                            "[1, 2^63 - 1]"),
+    (["scale.n_coarse=0"], "scale.n_coarse=0 (which sets model.renderer.n_coarse): expected a whole number in "
+                           "[1, 2^63 - 1]"),
+    (["encoding.position.n_freqs=-1"], "encoding.position.n_freqs=-1: expected a whole number in [0, 2^63 - 1]"),
     (["encoding.position.n_freqs=60"], f"encoding.position.n_freqs=60: frequencies above 2^{FLOAT32_TOP_OCTAVE} pi "
                                        "are noise for float32 positions (docs/numerics.md); use at most 19 with "
                                        "input_scale 1"),
     (["scale.position_input_scale=0"], "scale.position_input_scale=0 (which sets encoding.position.input_scale): "
-                                       "expected a finite number > 0"),
-    (["data.n_train=0"], "data.n_train=0: expected a whole number >= 1, or null (all)"),
-    (["data.n_val=0"], "data.n_val=0: expected a whole number >= 1"),
+                                       "expected a finite number > 0 and <= 262144"),
+    (["data.n_train=0"], "data.n_train=0: expected a whole number in [1, 2^63 - 1], or null (all)"),
+    (["data.n_val=0"], "data.n_val=0: expected a whole number in [1, 2^63 - 1]"),
     # issue 27 section 5: every key a user sets has a domain (nerfexp.settings.schema.SCHEMA); Hydra's own errors
     (["seed=abc"], "seed=abc: expected a whole number in [0, 4294967295]"),
     (["view_dependence=sh", "view_dependence.degree=7"], "view_dependence.degree=7: expected a whole number in [0, 3]"),
-    (["scale.image_size=-32"], "scale.image_size=-32 (which sets data.image_size): expected a whole number >= 1"),
+    (["scale.image_size=-32"], "scale.image_size=-32 (which sets data.image_size): expected a whole number in [1, "
+                               "2^63 - 1]"),
+    # issue 39 section 4: extreme values, one line each (traceback and overflow before)
+    (["data.far=1e308"], "data.far=1e+308 (which sets model.renderer.far): expected a finite number > 0 and <= 2^24, "
+                         "or null (from the scene)"),
     (["hierarchical=false", "scale.n_fine=64"], "scale.n_fine=64: not used with hierarchical=false (one network of "
                                                 "model.renderer.n_single samples; set scale.n_single)"),
     (["encoding=bogus"], "encoding=bogus: no such option (choose from hashgrid, none, posenc)"),
@@ -169,8 +176,13 @@ def big_cameras(tmp_path) -> str:
 @pytest.mark.parametrize(("prog", "args", "message"), [
     ("nerfexp-export", ["--resolution", "100000"], "argument --resolution: 100000: a grid of 100000^3 densities "
                                                    "needs about"),
-    ("nerfexp-export", ["--threshold", "nan"], "argument --threshold: expected a finite number > 0, got nan"),
-    ("nerfexp-export", ["--threshold", "inf"], "argument --threshold: expected a finite number > 0, got inf"),
+    ("nerfexp-export", ["--threshold", "nan"], "argument --threshold: expected a finite number > 0 and <= "
+                                               "3.40282e+38, got nan"),  # float32's largest: densities are float32
+    ("nerfexp-export", ["--threshold", "inf"], "argument --threshold: expected a finite number > 0 and <= "
+                                               "3.40282e+38, got inf"),
+    ("nerfexp-export", ["--threshold", "1e39"], "argument --threshold: expected a finite number > 0 and <= "
+                                                "3.40282e+38, got 1e39"),
+    ("nerfexp-view", ["--max-width", "9" * 400], f"argument --max-width: {'9' * 400}: a frame of "),
     ("nerfexp-view", ["--port", "70000"], "argument --port: expected a port in 1..65535 (0: any free one), got 70000"),
     ("nerfexp-render", ["--size", "200000"], "argument --size: 200000: a frame of 200000 x 200000 pixels needs about"),
     ("nerfexp-render", ["--cameras", big_cameras], "a frame of 200000 x 200000 pixels needs about"),

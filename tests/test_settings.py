@@ -1,17 +1,25 @@
 """The settings schema (nerfexp.settings): every key of every group option has a rule, values across and
-beyond each domain are refused in one ConfigError naming the key or build, and unused overrides are named."""
+beyond each domain are refused in one ConfigError naming the key or build, and unused overrides are named; the
+commands that read a run back check their overrides and arguments alike."""
 
 import math
 
 import pytest
+import torch
 from hydra import compose, initialize_config_module
 from hydra.utils import instantiate
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
-from omegaconf import OmegaConf
+from omegaconf import OmegaConf, open_dict
 
-from nerfexp.errors import ConfigError
-from nerfexp.settings.checks import check_settings, checked_settings
+from nerfexp.commands import evaluate, export, render, view
+from nerfexp.commands.arguments import read_run, run_settings
+from nerfexp.data.datamodule import fill_ray_bounds
+from nerfexp.errors import ConfigError, NerfexpError
+from nerfexp.products.frames import frame_size, render_frame, training_path
+from nerfexp.rundir.layout import LAST_CHECKPOINT, RUN_CONFIG
+from nerfexp.rundir.trained import load_module, run_config
+from nerfexp.settings.checks import check_run_settings, check_settings, checked_settings
 from nerfexp.settings.schema import SCHEMA, matching
 from nerfexp.settings.unused import unused_settings
 from nerfexp.training.precision import fill_precision
@@ -52,7 +60,8 @@ def composed(*overrides):
     (["seed=-1"], "seed=-1: expected a whole number in [0, 4294967295]"),
     (["trainer.precision=bogus"], "trainer.precision=bogus: expected one of "),
     (["view_dependence=sh", "view_dependence.degree=7"], "view_dependence.degree=7: expected a whole number in [0, 3]"),
-    (["scale.image_size=0"], "scale.image_size=0 (which sets data.image_size): expected a whole number >= 1"),
+    (["scale.image_size=0"], "scale.image_size=0 (which sets data.image_size): expected a whole number in [1, "
+                             "2^63 - 1]"),
     (["scale.lr=nan"], "scale.lr=nan (which sets model.optimizer.lr): expected a finite number > 0"),
     (["callbacks.guard.on_nonfinite=ignore"], "callbacks.guard.on_nonfinite=ignore: expected one of stop, skip"),
     (["data.background=grey"], "data.background=grey (which sets model.renderer.background): expected one of "),
@@ -70,11 +79,60 @@ def composed(*overrides):
     (["data.near=5", "data.far=2"], "data.near=5 (which sets model.renderer.near) and data.far=2 (which sets "
                                     "model.renderer.far): expected near < far"),
     (["data.near=2", "data.far=2"], "data.near=2 (which sets model.renderer.near) and data.far=2"),
-    (["scale.image_size=100000"], "scale.image_size=100000 (which sets data.image_size): a scene of 15 views needs "),
-    (["scale.batch_rays=100000000"], "scale.batch_rays=100000000 (which sets datamodule.batch_rays): a training "
-                                     "batch of 100000000 rays x 48 samples needs about"),
+    # a memory estimate names every setting it multiplies, so the one the user set among them (issue 39)
+    (["scale.image_size=100000"], "scale.image_size=100000 (which sets data.image_size), data.supersample=2, "
+                                  "data.n_train=12, data.n_val=1, data.n_test=2: a scene of 15 views of 100000 x "
+                                  "100000 pixels needs about "),
+    (["data.n_test=10000000000"], "scale.image_size=24 (which sets data.image_size), data.supersample=2, "
+                                  "data.n_train=12, data.n_val=1, data.n_test=10000000000: a scene of 10000000013 "
+                                  "views of 24 x 24 pixels needs about "),
+    (["scale.batch_rays=100000000"], "scale.batch_rays=100000000 (which sets datamodule.batch_rays), scale.n_coarse=16 "
+                                     "(which sets model.renderer.n_coarse), scale.n_fine=16 (which sets "
+                                     "model.renderer.n_fine), scale.width=32 (which sets model.renderer.field.width), "
+                                     "scale.depth=2 (which sets model.renderer.field.depth): a training batch of "
+                                     "100000000 rays x 48 samples through 2 layers of 32 units needs about"),
+    (["scale.width=100000000"], "scale.batch_rays=256 (which sets datamodule.batch_rays), scale.n_coarse=16 (which "
+                                "sets model.renderer.n_coarse), scale.n_fine=16 (which sets model.renderer.n_fine), "
+                                "scale.width=100000000 (which sets model.renderer.field.width), scale.depth=2"),
+    (["scale.width=1000000", "scale.batch_rays=1", "scale.chunk=1"],  # the weights alone: depth x width^2
+     "scale.width=1000000 (which sets model.renderer.field.width), scale.depth=2 (which sets "
+     "model.renderer.field.depth): training a field of 2 layers of 1000000 units needs about"),
+    (["hierarchical=proposal", "proposal.network.width=2000000"], "proposal.network.width=2000000, "
+                                                                 "proposal.network.depth=2: training a proposal "),
+    (["encoding=hashgrid", "encoding.position.n_levels=100000000"], "encoding.position.n_levels=100000000, "
+                                                                    "scale.hash_log2_table_size=16 (which sets "
+                                                                    "encoding.position.log2_table_size), "
+                                                                    "encoding.position.features_per_level=2: a hash "
+                                                                    "encoding of 100000000 levels needs about"),
+    (["acceleration=occupancy", "acceleration.grid.resolution=100000"], "acceleration.grid.resolution=100000: an "
+                                                                        "occupancy grid of 100000^3 cells needs"),
+    (["scale.image_size=" + "9" * 400], f"scale.image_size={'9' * 400} (which sets data.image_size): expected a "
+                                        "whole number in [1, 2^63 - 1]"),
+    # every number has an upper bound where it stops meaning anything (issue 39 section 4)
     (["encoding=hashgrid", "scale.hash_log2_table_size=40"], "scale.hash_log2_table_size=40 (which sets "
-                                                             "encoding.position.log2_table_size): hash tables"),
+                                                             "encoding.position.log2_table_size): expected a whole "
+                                                             "number in [1, 30]"),
+    (["encoding=hashgrid", "scale.hash_finest=18446744073709551616"], "scale.hash_finest=18446744073709551616 "
+                                                                      "(which sets encoding.position.finest): "
+                                                                      "expected a whole number in [1, 1048575]"),
+    (["encoding=hashgrid", "encoding.position.coarsest=100", "encoding.position.finest=50"],
+     "encoding.position.coarsest=100, encoding.position.finest=50: expected coarsest <= finest"),
+    (["data.far=1e308"], "data.far=1e+308 (which sets model.renderer.far): expected a finite number > 0 and <= 2^24"),
+    (["data.near=inf"], "data.near=inf (which sets model.renderer.near): expected a finite number >= 0 and <= 2^24"),
+    (["data.aabb=[[0,0,0],[1e30,1,1]]"], "data.aabb=[[0, 0, 0], [1e+30, 1, 1]]: expected [[x0, y0, z0], [x1, y1, "
+                                         "z1]] of numbers within +-2^24"),
+    (["model.chunk=0"], "model.chunk=0: expected a whole number in [1, 2^63 - 1]"),
+    (["scale.steps=9223372036854775808"], "scale.steps=9223372036854775808 (which sets "),
+    (["scale.lr=2"], "scale.lr=2 (which sets model.optimizer.lr): expected a finite number > 0 and <= 1"),
+    (["model.renderer.field.density_bias=1e30"], "model.renderer.field.density_bias=1e+30: expected a finite number "
+                                                 ">= -88 and <= 88"),
+    (["model.renderer.field.density_noise_std=18446744073709551616"], "model.renderer.field.density_noise_std="),
+    (["data.far=" + "9" * 400], f"data.far={'9' * 400} (which sets model.renderer.far): expected a finite number > "
+                                "0 and <= 2^24"),  # a whole number past any float: compared, never converted
+    (["scale.position_input_scale=1e300"], "scale.position_input_scale=1e+300 (which sets "
+                                           "encoding.position.input_scale): expected a finite number > 0 and <= "),
+    (["hierarchical=proposal", "proposal.distortion_weight=1e30"], "proposal.distortion_weight=1e+30: expected a "
+                                                                   "finite number >= 0 and <= 2^24"),
 ])
 def test_a_value_out_of_its_domain_is_one_error_naming_the_key(hydra_configs, overrides, message):
     with pytest.raises(ConfigError) as error:
@@ -126,7 +184,8 @@ KEYS = ["seed", "hierarchical", "scale.lr", "scale.batch_rays", "scale.depth", "
         "data.n_train", "data.n_val", "data.supersample", "data.near", "data.far", "data.background",
         "encoding.position.n_freqs", "encoding.direction.n_freqs", "view_dependence.hidden",
         "callbacks.guard.on_nonfinite", "callbacks.guard.max_skips", "trainer.precision", "trainer.max_steps",
-        "model.renderer.field.density_bias", "model.optimizer.eps", "model.lpips"]
+        "model.renderer.field.density_bias", "model.optimizer.eps", "model.lpips",
+        "model.renderer.field.density_noise_std", "encoding.position.input_scale", "scale.steps"]
 
 
 def override(key, value) -> str:
@@ -150,3 +209,101 @@ def test_any_setting_is_refused_in_one_error_naming_it_or_builds(hydra_configs, 
     fill_precision(cfg)  # as a job does before it builds the trainer
     instantiate(cfg.trainer, logger=False, callbacks=[], enable_checkpointing=False)
     instantiate(cfg.datamodule)  # the scene: small enough by the check's own estimate
+
+
+# The commands that read a run back (nerfexp-eval, -render, -export, -view) check its saved config with the user's
+# KEY=VALUE overrides as nerfexp checks a new run's (nerfexp.settings.checks.check_run_settings; issue 39)
+
+@pytest.fixture(scope="module")
+def saved_run(hydra_configs, tmp_path_factory):
+    """A run directory as training leaves one, made without training: the TINY config (its scene smaller still)
+    saved where Hydra saves it and a checkpoint of the untrained model (the commands read any run back alike)."""
+    run_dir = tmp_path_factory.mktemp("saved_run")
+    cfg = composed("scale.image_size=8", "data.n_train=4", "data.supersample=1")
+    (run_dir / RUN_CONFIG).parent.mkdir()
+    OmegaConf.save(cfg, run_dir / RUN_CONFIG)
+    built = cfg.copy()
+    fill_ray_bounds(built)  # as load_module does: the scene's near and far where the config leaves them null
+    (run_dir / LAST_CHECKPOINT).parent.mkdir()
+    torch.save({"state_dict": instantiate(built.model).state_dict(), "global_step": 0}, run_dir / LAST_CHECKPOINT)
+    return run_dir
+
+
+@pytest.mark.parametrize(("command", "arguments", "message"), [
+    (evaluate, ["model.chunk=0"], "nerfexp-eval: error: model.chunk=0: expected a whole number in [1, 2^63 - 1]"),
+    (evaluate, ["data.near=inf"], "nerfexp-eval: error: data.near=inf (which sets model.renderer.near): expected a "
+                                  "finite number >= 0 and <= 2^24, or null (from the scene)"),
+    (render, ["scale.chunk=0"], "nerfexp-render: error: scale.chunk=0 (which sets model.chunk): expected a whole "
+                                "number in [1, 2^63 - 1]"),
+    (export, ["data.far=1e308"], "nerfexp-export: error: data.far=1e+308 (which sets model.renderer.far): expected a "
+                                 "finite number > 0 and <= 2^24, or null (from the scene)"),
+    (view, ["data.n_test=10000000000"], "nerfexp-view: error: scale.image_size=8 (which sets data.image_size), "
+                                        "data.supersample=1, data.n_train=4, data.n_val=1, data.n_test=10000000000: "
+                                        "a scene of 10000000005 views of 8 x 8 pixels needs about "),
+])
+def test_the_commands_reading_a_run_back_check_its_overrides_as_nerfexp_does(saved_run, command, arguments, message):
+    with pytest.raises(SystemExit) as exit:
+        command.main([str(saved_run), *arguments])
+    assert str(exit.value.code).startswith(message), exit.value.code
+
+
+def test_a_run_of_an_earlier_nerfexp_with_a_key_no_rule_covers_is_still_read_back(saved_run):
+    cfg = run_config(saved_run)
+    with open_dict(cfg):
+        cfg.data.retired_setting = 3  # a key an earlier version wrote and this one no longer reads
+    check_run_settings(cfg)  # the run's own key, not a user's mistake
+    with pytest.raises(ConfigError, match="^data.retired_setting=3: not a setting nerfexp reads"):
+        check_settings(cfg)  # a new run's config is the user's: there it is a typo
+
+
+def test_lpips_weights_are_looked_for_only_by_the_command_that_scores(saved_run, tmp_path, monkeypatch):
+    monkeypatch.setenv("TORCH_HOME", str(tmp_path))  # an empty torch hub cache
+    check_run_settings(run_config(saved_run, ["model.lpips=true"]))  # render, export, view: no LPIPS scored
+    with pytest.raises(ConfigError, match="^model.lpips=true: no AlexNet ImageNet weights at "):
+        run_settings(saved_run, ["model.lpips=true"])  # nerfexp-eval's
+
+
+RUN_KEYS = ["model.chunk", "scale.chunk", "data.near", "data.far", "data.n_test", "scale.image_size",
+            "data.supersample", "data.background", "model.renderer.n_coarse", "model.renderer.n_fine", "hierarchical",
+            "seed", "model.renderer.field.density_noise_std", "trainer.precision"]
+NUMBER_TEXTS = st.one_of(  # what a user may type as an argument: small, huge, not finite, not a number
+    st.integers(-3, 40).map(str), st.integers(2 ** 40, 2 ** 80).map(str),
+    st.floats(allow_nan=True, allow_infinity=True).map(repr), st.sampled_from(["nan", "inf", "5e-324", "abc", ""]))
+RENDER_ARGUMENTS = ["--fps", "--frames", "--size", "--chunk", "--focus"]
+
+
+@settings(max_examples=40, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
+@given(command=st.sampled_from([evaluate, render]),
+       changes=st.lists(st.tuples(st.sampled_from(RUN_KEYS), VALUES), max_size=3),
+       arguments=st.lists(st.tuples(st.sampled_from(RENDER_ARGUMENTS), NUMBER_TEXTS), max_size=3))
+def test_any_override_or_argument_of_a_command_reading_a_run_back_is_one_line_or_renders(saved_run, capsys, command,
+                                                                                        changes, arguments):
+    # argparse's own error (exit status 2), a NerfexpError's one line, or a finite render of what the command
+    # renders: eval's first test view, render's first camera of its path (in process, without the video files)
+    overrides = [override(key, value) for key, value in changes]
+    flags = [word for flag, text in arguments for word in (flag, text)] if command is render else []
+    parser = command.build_parser()
+    try:
+        args = parser.parse_args([str(saved_run), *overrides, *flags])
+    except SystemExit as exit:
+        assert exit.code == 2 and capsys.readouterr().err.splitlines()[-1].startswith(f"{parser.prog}: error: ")
+        return
+    try:
+        if command is evaluate:
+            cfg = run_settings(saved_run, args.overrides)
+            module, _ = load_module(cfg, saved_run / LAST_CHECKPOINT)
+            scene = instantiate(cfg.data)
+            views = scene.views("test")
+            frame = render_frame(module, scene, views.c2w[0], views.height, views.width, views.focal)
+        else:
+            _, _, cfg, module, _ = read_run(args.run, args.overrides, args.chunk)
+            scene = instantiate(cfg.data)
+            cameras = training_path(scene, cfg.data, args.path, args.frames or 2, args.focus, args.fps or 30.0)
+            height, width, focal = frame_size(cameras.height, cameras.width, cameras.focal, args.size)
+            frame = render_frame(module, scene, cameras.c2w[-1], height, width, focal)
+    except NerfexpError as error:
+        assert "\n" not in str(error), str(error)
+        if isinstance(error, ConfigError) and "cannot apply" not in str(error):
+            assert any(key in str(error) for key, _ in changes) or "which sets" in str(error), str(error)
+        return
+    assert all(torch.isfinite(image).all() for image in frame.values())

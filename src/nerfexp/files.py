@@ -37,6 +37,46 @@ def sync_tree(folder: Path) -> None:
         sync_folder(Path(parent))
 
 
+class WriteError(OSError):
+    """An OSError met while writing a file or folder (a full disk, a read-only or immutable folder):
+    ``filename`` names what could not be written as the user knows it, never the temporary file or folder
+    beside it that a write fills first; ``strerror`` is the system's reason and ``errno`` its number."""
+
+
+def written_name(error: OSError, path: Path) -> Path | None:
+    """What ``error``, met while writing ``path``, failed to write: ``path`` where the error names no file
+    (a ``write`` to a full disk), ``path``, a folder above it or a temporary beside it (``.NAME.*``); a file
+    under ``path`` or its temporary folder (``.NAME.*.tmp``) by its name under ``path``. None where the
+    error is about another file (one read while writing)."""
+    if not isinstance(error.filename, str | bytes | os.PathLike):  # no file named, or a file descriptor
+        return path
+    failed = Path(os.fsdecode(error.filename))
+    if failed.is_relative_to(path):  # it, or a file in it
+        return failed
+    if failed in path.parents:  # a folder made for it
+        return path
+    if not failed.is_relative_to(path.parent):
+        return None
+    first, *rest = failed.relative_to(path.parent).parts
+    if not first.startswith(f".{path.name}."):
+        return None
+    return path.joinpath(*rest) if first.endswith(".tmp") else path
+
+
+@contextlib.contextmanager
+def writing(path: Path) -> Iterator[None]:
+    """Inside the block, an OSError of writing ``path`` (``written_name``) is raised as a ``WriteError``
+    naming what could not be written, from the original error; an OSError about another file as it is."""
+    path = Path(path)
+    try:
+        yield
+    except OSError as error:
+        name = written_name(error, path)
+        if name is None or (isinstance(error, WriteError) and Path(error.filename) == name):
+            raise
+        raise WriteError(error.errno, error.strerror or str(error), str(name)) from error
+
+
 @contextlib.contextmanager
 def atomic_file(path: Path) -> Iterator[BinaryIO]:
     """A binary file to stream ``path``'s new contents into, so that a reader, or a process killed at any
@@ -45,20 +85,21 @@ def atomic_file(path: Path) -> Iterator[BinaryIO]:
     The file is a temporary one beside ``path``, always in its folder (the same file system, whatever
     ``TMPDIR`` says: a rename across file systems is a copy, which a kill can cut short). Once the block
     succeeds it is flushed to the disk and renamed over ``path``; if the block fails it is removed (it is
-    this block's own: nothing else is touched)."""
+    this block's own: nothing else is touched). An OSError of the write is a ``WriteError`` naming ``path``."""
     path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
-    try:
-        with os.fdopen(fd, "wb") as file:
-            yield file
-            file.flush()
-            os.fsync(file.fileno())
-        os.chmod(tmp, 0o644)  # mkstemp's is 0o600
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
+    with writing(path):
+        path.parent.mkdir(parents=True, exist_ok=True)
+        fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
+        try:
+            with os.fdopen(fd, "wb") as file:
+                yield file
+                file.flush()
+                os.fsync(file.fileno())
+            os.chmod(tmp, 0o644)  # mkstemp's is 0o600
+            os.replace(tmp, path)
+        except BaseException:
+            Path(tmp).unlink(missing_ok=True)
+            raise
     sync_folder(path.parent)
 
 
@@ -77,30 +118,34 @@ def atomic_directory(path: Path, replace: bool = False) -> Iterator[Path]:
 
     ``replace``: a previous ``path`` is moved aside and deleted after the new folder took its place, so
     a reader sees the old folder or the new one, never a part of one (for an instant between the two
-    renames, none). Otherwise the rename fails where ``path`` is a folder that is not empty.
+    renames, none). Otherwise the rename fails where ``path`` is a folder that is not empty. An OSError of
+    the write is a ``WriteError`` naming ``path``, or the file under it that could not be written.
     """
     path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    new = Path(tempfile.mkdtemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp"))
-    try:
-        os.chmod(new, 0o755)  # mkdtemp's is 0o700
-        yield new
-        sync_tree(new)
-        if replace and path.exists():
-            trash = Path(tempfile.mkdtemp(dir=path.parent, prefix=f".{path.name}.", suffix=".old"))
-            os.replace(path, trash / path.name)
-            os.replace(new, path)
-            shutil.rmtree(trash)
-        else:
-            os.rename(new, path)
-    except BaseException:
-        shutil.rmtree(new, ignore_errors=True)
-        raise
+    with writing(path):
+        path.parent.mkdir(parents=True, exist_ok=True)
+        new = Path(tempfile.mkdtemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp"))
+        try:
+            os.chmod(new, 0o755)  # mkdtemp's is 0o700
+            yield new
+            sync_tree(new)
+            if replace and path.exists():
+                trash = Path(tempfile.mkdtemp(dir=path.parent, prefix=f".{path.name}.", suffix=".old"))
+                try:
+                    os.replace(path, trash / path.name)
+                    os.replace(new, path)
+                except BaseException:  # an error or a signal between the renames: the previous folder back
+                    if not os.path.lexists(path) and os.path.lexists(trash / path.name):
+                        os.replace(trash / path.name, path)
+                    raise
+                finally:
+                    shutil.rmtree(trash, ignore_errors=True)
+            else:
+                os.rename(new, path)
+        except BaseException:
+            shutil.rmtree(new, ignore_errors=True)
+            raise
     sync_folder(path.parent)
-
-
-# what atomic_write and atomic_directory leave beside their target where they are interrupted
-TEMPORARY = (".*.tmp", "*/.*.tmp", ".*.old", "*/.*.old")
 
 
 def folder_entries(folder: Path) -> list[str]:
@@ -120,17 +165,12 @@ def folder_entries(folder: Path) -> list[str]:
 
 
 def is_made(entry: str, made: tuple[str, ...]) -> bool:
-    """Whether ``entry`` (a ``/``-separated relative path) is one a command makes: it, or a folder it lies
-    in, matches one of the ``fnmatch`` patterns ``made`` (``checkpoints`` claims the whole folder)."""
+    """Whether ``entry`` (a ``/``-separated relative path) is named by the ``fnmatch`` patterns ``made``: it,
+    or a folder it lies in, matches one of them (``checkpoints`` names the whole folder). A name says what
+    a file should be, never whose it is: that is the manifest's (``nerfexp.manifest``)."""
     parts = entry.split("/")
     prefixes = ["/".join(parts[:n]) for n in range(1, len(parts) + 1)]
     return any(fnmatch.fnmatchcase(prefix, pattern) for prefix in prefixes for pattern in made)
-
-
-def foreign_entries(folder: Path, made: tuple[str, ...]) -> list[str]:
-    """The entries of ``folder`` (``folder_entries``) that a command making ``made`` (``is_made``) did
-    not make."""
-    return [entry for entry in folder_entries(folder) if not is_made(entry, made)]
 
 
 def foreign_message(folder: Path, foreign: list[str], maker: str, advice: str) -> str:

@@ -13,9 +13,10 @@ from nerfexp.errors import ConfigError
 FLOAT = 4  # bytes of a float32
 PIXEL_BYTES = 9 * FLOAT  # a scene's pixel (a traced ray while it is made): its origin, direction and colour
 SAMPLE_BYTES = 8 * FLOAT  # a ray sample's position, direction, density and colour, before the networks
-TABLE_COPIES = 4  # a hash table's entries, their gradients and Adam's two moments
+PARAMETER_COPIES = 4  # a trained parameter (a weight, a hash table's entry), its gradient and Adam's two moments
 VOXEL_BYTES = FLOAT  # export: a density per grid point
 FRAME_PIXEL_BYTES = 5 * FLOAT  # a rendered frame's colour, depth and opacity
+CAMERA_BYTES = 16 * 2 * FLOAT  # a camera path's frame: its 4 x 4 float64 camera-to-world matrix
 
 
 def machine_bytes() -> int:
@@ -23,14 +24,17 @@ def machine_bytes() -> int:
     return os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES")
 
 
+UNITS = ("bytes", "KiB", "MiB", "GiB", "TiB", "PiB", "EiB")
+
+
 def readable(n_bytes: int) -> str:
-    """``n_bytes`` in the largest binary unit that keeps it at least 1 (``1.5 GiB``)."""
-    value, unit = float(n_bytes), "bytes"
-    for name in ("KiB", "MiB", "GiB", "TiB", "PiB", "EiB"):
-        if value < 1024:
-            break
-        value, unit = value / 1024, name
-    return f"{value:.3g} {unit}" if unit != "bytes" else f"{n_bytes} bytes"
+    """``n_bytes`` (a whole number) in the largest binary unit that keeps it at least 1 (``1.5 GiB``); past
+    1024 EiB as a power of two (``2^90 bytes``): an estimate of any size is said without a float overflowing."""
+    n_bytes = int(n_bytes)
+    power = (n_bytes.bit_length() - 1) // 10 if n_bytes > 0 else 0  # 1024^power <= n_bytes < 1024^(power + 1)
+    if power >= len(UNITS):
+        return f"2^{n_bytes.bit_length() - 1} bytes"
+    return f"{n_bytes / 1024 ** power:.3g} {UNITS[power]}" if power else f"{n_bytes} bytes"
 
 
 def require_memory(setting: str, what: str, n_bytes: int, available: int | None = None) -> None:
@@ -56,15 +60,26 @@ def network_bytes(rays: int, samples: int, width: int, depth: int, training: boo
     return points * (SAMPLE_BYTES + (depth if training else 1) * width * FLOAT)
 
 
+def parameter_bytes(width: int, depth: int) -> int:
+    """The trained weights of a network of ``depth`` hidden layers of ``width`` units, each a ``width`` x
+    ``width`` matrix (its inputs aside), with their gradients and optimizer state (``PARAMETER_COPIES``)."""
+    return depth * width * width * FLOAT * PARAMETER_COPIES
+
+
 def hash_table_bytes(n_levels: int, log2_table_size: int, features_per_level: int) -> int:
     """A multiresolution hash encoding's tables and their optimizer state, at most ``2^log2_table_size``
     entries of ``features_per_level`` numbers at each of ``n_levels`` levels."""
-    return n_levels * 2 ** log2_table_size * features_per_level * FLOAT * TABLE_COPIES
+    return n_levels * 2 ** log2_table_size * features_per_level * FLOAT * PARAMETER_COPIES
 
 
 def grid_bytes(resolution: int) -> int:
     """nerfexp-export's grid of ``resolution``^3 densities."""
     return resolution ** 3 * VOXEL_BYTES
+
+
+def path_bytes(n_frames: int) -> int:
+    """A camera path of ``n_frames`` cameras (nerfexp-render's ``--frames``)."""
+    return n_frames * CAMERA_BYTES
 
 
 def frame_bytes(height: int, width: int) -> int:

@@ -2,9 +2,14 @@
 steps, and a log redirected to a file that shows each line when it happens."""
 
 import ast
+import errno
+import os
 import re
 import shutil
+import signal
 import subprocess
+import sys
+import threading
 import time
 
 import lightning as L
@@ -13,6 +18,8 @@ import torch
 from torch.utils.data import DataLoader, IterableDataset
 
 from nerfexp.commands import evaluate, render, report, scene, view
+from nerfexp.commands.console import one_line_errors
+from nerfexp.files import WriteError
 from nerfexp.training.progress import StepProgressBar
 from tests.helpers import REPO, TINY, command, run_nerfexp
 
@@ -145,3 +152,59 @@ def test_every_tqdm_bar_is_off_where_its_stream_is_not_a_terminal():
             disable = [k.value for k in call.keywords if k.arg == "disable"]
             assert len(disable) == 1 and isinstance(disable[0], ast.Constant) and disable[0].value is None, \
                 f"{path.relative_to(REPO)}:{call.lineno}: a tqdm bar without disable=None"
+
+
+@pytest.mark.parametrize(("error", "line"), [
+    (WriteError(errno.ENOSPC, "No space left on device", "/runs/a/eval.json"),
+     "/runs/a/eval.json: cannot write (No space left on device)"),
+    (OSError(errno.EROFS, "Read-only file system", "/runs/a/metrics.jsonl"),  # only a write meets it
+     "/runs/a/metrics.jsonl: cannot write (Read-only file system)"),
+    (OSError(errno.ENOSPC, "No space left on device"), "cannot write (No space left on device)"),
+    (PermissionError(errno.EACCES, "Permission denied", "/runs/a/status.json"),
+     "/runs/a/status.json: Permission denied"),
+    (OSError("/runs/a/metrics.jsonl: wrote 3 of the 90 bytes of a metrics line"),
+     "/runs/a/metrics.jsonl: wrote 3 of the 90 bytes of a metrics line"),
+])
+def test_a_file_that_cannot_be_written_or_read_ends_a_command_in_one_line_naming_it(error, line, capsys):
+    with pytest.raises(SystemExit) as exit, one_line_errors("nerfexp-eval"):
+        raise error
+    assert exit.value.code == f"nerfexp-eval: error: {line}"
+
+
+@pytest.mark.parametrize("signum", [signal.SIGINT, signal.SIGTERM])
+def test_a_signal_ends_a_command_in_one_line_with_128_plus_it(signum, capsys):
+    before = {s: signal.getsignal(s) for s in (signal.SIGINT, signal.SIGTERM)}
+    with pytest.raises(SystemExit) as exit, one_line_errors("nerfexp-report"):
+        try:
+            os.kill(os.getpid(), signum)
+            time.sleep(5)  # the handler raises in this thread at its next instruction
+        except KeyboardInterrupt:  # as Lightning's does (SIGINT inside fit or test): it exits with 1
+            sys.exit(1)
+    assert exit.value.code == 128 + signum
+    assert capsys.readouterr().err == f"nerfexp-report: stopped ({signal.Signals(signum).name})\n"
+    assert {s: signal.getsignal(s) for s in before} == before
+
+
+def test_a_background_threads_file_error_is_said_once_in_one_line(capsys):
+    """As TensorBoard's event writer on a full disk: its thread dies, and the next write in the main thread
+    raises the same error; a thread's error that nothing raises again is a warning after the command."""
+    full = OSError(errno.ENOSPC, "No space left on device")
+    before = threading.excepthook
+
+    def writer():
+        raise full
+
+    with pytest.raises(SystemExit) as exit, one_line_errors("nerfexp"):
+        thread = threading.Thread(target=writer)
+        thread.start()
+        thread.join()
+        raise full  # the owner of the thread, at its next write
+    assert exit.value.code == "nerfexp: error: cannot write (No space left on device)"
+    assert capsys.readouterr().err == ""  # no traceback of the thread, no second line
+    with one_line_errors("nerfexp"):
+        thread = threading.Thread(target=writer)
+        thread.start()
+        thread.join()
+    stopped = "nerfexp: warning: a background thread stopped: cannot write (No space left on device)\n"
+    assert capsys.readouterr().err == stopped
+    assert threading.excepthook is before

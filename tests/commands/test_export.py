@@ -15,6 +15,7 @@ import torch
 from scipy.spatial import cKDTree
 from torch import Tensor, nn
 
+from nerfexp import manifest
 from nerfexp.commands.export import build_parser, main, trained_run
 from nerfexp.data.procedural import (
     CAMERA_ANGLE_X,
@@ -43,7 +44,7 @@ from nerfexp.products.mesh import (
     final_field,
     view_points,
 )
-from tests.helpers import read_ply, run_nerfexp
+from tests.helpers import digests, read_ply, run_nerfexp
 
 F64 = torch.float64
 THRESHOLD = 50.0  # nerfexp-export's default
@@ -290,15 +291,22 @@ def test_the_commands_help_explains_every_option():
     assert "absorbs 1 - exp(-sigma h) of the light" in text and "63% over 0.02" in text
 
 
-def test_an_export_folder_holding_a_users_file_is_refused_and_the_file_kept(tiny_run, tmp_path):
-    run_dir = shutil.copytree(tiny_run, tmp_path / "run")
-    (run_dir / "export").mkdir(exist_ok=True)
-    (run_dir / "export" / "mesh.obj").write_text("mine")
-    with pytest.raises(SystemExit) as exit:
-        main([str(run_dir), "--resolution", "4"])
-    assert exit.value.code == (f"nerfexp-export: error: {run_dir / 'export'} holds files nerfexp-export did not "
-                               "make (mesh.obj): move them elsewhere: nerfexp-export replaces this folder as a whole")
-    assert (run_dir / "export" / "mesh.obj").read_text() == "mine" and not list(run_dir.glob(".export*"))
+def test_an_export_replaces_its_own_folder_and_refuses_one_holding_a_users_file(tiny_run, tmp_path):
+    run_dir = shutil.copytree(tiny_run, tmp_path / "run", ignore=shutil.ignore_patterns("export"))
+    main([str(run_dir), "--resolution", "4"])
+    main([str(run_dir), "--resolution", "4"])  # its own folder: replaced as a whole
+    assert manifest.unproven(run_dir, ["export/mesh.ply", "export/points.ply"]) == []
+    for name, content in (("mesh.obj", "mine"), ("mesh.ply", "a user's own mesh, in the name of an export's")):
+        (run_dir / "export" / name).write_text(content)
+        before = digests(run_dir / "export")
+        with pytest.raises(SystemExit) as exit:
+            main([str(run_dir), "--resolution", "4"])
+        assert exit.value.code == (
+            f"nerfexp-export: error: {run_dir / 'export' / name} is not a file nerfexp-export wrote (it is not in "
+            f"{run_dir / manifest.MANIFEST}, or changed since): move it elsewhere: nerfexp-export replaces this "
+            "folder as a whole")
+        assert digests(run_dir / "export") == before and not list(run_dir.glob(".export*"))
+        (run_dir / "export" / name).rename(tmp_path / name)  # moved: the next one is refused alone
 
 
 @pytest.mark.slow

@@ -15,15 +15,26 @@ from hydra import compose, initialize_config_module
 from hydra.utils import instantiate
 from omegaconf import OmegaConf
 
+from nerfexp import manifest
 from nerfexp.commands import render
 from nerfexp.data.procedural import CAMERA_RADIUS
+from nerfexp.data.video import FPS_RANGE
 from nerfexp.errors import NerfexpError
 from nerfexp.geometry.cameras import camera_rays
 from nerfexp.pixels import to_uint8
+from nerfexp.products import frames
 from nerfexp.products.camera_files import read_camera_path
-from nerfexp.products.frames import default_path, frame_images, frame_size, render_frame, scene_focus_depth
+from nerfexp.products.frames import (
+    default_path,
+    frame_images,
+    frame_size,
+    render_frame,
+    render_path,
+    scene_focus_depth,
+)
+from nerfexp.reading import RECORD_BYTES
 from nerfexp.rundir.trained import load_module, run_config
-from tests.helpers import TINY, cameras_at, run_nerfexp
+from tests.helpers import TINY, cameras_at, digests, run_nerfexp
 
 
 def test_path_defaults_focus_and_frame_size():
@@ -148,13 +159,24 @@ def camera_file(path: Path, **changes) -> Path:
     ({"height": None}, "no key 'height': expected a positive even number of pixels"),
     ({"width": 0}, "key 'width': expected a positive even number of pixels, got 0"),
     ({"width": 21}, "key 'width': expected a positive even number of pixels, got 21"),
-    ({"focal": -1}, "key 'focal': expected a positive focal length in pixels, got -1"),
+    ({"focal": -1}, "key 'focal': expected a focal length in pixels in [2^-24, 2^24], got -1"),
+    # issue 39 section 4: extreme values, each where it stops meaning anything (camera_files, cameras.POSITION_LIMIT)
+    ({"focal": 5e-324}, "key 'focal': expected a focal length in pixels in [2^-24, 2^24], got 5e-324"),
+    ({"focal": 1e308}, "key 'focal': expected a focal length in pixels in [2^-24, 2^24], got 1e+308"),
+    ({"fps": 5e-324}, "key 'fps': expected a number of frames per second in [0.001, 1000], got 5e-324"),
+    ({"fps": 1e308}, "key 'fps': expected a number of frames per second in [0.001, 1000], got 1e+308"),
+    ({"fps": True}, "key 'fps': expected a number of frames per second in [0.001, 1000], got True"),
+    ({"c2w": [[[1, 0, 0, 1e308], [0, 1, 0, 0], [0, 0, 1, 0], [0, 0, 0, 1]]]},
+     "item 0 is not a rigid camera pose: its position [1e+308, 0.0, 0.0] is more than 2^24 scene units from the "
+     "origin, where float32 positions have no sub-unit resolution"),
+    # 2^80 x 20 pixels of 20 bytes: 2^88.6 bytes, said as a power of two (no float overflows on the way)
+    ({"height": 2 ** 80}, "a frame of 1208925819614629174706176 x 20 pixels needs about 2^88 bytes of memory"),
     ({"c2w": []}, "key 'c2w': expected a non-empty list of 4 x 4 rigid camera-to-world matrices (OpenGL "
                   "convention), got an empty list"),
     ({"c2w": [[[1, 0, 0, 0]] * 3]}, "key 'c2w': expected a non-empty list of 4 x 4 rigid camera-to-world matrices "
                                     "(OpenGL convention), item 0 is not a 4 x 4 matrix of numbers"),
     ({"c2w": [torch.diag(torch.tensor([2.0, 2, 2, 1])).tolist()]},
-     "item 0 is not a rigid transform: its rotation is not orthonormal"),
+     "item 0 is not a rigid camera pose: its rotation is not orthonormal"),
     ({"c2w": "cameras"}, "got a str"),
 ])
 def test_a_bad_cameras_file_is_one_error_naming_the_file_the_key_and_what_was_expected(tmp_path, changes, message):
@@ -167,7 +189,11 @@ def test_a_bad_cameras_file_is_one_error_naming_the_file_the_key_and_what_was_ex
 def test_a_cameras_file_that_is_no_json_object_is_refused_before_the_run_is_read(tmp_path):
     (tmp_path / "bad.json").write_text("{not json")
     (tmp_path / "list.json").write_text("[1, 2]")
-    for name, message in (("bad.json", "not JSON (Expecting property name"), ("list.json", "expected a JSON object")):
+    (tmp_path / "deep.json").write_text("[" * 100_000 + "]" * 100_000)
+    (tmp_path / "huge.json").write_bytes(b" " * (RECORD_BYTES + 1))
+    for name, message in (("bad.json", "not JSON (column 2: Expecting property name"),
+                          ("list.json", "expected a JSON object"), ("deep.json", "JSON nested too deeply to read"),
+                          ("huge.json", f"larger than the {RECORD_BYTES:,} bytes nerfexp reads of such a file")):
         with pytest.raises(NerfexpError, match=re.escape(f"--cameras {tmp_path / name}: {message}")):
             read_camera_path(tmp_path / name)
     # on the command line: one line, before the run is looked for (there is none here)
@@ -213,12 +239,81 @@ def test_rendering_a_cameras_file_renders_exactly_its_cameras(tiny_run, tmp_path
     assert result.returncode == 2 and "--cameras renders the file's cameras: --frames do not apply" in result.stderr
 
 
-def test_a_render_folder_holding_a_users_file_is_refused_and_the_file_kept(tiny_run, tmp_path):
-    run_dir = shutil.copytree(tiny_run, tmp_path / "run")
-    (run_dir / "render").mkdir(exist_ok=True)
-    (run_dir / "render" / "notes.txt").write_text("mine")
+def test_a_render_replaces_its_own_folder_and_refuses_one_holding_a_users_file(tiny_run, tmp_path):
+    run_dir = shutil.copytree(tiny_run, tmp_path / "run", ignore=shutil.ignore_patterns("render"))
+    render.main([str(run_dir), "--frames", "3", "--size", "8"])
+    render.main([str(run_dir), "--frames", "2", "--size", "8"])  # its own folder: replaced as a whole
+    assert sorted(p.name for p in (run_dir / "render" / "rgb").iterdir()) == ["0000.png", "0001.png"]
+    assert manifest.unproven(run_dir, manifest.folder_files(run_dir, "render")) == []
+    assert not [entry for entry in manifest.read_records(run_dir) if entry.startswith("render/rgb/0002")]
+
+    (run_dir / "render" / "notes.txt").write_text("mine")  # a user's file beside a render's, and one in its place
+    (run_dir / "render" / "rgb" / "0001.png").write_bytes(b"a user's own frame")
+    before = digests(run_dir / "render")
     with pytest.raises(SystemExit) as exit:
         render.main([str(run_dir), "--frames", "2", "--size", "8"])
-    assert exit.value.code == (f"nerfexp-render: error: {run_dir / 'render'} holds files nerfexp-render did not "
-                               "make (notes.txt): move them elsewhere: nerfexp-render replaces this folder as a whole")
-    assert (run_dir / "render" / "notes.txt").read_text() == "mine" and not list(run_dir.glob(".render*"))
+    assert exit.value.code == (
+        f"nerfexp-render: error: {run_dir / 'render/notes.txt'}, {run_dir / 'render/rgb/0001.png'} are not files "
+        f"nerfexp-render wrote (they are not in {run_dir / manifest.MANIFEST}, or changed since): move them "
+        "elsewhere: nerfexp-render replaces this folder as a whole")
+    assert digests(run_dir / "render") == before and not list(run_dir.glob(".render*"))
+
+
+@pytest.mark.parametrize(("arguments", "message"), [
+    (["--fps", "1e308"], "argument --fps: expected a number in [0.001, 1000], got 1e308"),
+    (["--fps", "5e-324"], "argument --fps: expected a number in [0.001, 1000], got 5e-324"),
+    (["--fps", "nan"], "argument --fps: expected a number in [0.001, 1000], got nan"),
+    (["--focus", "1e308"], "argument --focus: expected a finite number > 0 and <= 2^24, got 1e308"),
+    (["--frames", str(2 ** 70)], f"argument --frames: {2 ** 70}: a camera path of {2 ** 70} frames needs about 2^77 "
+                                 "bytes of memory, more than this machine's "),
+    (["--size", str(10 ** 400)], "argument --size: " + "1" + "0" * 400 + ": a frame of "),
+])
+def test_an_argument_beyond_what_it_can_mean_is_one_line_before_the_run_is_read(tmp_path, capsys, arguments,
+                                                                                message):
+    # issue 39 section 4: "--fps 1e308" printed "2 frames written" with no video; a camera 1e308 away was black
+    with pytest.raises(SystemExit) as exit:
+        render.main([str(tmp_path / "no_run"), *arguments])
+    assert exit.value.code == 2 and capsys.readouterr().err.splitlines()[-1].startswith(
+        f"nerfexp-render: error: {message}")
+
+
+@pytest.mark.parametrize("fps", FPS_RANGE)
+def test_videos_are_written_at_either_end_of_the_frame_rates_nerfexp_takes(tiny_run, tmp_path, fps):
+    module, _ = load_module(run_config(tiny_run), tiny_run / "checkpoints" / "last.ckpt")
+    scene = instantiate(run_config(tiny_run).data)
+    render_path(module, scene, cameras_at([4.0, 4.0], [30.0, 20.0], [0.0, 40.0]), 8, 8, 10.0, tmp_path, fps)
+    for kind in ("rgb", "depth", "opacity"):
+        with imageio.get_reader(tmp_path / f"{kind}.mp4") as video:
+            assert video.count_frames() == 2
+
+
+def test_a_video_ffmpeg_did_not_write_is_an_error_not_a_frame_count(tiny_run, tmp_path, monkeypatch):
+    # imageio's writer leaves ffmpeg's failure to ffmpeg's stderr: the files are checked
+    class Silent:
+        def __init__(self, *args, **kwargs):
+            pass
+
+        def __enter__(self):
+            return self
+
+        def __exit__(self, *exc):
+            return False
+
+        def append_data(self, frame):
+            pass
+
+    monkeypatch.setattr(frames.imageio, "get_writer", Silent)
+    module, _ = load_module(run_config(tiny_run), tiny_run / "checkpoints" / "last.ckpt")
+    scene = instantiate(run_config(tiny_run).data)
+    with pytest.raises(NerfexpError, match=r"^ffmpeg wrote no rgb.mp4, depth.mp4, opacity.mp4 at 30 frames per "
+                                           r"second \(its messages above say why\)$"):
+        render_path(module, scene, cameras_at([4.0], [30.0], [0.0]), 8, 8, 10.0, tmp_path, 30.0)
+
+
+def test_a_camera_as_far_as_cameras_may_be_renders_finite_images(tiny_run):
+    # float32 positions 2^24 from the origin are a unit apart: still rays, still finite colours (not NaN's black)
+    module, _ = load_module(run_config(tiny_run), tiny_run / "checkpoints" / "last.ckpt")
+    scene = instantiate(run_config(tiny_run).data)
+    frame = render_frame(module, scene, cameras_at([2.0 ** 24 * 0.99], [30.0], [0.0])[0], 4, 4, 5.0)
+    assert all(torch.isfinite(image).all() for image in frame.values())
+    assert ((frame["rgb"] >= 0) & (frame["rgb"] <= 1)).all()

@@ -39,11 +39,10 @@ def test_nerfexp_scene_replaces_its_own_scene_and_refuses_any_other_folder(tmp_p
     assert sorted(p.name for p in (own / "train").iterdir()) == ["r_0.png", "r_1.png"]
     assert json.loads((own / scene.MARKER).read_text())["views"] == {"train": 2, "val": 1, "test": 1}
 
-    (own / "notes.txt").write_text("mine")  # its own scene with a user's file; a run directory; a dataset
-    dataset = tmp_path / "dataset"
-    shutil.copytree(own, dataset, ignore=shutil.ignore_patterns(scene.MARKER, "notes.txt"))
+    dataset = tmp_path / "dataset"  # a dataset (no marker); a run directory (another command's manifest)
+    shutil.copytree(own, dataset, ignore=shutil.ignore_patterns(scene.MARKER))
     run_dir = shutil.copytree(tiny_run, tmp_path / "run", ignore=shutil.ignore_patterns("render", "export"))
-    for folder, shown in ((own, "notes.txt"), (dataset, "test/r_0.png, train/r_0.png, train/r_1.png, ..."),
+    for folder, shown in ((dataset, "test/r_0.png, train/r_0.png, train/r_1.png, ..."),
                           (run_dir, ".hydra/config.yaml, .hydra/hydra.yaml, .hydra/overrides.yaml, ...")):
         before = scene_files(folder)
         with pytest.raises(SystemExit) as exit:
@@ -51,3 +50,27 @@ def test_nerfexp_scene_replaces_its_own_scene_and_refuses_any_other_folder(tmp_p
         assert exit.value.code == (f"nerfexp-scene: error: {folder} holds files nerfexp-scene did not make "
                                    f"({shown}): choose a new or empty folder")
         assert scene_files(folder) == before
+
+    (own / "notes.txt").write_text("mine")  # its own scene with a user's file, and a view changed since
+    (own / "train" / "r_0.png").write_bytes(b"a user's own photograph")
+    before = scene_files(own)
+    with pytest.raises(SystemExit) as exit:
+        write_tiny(own)
+    assert exit.value.code == (f"nerfexp-scene: error: {own / 'notes.txt'}, {own / 'train/r_0.png'} are not files "
+                               f"nerfexp-scene wrote (they are not in {own / 'nerfexp-manifest.json'}, or changed "
+                               "since): move them elsewhere, or choose a new or empty folder")
+    assert scene_files(own) == before
+
+
+@pytest.mark.parametrize(("arguments", "refused"), [
+    (["--resolution", "9" * 40], f"--resolution {'9' * 40} --n-train 100 --supersample 2: a split of 100 views needs "
+                                 "about 2^279 bytes of memory"),
+    (["--n-val", "9" * 400], f"--resolution 100 --n-val {'9' * 400} --supersample 2: a split of {'9' * 400} views "
+                             "needs about 2^1349 bytes of memory"),  # past any float: said as a power of two
+])
+def test_a_count_too_large_to_render_is_one_line_whatever_its_size(tmp_path, arguments, refused):
+    # issue 39 section 4: every number a command takes has a range; these counts are bounded by memory
+    with pytest.raises(SystemExit) as exit:
+        scene.main([str(tmp_path / "scene"), *arguments])
+    assert str(exit.value.code).startswith(f"nerfexp-scene: error: {refused}")
+    assert not (tmp_path / "scene").exists()

@@ -5,6 +5,7 @@ import json
 import math
 import queue
 import re
+import shutil
 import signal
 import subprocess
 import threading
@@ -19,11 +20,14 @@ from PIL import Image
 from viser import transforms as viser_transforms
 from viser._viser import CameraHandle
 
+from nerfexp import manifest
+from nerfexp.commands import view
 from nerfexp.geometry.cameras import camera_rays, focal_from_fov, look_at
 from nerfexp.geometry.viewer_cameras import vertical_fov
 from nerfexp.products.camera_files import read_camera_path
 from nerfexp.products.viewer import (
     ProgressiveRenderer,
+    Viewer,
     ViewRequest,
     refinement_sizes,
     render_request,
@@ -184,6 +188,63 @@ def test_a_saved_camera_path_is_read_back_by_nerfexp_render(tmp_path):
     assert (read.name, read.height, read.width, read.focal, read.fps) == (
         path.name, path.height, path.width, path.focal, path.fps)
     torch.testing.assert_close(read.c2w, torch.stack([k.c2w for k in keyframes]))
+
+
+def test_a_camera_path_is_saved_over_its_own_file_only(tmp_path, capsys):
+    viewer = SimpleNamespace(state_lock=threading.Lock(), keyframes=[request(0.0), request(2.0)], max_width=25,
+                             run_dir=tmp_path, status=SimpleNamespace(content=""))
+    path = tmp_path / CAMERA_PATH
+    Viewer.save(viewer)
+    viewer.keyframes.append(request(1.0))
+    Viewer.save(viewer)  # its own file: replaced
+    assert len(json.loads(path.read_text())["c2w"]) == 3 and viewer.status.content.startswith("3 cameras saved")
+    assert manifest.unproven(tmp_path, [CAMERA_PATH.as_posix()]) == []
+    path.write_text("a camera path the user copied here")  # while the viewer runs: kept, the save refused
+    Viewer.save(viewer)
+    message = (f"{path} is not a file nerfexp-view wrote (it is not in {tmp_path / manifest.MANIFEST}, or changed "
+               f"since): move it elsewhere: nerfexp-view saves camera paths to {CAMERA_PATH.as_posix()}")
+    assert path.read_text() == "a camera path the user copied here" and viewer.status.content == f"Not saved: {message}"
+    assert f"nerfexp-view: camera path not saved: {message}" in capsys.readouterr().out
+
+
+def test_a_run_holding_a_users_camera_path_is_refused_before_it_is_served(tiny_run, tmp_path, monkeypatch):
+    run_dir = shutil.copytree(tiny_run, tmp_path / "run", ignore=shutil.ignore_patterns("view"))
+    (run_dir / CAMERA_PATH).parent.mkdir()
+    (run_dir / CAMERA_PATH).write_text("mine")
+    (run_dir / "view" / "notes.txt").write_text("mine too")  # beside the camera path: no reason to refuse
+
+    def served(*args, **kwargs):
+        raise AssertionError("the run was served")
+
+    monkeypatch.setattr(view, "instantiate", served)  # the scene is built after the check, before serving
+    with pytest.raises(SystemExit) as exit:
+        view.main([str(run_dir), "--port", "0"])
+    assert exit.value.code == f"nerfexp-view: error: {run_dir / CAMERA_PATH} is not a file nerfexp-view wrote " + (
+        f"(it is not in {run_dir / manifest.MANIFEST}, or changed since): move it elsewhere: nerfexp-view saves "
+        f"camera paths to {CAMERA_PATH.as_posix()}")
+    (run_dir / CAMERA_PATH).unlink()
+    with pytest.raises(AssertionError, match="the run was served"):
+        view.main([str(run_dir), "--port", "0"])
+
+
+@pytest.mark.parametrize("host", ["0.0.0.0", "::", "192.168.1.20", "gpu-box.example.org", "", "127.0.0.1", "::1",
+                                  "127.1.2.3", "localhost"])
+def test_serving_beyond_loopback_is_warned_of_in_one_line_before_the_run_is_served(tiny_run, monkeypatch, capsys,
+                                                                                   host):
+    # issue 39 section 6: the viewer has no password; anything but this machine's loopback lets others drive it
+    def served(*args, **kwargs):
+        raise AssertionError("the run was served")
+
+    monkeypatch.setattr(view, "instantiate", served)  # the scene is built after the warning, before serving
+    with pytest.raises(AssertionError, match="the run was served"):
+        view.main([str(tiny_run), "--port", "0", "--host", host])
+    lines = capsys.readouterr().err.splitlines()
+    if host in ("127.0.0.1", "::1", "127.1.2.3", "localhost"):
+        assert lines == [] and view.remote_warning(host, tiny_run) is None
+    else:
+        assert lines == [f"nerfexp-view: warning: serving on {host}, not this machine alone: anyone who can reach it "
+                         f"can watch the run, record cameras and write a camera path into {tiny_run / CAMERA_PATH}, "
+                         "with no password (from elsewhere, forward the port over SSH instead: docs/viewer.md)"]
 
 
 FRAME = re.compile(r"frame (\d+) \((\d+) x (\d+), (\w+), camera at \(([^)]*)\) looking along \(([^)]*)\)\) "

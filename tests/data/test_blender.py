@@ -167,7 +167,7 @@ def argument(**options):
 @pytest.mark.parametrize("breakage, message", [
     (break_root, "data.root .*nowhere does not exist.*config key data.root"),
     (break_split, "transforms_val.json does not exist; transforms files in .*: transforms_train.json"),
-    (break_json, "transforms_train.json: invalid JSON at line 3"),
+    (break_json, r"transforms_train.json: not JSON \(line 3, column"),
     (drop("camera_angle_x"), "transforms_train.json: missing key 'camera_angle_x'"),
     (drop("frames"), "transforms_train.json: missing key 'frames'"),
     (drop_in_frame("file_path"), "frame 1: missing key 'file_path'"),

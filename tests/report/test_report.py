@@ -4,6 +4,7 @@ import csv
 import json
 import math
 import os
+import re
 import socket
 import subprocess
 import sys
@@ -12,13 +13,15 @@ from pathlib import Path
 import imageio.v3 as iio
 import pytest
 
+from nerfexp import manifest
 from nerfexp.commands.report import main
+from nerfexp.reading import UnreadableFile
 from nerfexp.report.folder import write_report
 from nerfexp.report.plots import mean_curve
 from nerfexp.report.runs import Run, find_runs, run_precision
 from nerfexp.report.variants import PAPER_ABLATION, group_variants
-from nerfexp.rundir.layout import process_start
-from tests.helpers import make_run
+from nerfexp.rundir.layout import planned_jobs, process_start
+from tests.helpers import digests, make_run
 
 
 def dead_pid() -> int:
@@ -244,7 +247,7 @@ def test_the_command_line(tmp_path, sweep):
     out = tmp_path / "out"
     main([str(sweep), "--out", str(out)])
     assert {p.name for p in out.iterdir()} == {"report.md", "report.csv", "psnr_vs_time.png", "pareto.png",
-                                              "report.html", "report_images"}
+                                              "report.html", "report_images", *manifest.BOOKKEEPING}
     empty = tmp_path / "empty"
     empty.mkdir()
     with pytest.raises(SystemExit, match="no runs"):
@@ -263,6 +266,44 @@ def test_jobs_a_stopped_sweep_never_started_are_counted(tmp_path):
         make_run(tmp_path, str(i), [f"hierarchical={'true' if i < 3 else 'false'}", f"seed={i % 3}", "scale.steps=10"])
     write_report([tmp_path], tmp_path)
     assert f"`{tmp_path}` plans 6 jobs, 4 started: the rest never started" in (tmp_path / "report.md").read_text()
+
+
+BASIC_SWEEPER = "hydra:\n  sweeper:\n    _target_: hydra._internal.core_plugins.basic_sweeper.BasicSweeper\n"
+
+
+@pytest.mark.parametrize(("params", "jobs"), [
+    ("      seed: range(0,1000000000)\n", 1_000_000_000),  # counted, never listed
+    ("      seed: range(0,1,0.25)\n      encoding: none,posenc\n", 8),
+    ("      seed: choice(0,1)\n      hierarchical: ${oc.env:NERFEXP_TEST_SECRET}\n", 2),  # text, never resolved
+    ("      seed: sort(range(0,1000000000))\n", None),  # sort lists what it sorts: not counted
+    ("      seed: range(0,3,0)\n", None),
+])
+def test_a_sweeps_planned_jobs_are_counted_without_expanding_or_resolving(tmp_path, params, jobs, monkeypatch):
+    monkeypatch.setenv("NERFEXP_TEST_SECRET", "0,1,2")
+    (tmp_path / "multirun.yaml").write_text(f"{BASIC_SWEEPER}    params:\n{params}  overrides:\n    task: []\n")
+    assert planned_jobs(tmp_path) == jobs
+
+
+LAUGHS = "a: &a [lol, lol, lol, lol, lol, lol, lol, lol, lol]\n" + "".join(
+    f"{b}: &{b} [{', '.join(['*' + a] * 9)}]\n" for a, b in zip("abcdefgh", "bcdefghi"))
+
+
+@pytest.mark.parametrize(("content", "reason"), [
+    (b"{}", "not a sweep's multirun.yaml (it has no hydra.sweeper)"),
+    (b"hydra: [unclosed\n", "not YAML ("),
+    (bytes(range(256)), "not UTF-8 text"),
+    (LAUGHS.encode(), "a YAML anchor or alias, which nerfexp does not read"),
+    ((BASIC_SWEEPER + "    params: [1]\n").encode(), "its sweeper's params or task overrides are not a mapping"),
+])
+def test_a_damaged_multirun_yaml_costs_the_report_its_planned_count_only(tmp_path, content, reason):
+    (tmp_path / "multirun.yaml").write_bytes(content)
+    make_run(tmp_path, "0", ["seed=0"])
+    with pytest.raises(UnreadableFile, match=re.escape(reason)):
+        planned_jobs(tmp_path)
+    write_report([tmp_path], tmp_path)
+    report = (tmp_path / "report.md").read_text()
+    assert f"- `{tmp_path / 'multirun.yaml'}` not read (" in report and reason in report
+    assert "how many jobs the sweep planned is unknown" in report and "Runs: 1 (1 finished)" in report
 
 
 def test_the_order_of_overrides_does_not_split_a_variant(tmp_path):
@@ -294,9 +335,9 @@ def test_damaged_runs_are_listed_with_the_file_and_the_reason_and_the_rest_is_re
     write_report([sweep], sweep)
     report = (sweep / "report.md").read_text()
     assert "Runs: 7 (1 finished, 1 failed, 1 killed, 1 running, 3 damaged)" in report
-    assert f"- `{sweep / '0'}` (hierarchical=true, seed=0): damaged: results.json: not readable as JSON (" in report
+    assert f"- `{sweep / '0'}` (hierarchical=true, seed=0): damaged: results.json: not JSON (" in report
     assert f"- `{sweep / '1'}` (hierarchical=true, seed=1): damaged: metrics.jsonl: line 1 is not JSON (" in report
-    assert f"- `{sweep / '3'}` (hierarchical=false, seed=0): damaged: status.json: not readable as JSON (" in report
+    assert f"- `{sweep / '3'}` (hierarchical=false, seed=0): damaged: status.json: not JSON (" in report
     rows = {row["variant"]: row for row in read_csv(sweep / "report.csv")}
     assert float(rows["hierarchical=true"]["test_psnr_mean"]) == 24.0  # seed 2 alone is counted
     # damaged jobs count against their variant; one whose jobs are all unusable stays in the table
@@ -319,7 +360,7 @@ def test_a_damaged_job_whose_overrides_cannot_be_read_joins_no_variant(sweep):
     assert [run.overrides for run in runs if run.state == "damaged"] == [None]
     write_report([sweep], sweep)
     report = (sweep / "report.md").read_text()
-    assert f"- `{sweep / '3'}` (overrides unreadable): damaged: status.json: not readable as JSON (" in report
+    assert f"- `{sweep / '3'}` (overrides unreadable): damaged: status.json: not JSON (" in report
     rows = {row["variant"]: row for row in read_csv(sweep / "report.csv")}
     assert set(rows) == {"hierarchical=true", "hierarchical=false", "encoding=none"}
     assert (rows["hierarchical=false"]["finished"], rows["hierarchical=false"]["runs"]) == ("0", "2")
@@ -348,13 +389,61 @@ def test_a_cut_last_metrics_line_is_damage_in_a_run_that_ended_not_in_one_that_r
     assert "| hierarchical=true | 2/3 | 23.00 ± 1.41 |" in report
 
 
-def test_a_report_into_a_folder_holding_a_users_files_is_refused_and_writes_nothing(tiny_run, tmp_path):
+def test_a_report_writes_over_its_own_files_and_beside_a_users(tiny_run, tmp_path):
     out = tmp_path / "out"
-    (out / "0").mkdir(parents=True)  # a run in the folder is nerfexp's; the user's file is not
+    (out / "0").mkdir(parents=True)
     (out / "0" / "status.json").write_text("{}")
-    (out / "notes.txt").write_text("mine")
+    (out / "notes.txt").write_text("mine")  # of a name the report does not write: left beside it
+    main([str(tiny_run), "--out", str(out)])
+    pages = ["report.md", "report.csv", "report.html", "psnr_vs_time.png", "pareto.png"]
+    images = manifest.folder_files(out, "report_images")
+    assert "report_images/view0/truth.png" in images and manifest.unproven(out, [*pages, *images]) == []
+    (out / images[0]).unlink()  # gone since: nothing to lose
+    main([str(tiny_run), "--out", str(out), "--views", "1"])  # its own report: replaced, the pictures as a whole
+    images = manifest.folder_files(out, "report_images")
+    assert "report_images/view1/truth.png" in images and all(image.startswith("report_images/view1/")
+                                                             for image in images)
+    assert manifest.read_records(out).keys() == {*pages, *images}  # the records of the pictures gone, forgotten
+    assert (out / "notes.txt").read_text() == "mine" and (out / "0" / "status.json").read_text() == "{}"
+
+
+def test_a_report_refuses_to_write_over_a_users_files_of_its_names_and_writes_nothing(sweep):
+    main([str(sweep)])  # the sweep's own report, then the user's files in its names
+    (sweep / "report.md").write_text("DO NOT LOSE")
+    (sweep / "report.csv").write_text("mine,too\n")
+    (sweep / "report_images" / "view0").mkdir(parents=True)
+    (sweep / "report_images" / "view0" / "holiday.png").write_bytes(b"\x89PNG a holiday")
+    before = digests(sweep)
     with pytest.raises(SystemExit) as exit:
-        main([str(tiny_run), "--out", str(out)])
-    assert exit.value.code == (f"nerfexp-report: error: {out} holds files nerfexp-report did not make (notes.txt): "
-                               "choose another folder for the report (--out DIR)")
-    assert sorted(p.relative_to(out).as_posix() for p in out.rglob("*")) == ["0", "0/status.json", "notes.txt"]
+        main([str(sweep)])
+    assert exit.value.code == (
+        f"nerfexp-report: error: {sweep / 'report.md'}, {sweep / 'report.csv'}, "
+        f"{sweep / 'report_images/view0/holiday.png'} are not files nerfexp-report wrote (they are not in "
+        f"{sweep / manifest.MANIFEST}, or changed since): move them, or choose another folder for the report "
+        "(--out DIR)")
+    assert digests(sweep) == before and not list(sweep.glob(".report*"))
+    for name in ("report.md", "report.csv", "report_images"):  # moved: the report is written
+        (sweep / name).rename(sweep.parent / name)
+    main([str(sweep)])
+    assert (sweep.parent / "report.md").read_text() == "DO NOT LOSE" and (sweep / "report.md").is_file()
+
+
+@pytest.mark.parametrize("label", ["=HYPERLINK(\"http://x\",\"y\")", "+1+2", "-2+3", "@SUM(A1:A9)", "\t=1+2",
+                                   "\r=1+2"])
+def test_report_csv_text_cells_that_a_spreadsheet_would_read_as_a_formula_are_prefixed(tmp_path, label):
+    # OWASP's CSV injection guidance: a text cell starting with =, +, -, @, tab or carriage return gets a
+    # leading ' (read as "this is text"); numbers, negative ones included, are written as numbers
+    make_run(tmp_path, "0", [label, "seed=0"], psnr=20.0)
+    make_run(tmp_path, "1", ["ablation=complete", "seed=0"], psnr=22.0)
+    write_report([tmp_path], tmp_path, reference=label)
+    with open(tmp_path / "report.csv", newline="") as file:  # a carriage return inside a quoted cell kept
+        rows = {row["variant"]: row for row in csv.DictReader(file)}
+    assert set(rows) == {"'" + label, "ablation=complete"}
+    assert rows["ablation=complete"]["reference"] == "'" + label  # every text cell, not only the label's
+    assert rows["ablation=complete"]["psnr_diff"] == "2.0" and rows["'" + label]["psnr_diff"] == "nan"
+    ours = rows["'" + label]
+    assert ours["test_psnr_mean"] == "20.0" and ours["runs"] == "1"
+    make_run(tmp_path, "2", ["ablation=no_posenc", "seed=0"], psnr=19.5)
+    write_report([tmp_path], tmp_path, reference="ablation=complete")
+    rows = {row["variant"]: row for row in read_csv(tmp_path / "report.csv")}
+    assert rows["ablation=no_posenc"]["psnr_diff"] == "-2.5"  # a negative number stays a number

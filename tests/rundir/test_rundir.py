@@ -15,9 +15,10 @@ import pytest
 from hydra.utils import get_class, instantiate
 from omegaconf import OmegaConf
 
+from nerfexp import manifest
 from nerfexp.commands import scene
 from nerfexp.errors import NerfexpError
-from nerfexp.rundir.claim import admit_run, claim, held_run
+from nerfexp.rundir.claim import admit_run, claim, held_run, remove_entries
 from nerfexp.rundir.layout import (
     LAST_CHECKPOINT,
     RUN_CONFIG,
@@ -27,7 +28,7 @@ from nerfexp.rundir.layout import (
     read_metrics,
 )
 from nerfexp.rundir.trained import find_run, run_config
-from tests.helpers import one_error_line, run_nerfexp
+from tests.helpers import digests, one_error_line, run_nerfexp
 
 # The config an LLFF run saved before the layers (as nerfexp wrote it then, abridged to what builds
 # objects): the old module paths of every class, and the field's noise read from the data group.
@@ -157,7 +158,10 @@ def test_a_directory_is_claimed_once_and_then_holds_a_run(tmp_path):
     assert held_run(run_dir) is None
     assert claim(run_dir, ["seed=1"]) and not claim(run_dir, ["seed=2"])  # the second run finds it taken
     assert held_run(run_dir) == "a running run (seed=1)"
-    assert [p.name for p in run_dir.iterdir()] == ["status.json"]  # whole, and no draft left beside it
+    # whole, and no draft left beside it; recorded in the directory's manifest
+    assert sorted(p.name for p in run_dir.iterdir()) == sorted(["status.json", *manifest.BOOKKEEPING])
+    assert manifest.unproven(run_dir, ["status.json"]) == [] and manifest.read_records(run_dir).keys() == {
+        "status.json"}
     status = json.loads((run_dir / "status.json").read_text())
     assert (status["pid"], status["process_start"]) == (os.getpid(), process_start(os.getpid()))
     results_only = tmp_path / "old"  # a run's results without a status (a run's files copied elsewhere)
@@ -188,23 +192,19 @@ def test_a_directory_is_claimed_once_where_the_file_system_has_no_hard_links(tmp
 
     monkeypatch.setattr(os, "link", no_links)
     assert claim(tmp_path / "run", ["seed=1"]) and not claim(tmp_path / "run", ["seed=2"])
-    assert [p.name for p in (tmp_path / "run").iterdir()] == ["status.json"]
+    assert sorted(p.name for p in (tmp_path / "run").iterdir()) == sorted(["status.json", *manifest.BOOKKEEPING])
     assert held_run(tmp_path / "run") == "a running run (seed=1)"
 
 
-def digests(folder: Path) -> dict[str, str]:
-    """Every file under ``folder`` (relative path) with the SHA-256 of its bytes: to show nothing changed."""
-    return {p.relative_to(folder).as_posix(): hashlib.sha256(p.read_bytes()).hexdigest()
-            for p in sorted(folder.rglob("*")) if p.is_file()}
-
-
 def a_failed_run(run_dir: Path, **status) -> Path:
-    """A run directory as a run that failed on bad data leaves it: its status (``status``), config and log."""
+    """A run directory as a run that failed on bad data leaves it: its status (``status``), config and log,
+    recorded in its manifest."""
     (run_dir / ".hydra").mkdir(parents=True)
     (run_dir / ".hydra" / "config.yaml").write_text("seed: 0\n")
     (run_dir / "nerfexp.log").write_text("")
     record = {"state": "failed", "overrides": ["seed=0"], "host": socket.gethostname(), "pid": 1} | status
     (run_dir / "status.json").write_text(json.dumps(record))
+    manifest.record(run_dir, [".hydra/config.yaml", "nerfexp.log", "status.json"])
     return run_dir
 
 
@@ -245,40 +245,93 @@ def test_a_run_that_failed_on_bad_data_is_replaced_and_only_its_files_removed(tm
     assert json.loads((run_dir / "status.json").read_text())["overrides"][-1] == "seed=7"
     assert (run_dir / "empty").is_dir()
 
-    (run_dir / "notes.txt").write_text("mine")  # anything a user made there: refused, nothing removed
+    # a user's files put there since, of names a run's libraries and commands use: refused, nothing removed
+    for name in ("report.md", "images/photo.png", "csv/mine.csv", "export/mesh.ply"):
+        (run_dir / name).parent.mkdir(exist_ok=True)
+        (run_dir / name).write_text("DO NOT LOSE")
     before = digests(run_dir)
-    with pytest.raises(NerfexpError, match=re.escape(f"{run_dir} holds files nerfexp did not make (notes.txt): ")):
-        admit_run(run_dir, None, "nerfexp.log")
-    assert digests(run_dir) == before
+    third = run_nerfexp(*bad, "seed=8", cwd=tmp_path)
+    assert one_error_line(third) == (
+        f"nerfexp: error: {run_dir / 'csv/mine.csv'}, {run_dir / 'export/mesh.ply'}, {run_dir / 'images/photo.png'} "
+        f"and 1 more are not files nerfexp wrote (they are not in {run_dir / manifest.MANIFEST}, or changed since): "
+        "move them elsewhere, or choose another directory (hydra.run.dir=...)")
+    assert len(third.stderr.strip().splitlines()) == 1 and digests(run_dir) == before
 
 
 def test_a_held_run_is_replaced_only_where_it_ended_unfinished_and_the_advice_names_a_saved_checkpoint(tmp_path):
     # failed, or running in a process of this host that no longer runs: replaced, all of it
     failed = a_failed_run(tmp_path / "failed")
-    assert admit_run(failed, None, "nerfexp.log") == [".hydra/config.yaml", "nerfexp.log", "status.json"]
+    assert admit_run(failed, None) == [".hydra/config.yaml", "nerfexp.log", "status.json"]
     dead = subprocess.Popen([sys.executable, "-c", ""])
     dead.wait()
     killed = a_failed_run(tmp_path / "killed", state="running", pid=dead.pid, process_start=None)
-    assert admit_run(killed, None, "nerfexp.log") == [".hydra/config.yaml", "nerfexp.log", "status.json"]
+    assert admit_run(killed, None) == [".hydra/config.yaml", "nerfexp.log", "status.json"]
     # running in this very process, or on another host: kept, and no checkpoint to resume from is named
     for state in ({"state": "running", "pid": os.getpid(), "process_start": process_start(os.getpid())},
                   {"state": "running", "host": "elsewhere"}, {"state": "finished"}):
         held = a_failed_run(tmp_path / str(len(list(tmp_path.iterdir()))), **state)
         with pytest.raises(NerfexpError, match=r"holds a \w+ run \(seed=0\): choose another directory") as error:
-            admit_run(held, None, "nerfexp.log")
+            admit_run(held, None)
         assert "resume=" not in str(error.value)
     # a failed run that saved a checkpoint is continued from the one it saved: never removed
     (failed / "checkpoints").mkdir()
     (failed / "checkpoints" / "epoch=0-step=30.ckpt").write_bytes(b"")
     with pytest.raises(NerfexpError, match=re.escape(f"resume={failed}/checkpoints/epoch=0-step=30.ckpt ")):
-        admit_run(failed, None, "nerfexp.log")
+        admit_run(failed, None)
     (failed / LAST_CHECKPOINT).write_bytes(b"")
     with pytest.raises(NerfexpError, match=re.escape(f"resume={failed / LAST_CHECKPOINT} ")):
-        admit_run(failed, None, "nerfexp.log")
-    assert admit_run(failed, str(failed / LAST_CHECKPOINT), "nerfexp.log") is None  # resume=: continued
+        admit_run(failed, None)
+    assert admit_run(failed, str(failed / LAST_CHECKPOINT)) is None  # resume=: continued
     # a checkpoint laid in a folder that holds no run is not a run to continue
     elsewhere = tmp_path / "elsewhere"
     elsewhere.mkdir()
     (elsewhere / "model.ckpt").write_bytes(b"")
     with pytest.raises(NerfexpError, match=r"holds files nerfexp did not make \(model.ckpt\)"):
-        admit_run(elsewhere, str(elsewhere / "model.ckpt"), "nerfexp.log")
+        admit_run(elsewhere, str(elsewhere / "model.ckpt"))
+
+
+def test_a_failed_runs_file_changed_since_nerfexp_wrote_it_is_kept_and_the_rest_removed_only_when_none_is(tmp_path):
+    failed = a_failed_run(tmp_path / "failed")
+    (failed / "nerfexp.log").write_text("a user's own log, in the name nerfexp gives its log")
+    before = digests(failed)
+    with pytest.raises(NerfexpError, match=re.escape(f"{failed / 'nerfexp.log'} is not a file nerfexp wrote")):
+        admit_run(failed, None)
+    assert digests(failed) == before
+    (failed / "nerfexp.log").write_text("")  # as nerfexp wrote it: its own again
+    entries = admit_run(failed, None)
+    assert entries == [".hydra/config.yaml", "nerfexp.log", "status.json"]
+    remove_entries(failed, entries)
+    assert sorted(p.name for p in failed.iterdir()) == sorted(manifest.BOOKKEEPING)
+    assert manifest.read_records(failed) == {} and admit_run(failed, None) == []  # a new or empty directory
+
+
+def test_a_failed_run_of_an_earlier_nerfexp_or_with_a_damaged_manifest_is_refused_in_one_line(tmp_path):
+    old = a_failed_run(tmp_path / "old")
+    (old / manifest.MANIFEST).unlink()  # written before nerfexp kept a manifest
+    before = digests(old)
+    with pytest.raises(NerfexpError) as error:
+        admit_run(old, None)
+    assert str(error.value) == (
+        f"{old} holds a failed run (seed=0) of an earlier nerfexp, which kept no record of the files it wrote (no "
+        f"{manifest.MANIFEST}), so nothing in it is removed or written over: move its files elsewhere yourself, or "
+        "choose another directory (hydra.run.dir=...)")
+    (old / manifest.MANIFEST).write_text('{"files": [')
+    with pytest.raises(NerfexpError, match=re.escape(f"{old / manifest.MANIFEST}: not JSON (") + ".*" + re.escape(
+            f"), so nothing shows {old / '.hydra/config.yaml'}, {old / 'nerfexp.log'}, {old / 'status.json'} to be "
+            "nerfexp's: move them elsewhere, or choose another directory (hydra.run.dir=...)")):
+        admit_run(old, None)
+    assert digests(old) == {**before, manifest.MANIFEST: hashlib.sha256(b'{"files": [').hexdigest()}
+
+
+def test_a_resumed_run_writes_over_only_its_own_files(tmp_path):
+    run_dir = a_failed_run(tmp_path / "run")
+    (run_dir / LAST_CHECKPOINT).parent.mkdir()
+    (run_dir / LAST_CHECKPOINT).write_bytes(b"weights")
+    (run_dir / "notes.txt").write_text("mine")  # beside the run: a resumed run writes beside it
+    assert admit_run(run_dir, str(run_dir / LAST_CHECKPOINT)) is None
+    (run_dir / RUN_CONFIG).write_text("seed: 1  # changed by hand\n")  # Hydra would write over it
+    with pytest.raises(NerfexpError, match=re.escape(
+            f"{run_dir / RUN_CONFIG} is not a file nerfexp wrote (it is not in {run_dir / manifest.MANIFEST}, or "
+            "changed since): move it elsewhere, or continue it in another directory "
+            f"(resume={run_dir / LAST_CHECKPOINT} hydra.run.dir=...)")):
+        admit_run(run_dir, str(run_dir / LAST_CHECKPOINT))

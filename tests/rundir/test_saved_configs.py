@@ -10,12 +10,12 @@ import yaml
 from hydra import compose, initialize_config_module
 from omegaconf import OmegaConf
 
-from nerfexp.commands import export, render, view
+from nerfexp.commands import evaluate, export, render, view
 from nerfexp.errors import ConfigError
 from nerfexp.rundir.layout import planned_jobs
 from nerfexp.rundir.saved_configs import buildable, targets
 from nerfexp.rundir.trained import run_config
-from tests.helpers import TINY, run_nerfexp
+from tests.helpers import TINY, one_error_line, run_nerfexp
 
 
 class Payload:
@@ -99,12 +99,26 @@ def test_a_crafted_checkpoint_is_refused_by_resume_eval_and_render(tiny_run, tmp
     assert not (tmp_path / "resumed" / "metrics.jsonl").exists()
 
 
-@pytest.mark.parametrize("text", ["- a list\n- not a mapping\n", "model: {renderer: [unclosed\n", "\xff\xfe"])
-def test_a_saved_config_that_is_not_one_is_an_error_naming_the_file(tmp_path, text):
+# a "billion laughs": nine aliases of nine aliases ... of nine values, 9^9 values from 22 lines
+LAUGHS = "a: &a [lol, lol, lol, lol, lol, lol, lol, lol, lol]\n" + "".join(
+    f"{b}: &{b} [{', '.join(['*' + a] * 9)}]\n" for a, b in zip("abcdefghijklmnopqrstu", "bcdefghijklmnopqrstuv"))
+
+
+@pytest.mark.parametrize(("text", "reason"), [
+    ("- a list\n- not a mapping\n", "a mapping of keys was expected"),
+    ("model: {renderer: [unclosed\n", "not YAML (while parsing a flow sequence"),
+    ("\xff\xfe", "not UTF-8 text"),
+    (LAUGHS, "line 1: a YAML anchor or alias, which nerfexp does not read"),
+    ("a: " + "[" * 10_000 + "]" * 10_000, "containers nested deeper than 64 levels"),
+    ("a: " + "x" * (2 << 20), "larger than the 1,048,576 bytes nerfexp reads of such a file"),
+])
+def test_a_saved_config_that_is_not_one_is_an_error_naming_the_file(tmp_path, text, reason):
     (tmp_path / ".hydra").mkdir()
     (tmp_path / ".hydra" / "config.yaml").write_bytes(text.encode("latin-1"))
-    with pytest.raises(ConfigError, match=f"{tmp_path / '.hydra' / 'config.yaml'}: not a config nerfexp can read"):
-        run_config(tmp_path)
+    with pytest.raises(ConfigError) as raised:
+        run_config(tmp_path)  # at once: nothing is expanded
+    assert str(raised.value).startswith(f"{tmp_path / '.hydra' / 'config.yaml'}: not a config nerfexp can read (")
+    assert reason in str(raised.value)
 
 
 # Interpolations: a saved config may only refer to its own keys; every resolver is refused wherever it is.
@@ -185,13 +199,67 @@ def test_every_resolver_is_refused_wherever_it_is(tmp_path, saved_text, payload_
     assert payload_resolver == [] and "the reader's secret" not in str(raised.value)
 
 
-def test_plain_references_are_followed_and_escaped_interpolations_are_text(tmp_path, saved_text):
+def test_plain_references_are_followed(tmp_path, saved_text):
     run_dir = saved_run(tmp_path, saved_text, model__renderer__n_fine="${.n_coarse}",
-                        model__chunk="${..scale.${which}}", which="chunk", note="\\${oc.env:HOME} and \\${x}")
+                        model__chunk="${..scale.${which}}", which="chunk")
     cfg = run_config(run_dir)
     assert cfg.model.renderer.n_fine == cfg.scale.n_coarse == 16  # TINY's scale.n_coarse=16
     assert cfg.model.chunk == cfg.scale.chunk
-    assert cfg.note == "${oc.env:HOME} and ${x}"
+
+
+# Escaped interpolations: resolving a config once turns ``\${x}`` into a live ``${x}``, which Hydra's instantiate
+# resolves again (it resolves in place, then reads): text from a file must never get there.
+ESCAPES = {  # how a resolver's call is written so that one resolution leaves a live one, or calls it
+    "escaped once": "\\{}",  # \${...}: text ${...} after one resolution
+    "escaped twice": "\\\\\\{}",  # \\\${...}: an escaped backslash, then an escaped interpolation
+    "escaped backslash": "\\\\{}",  # \\${...}: an escaped backslash before a live interpolation
+}
+ESCAPED_POSITIONS = {"a value": "data.background", "a list item": "scale.skips.0", "a nested list item":
+                     "model.optimizer.betas.1"}
+
+
+@pytest.mark.parametrize("escape", ESCAPES)
+@pytest.mark.parametrize("position", ESCAPED_POSITIONS)
+@pytest.mark.parametrize("resolver", RESOLVERS)
+def test_every_resolver_escaped_is_refused_wherever_it_is(tmp_path, saved_text, payload_resolver, monkeypatch,
+                                                          resolver, position, escape):
+    monkeypatch.setenv("NERFEXP_TEST_SECRET", "the reader's secret")
+    key, value = ESCAPED_POSITIONS[position], ESCAPES[escape].format(RESOLVERS[resolver])
+    run_dir = saved_run(tmp_path, saved_text, **{key.replace(".", "__"): value})
+    with pytest.raises(ConfigError) as raised:
+        run_config(run_dir)
+    reason = (f"uses the resolver {resolver}" if escape == "escaped backslash" else
+              "holds an escaped interpolation, text that becomes a live one when the run's objects are built")
+    assert str(raised.value).startswith(f"{run_dir / '.hydra' / 'config.yaml'}: {key}={value!r} {reason}: ")
+    assert payload_resolver == [] and "the reader's secret" not in str(raised.value)
+
+
+@pytest.mark.parametrize("escape", ["", *ESCAPES])
+@pytest.mark.parametrize("resolver", ["oc.create", "oc.env", "nerfexp_test_payload"])
+def test_a_key_holding_an_interpolation_is_refused(tmp_path, saved_text, payload_resolver, resolver, escape):
+    key = ESCAPES[escape].format(RESOLVERS[resolver]) if escape else RESOLVERS[resolver]
+    config = yaml.safe_load(saved_text)
+    config["model"]["renderer"][key] = 1
+    run_dir = saved_run(tmp_path, yaml.safe_dump(config))
+    with pytest.raises(ConfigError) as raised:
+        run_config(run_dir)
+    assert str(raised.value) == (f"{run_dir / '.hydra' / 'config.yaml'}: the key {'model.renderer.' + key!r} holds "
+                                 "'${': a run directory from elsewhere is read as data: its keys are names, never "
+                                 "interpolations")
+    assert payload_resolver == []
+
+
+def test_what_resolves_to_an_interpolation_never_reaches_what_is_built(tmp_path, saved_text, monkeypatch):
+    # whatever way text could become ${...} after the check (here the reader's own override, which is not
+    # checked as the file is), the resolved config holds none
+    monkeypatch.setenv("NERFEXP_TEST_SECRET", "the reader's secret")
+    run_dir = saved_run(tmp_path, saved_text)
+    with pytest.raises(ConfigError) as raised:
+        run_config(run_dir, ["data.background=\\${oc.env:NERFEXP_TEST_SECRET}"])
+    assert str(raised.value) == (
+        f"{run_dir / '.hydra' / 'config.yaml'}: data.background, resolved, is '${{oc.env:NERFEXP_TEST_SECRET}}': text "
+        "with '${' in it, which building the run's objects would resolve again: a run directory from elsewhere is "
+        "read as data, never resolved twice")
 
 
 @pytest.mark.parametrize("overrides", [[], ["logger=csv", "trainer=ddp"], ["logger=mlflow"], ["logger=wandb"]])
@@ -247,50 +315,84 @@ def snapshot(folder: Path) -> dict:
     return {p.relative_to(folder): (p.stat().st_size, p.stat().st_mtime_ns) for p in folder.rglob("*")}
 
 
-@pytest.fixture
-def created(tiny_run, tmp_path) -> tuple[Path, Path, str]:
+# where a crafted run puts the payload: (the dotted key it is written at, how the refusal names it)
+PAYLOAD_FORMS = {
+    "a value": ("view_dependence.direction_encoding", "{key}={value!r} uses the resolver oc.create"),
+    "an escaped value": ("encoding.direction", "{key}={value!r} holds an escaped interpolation"),
+    "an escaped list item": ("scale.skips", "{key}.0={value!r} holds an escaped interpolation"),
+    "an escaped key": ("model.renderer", "the key {item!r} holds '${{'"),
+}
+
+
+@pytest.fixture(params=PAYLOAD_FORMS)
+def created(request, tiny_run, tmp_path) -> tuple[Path, Path, str]:
     """A copy of a finished run whose saved config makes, with the resolver ``oc.create``, a node that builds
-    ``torch.load`` of a crafted pickle (``weights_only: false``) where the direction encoding should be; the
-    payload's marker file; the value written."""
+    ``torch.load`` of a crafted pickle (``weights_only: false``), written as one of ``PAYLOAD_FORMS`` (as
+    the call, or escaped, which one resolution turns into the call); the payload's marker file; the start of
+    the line refusing it."""
     run_dir, marker = tmp_path / "shared_run", tmp_path / "payload_ran"
     shutil.copytree(tiny_run, run_dir)
     torch.save({"weights": Payload(marker)}, tmp_path / "crafted.pt")
     value = f"${{oc.create:{{_target_: torch.load, f: '{tmp_path / 'crafted.pt'}', weights_only: false}}}}"
+    key, refusal = PAYLOAD_FORMS[request.param]
+    value = value if request.param == "a value" else "\\" + value
     config_path = run_dir / ".hydra" / "config.yaml"
     config = yaml.safe_load(config_path.read_text())
-    config["view_dependence"]["direction_encoding"] = value
+    *parents, leaf = key.split(".")
+    section = config
+    for name in parents:
+        section = section[name]
+    if request.param == "an escaped key":
+        section[leaf][value] = 1
+    else:
+        section[leaf] = [value] if request.param == "an escaped list item" else value
     config_path.write_text(yaml.safe_dump(config))
-    return run_dir, marker, value
+    return run_dir, marker, f"{config_path}: {refusal.format(key=key, value=value, item=f'{key}.{value}')}"
 
 
-def refused_line(script: str, run_dir: Path, value: str) -> str:
-    return (f"{script}: error: {run_dir / '.hydra' / 'config.yaml'}: view_dependence.direction_encoding={value!r} "
-            "uses the resolver oc.create: a run directory from elsewhere is read as data: only plain references "
-            "${key} to its own keys are followed")
+def refused(script: str, line: str, start: str) -> bool:
+    return line.startswith(f"{script}: error: {start}") and "a run directory from elsewhere is read as data" in line
 
 
 @pytest.mark.slow
+@pytest.mark.parametrize("created", ["a value", "an escaped value"], indirect=True)  # every form: in-process below
 def test_a_node_a_resolver_creates_is_refused_before_anything_is_built(created, tmp_path):
-    run_dir, marker, value = created
+    run_dir, marker, start = created
     before = snapshot(run_dir)
     result = run_nerfexp(str(run_dir), cwd=tmp_path, script="nerfexp-eval")
     assert result.returncode == 1 and "Traceback" not in result.stderr, result.stderr[-3000:]
-    assert [line for line in result.stderr.splitlines() if "error" in line] == [
-        refused_line("nerfexp-eval", run_dir, value)]
+    (line,) = [line for line in result.stderr.splitlines() if "error" in line]
+    assert refused("nerfexp-eval", line, start), line
     assert not marker.exists() and snapshot(run_dir) == before
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("script", ["nerfexp-render", "nerfexp-export", "nerfexp-view"])
+@pytest.mark.parametrize("script", ["nerfexp-eval", "nerfexp-render", "nerfexp-export", "nerfexp-view"])
 def test_so_it_is_by_every_command_that_reads_a_run_back(created, script):
     # in the process (the same one line as above, as eval's subprocess shows): the view never starts serving
-    run_dir, marker, value = created
-    main = {"nerfexp-render": render.main, "nerfexp-export": export.main, "nerfexp-view": view.main}[script]
+    run_dir, marker, start = created
+    main = {"nerfexp-eval": evaluate.main, "nerfexp-render": render.main, "nerfexp-export": export.main,
+            "nerfexp-view": view.main}[script]
     before = snapshot(run_dir)
     with pytest.raises(SystemExit) as ended:
         main([str(run_dir)])
-    assert str(ended.value) == refused_line(script, run_dir, value)
+    assert refused(script, str(ended.value), start), str(ended.value)
     assert not marker.exists() and snapshot(run_dir) == before
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("created", ["an escaped list item"], indirect=True)
+def test_so_it_is_when_a_checkpoint_of_an_earlier_nerfexp_is_resumed(created, tmp_path, tiny):
+    # a checkpoint recording no settings is compared with its run directory's saved config, read as data
+    run_dir, marker, start = created
+    checkpoint = run_dir / "checkpoints" / "last.ckpt"
+    state = torch.load(checkpoint, weights_only=True)
+    del state["nerfexp_settings"]
+    torch.save(state, checkpoint)
+    result = run_nerfexp(*tiny, "scale.steps=90", f"resume={checkpoint}", f"hydra.run.dir={tmp_path / 'resumed'}",
+                         cwd=tmp_path)
+    assert refused("nerfexp", one_error_line(result), start), result.stderr[-2000:]
+    assert not marker.exists() and not (tmp_path / "resumed").exists()
 
 
 @pytest.mark.slow

@@ -1,6 +1,7 @@
 """Checkpoints are written whole wherever TMPDIR points: staged beside the checkpoint and renamed over it,
 so a process killed during a save leaves the previous checkpoint whole (nerfexp.training.checkpoints)."""
 
+import errno
 import os
 import random
 import shutil
@@ -15,8 +16,10 @@ from hydra import compose, initialize_config_module
 from hydra.utils import instantiate
 from lightning.pytorch.plugins.io import TorchCheckpointIO
 
+from nerfexp.files import WriteError
 from nerfexp.training.checkpoints import AtomicCheckpointIO
 from nerfexp.training.precision import fill_precision
+from tests.helpers import fill_disk, small_disk
 
 OTHER_FILE_SYSTEM = Path("/dev/shm")  # a tmpfs where /tmp and the runs are on a disk: a cluster node's scratch
 WEIGHTS = 8 * 2**20  # float32 values: a 32 MiB checkpoint, long enough to write that a kill lands inside it
@@ -157,3 +160,18 @@ def test_every_trainer_config_saves_through_nerfexps_checkpoint_io(trainer, tmp_
     fill_precision(cfg)  # as a job does before it builds the trainer
     built = instantiate(cfg.trainer, logger=False)
     assert isinstance(built.strategy.checkpoint_io, AtomicCheckpointIO)
+
+
+def test_a_checkpoint_that_does_not_fit_on_the_disk_is_an_error_naming_it_and_the_last_stays(tmp_path):
+    """torch.save turns the OSError of its file's write into a RuntimeError ("unexpected pos") naming
+    neither; the save raises the OSError, as a WriteError naming the checkpoint."""
+    with small_disk(tmp_path / "disk", "1m") as disk:
+        destination = disk / "checkpoints" / "last.ckpt"
+        AtomicCheckpointIO().save_checkpoint({"step": 0, "weights": torch.ones(1000)}, destination)
+        before = destination.read_bytes()
+        fill_disk(disk / "filler")
+        with pytest.raises(WriteError) as raised:
+            AtomicCheckpointIO().save_checkpoint({"step": 1, "weights": torch.zeros(1 << 16)}, destination)
+        assert (raised.value.filename, raised.value.errno) == (str(destination), errno.ENOSPC)
+        assert [p.name for p in destination.parent.iterdir()] == ["last.ckpt"]  # no temporary left
+        assert destination.read_bytes() == before

@@ -335,7 +335,7 @@ def test_a_nan_run_ends_with_one_line_naming_step_and_network(tmp_path, tiny):
 
 def test_a_collapsed_relu_run_ends_with_the_collapse_message(tmp_path, tiny):
     result = run_nerfexp(*tiny, "model.renderer.field.density_activation=relu",
-                         "model.renderer.field.density_bias=-1000", "callbacks.guard.collapse_patience=10",
+                         "model.renderer.field.density_bias=-80", "callbacks.guard.collapse_patience=10",
                          f"hydra.run.dir={tmp_path}", cwd=tmp_path)
     assert result.returncode == 1 and "Traceback" not in result.stderr
     last = result.stderr.strip().splitlines()[-1]

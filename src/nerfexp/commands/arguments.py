@@ -5,16 +5,35 @@ import math
 from collections.abc import Callable
 from pathlib import Path
 
+from omegaconf import DictConfig
+
 from nerfexp.errors import ConfigError
 from nerfexp.memory import require_memory
+from nerfexp.rundir.trained import TrainedRun, load_run, run_config
+from nerfexp.settings.checks import check_run_settings
+from nerfexp.settings.schema import bound_text
 
 
-def positive(kind: type) -> Callable[[str], int | float]:
-    """An argparse type: a finite number of ``kind`` (int or float) above zero (nan and inf refused)."""
+def positive(kind: type, high: float | None = None) -> Callable[[str], int | float]:
+    """An argparse type: a finite number of ``kind`` (int or float) above zero (nan and inf refused), and at
+    most ``high`` where given (where the number stops meaning anything, said where the argument is made)."""
     def parse(text: str):
         value = kind(text)
-        if not math.isfinite(value) or value <= 0:
-            raise argparse.ArgumentTypeError(f"expected a finite number > 0, got {text}")
+        finite = not isinstance(value, float) or math.isfinite(value)  # a whole number of any size is finite
+        if not finite or value <= 0 or (high is not None and value > high):
+            upper = "" if high is None else f" and <= {bound_text(high)}"
+            raise argparse.ArgumentTypeError(f"expected a finite number > 0{upper}, got {text}")
+        return value
+    return parse
+
+
+def within(low: float, high: float) -> Callable[[str], float]:
+    """An argparse type: a number in [``low``, ``high``] (nan and inf refused)."""
+    def parse(text: str) -> float:
+        value = float(text)
+        if not low <= value <= high:
+            raise argparse.ArgumentTypeError(f"expected a number in [{bound_text(low)}, {bound_text(high)}], "
+                                             f"got {text}")
         return value
     return parse
 
@@ -44,6 +63,22 @@ def command_parser(prog: str, description: str) -> argparse.ArgumentParser:
     """The parser of the console script ``prog``, described by ``description`` (a docstring) without its
     reStructuredText markup: ``code`` reads as code."""
     return argparse.ArgumentParser(prog=prog, description=description.replace("``", ""))
+
+
+def run_settings(run_dir: Path, overrides: list[str]) -> DictConfig:
+    """The config of the run in ``run_dir`` with the user's ``KEY=VALUE`` ``overrides`` (``run_config``) to
+    score its test views with, its settings checked as ``nerfexp`` checks a new run's (``check_run_settings``):
+    a ConfigError naming the key as the user set it."""
+    cfg = run_config(run_dir, overrides)
+    check_run_settings(cfg, scoring=True)
+    return cfg
+
+
+def read_run(run: Path, overrides: list[str], chunk: int | None,
+             refuse: Callable[[Path, DictConfig], None] | None = None) -> TrainedRun:
+    """The run at ``run`` read back (``load_run``: ``refuse`` as there) with ``overrides`` checked as
+    ``run_settings`` checks them, before its checkpoint is read."""
+    return load_run(run, overrides, chunk, refuse, check=check_run_settings)
 
 
 def add_run_arguments(parser: argparse.ArgumentParser) -> None:

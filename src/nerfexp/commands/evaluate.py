@@ -6,10 +6,11 @@ from pathlib import Path
 from hydra.utils import instantiate
 from omegaconf import DictConfig
 
-from nerfexp.commands.arguments import add_run_arguments, command_parser
+from nerfexp.commands.arguments import add_run_arguments, command_parser, run_settings
 from nerfexp.commands.console import run_command
+from nerfexp.manifest import check_ours
 from nerfexp.rundir.layout import EVAL, read_json
-from nerfexp.rundir.trained import find_run, load_module, run_config
+from nerfexp.rundir.trained import find_run, load_module
 
 
 def evaluate(cfg: DictConfig, run_dir: Path, checkpoint: Path) -> dict:
@@ -40,9 +41,12 @@ def build_parser() -> argparse.ArgumentParser:
 
 def evaluate_run(run: Path, overrides: list[str]) -> str:
     """Score the run at ``run`` (a run directory or a checkpoint file in one) with its saved config changed
-    by ``overrides`` (``evaluate``); returns a one-line summary."""
+    by ``overrides`` (``evaluate``), its settings checked first (``run_settings``); returns a one-line summary.
+    An ``eval.json`` there that the run directory's manifest does not show to be nerfexp's
+    (``nerfexp.manifest.check_ours``) is refused first."""
     run_dir, checkpoint = find_run(run)
-    results = evaluate(run_config(run_dir, overrides), run_dir, checkpoint)
+    check_ours(run_dir, [EVAL], "nerfexp-eval", "move {it} elsewhere: nerfexp-eval writes its scores there")
+    results = evaluate(run_settings(run_dir, overrides), run_dir, checkpoint)
     from nerfexp.training.recorders import scores_text  # imports Lightning: not before bad input is refused
     return f"{scores_text(results)} of {checkpoint} (step {results['step']}); written to {run_dir / EVAL}"
 

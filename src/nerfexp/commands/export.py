@@ -2,8 +2,9 @@
 that MeshLab, Blender, Open3D and CloudCompare open.
 
 What an export leaves in ``RUN_DIR/export/`` (the folder is replaced as a whole once both files are
-written, so a reader sees the previous export or the new one, never a part; an ``export/`` holding anything
-else is refused with one line before any work):
+written, so a reader sees the previous export or the new one, never a part; an ``export/`` holding a file
+that the run directory's manifest does not show to be nerfexp-export's, ``nerfexp.manifest``, is refused
+with one line before any work, and checked again before it is replaced):
 
 - ``mesh.ply``: the surface where the field's density crosses ``--threshold``, by marching cubes on a grid
   over the box (``--resolution`` cells along its longest edge): vertices with outward normals and colours,
@@ -24,15 +25,24 @@ and points would be distorted.
 import argparse
 from pathlib import Path
 
+import torch
 from hydra.utils import instantiate
 from omegaconf import DictConfig
 
-from nerfexp.commands.arguments import add_chunk_argument, add_run_arguments, command_parser, fitting, positive
+from nerfexp.commands.arguments import (
+    add_chunk_argument,
+    add_run_arguments,
+    command_parser,
+    fitting,
+    positive,
+    read_run,
+)
 from nerfexp.commands.console import run_command
 from nerfexp.data.base import Scene
 from nerfexp.errors import NerfexpError
-from nerfexp.files import TEMPORARY, atomic_directory, foreign_entries, foreign_message
+from nerfexp.files import atomic_directory
 from nerfexp.geometry.surfaces import grid_shape
+from nerfexp.manifest import check_ours, folder_files, record_folder
 from nerfexp.memory import grid_bytes
 from nerfexp.pixels import to_uint8
 from nerfexp.products.mesh import (
@@ -46,11 +56,11 @@ from nerfexp.products.mesh import (
 )
 from nerfexp.products.ply import face_rows, ply_bytes, vertex_rows
 from nerfexp.rundir.layout import EXPORT_DIR
-from nerfexp.rundir.trained import TrainedRun, load_run
+from nerfexp.rundir.trained import TrainedRun
 
 MESH = "mesh.ply"
+DENSITY_LIMIT = float(torch.finfo(torch.float32).max)  # the field's densities are float32 numbers
 POINTS = "points.ply"
-MADE = (MESH, POINTS, *TEMPORARY)  # what an export leaves in its folder
 
 
 def refuse_ndc(run_dir: Path, saved: DictConfig) -> None:
@@ -63,9 +73,9 @@ def refuse_ndc(run_dir: Path, saved: DictConfig) -> None:
 
 
 def trained_run(run: Path, overrides: list[str], chunk: int | None) -> tuple[TrainedRun, Scene]:
-    """The run at ``run`` read as ``nerfexp-eval`` reads it (``load_run``), runs trained on NDC rays refused
+    """The run at ``run`` read as ``nerfexp-eval`` reads it (``read_run``), runs trained on NDC rays refused
     before their checkpoint is read (``refuse_ndc``), and its scene."""
-    loaded = load_run(run, overrides, chunk, refuse=refuse_ndc)
+    loaded = read_run(run, overrides, chunk, refuse=refuse_ndc)
     return loaded, instantiate(loaded.cfg.data)
 
 
@@ -76,9 +86,7 @@ def export_run(run: Path, overrides: list[str], resolution: int, threshold: floa
     points). Returns a one-line summary."""
     (run_dir, checkpoint, _, module, step), scene = trained_run(run, overrides, chunk)
     out_dir = run_dir / EXPORT_DIR
-    if foreign := foreign_entries(out_dir, MADE):  # the folder is replaced as a whole: it must be an export
-        raise NerfexpError(foreign_message(out_dir, foreign, "nerfexp-export", "move them elsewhere: "
-                                           "nerfexp-export replaces this folder as a whole"))
+    check_export_folder(run_dir)
     renderer = module.renderer
     box = export_box(renderer, scene)
     views = scene.views("test")
@@ -102,9 +110,18 @@ def export_run(run: Path, overrides: list[str], resolution: int, threshold: floa
         (new / POINTS).write_bytes(ply_bytes({"vertex": vertex_rows(points.numpy(), to_uint8(point_colours))}, [
             made, f"pixels of {len(views)} test views with opacity >= {min_opacity:g}, at their depth along the ray",
             "colours: the rendered colour without the background"]))
+        check_export_folder(run_dir)  # again: the export took a while
+    record_folder(run_dir, EXPORT_DIR)
     return (f"{MESH}: {len(mesh.vertices)} vertices, {len(mesh.faces)} triangles (density {threshold:g}, "
             f"{source}; {shape} grid); {POINTS}: {len(points)} points from {len(views)} test views; "
             f"written to {out_dir}")
+
+
+def check_export_folder(run_dir: Path) -> None:
+    """A NerfexpError where ``RUN_DIR/export``, which an export replaces as a whole, holds a file that the run
+    directory's manifest does not show to be an export's (``nerfexp.manifest.check_ours``)."""
+    check_ours(run_dir, folder_files(run_dir, EXPORT_DIR), "nerfexp-export",
+               "move {it} elsewhere: nerfexp-export replaces this folder as a whole")
 
 
 def _opacity(text: str) -> float:
@@ -124,7 +141,7 @@ def build_parser() -> argparse.ArgumentParser:
                         default=128,
                         help="mesh: grid cells along the box's longest edge, the other edges getting cells of "
                              "the same size (default 128: about 2 million density evaluations for a cube)")
-    parser.add_argument("--threshold", type=positive(float),
+    parser.add_argument("--threshold", type=positive(float, DENSITY_LIMIT),
                         help="mesh: the density at its surface (default: read from the field, the "
                              f"{THRESHOLD_QUANTILE:g} quantile of its density where the test views' rays that "
                              "reach --min-opacity end, at their rendered depths; the summary prints the value "

@@ -2,8 +2,9 @@
 as videos and PNG frames.
 
 What a render leaves in ``RUN_DIR/render/`` (the folder is replaced as a whole once every frame is
-written, so a reader sees the previous render or the new one, never a part; a ``render/`` holding anything
-else, ``MADE``, is refused with one line before any work):
+written, so a reader sees the previous render or the new one, never a part; a ``render/`` holding a file
+that the run directory's manifest does not show to be nerfexp-render's, ``nerfexp.manifest``, is refused
+with one line before any work, and checked again before it is replaced):
 ``rgb.mp4``, ``depth.mp4``, ``opacity.mp4``; the same frames as 8-bit PNGs ``rgb/0000.png``, ...,
 ``depth/0000.png``, ..., ``opacity/0000.png``, ...; and ``cameras.json``: the path's name, ``fps``,
 ``height``, ``width``, ``focal`` (pixels) and ``c2w`` per frame.
@@ -18,19 +19,27 @@ from pathlib import Path
 
 from hydra.utils import instantiate
 
-from nerfexp.commands.arguments import add_chunk_argument, add_run_arguments, command_parser, fitting, positive
+from nerfexp.commands.arguments import (
+    add_chunk_argument,
+    add_run_arguments,
+    command_parser,
+    fitting,
+    positive,
+    read_run,
+    within,
+)
 from nerfexp.commands.console import run_command
-from nerfexp.errors import NerfexpError
+from nerfexp.data.video import FPS_RANGE
 from nerfexp.extras import require
-from nerfexp.files import TEMPORARY, atomic_directory, foreign_entries, foreign_message
-from nerfexp.memory import frame_bytes
+from nerfexp.files import atomic_directory
+from nerfexp.geometry.cameras import POSITION_LIMIT
+from nerfexp.manifest import check_ours, folder_files, record_folder
+from nerfexp.memory import frame_bytes, path_bytes
 from nerfexp.products.camera_files import DEFAULT_FPS, CameraPath, read_camera_path
-from nerfexp.products.frames import KINDS, PATHS, frame_size, render_path, training_path
+from nerfexp.products.frames import PATHS, frame_size, render_path, training_path
 from nerfexp.rundir.layout import RENDER_DIR
-from nerfexp.rundir.trained import load_run
 
 CAMERAS = "cameras.json"  # a render's cameras, in the format --cameras reads (``camera_path_record``)
-MADE = (*(f"{kind}.mp4" for kind in KINDS), *(f"{kind}/*.png" for kind in KINDS), CAMERAS, *TEMPORARY)  # a render
 DEFAULT_FRAMES = 120
 
 
@@ -41,11 +50,9 @@ def render_run(run: Path, overrides: list[str], n_frames: int, fps: float | None
     along ``cameras`` (None: a ``training_path``), frames ``size`` pixels wide (``frame_size``; None: the
     cameras' own size) played at ``fps`` (None: the cameras'; 30 for a training path). Returns the folder
     and the number of frames."""
-    run_dir, _, cfg, module, _ = load_run(run, overrides, chunk)
+    run_dir, _, cfg, module, _ = read_run(run, overrides, chunk)
     out_dir = run_dir / RENDER_DIR
-    if foreign := foreign_entries(out_dir, MADE):  # the folder is replaced as a whole: it must be a render
-        raise NerfexpError(foreign_message(out_dir, foreign, "nerfexp-render", "move them elsewhere: "
-                                           "nerfexp-render replaces this folder as a whole"))
+    check_render_folder(run_dir)
     scene = instantiate(cfg.data)
     if cameras is None:
         cameras = training_path(scene, cfg.data, path, n_frames, focus, DEFAULT_FPS)
@@ -54,7 +61,16 @@ def render_run(run: Path, overrides: list[str], n_frames: int, fps: float | None
     with atomic_directory(out_dir, replace=True) as new:
         render_path(module, scene, frames.c2w, height, width, focal, new, frames.fps)
         (new / CAMERAS).write_text(json.dumps(frames.record(), indent=2))
+        check_render_folder(run_dir)  # again: the render took a while
+    record_folder(run_dir, RENDER_DIR)
     return out_dir, len(frames.c2w)
+
+
+def check_render_folder(run_dir: Path) -> None:
+    """A NerfexpError where ``RUN_DIR/render``, which a render replaces as a whole, holds a file that the run
+    directory's manifest does not show to be a render's (``nerfexp.manifest.check_ours``)."""
+    check_ours(run_dir, folder_files(run_dir, RENDER_DIR), "nerfexp-render",
+               "move {it} elsewhere: nerfexp-render replaces this folder as a whole")
 
 
 def _even(text: str) -> int:
@@ -77,14 +93,16 @@ def build_parser() -> argparse.ArgumentParser:
                              "height, width, focal (pixels) and c2w (a list of 4 x 4 camera-to-world matrices, "
                              "OpenGL convention), optionally fps and path; e.g. a path saved by nerfexp-view "
                              "(RUN_DIR/view/camera_path.json) or an earlier render's cameras.json")
-    parser.add_argument("--frames", type=positive(int), help=f"number of frames of the path (default {DEFAULT_FRAMES})")
-    parser.add_argument("--fps", type=positive(float), help="frames per second of the videos (default: the "
-                        "--cameras file's fps, else 30)")
+    parser.add_argument("--frames", type=fitting(positive(int), path_bytes, "a camera path of N frames"),
+                        help=f"number of frames of the path (default {DEFAULT_FRAMES})")
+    parser.add_argument("--fps", type=within(*FPS_RANGE), help="frames per second of the videos, in "
+                        f"[{FPS_RANGE[0]:g}, {FPS_RANGE[1]:g}] (MP4's range: nerfexp.data.video.FPS_RANGE; default: "
+                        "the --cameras file's fps, else 30)")
     parser.add_argument("--size", type=_even, help="frame width in pixels, even; the height keeps the "
                         "cameras' aspect ratio (default: the training views' width, or the --cameras file's)")
     add_chunk_argument(parser)
-    parser.add_argument("--focus", type=positive(float), help="spiral only: the depth its cameras look at "
-                        "(default: from the scene's depth bounds)")
+    parser.add_argument("--focus", type=positive(float, POSITION_LIMIT), help="spiral only: the depth its cameras "
+                        "look at, at most 2^24 scene units (default: from the scene's depth bounds)")
     return parser
 
 

@@ -5,9 +5,10 @@ strongly view-dependent one (``data/glossy.py``): a mirror sphere, a glossy toru
 checker base reflecting a procedural sky. Both use the same cameras.
 
 ``OUT_DIR`` is new, empty, or a scene this command wrote (its ``nerfexp-scene.json``, which records the
-settings, says so), which is then replaced as a whole: a folder holding anything else, a Blender dataset
-from elsewhere above all (it has the same file names), is refused with one line and left as it is. The
-scene is written beside ``OUT_DIR`` and renamed into place once complete.
+settings, says so, and every file in it is one the folder's manifest shows this command wrote:
+``nerfexp.manifest``), which is then replaced as a whole: a folder holding anything else, a Blender dataset
+from elsewhere above all (it has the same file names), or a file of the scene changed since, is refused with
+one line and left as it is. The scene is written beside ``OUT_DIR`` and renamed into place once complete.
 """
 
 import argparse
@@ -17,26 +18,27 @@ from pathlib import Path
 
 from nerfexp.commands.arguments import command_parser, positive
 from nerfexp.commands.console import run_command
-from nerfexp.data.blender import TRANSFORMS, write_blender
+from nerfexp.data.blender import write_blender
 from nerfexp.data.glossy import load_glossy
 from nerfexp.data.procedural import CAMERA_ANGLE_X, load_procedural
 from nerfexp.errors import NerfexpError
-from nerfexp.files import TEMPORARY, atomic_directory, folder_entries, foreign_message, is_made
+from nerfexp.files import atomic_directory, folder_entries, foreign_message
+from nerfexp.manifest import BOOKKEEPING, check_ours, record
 from nerfexp.memory import require_memory, scene_bytes
 
 LOADERS = {"builtin": load_procedural, "glossy": load_glossy}  # --scene: the function rendering a split
 SPLITS = ("train", "val", "test")
 MARKER = "nerfexp-scene.json"  # the settings of the scene written: the folder is this command's
-MADE = (MARKER, *(TRANSFORMS.format(split=split) for split in SPLITS), *(f"{split}/r_*.png" for split in SPLITS),
-        *TEMPORARY)  # what this command writes (``nerfexp.files.is_made``)
 
 
 def check_out_dir(out_dir: Path) -> None:
-    """A NerfexpError where ``out_dir`` holds files this command did not make: any, where it holds no
-    ``MARKER``; else those that are not ``MADE``."""
-    made = MADE if (out_dir / MARKER).is_file() else ()
-    if foreign := [entry for entry in folder_entries(out_dir) if not is_made(entry, made)]:
-        raise NerfexpError(foreign_message(out_dir, foreign, "nerfexp-scene", "choose a new or empty folder"))
+    """A NerfexpError where ``out_dir`` holds files (its manifest's own aside) and is not a scene this command
+    wrote: any, where it holds no ``MARKER``; else those its manifest does not show to be this command's
+    (``nerfexp.manifest.check_ours``)."""
+    entries = [entry for entry in folder_entries(out_dir) if entry not in BOOKKEEPING]
+    if entries and not (out_dir / MARKER).is_file():
+        raise NerfexpError(foreign_message(out_dir, entries, "nerfexp-scene", "choose a new or empty folder"))
+    check_ours(out_dir, entries, "nerfexp-scene", "move {it} elsewhere, or choose a new or empty folder")
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -72,6 +74,7 @@ def write_scene(args: argparse.Namespace) -> str:
         settings = {"scene": args.scene, "resolution": args.resolution, "views": counts,
                     "supersample": args.supersample, "nerfexp": version("nerfexp")}
         (new / MARKER).write_text(json.dumps(settings, indent=2) + "\n")
+        record(new, folder_entries(new))  # paths relative to the folder: true once it is renamed into place
     views = ", ".join(f"{n} {split}" for split, n in counts.items())
     return f"the {args.scene} scene ({views} views) written to {args.out_dir}"
 

@@ -56,10 +56,11 @@ def _handle(signum: int, frame) -> None:
 
 
 @contextlib.contextmanager
-def ending_signals() -> Iterator[None]:
+def ending_signals(prog: str | None = None) -> Iterator[None]:
     """Inside the block SIGTERM and SIGINT raise (see the module's docstring); whatever the block then
-    raises ends the process with exit status 128 + the signal's number. The handlers found before are
-    restored after it."""
+    raises ends the process with exit status 128 + the signal's number, after the line ``PROG: stopped
+    (SIGNAL)`` on standard error where ``prog`` is given (an enclosing block says it, or the command
+    itself). The handlers found before are restored after it."""
     _received.clear()
     previous = {signum: signal.signal(signum, _handle) for signum in ENDING}
     try:
@@ -67,6 +68,8 @@ def ending_signals() -> Iterator[None]:
     except BaseException:
         if not _received:
             raise
+        if prog is not None:
+            print(f"{prog}: stopped ({received_signal()})", file=sys.stderr, flush=True)
         sys.exit(128 + _received[0])
     finally:
         for signum, handler in previous.items():

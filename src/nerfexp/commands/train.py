@@ -18,12 +18,23 @@ from hydra.utils import instantiate
 from omegaconf import DictConfig, OmegaConf
 from omegaconf.errors import ConfigAttributeError, ConfigKeyError, OmegaConfBaseException
 
-from nerfexp.commands.console import quiet_dependencies
+from nerfexp.commands.console import file_error_line, quiet_dependencies, thread_file_errors
 from nerfexp.commands.signals import JobSignalled, ending_signals, in_launcher_job, job_signals, received_signal
 from nerfexp.data.rays import rank_slice
 from nerfexp.errors import ConfigError, NerfexpError
 from nerfexp.extras import require
-from nerfexp.rundir.layout import LAST_CHECKPOINT, RESULTS, is_global_zero, planned_jobs, read_json, write_status
+from nerfexp.manifest import record_matching
+from nerfexp.reading import UnreadableFile
+from nerfexp.rundir.layout import (
+    LAST_CHECKPOINT,
+    RESULTS,
+    RUN_CONFIG,
+    RUN_LIBRARY_FILES,
+    is_global_zero,
+    planned_jobs,
+    read_json,
+    write_status,
+)
 from nerfexp.settings.checks import check_settings
 from nerfexp.settings.schema import PASSED_ON, matching
 from nerfexp.settings.unused import unused_settings, without_unused
@@ -132,14 +143,22 @@ def main(cfg: DictConfig) -> float | None:
 
     A single run with bad input ends with one line on stderr and exit status 1. In a multirun the
     error is raised instead, so that Hydra records this job as failed and goes on with the others
-    (the sweep then ends with the first job's error; ``nerfexp-report`` lists the failed jobs)."""
+    (the sweep then ends with the first job's error; ``nerfexp-report`` lists the failed jobs).
+
+    What Hydra, Lightning's loggers and callbacks write into the run directory is recorded in its manifest
+    (``nerfexp.manifest``; ``RUN_LIBRARY_FILES`` and the job's log): Hydra's config as the job starts,
+    everything when it ends, finished or failed, so that a failed run's files can be shown to be nerfexp's."""
     hydra_config = HydraConfig.get()
     output_dir, overrides = hydra_config.runtime.output_dir, list(hydra_config.overrides.task)
     writes = is_global_zero()  # under SLURM every process of a distributed job runs this; rank 0 records
     if writes:
         write_status(output_dir, "running", overrides)
+        record_matching(output_dir, (RUN_CONFIG.parent.name,))  # Hydra wrote it before the job started
         if hydra_config.mode == RunMode.MULTIRUN:
-            planned = planned_jobs(Path(hydra_config.runtime.cwd) / hydra_config.sweep.dir)
+            try:
+                planned = planned_jobs(Path(hydra_config.runtime.cwd) / hydra_config.sweep.dir)
+            except UnreadableFile:  # the sweep's own file, being written by Hydra: the count is a courtesy
+                planned = None
             log.info("job %d%s: %s", hydra_config.job.num + 1, f" of {planned}" if planned else "", output_dir)
     try:
         with job_signals():  # a launcher's job (SLURM): SIGTERM handled as cli handles it
@@ -147,20 +166,32 @@ def main(cfg: DictConfig) -> float | None:
     except BaseException as error:  # an interrupt too: the job did not finish
         # the signal: from nerfexp's handlers (cli, job_signals), else Lightning's SIGTERM handling
         ended_by = received_signal() or ("SIGTERM" if lightning_sigterm(error) else None)
+        unrecorded = ""  # where status.json cannot say it (a full disk), the error's line does
         if writes:
             details = {"signal": ended_by, "error": f"ended by {ended_by}"} if ended_by else {
                 "error": f"{type(error).__name__}: {error}"}
-            write_status(output_dir, "failed", overrides, **details)
+            try:
+                write_status(output_dir, "failed", overrides, **details)
+            except OSError as status_error:
+                unrecorded = f"; not recorded in status.json ({file_error_line(status_error)})"
         if ended_by and in_launcher_job():  # an Exception, which the launcher returns to the sweep
             line = signalled_job_line(Path(output_dir), ended_by)
             log.error("job failed: %s", line)
             raise JobSignalled(line) from None
-        if isinstance(error, NerfexpError | InstantiationException):  # bad input, or a class the config names
+        # bad input, a class the config names, or a file that cannot be written (a full disk, a read-only folder)
+        if isinstance(error, NerfexpError | InstantiationException | OSError):
             line = hydra_error_line(error)
+            if isinstance(error, OSError) and error.filename is None:  # a library's write (a logger's): no file
+                line += f" while training into {output_dir}"
+            line += unrecorded
             if hydra_config.mode == RunMode.RUN:
                 sys.exit(f"nerfexp: error: {line}")
             log.error("job failed: %s", line)
         raise
+    finally:
+        if writes:  # a record that cannot be written costs only a refusal to replace these files later
+            with contextlib.suppress(OSError):
+                record_matching(output_dir, (*RUN_LIBRARY_FILES, f"{hydra_config.job.name}.log"))
     if results is None:  # not global rank 0
         return None
     write_status(output_dir, "finished", overrides)
@@ -204,30 +235,34 @@ def cli() -> None:
         check_launcher(sys.argv[1:])
     except NerfexpError as error:
         sys.exit(f"nerfexp: error: {error}")
-    with ending_signals(), hydra_errors_in_one_line():
+    with ending_signals("nerfexp"), thread_file_errors("nerfexp"), hydra_errors_in_one_line():
         main()
 
 
 @contextlib.contextmanager
 def hydra_errors_in_one_line() -> Iterator[None]:
     """Inside the block, Hydra's and OmegaConf's errors (an unknown option or key, an override's syntax, a
-    class that cannot be built) and nerfexp's end the program with one line (``hydra_error_line``) and exit
-    status 1. Hydra prints its own multi-line report unless HYDRA_FULL_ERROR=1, which makes it re-raise:
-    so it is set inside the block, and a user's own HYDRA_FULL_ERROR=1 keeps Hydra's full output."""
+    class that cannot be built), nerfexp's and a file's (an OSError) end the program with one line
+    (``hydra_error_line``) and exit status 1. Hydra prints its own multi-line report unless
+    HYDRA_FULL_ERROR=1, which makes it re-raise: so it is set inside the block, and a user's own
+    HYDRA_FULL_ERROR=1 keeps Hydra's full output."""
     if os.environ.get("HYDRA_FULL_ERROR") == "1":
         yield
         return
     os.environ["HYDRA_FULL_ERROR"] = "1"
     try:
         yield
-    except (HydraException, OmegaConfBaseException, NerfexpError) as error:
+    except (HydraException, OmegaConfBaseException, NerfexpError, OSError) as error:
         sys.exit(f"nerfexp: error: {hydra_error_line(error)}")
     finally:
         del os.environ["HYDRA_FULL_ERROR"]
 
 
 def hydra_error_line(error: Exception) -> str:
-    """One line for an error of Hydra, OmegaConf or nerfexp: the override at fault and what was expected."""
+    """One line for an error of Hydra, OmegaConf or nerfexp: the override at fault and what was expected;
+    for an OSError, the file and why (``file_error_line``; Hydra's MissingConfigException is an OSError too)."""
+    if isinstance(error, OSError) and not isinstance(error, HydraException):
+        return file_error_line(error)
     cause = error.__cause__
     if isinstance(error, MissingConfigException) and error.options is not None:
         group, _, option = str(error.missing_cfg_file).rpartition("/")

@@ -2,22 +2,45 @@
 ``docs/viewer.md``)."""
 
 import argparse
+import ipaddress
+import sys
 import time
 from pathlib import Path
 from typing import NoReturn
 
 from hydra.utils import instantiate
 
-from nerfexp.commands.arguments import add_chunk_argument, add_run_arguments, command_parser, port, positive
+from nerfexp.commands.arguments import (
+    add_chunk_argument,
+    add_run_arguments,
+    command_parser,
+    fitting,
+    port,
+    positive,
+    read_run,
+)
 from nerfexp.commands.console import run_command
-from nerfexp.commands.signals import ending_signals, received_signal
-from nerfexp.errors import NerfexpError
+from nerfexp.commands.signals import ending_signals
 from nerfexp.extras import require
-from nerfexp.files import TEMPORARY, foreign_entries, foreign_message
+from nerfexp.manifest import check_ours
+from nerfexp.memory import frame_bytes
 from nerfexp.products.frames import KINDS
-from nerfexp.products.viewer import Viewer, say
+from nerfexp.products.viewer import SAVE_ADVICE, Viewer, say
 from nerfexp.rundir.layout import CAMERA_PATH
-from nerfexp.rundir.trained import load_run
+
+
+def remote_warning(host: str, run_dir: Path) -> str | None:
+    """The warning to print where ``host`` is not a loopback address (127.0.0.0/8, ::1, localhost): the viewer
+    has no password, so whoever reaches the machine drives it. None for a loopback address."""
+    try:
+        loopback = ipaddress.ip_address(host).is_loopback
+    except ValueError:  # a name: only localhost is known to be this machine alone
+        loopback = host == "localhost"
+    if loopback:
+        return None
+    return (f"nerfexp-view: warning: serving on {host}, not this machine alone: anyone who can reach it can watch "
+            f"the run, record cameras and write a camera path into {run_dir / CAMERA_PATH}, with no password "
+            "(from elsewhere, forward the port over SSH instead: docs/viewer.md)")
 
 
 def view_run(run: Path, overrides: list[str], host: str, port: int, chunk: int | None,
@@ -26,11 +49,10 @@ def view_run(run: Path, overrides: list[str], host: str, port: int, chunk: int |
     ``http://host:port`` (port 0: any free one) until SIGINT or SIGTERM, which end the process as
     ``nerfexp.commands.signals.ending_signals`` does (exit status 130 or 143)."""
     viser = require("viser", "nerfexp-view")
-    run_dir, _, cfg, module, step = load_run(run, overrides, chunk)
-    folder = run_dir / CAMERA_PATH.parent  # where a saved camera path goes: nerfexp-view's alone
-    if foreign := foreign_entries(folder, (CAMERA_PATH.name, *TEMPORARY)):
-        raise NerfexpError(foreign_message(folder, foreign, "nerfexp-view", "move them elsewhere: nerfexp-view "
-                                           f"saves camera paths to {CAMERA_PATH.name} there"))
+    run_dir, _, cfg, module, step = read_run(run, overrides, chunk)
+    check_ours(run_dir, [CAMERA_PATH.as_posix()], "nerfexp-view", SAVE_ADVICE)  # where a saved camera path goes
+    if warning := remote_warning(host, run_dir):
+        print(warning, file=sys.stderr, flush=True)
     scene = instantiate(cfg.data)
     max_width = max_width or scene.views("test").width
     with ending_signals():
@@ -43,8 +65,7 @@ def view_run(run: Path, overrides: list[str], host: str, port: int, chunk: int |
                 time.sleep(3600)
         finally:
             viewer.close()
-            server.stop()
-            say(f"nerfexp-view: stopped ({received_signal()})")
+            server.stop()  # then run_command's ending_signals says "nerfexp-view: stopped (SIGNAL)"
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -54,12 +75,14 @@ def build_parser() -> argparse.ArgumentParser:
     parser = command_parser("nerfexp-view", build_parser.__doc__)
     add_run_arguments(parser)
     parser.add_argument("--host", default="127.0.0.1",
-                        help="address to serve on (default 127.0.0.1: this machine only; from elsewhere, "
-                             "forward the port over SSH: docs/viewer.md)")
+                        help="address to serve on (default 127.0.0.1: this machine only; any other is warned "
+                             "about, the viewer having no password; from elsewhere, forward the port over SSH: "
+                             "docs/viewer.md)")
     parser.add_argument("--port", type=port, default=8080,
                         help="port to serve on (default 8080; the next free one where it is taken; 0: any free one)")
     add_chunk_argument(parser, "; a render is abandoned between chunks when the camera moves")
-    parser.add_argument("--max-width", type=positive(int),
+    parser.add_argument("--max-width", type=fitting(positive(int), lambda width: frame_bytes(width, width),
+                                                    "a frame of N x N pixels"),
                         help="the finest render's width in pixels at most (default: the test views' width); "
                              "the browser's canvas sets it where narrower, and the height")
     parser.add_argument("--image", choices=KINDS, default=KINDS[0],

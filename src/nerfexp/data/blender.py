@@ -26,6 +26,7 @@ from nerfexp.errors import DatasetError
 from nerfexp.files import atomic_write
 from nerfexp.geometry.cameras import focal_from_fov, pose_problem
 from nerfexp.pixels import png_bytes, to_uint8
+from nerfexp.reading import UnreadableFile, read_json
 
 TRANSFORMS = "transforms_{split}.json"
 BLENDER_HALF_SIDE = 1.5  # the synthetic scenes' objects lie in [-1.5, 1.5]^3
@@ -68,11 +69,9 @@ def read_transforms(path: Path) -> tuple[float, list[tuple[str, Tensor]]]:
         existing = ", ".join(sorted(p.name for p in path.parent.glob(TRANSFORMS.format(split="*")))) or "none"
         raise DatasetError(f"{path} does not exist; transforms files in {path.parent}: {existing}")
     try:
-        content = json.loads(path.read_bytes())
-    except json.JSONDecodeError as error:
-        raise DatasetError(f"{path}: invalid JSON at line {error.lineno}, column {error.colno}: {error.msg}") from None
-    except UnicodeDecodeError as error:
-        raise DatasetError(f"{path}: not UTF-8 text ({error})") from None
+        content = read_json(path)  # bounded: a dataset from others
+    except UnreadableFile as error:
+        raise DatasetError(str(error)) from None
     if not isinstance(content, dict):
         raise DatasetError(f"{path}: expected a JSON object with keys 'camera_angle_x' and 'frames'")
     for key in ("camera_angle_x", "frames"):

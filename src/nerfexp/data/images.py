@@ -13,8 +13,11 @@ from PIL import Image
 from torch import Tensor
 
 from nerfexp.errors import DatasetError
+from nerfexp.reading import UnreadableFile, read_bytes
 
 MAX_PIXELS = Image.MAX_IMAGE_PIXELS  # Pillow's limit (about 89 million): larger images are refused, not decoded
+# the largest file such an image takes: uncompressed at 16 bits per channel with alpha, and its headers
+MAX_FILE_BYTES = 8 * MAX_PIXELS + (1 << 20)
 
 
 def to_rgba8(image: Image.Image) -> np.ndarray:
@@ -31,10 +34,14 @@ def read_image(path: Path, source: str) -> Tensor:
     pointed to the file, for the error when it is missing. The file is first checked with Pillow's
     ``verify`` (for PNG: every chunk's CRC-32, the image data's too, which decoding alone skips, so a
     flipped byte would otherwise decode to wrong pixels); a damaged file and an image of more than
-    ``MAX_PIXELS`` pixels are DatasetErrors, never decoded."""
+    ``MAX_PIXELS`` pixels, or a file larger than such an image's (``MAX_FILE_BYTES``), are DatasetErrors,
+    never decoded."""
     if not path.is_file():
         raise DatasetError(f"image {path} does not exist (named by {source})")
-    data = path.read_bytes()
+    try:
+        data = read_bytes(path, MAX_FILE_BYTES)  # bounded: a dataset from others
+    except UnreadableFile as error:
+        raise DatasetError(str(error)) from None
     try:
         with warnings.catch_warnings():
             warnings.simplefilter("error", Image.DecompressionBombWarning)

@@ -31,10 +31,16 @@ from nerfexp.errors import ConfigError, DatasetError
 from nerfexp.extras import require
 from nerfexp.files import atomic_directory
 from nerfexp.pixels import png_bytes
+from nerfexp.reading import UnreadableFile, read_json
 
 FRAMES = "frames"  # DIR/frames: the frames taken from the video
 SOURCE = "source.json"  # DIR/frames/source.json: {"video": its file name, "fps": frames kept per second}
 MIN_FRAMES = 3  # fewer frames than this cannot be posed usefully
+# The frame rates of the videos nerfexp reads (data.fps) and writes (nerfexp-render): ffmpeg takes a rate as a
+# fraction and MP4 counts each frame's duration in 32-bit ticks of a time base made from it, so rates far from
+# 1 fail there (no video is written); from one frame per 1000 seconds to 1000 frames per second they hold, and
+# faster is faster than displays show
+FPS_RANGE = (1e-3, 1e3)
 LUMA = (0.299, 0.587, 0.114)  # ITU-R BT.601 weights of R, G, B, as OpenCV's and Pillow's RGB -> grey
 # what imageio's FFMPEG plugin raises for a file ffmpeg cannot read (its header parser: IndexError, AttributeError)
 DECODE_ERRORS = (OSError, RuntimeError, ValueError, IndexError, AttributeError)
@@ -96,9 +102,11 @@ def frame_name(interval: int) -> str:
 
 
 def check_fps(fps) -> None:
-    """A ConfigError unless ``fps`` (data.fps) is a finite number > 0."""
-    if isinstance(fps, bool) or not isinstance(fps, int | float) or not (math.isfinite(fps) and fps > 0):
-        raise ConfigError(f"data.fps must be a number > 0 (frames kept per second of video), got {fps}")
+    """A ConfigError unless ``fps`` (data.fps) is a number in ``FPS_RANGE``."""
+    low, high = FPS_RANGE
+    if isinstance(fps, bool) or not isinstance(fps, int | float) or not (math.isfinite(fps) and low <= fps <= high):
+        raise ConfigError(f"data.fps must be a number in [{low:g}, {high:g}] (frames kept per second of video), "
+                          f"got {fps}")
 
 
 def cached_frames(folder: Path, video: str, fps: float) -> bool:
@@ -107,9 +115,9 @@ def cached_frames(folder: Path, video: str, fps: float) -> bool:
     if not folder.exists():
         return False
     try:
-        source = json.loads((folder / SOURCE).read_text())
+        source = read_json(folder / SOURCE)  # bounded: the folder may come from elsewhere
         made_from = (str(source["video"]), float(source["fps"]))
-    except (OSError, ValueError, KeyError, TypeError):
+    except (UnreadableFile, ValueError, KeyError, TypeError):
         raise DatasetError(f"{folder} exists but holds no readable {SOURCE}, so nerfexp did not take it from a "
                            f"video; move it away (nerfexp never deletes it) to use data.video") from None
     if made_from != (Path(video).name, float(fps)):

@@ -53,6 +53,10 @@ def look_at(eye: Tensor, target: Tensor, up: Tensor) -> Tensor:
 
 
 RIGID_TOLERANCE = 1e-3  # how far a stored rotation may be from orthonormal (float32 poses are ~1e-7 off)
+# How far from the origin a camera, and how far along a ray a sample, may be, in scene units: rays, samples
+# and the networks' inputs are float32, whose neighbouring values 2^24 away from 0 are one whole unit apart, so
+# beyond it positions have no sub-unit resolution (a scene is a few units across: docs/numerics.md)
+POSITION_LIMIT = 2.0 ** 24
 
 
 def rotation_problem(rotation: Tensor, tolerance: float = RIGID_TOLERANCE) -> str | None:
@@ -71,10 +75,14 @@ def rotation_problem(rotation: Tensor, tolerance: float = RIGID_TOLERANCE) -> st
 
 def pose_problem(c2w: Tensor, tolerance: float = RIGID_TOLERANCE) -> str | None:
     """Why a camera-to-world matrix [4, 4] is not a rigid transform (finite, a rotation by
-    ``rotation_problem``, last row 0 0 0 1), or None."""
+    ``rotation_problem``, last row 0 0 0 1) placing the camera within ``POSITION_LIMIT`` of the origin
+    along each axis, or None."""
     c2w = c2w.double()
     if not torch.isfinite(c2w).all():
         return "it is not finite"
+    if c2w[:3, 3].abs().max() > POSITION_LIMIT:
+        return (f"its position {c2w[:3, 3].tolist()} is more than 2^24 scene units from the origin, where float32 "
+                "positions have no sub-unit resolution")
     if not torch.equal(c2w[3], torch.tensor([0.0, 0.0, 0.0, 1.0], dtype=c2w.dtype)):
         return f"its last row is {c2w[3].tolist()}, not [0, 0, 0, 1]"
     return rotation_problem(c2w[:3, :3], tolerance)

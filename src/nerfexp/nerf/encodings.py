@@ -10,6 +10,8 @@ from torch import Tensor, nn
 from nerfexp.nerf.bounds import Bounded
 
 HASH_PRIMES = (1, 2654435761, 805459861)  # Instant-NGP's, one per axis; 1 keeps neighbours along x together
+HASH_MAX_LOG2_TABLE_SIZE = 30  # a level's table at most 2^30 rows, the encoding's own limit
+HASH_RESOLUTION_LIMIT = 2 ** 20  # resolutions below it: a cell's integer corner times a prime stays within int64
 
 
 class IdentityEncoding(nn.Module):
@@ -202,8 +204,8 @@ class HashGridEncoding(Bounded):
         values = {"n_levels": n_levels, "features_per_level": features_per_level, "log2_table_size": log2_table_size,
                   "coarsest": coarsest, "finest": finest, "init_range": init_range}
         checks = {"n_levels": n_levels >= 1, "features_per_level": features_per_level >= 1,
-                  "log2_table_size": 1 <= log2_table_size <= 30, "coarsest": coarsest >= 1,
-                  "finest": coarsest <= finest < 2**20, "init_range": init_range > 0}
+                  "log2_table_size": 1 <= log2_table_size <= HASH_MAX_LOG2_TABLE_SIZE, "coarsest": coarsest >= 1,
+                  "finest": coarsest <= finest < HASH_RESOLUTION_LIMIT, "init_range": init_range > 0}
         bad = [key for key, ok in checks.items() if not ok]
         if bad:
             raise ValueError(f"encoding.position.{bad[0]}: expected n_levels >= 1, features_per_level >= 1, "

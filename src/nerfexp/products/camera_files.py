@@ -1,18 +1,22 @@
 """Camera path files: a render's ``cameras.json`` and a path saved by ``nerfexp-view``, the format
 ``nerfexp-render --cameras`` reads, checked key by key before anything is rendered."""
 
-import json
 from dataclasses import dataclass
 from pathlib import Path
 
 import torch
 from torch import Tensor
 
+from nerfexp.data.video import FPS_RANGE
 from nerfexp.errors import NerfexpError
 from nerfexp.geometry.cameras import pose_problem
 from nerfexp.memory import frame_bytes, require_memory
+from nerfexp.reading import UnreadableFile, read_json
 
 DEFAULT_FPS = 30.0  # of a camera path whose file names none, and of a path made from training cameras
+# A focal length in pixels: float32 ray directions are (x - W/2) / focal, which within [2^-24, 2^24] stay finite
+# and resolved, from a field of view of almost 180 degrees to one far narrower than a pixel
+FOCAL_RANGE = (2.0 ** -24, 2.0 ** 24)
 
 
 @dataclass
@@ -51,25 +55,26 @@ def _c2w_problem(c2w) -> str | None:
         if not shaped:
             return f"item {index} is not a 4 x 4 matrix of numbers"
         if problem := pose_problem(torch.tensor(matrix, dtype=torch.float64)):
-            return f"item {index} is not a rigid transform: {problem}"
+            return f"item {index} is not a rigid camera pose: {problem}"
     return None
 
 
 def read_camera_path(file: Path) -> CameraPath:
     """The cameras of ``file`` (``CameraPath.record``'s JSON: a render's ``cameras.json``, a path saved by
     ``nerfexp-view``), checked: a NerfexpError naming the file, the key and what was expected where it is
-    not JSON, lacks a key, has a size or focal length that is not positive (sizes also even: video encoders
-    need them so), or c2w is not a non-empty list of rigid 4 x 4 transforms. ``path`` and ``fps`` may be
-    left out (``file``, 30)."""
+    not JSON, lacks a key, has a size that is not positive and even (video encoders need even sizes), a focal
+    length outside ``FOCAL_RANGE``, an fps outside ``nerfexp.data.video.FPS_RANGE`` (what MP4 holds), or c2w
+    is not a non-empty list of rigid 4 x 4 transforms placing the cameras within 2^24 scene units of the
+    origin (``nerfexp.geometry.cameras.pose_problem``). ``path`` and ``fps`` may be left out (``file``, 30)."""
     try:
-        data = json.loads(Path(file).read_text())
-    except OSError as error:
-        raise NerfexpError(f"--cameras {file}: cannot be read ({error.strerror})") from None
-    except (json.JSONDecodeError, UnicodeDecodeError) as error:
-        raise NerfexpError(f"--cameras {file}: not JSON ({error})") from None
+        data = read_json(Path(file))  # bounded: a file from others
+    except UnreadableFile as error:
+        raise NerfexpError(f"--cameras {file}: {error.reason}") from None
     expected = {"height": "a positive even number of pixels", "width": "a positive even number of pixels",
-                "focal": "a positive focal length in pixels", "fps": "a positive number of frames per second",
+                "focal": "a focal length in pixels in [2^-24, 2^24]",
+                "fps": f"a number of frames per second in [{FPS_RANGE[0]:g}, {FPS_RANGE[1]:g}]",
                 "c2w": "a non-empty list of 4 x 4 rigid camera-to-world matrices (OpenGL convention)"}
+    ranges = {"focal": FOCAL_RANGE, "fps": FPS_RANGE}
     if not isinstance(data, dict):
         raise NerfexpError(f"--cameras {file}: expected a JSON object with keys {', '.join(expected)}")
     data = {"path": Path(file).name, "fps": DEFAULT_FPS, **data}
@@ -81,7 +86,7 @@ def read_camera_path(file: Path) -> CameraPath:
             problem = _c2w_problem(value)
         elif key in ("height", "width"):
             problem = None if _number(value, integer=True) and value > 0 and value % 2 == 0 else f"got {value!r}"
-        elif not (_number(value) and 0 < value < float("inf")):
+        elif not (_number(value) and ranges[key][0] <= value <= ranges[key][1]):
             problem = f"got {value!r}"
         else:
             problem = None

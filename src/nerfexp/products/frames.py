@@ -18,6 +18,7 @@ from tqdm import tqdm
 
 from nerfexp.data.base import Scene
 from nerfexp.data.rays import model_batch
+from nerfexp.errors import NerfexpError
 from nerfexp.geometry.camera_paths import llff_focus_depth, orbit_path, spiral_path
 from nerfexp.geometry.cameras import camera_rays
 from nerfexp.pixels import depth_image, png_bytes, to_uint8
@@ -102,7 +103,8 @@ def rgb_pixels(image: Tensor) -> np.ndarray:
 def render_path(module: NeRFModule, scene: Scene, cameras: Tensor, height: int, width: int, focal: float,
                 out_dir: Path, fps: float) -> None:
     """Render ``cameras`` [F, 4, 4] frame by frame into ``out_dir``: a video per kind (``KINDS``) and
-    the PNG frames, streamed to disk as they are rendered; with a progress bar."""
+    the PNG frames, streamed to disk as they are rendered; with a progress bar. A video ffmpeg did not write
+    is a NerfexpError (imageio's writer leaves ffmpeg's failure to its messages on stderr)."""
     near, far = module.renderer.near, module.renderer.far
     with contextlib.ExitStack() as videos:
         writers = {kind: videos.enter_context(
@@ -115,6 +117,11 @@ def render_path(module: NeRFModule, scene: Scene, cameras: Tensor, height: int, 
                 (out_dir / kind).mkdir(exist_ok=True)
                 (out_dir / kind / f"{index:04d}.png").write_bytes(png_bytes(frame))
                 writers[kind].append_data(rgb_pixels(image))
+    unwritten = [video.name for kind in KINDS if not (video := out_dir / f"{kind}.mp4").is_file()
+                 or video.stat().st_size == 0]
+    if unwritten:
+        raise NerfexpError(f"ffmpeg wrote no {', '.join(unwritten)} at {fps:g} frames per second (its messages "
+                           "above say why)")
 
 
 def training_path(scene: Scene, data: DictConfig, path: str | None, n_frames: int, focus: float | None,

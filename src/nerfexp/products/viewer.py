@@ -13,7 +13,9 @@ Each image sent is announced on standard output: ``frame N (W x H, KIND, camera 
 training and test cameras are drawn as frustums; "record camera" keeps the current camera as a keyframe
 and "save camera path" writes the keyframes to ``RUN_DIR/view/camera_path.json`` in the format of
 ``nerfexp-render``'s ``cameras.json`` (``nerfexp.products.camera_files.CameraPath``), which ``nerfexp-render --cameras``
-renders. Cameras: ``nerfexp.geometry.viewer_cameras``.
+renders, and records it in the run directory's manifest; a ``camera_path.json`` there that the manifest does
+not show to be nerfexp-view's (``nerfexp.manifest``) is kept and the save refused, saying so. Cameras:
+``nerfexp.geometry.viewer_cameras``.
 """
 
 from __future__ import annotations
@@ -30,9 +32,10 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from nerfexp import manifest
 from nerfexp.data.base import Scene
+from nerfexp.errors import NerfexpError
 from nerfexp.extras import require
-from nerfexp.files import atomic_write
 from nerfexp.geometry.camera_paths import mean_up
 from nerfexp.geometry.cameras import focal_from_fov
 from nerfexp.geometry.viewer_cameras import flip_camera_axes, vertical_fov
@@ -47,6 +50,7 @@ DIVISORS = (8, 4, 2, 1)  # the progressive schedule: the target width divided by
 FPS = 30.0  # of a saved camera path
 TRAIN_COLOUR = (40, 110, 240)  # the training cameras' frustums
 TEST_COLOUR = (240, 120, 20)  # the test cameras'
+SAVE_ADVICE = f"move {{it}} elsewhere: nerfexp-view saves camera paths to {CAMERA_PATH.as_posix()}"
 
 
 def refinement_sizes(height: int, width: int, divisors: tuple[int, ...] = DIVISORS) -> list[tuple[int, int]]:
@@ -324,15 +328,23 @@ class Viewer:
         self.status.content = "No keyframes recorded."
 
     def save(self) -> None:
-        """The keyframes written to ``RUN_DIR/view/camera_path.json`` (``saved_camera_path``), atomically."""
+        """The keyframes written to ``RUN_DIR/view/camera_path.json`` (``saved_camera_path``), atomically, and
+        recorded in the run directory's manifest; refused, saying so, where the file there is not one
+        nerfexp-view wrote (``nerfexp.manifest.check_ours``)."""
         with self.state_lock:
             keyframes = list(self.keyframes)
         if not keyframes:
             self.status.content = "No keyframes to save: record a camera first."
             return
         path = self.run_dir / CAMERA_PATH
-        record = saved_camera_path(keyframes, self.max_width).record()
-        atomic_write(path, json.dumps(record, indent=2).encode())
+        try:
+            manifest.check_ours(self.run_dir, [CAMERA_PATH.as_posix()], "nerfexp-view", SAVE_ADVICE)
+        except NerfexpError as error:
+            self.status.content = f"Not saved: {error}"
+            say(f"nerfexp-view: camera path not saved: {error}")
+            return
+        cameras = saved_camera_path(keyframes, self.max_width).record()
+        manifest.write(self.run_dir, CAMERA_PATH.as_posix(), json.dumps(cameras, indent=2).encode())
         self.status.content = f"{len(keyframes)} cameras saved to `{path}`."
         say(f"camera path of {len(keyframes)} cameras saved to {path}")
 

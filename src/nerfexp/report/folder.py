@@ -1,11 +1,12 @@
-"""The report's folder: what it may already hold (``check_out``: nothing a user made), and every file of
-the report written into it (``write_report``; what they are: the package's docstring)."""
+"""The report's folder: what it may already hold (``check_out``: of the files the report writes over,
+none a user made), and every file of the report written into it (``write_report``; what they are: the
+package's docstring), each recorded in the folder's manifest as it is written (``nerfexp.manifest``)."""
 
 
 from pathlib import Path
 
-from nerfexp.errors import NerfexpError
-from nerfexp.files import TEMPORARY, atomic_directory, atomic_write, folder_entries, foreign_message, is_made
+from nerfexp import manifest
+from nerfexp.files import atomic_directory
 from nerfexp.report.page import page_html
 from nerfexp.report.pictures import PLOTS, VIEWS_NOTE, check_views, view_tiles
 from nerfexp.report.plots import pareto_png, psnr_vs_time_png
@@ -16,27 +17,19 @@ from nerfexp.rundir.layout import (
     PARETO_PLOT,
     PSNR_PLOT,
     REPORT_CSV,
+    REPORT_FILES,
     REPORT_HTML,
     REPORT_IMAGES,
-    REPORT_MADE,
     REPORT_MD,
-    RUN_MADE,
-    SWEEP_MADE,
-    find_run_dirs,
 )
 
 
 def check_out(out: Path) -> None:
-    """A NerfexpError where the report's folder ``out`` holds files that neither a report (``REPORT_MADE``)
-    nor a sweep (``SWEEP_MADE``) made, outside the run directories in it (``find_run_dirs``; where ``out``
-    is one, those its commands make, ``RUN_MADE``, and its log): a report writes over nothing a user made."""
-    runs = {run.relative_to(out) for run in find_run_dirs(out)}
-    made = (*REPORT_MADE, *SWEEP_MADE, *TEMPORARY, *((*RUN_MADE, "*.log") if Path(".") in runs else ()))
-    foreign = [entry for entry in folder_entries(out)
-               if not is_made(entry, made) and not runs & (set(Path(entry).parents) - {Path(".")})]
-    if foreign:
-        raise NerfexpError(foreign_message(out, foreign, "nerfexp-report",
-                                           "choose another folder for the report (--out DIR)"))
+    """A NerfexpError where a file the report writes over in ``out`` (``REPORT_FILES``, and every file under
+    ``REPORT_IMAGES``, which is replaced as a whole) is not one a report wrote, by the folder's manifest
+    (``nerfexp.manifest.check_ours``): a report writes over nothing a user made, and beside anything else."""
+    manifest.check_ours(out, [*REPORT_FILES, *manifest.folder_files(out, REPORT_IMAGES)], "nerfexp-report",
+                        "move {it}, or choose another folder for the report (--out DIR)")
 
 
 def write_report(directories: list[Path], out: Path, over: tuple[str, ...] = ("seed",),
@@ -51,11 +44,12 @@ def write_report(directories: list[Path], out: Path, over: tuple[str, ...] = ("s
     views = check_views(variants, views)
     rows = table_rows(variants, base)
     report_md = markdown(variants, rows, runs, directories, base)
-    atomic_write(out / REPORT_MD, report_md.encode())
-    atomic_write(out / REPORT_CSV, csv_text(rows).encode())
-    atomic_write(out / PSNR_PLOT, psnr_vs_time_png(variants))
-    atomic_write(out / PARETO_PLOT, pareto_png(variants))
+    manifest.write(out, REPORT_MD, report_md.encode())
+    manifest.write(out, REPORT_CSV, csv_text(rows).encode())
+    manifest.write(out, PSNR_PLOT, psnr_vs_time_png(variants))
+    manifest.write(out, PARETO_PLOT, pareto_png(variants))
     with atomic_directory(out / REPORT_IMAGES, replace=True) as folder:
         tiles = view_tiles(variants, views, folder)
-    atomic_write(out / REPORT_HTML, page_html(report_md, PLOTS, tiles, VIEWS_NOTE).encode())
+    manifest.record_folder(out, REPORT_IMAGES)
+    manifest.write(out, REPORT_HTML, page_html(report_md, PLOTS, tiles, VIEWS_NOTE).encode())
     return variants

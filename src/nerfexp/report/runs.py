@@ -6,6 +6,7 @@ import socket
 from dataclasses import dataclass, field
 from pathlib import Path
 
+from nerfexp.reading import UnreadableFile
 from nerfexp.rundir.layout import (
     METRICS,
     RESULTS,
@@ -45,8 +46,8 @@ def read_record(path: Path, required: tuple[str, ...]) -> dict | None:
     """A run's JSON file (None where there is none) holding the keys ``required``, else ``Damaged``."""
     try:
         record = read_json(path)
-    except (ValueError, OSError) as error:  # truncated, empty, not UTF-8, unreadable
-        raise Damaged(f"{path.name}: not readable as JSON ({error})") from None
+    except UnreadableFile as error:  # truncated, empty, not UTF-8, too large, unreadable
+        raise Damaged(f"{path.name}: {error.reason}") from None
     if record is not None and not (isinstance(record, dict) and all(key in record for key in required)):
         raise Damaged(f"{path.name}: not a record with {', '.join(required)}")
     return record

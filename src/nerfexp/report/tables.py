@@ -7,6 +7,7 @@ import io
 import math
 from pathlib import Path
 
+from nerfexp.reading import UnreadableFile
 from nerfexp.report.comparison import Difference, compare_order, tiers
 from nerfexp.report.runs import Run, run_precision
 from nerfexp.report.variants import PAPER_ABLATION, Variant, difference
@@ -154,7 +155,12 @@ def markdown(variants: list[Variant], rows: list[dict], runs: list[Run], sources
              reference: Variant | None = None) -> str:
     """report.md: the ``variants`` with their ``rows`` (``table_rows`` against ``reference``), the ranking,
     the paper's order, and the ``runs`` under ``sources`` that did not finish."""
-    planned = [(source, planned_jobs(source)) for source in sources]
+    planned, unplanned = [], []
+    for source in sources:
+        try:
+            planned.append((source, planned_jobs(source)))
+        except UnreadableFile as error:  # costs the report the planned count, not the report
+            unplanned.append(f"`{error.path}` not read ({error.reason}): how many jobs the sweep planned is unknown")
     started = {source: sum(source in run.path.parents for run in runs) for source in sources}
     not_started = [f"`{source}` plans {n} jobs, {started[source]} started" for source, n in planned
                    if n is not None and n > started[source]]
@@ -211,7 +217,8 @@ def markdown(variants: list[Variant], rows: list[dict], runs: list[Run], sources
     lines += [f"- `{run.path}` ({overrides_text(run.overrides)}): {run.state}"
               + (f": {run.detail}" if run.detail else "") for run in unfinished]
     lines += [f"- {text}: the rest never started (the sweep stopped or is still going)" for text in not_started]
-    if not unfinished and not not_started:
+    lines += [f"- {text}" for text in unplanned]
+    if not unfinished and not not_started and not unplanned:
         lines.append("None.")
     lines += ["", f"Plots: `{PSNR_PLOT}` (validation PSNR against training seconds: each variant's mean "
               f"over seeds, its band from the lowest to the highest seed, single runs faint), `{PARETO_PLOT}` "
@@ -237,10 +244,23 @@ def reference_text(reference: Variant | None) -> str:
             "comparison, not corrected for making many.")
 
 
+# A text cell starting with one of these is a formula to a spreadsheet (=, +, -, @) or may become one once
+# the spreadsheet strips it (tab, carriage return): OWASP's CSV injection guidance
+FORMULA_STARTS = ("=", "+", "-", "@", "\t", "\r")
+
+
+def csv_cell(value: object) -> object:
+    """``value`` as report.csv writes it: a text starting with one of ``FORMULA_STARTS`` (a label such as
+    ``=HYPERLINK(...)`` or ``-lr``) prefixed with ``'``, which spreadsheets read as "this cell is text", so
+    that opening the file runs nothing; numbers, negative ones included, stay numbers."""
+    return f"'{value}" if isinstance(value, str) and value.startswith(FORMULA_STARTS) else value
+
+
 def csv_text(rows: list[dict]) -> str:
-    """report.csv: the ``COLUMNS`` of each of ``rows`` (``table_rows``)."""
+    """report.csv: the ``COLUMNS`` of each of ``rows`` (``table_rows``), text cells made safe to open in a
+    spreadsheet (``csv_cell``) and quoted, so that a carriage return in a label stays in its cell."""
     out = io.StringIO()
-    writer = csv.DictWriter(out, fieldnames=COLUMNS, lineterminator="\n")
+    writer = csv.DictWriter(out, fieldnames=COLUMNS, lineterminator="\n", quoting=csv.QUOTE_NONNUMERIC)
     writer.writeheader()
-    writer.writerows({column: row[column] for column in COLUMNS} for row in rows)
+    writer.writerows({column: csv_cell(row[column]) for column in COLUMNS} for row in rows)
     return out.getvalue()

@@ -20,7 +20,9 @@ A run's directory holds (every file written atomically):
 A directory belongs to one run, and a run writes over nothing a user made: ``RunDirectoryGuard`` starts
 a run only in a new or empty directory, the run that ``resume`` continues, or that of a run that ended
 unfinished without saving a checkpoint (replaced), and a sweep only in a new or empty directory; it
-refuses before Hydra writes into the directory. ``RUN_MADE`` lists what nerfexp's commands make there.
+refuses before Hydra writes into the directory. ``nerfexp-manifest.json`` records every file nerfexp wrote
+there, with its size and SHA-256, as it is written (``nerfexp.manifest``): a file is replaced or removed only
+where it is one of them, unchanged.
 
 A finished (or interrupted) run is read back by ``find_run``, ``run_config`` and ``load_module``
 (together: ``load_run``).

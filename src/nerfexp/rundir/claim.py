@@ -1,7 +1,8 @@
 """A directory belongs to one run: ``RunDirectoryGuard`` (a Hydra callback) starts a run only in a new or
 empty directory, the run that ``resume`` continues, or that of a run that ended unfinished without a
 checkpoint, and a sweep only in a new or empty directory, before Hydra writes into it; ``claim``
-makes the run's status the directory's atomically."""
+makes the run's status the directory's atomically. What a run replaces or removes there is known to be
+nerfexp's by the directory's manifest (``nerfexp.manifest``), never by its name."""
 
 import contextlib
 import os
@@ -13,13 +14,14 @@ from pathlib import Path
 from hydra.experimental.callback import Callback
 from omegaconf import DictConfig
 
+from nerfexp import manifest
 from nerfexp.errors import NerfexpError
 from nerfexp.files import folder_entries, foreign_message, is_made
 from nerfexp.rundir.layout import (
     LAST_CHECKPOINT,
     METRICS,
     RESULTS,
-    RUN_MADE,
+    RUN_REWRITES,
     STATUS,
     find_run_dirs,
     is_global_zero,
@@ -43,8 +45,8 @@ def held_run(run_dir: Path) -> str | None:
 def claim(run_dir: Path, overrides: list[str]) -> bool:
     """Make ``run_dir`` this run's: its ``status.json`` (``running``) is created only where none exists,
     whole (written beside it, then hard-linked into place, which fails where the name is taken), so of
-    two runs started into one directory at once one gets it, and no reader sees half a status. Returns
-    whether this run did."""
+    two runs started into one directory at once one gets it, and no reader sees half a status; the one
+    that did records it in the directory's manifest. Returns whether this run did."""
     run_dir.mkdir(parents=True, exist_ok=True)
     status = status_bytes("running", overrides)
     fd, draft = tempfile.mkstemp(dir=run_dir, prefix=f".{STATUS}.", suffix=".tmp")
@@ -64,6 +66,7 @@ def claim(run_dir: Path, overrides: list[str]) -> bool:
             file.write(status)
     finally:
         os.unlink(draft)
+    manifest.record(run_dir, [STATUS])
     return True
 
 
@@ -87,35 +90,51 @@ def ended_unfinished(status: dict | None) -> bool:
             and isinstance(pid, int) and not process_alive(pid, status.get("process_start")))
 
 
-def admit_run(run_dir: Path, resume: str | None, log: str) -> list[str] | None:
-    """The entries (``nerfexp.files.folder_entries``) to remove from ``run_dir`` before a run claims it:
-    none where it holds no files; all of them where it holds a run that ended unfinished
-    (``ended_unfinished``) and saved no checkpoint. None where it holds the run that ``resume`` (a
-    checkpoint inside it) continues: the directory is that run's already.
-    Otherwise a NerfexpError saying what it holds and what to do: files that no nerfexp command made
-    (``RUN_MADE``, and the run's ``log``; any file, where it holds no run: ``held_run``), or another run
-    (continued with ``resume=`` one of its checkpoints, where it saved one: ``saved_checkpoints``)."""
+def admit_run(run_dir: Path, resume: str | None) -> list[str] | None:
+    """The entries (``nerfexp.files.folder_entries``, the manifest's own aside) to remove from ``run_dir``
+    before a run claims it: none where it holds no files; all of them where it holds a run that ended
+    unfinished (``ended_unfinished``) and saved no checkpoint, and every one of them is a file nerfexp
+    wrote by the directory's manifest (``nerfexp.manifest.check_ours``). None where it holds the run that
+    ``resume`` (a checkpoint inside it) continues, and the files that run writes over (``RUN_REWRITES``)
+    are its own: the directory is that run's already.
+    Otherwise a NerfexpError saying what it holds and what to do: files where it holds no run
+    (``held_run``), files nerfexp cannot show it wrote (named; a directory of an earlier nerfexp, without a
+    manifest, says so), or another run (continued with ``resume=`` one of its checkpoints, where it
+    saved one: ``saved_checkpoints``)."""
     held = held_run(run_dir)
-    entries = folder_entries(run_dir)
-    made = CLAIM_DRAFTS if held is None else (*RUN_MADE, log)
-    if foreign := [entry for entry in entries if not is_made(entry, made)]:
-        raise NerfexpError(foreign_message(run_dir, foreign, "nerfexp",
-                                           "choose a new or empty directory (hydra.run.dir=...)"))
+    entries = [entry for entry in folder_entries(run_dir) if entry not in manifest.BOOKKEEPING]
     if held is None:
+        if foreign := [entry for entry in entries if not is_made(entry, CLAIM_DRAFTS)]:
+            raise NerfexpError(foreign_message(run_dir, foreign, "nerfexp",
+                                               "choose a new or empty directory (hydra.run.dir=...)"))
         return []
     if resume is not None and run_dir.resolve() in Path(resume).resolve().parents:
+        check_run_files(run_dir, held, [entry for entry in entries if is_made(entry, RUN_REWRITES)],
+                        f"or continue it in another directory (resume={resume} hydra.run.dir=...)")
         return None
     if checkpoints := saved_checkpoints(run_dir):
         raise NerfexpError(f"{run_dir} holds {held}: continue it with resume={checkpoints[0]} "
                            f"hydra.run.dir={run_dir}, or choose another directory (hydra.run.dir=...)")
     if not ended_unfinished(read_json(run_dir / STATUS)):
         raise NerfexpError(f"{run_dir} holds {held}: choose another directory (hydra.run.dir=...)")
+    check_run_files(run_dir, held, entries, "or choose another directory (hydra.run.dir=...)")
     return entries
+
+
+def check_run_files(run_dir: Path, held: str, entries: list[str], alternative: str) -> None:
+    """A NerfexpError where one of ``entries`` of ``run_dir``, which the run starting would write over or
+    remove, is not a file nerfexp wrote by the directory's manifest (``nerfexp.manifest.check_ours``); where
+    the directory has no manifest (a run of an earlier nerfexp), one saying so. Both end in ``alternative``."""
+    if entries and not os.path.lexists(run_dir / manifest.MANIFEST):
+        raise NerfexpError(f"{run_dir} holds {held} of an earlier nerfexp, which kept no record of the files it "
+                           f"wrote (no {manifest.MANIFEST}), so nothing in it is removed or written over: move "
+                           f"its files elsewhere yourself, {alternative}")
+    manifest.check_ours(run_dir, entries, "nerfexp", f"move {{it}} elsewhere, {alternative}")
 
 
 def remove_entries(folder: Path, entries: list[str]) -> None:
     """Delete ``entries`` (``/``-separated paths relative to ``folder``), then the folders they leave
-    empty inside ``folder``: nothing else."""
+    empty inside ``folder``: nothing else; their records in the folder's manifest go with them."""
     emptied = set()
     for entry in entries:
         (folder / entry).unlink(missing_ok=True)
@@ -123,6 +142,7 @@ def remove_entries(folder: Path, entries: list[str]) -> None:
     for parent in sorted(emptied - {Path(".")}, key=lambda path: len(path.parts), reverse=True):
         with contextlib.suppress(OSError):  # a folder that still holds something stays
             (folder / parent).rmdir()
+    manifest.record(folder, entries)
 
 
 class RunDirectoryGuard(Callback):
@@ -131,7 +151,8 @@ class RunDirectoryGuard(Callback):
 
     A single run stops with one line (exit status 1) unless ``hydra.run.dir`` is new or empty, holds the
     run that ``resume`` continues, or holds a run that ended unfinished and saved no checkpoint, whose
-    files are then removed, saying so in one line (``admit_run``); then it claims the directory
+    files are then removed where each is one nerfexp wrote, saying so in one line (``admit_run``); then it
+    claims the directory
     (``claim``). A multirun stops unless ``hydra.sweep.dir`` is new or empty.
     In a distributed job started by SLURM every process runs this; global rank 0 checks and claims.
     It stops with ``SystemExit``: Hydra turns a callback's exceptions into warnings and goes on."""
@@ -141,7 +162,7 @@ class RunDirectoryGuard(Callback):
             return
         run_dir = Path(config.hydra.run.dir)
         try:
-            replaced = admit_run(run_dir, config.get("resume"), f"{config.hydra.job.name}.log")
+            replaced = admit_run(run_dir, config.get("resume"))
             if replaced is None:  # the run continued
                 return
             if replaced:

@@ -4,17 +4,20 @@ atomically and read back, and how runs are found under a folder (the package's d
 import contextlib
 import hashlib
 import json
+import math
 import os
+import re
 import socket
 import time
 from pathlib import Path
 
 import torch
-from hydra._internal.core_plugins.basic_sweeper import BasicSweeper
 from hydra.core.override_parser.overrides_parser import OverridesParser
-from omegaconf import OmegaConf
+from hydra.core.override_parser.types import ChoiceSweep, RangeSweep
+from hydra.errors import HydraException
 
-from nerfexp.files import TEMPORARY, atomic_write
+from nerfexp import manifest, reading
+from nerfexp.files import writing
 
 STATUS = "status.json"
 RESULTS = "results.json"
@@ -31,16 +34,16 @@ LAST_CHECKPOINT = Path("checkpoints", "last.ckpt")
 REPORT_MD, REPORT_CSV, REPORT_HTML = "report.md", "report.csv", "report.html"
 PSNR_PLOT, PARETO_PLOT = "psnr_vs_time.png", "pareto.png"
 REPORT_IMAGES = "report_images"
-REPORT_MADE = (REPORT_MD, REPORT_CSV, REPORT_HTML, PSNR_PLOT, PARETO_PLOT, f"{REPORT_IMAGES}/view*/*.png")
-# what Hydra's multirun, the Optuna sweeper and the submitit launchers write into a sweep's folder
-SWEEP_MADE = ("multirun.yaml", "optimization_results.yaml", ".submitit")
-# every entry nerfexp's commands make in a run directory (``nerfexp.files.is_made`` patterns; the run's log,
-# ``hydra.job.name``.log, aside): the run's files, Hydra's, the checkpoints, the training guards', each
-# logger's (conf/logger/, and the images of a logger without a folder of its own), nerfexp-eval's,
-# nerfexp-render's, nerfexp-export's, nerfexp-view's and nerfexp-report's, and interrupted atomic writes
-RUN_MADE = (STATUS, RESULTS, METRICS, f"{TEST_DIR}/r_*.png", RUN_CONFIG.parent.name, LAST_CHECKPOINT.parent.name,
-            "debug", "tensorboard", "csv", "wandb", "mlflow.db*", "mlartifacts", "images", EVAL, RENDER_DIR,
-            EXPORT_DIR, CAMERA_PATH.as_posix(), *REPORT_MADE, *TEMPORARY)
+REPORT_FILES = (REPORT_MD, REPORT_CSV, REPORT_HTML, PSNR_PLOT, PARETO_PLOT)  # and the folder REPORT_IMAGES
+# What a run's libraries and guards write into its directory under names nerfexp gives them (``nerfexp.files.
+# is_made`` patterns; the run's log, ``hydra.job.name``.log, aside): Hydra's config, the checkpoints, the
+# guards' debug files, each logger's (conf/logger/, and the images of a logger without a folder of its own).
+# nerfexp records them in the run's manifest (``nerfexp.manifest``) at points it controls: Hydra's config when
+# the job starts, all of them when it ends, finished or failed (``nerfexp.commands.train.main``).
+RUN_LIBRARY_FILES = (RUN_CONFIG.parent.name, LAST_CHECKPOINT.parent.name, "debug", "tensorboard", "csv", "wandb",
+                     "mlflow.db*", "mlartifacts", "images")
+# what a resumed run writes over in its directory: its own, by the manifest, or the resume is refused
+RUN_REWRITES = (STATUS, RESULTS, METRICS, RUN_CONFIG.parent.name, TEST_DIR)
 
 # Where the classes of a run's config lived before the package was split into layers (and the data group
 
@@ -87,18 +90,21 @@ def status_bytes(state: str, overrides: list[str], **details) -> bytes:
 
 
 def write_status(output_dir: str | Path, state: str, overrides: list[str], **details) -> None:
-    """Record a run's ``state`` in its ``status.json`` (``status_bytes``), replacing the last one."""
-    atomic_write(Path(output_dir) / STATUS, status_bytes(state, overrides, **details))
+    """Record a run's ``state`` in its ``status.json`` (``status_bytes``), replacing the last one (and in its
+    manifest, ``nerfexp.manifest``)."""
+    manifest.write(output_dir, STATUS, status_bytes(state, overrides, **details))
 
 
 def write_json(path: Path, record: dict) -> None:
-    """A run's JSON file (results, evaluation), indented, written atomically."""
-    atomic_write(path, json.dumps(record, indent=2).encode())
+    """A run's JSON file (results, evaluation) at the top of its directory, indented, written atomically and
+    recorded in the directory's manifest."""
+    manifest.write(path.parent, path.name, json.dumps(record, indent=2).encode())
 
 
-def read_json(path: Path) -> dict | None:
-    """The JSON file ``path``; None where it does not exist."""
-    return json.loads(path.read_text()) if path.exists() else None
+def read_json(path: Path) -> object:
+    """The JSON file ``path`` (a run's record, read bounded: ``nerfexp.reading.read_json``, whose
+    ``UnreadableFile`` names the file); None where it does not exist."""
+    return reading.read_json(path) if os.path.lexists(path) else None
 
 
 def append_metrics(output_dir: str | Path, record: dict) -> None:
@@ -110,11 +116,13 @@ def append_metrics(output_dir: str | Path, record: dict) -> None:
     line = (json.dumps(record) + "\n").encode()
     fd = os.open(path, os.O_WRONLY | os.O_APPEND | os.O_CREAT, 0o644)
     try:
-        written = os.write(fd, line)
+        with writing(path):  # a full disk: an error naming the file
+            written = os.write(fd, line)
     finally:
         os.close(fd)
     if written != len(line):  # a full disk: say so rather than leave a line that reads as another
         raise OSError(f"{path}: wrote {written} of the {len(line)} bytes of a metrics line")
+    manifest.record(output_dir, [METRICS])  # after each line: the file as it is now is the run's
 
 
 def read_metrics(run_dir: Path, ended: bool = False) -> list[dict]:
@@ -123,15 +131,18 @@ def read_metrics(run_dir: Path, ended: bool = False) -> list[dict]:
     ``ended`` (finished, failed or killed) nothing will finish it, so it was cut: a ValueError naming it,
     as is a line that is not JSON."""
     path = Path(run_dir) / METRICS
-    lines = path.read_text().split("\n") if path.exists() else [""]
+    try:
+        lines = reading.read_text(path, reading.RECORD_BYTES).split("\n") if os.path.lexists(path) else [""]
+    except reading.UnreadableFile as error:
+        raise ValueError(error.reason) from None
     if ended and lines[-1]:
         raise ValueError(f"line {len(lines)}, the last, is cut (no newline, and the run has ended)")
     records = []
     for number, line in enumerate(lines[:-1], 1):
         try:
-            records.append(json.loads(line))
-        except ValueError as error:
-            raise ValueError(f"line {number} is not JSON ({error})") from None
+            records.append(reading.parse_json(line, f"line {number}"))
+        except reading.UnreadableFile as error:
+            raise ValueError(f"line {number} is {error.reason}") from None
     return records
 
 
@@ -141,21 +152,68 @@ def find_run_dirs(directory: Path) -> set[Path]:
     return {p.parent for name in (STATUS, RESULTS) for p in Path(directory).rglob(name)}
 
 
-def planned_jobs(directory: Path) -> int | None:
-    """How many jobs the multirun in ``directory`` launches (its ``multirun.yaml``): the grid of a
-    basic sweep, the trials of a search; None where that cannot be told. The file is read as data (it may
-    come from elsewhere): nothing in it is resolved, an interpolation is counted as the text it is."""
-    path = directory / "multirun.yaml"
-    if not path.exists():
+SWEEP_FUNCTIONS = ("choice", "range", "tag", "int", "float")  # Hydra's override functions counted without expanding
+COUNTED_TEXT = 1 << 16  # characters of overrides counted: longer ones would take Hydra's parser long
+
+
+def sweep_length(override: str) -> int | None:
+    """How many values the command-line override ``override`` (``seed=range(0,3)``, ``encoding=none,posenc``)
+    sweeps, 1 where it sweeps none, counted without expanding it (a ``range`` of a billion values is counted,
+    not listed); None where that cannot be told: a function other than ``SWEEP_FUNCTIONS`` (``glob`` needs
+    the config's options; ``sort`` and ``shuffle`` expand what they sort), or an override Hydra does not parse.
+    """
+    called = {match.group(1) for match in re.finditer(r"([A-Za-z_]\w*)\s*\(", override.partition("=")[2])}
+    if called - set(SWEEP_FUNCTIONS):
         return None
-    hydra = OmegaConf.to_container(OmegaConf.load(path), resolve=False)["hydra"]
-    sweeper = hydra["sweeper"]
-    if str(sweeper["_target_"]).endswith("BasicSweeper"):
-        params = [f"{key}={value}" for key, value in (sweeper.get("params") or {}).items()] + hydra["overrides"]["task"]
-        batches = BasicSweeper.split_arguments(OverridesParser.create().parse_overrides(params), None)
-        return sum(len(batch) for batch in batches)
-    trials = sweeper.get("n_trials")
-    return trials if isinstance(trials, int) else None
+    try:
+        (parsed,) = OverridesParser.create().parse_overrides([override])
+        value = parsed.value() if parsed.is_sweep_override() else None
+        if value is None:
+            return 1
+        if isinstance(value, ChoiceSweep):
+            return len(value.list)
+        if not isinstance(value, RangeSweep):  # glob's or interval's: not a list of values
+            return None
+        if all(isinstance(v, int) for v in (value.start, value.stop, value.step)):
+            return len(range(value.start, value.stop, value.step))
+        span = (value.stop - value.start) / value.step
+        return max(0, math.ceil(span)) if math.isfinite(span) else None
+    except (HydraException, ValueError, TypeError, ZeroDivisionError, OverflowError, RecursionError):
+        return None
+
+
+def planned_jobs(directory: Path) -> int | None:
+    """How many jobs the multirun in ``directory`` launches (its ``multirun.yaml``): the product of the
+    lengths of a basic sweep's overrides (``sweep_length``), the trials of a search; None where there is no
+    such file or that cannot be told. The file is read as data (it may come from elsewhere: bounded, nothing
+    in it resolved, an interpolation counted as the text it is); one that cannot be read is an
+    ``UnreadableFile`` naming it and why."""
+    path = directory / "multirun.yaml"
+    if not os.path.lexists(path):
+        return None
+    config = reading.read_yaml(path)
+    hydra = config.get("hydra") if isinstance(config, dict) else None
+    sweeper = hydra.get("sweeper") if isinstance(hydra, dict) else None
+    if not isinstance(sweeper, dict):
+        raise reading.UnreadableFile(path, "not a sweep's multirun.yaml (it has no hydra.sweeper)")
+    if not str(sweeper.get("_target_")).endswith("BasicSweeper"):
+        trials = sweeper.get("n_trials")
+        return trials if isinstance(trials, int) and not isinstance(trials, bool) and trials >= 0 else None
+    params, task = sweeper.get("params") or {}, (hydra.get("overrides") or {})
+    task = task.get("task") or [] if isinstance(task, dict) else None
+    if not isinstance(params, dict) or not isinstance(task, list):
+        raise reading.UnreadableFile(path, "not a sweep's multirun.yaml (its sweeper's params or task overrides "
+                                           "are not a mapping and a list)")
+    overrides = [f"{key}={value}" for key, value in params.items()] + [str(override) for override in task]
+    if sum(map(len, overrides)) > COUNTED_TEXT:
+        return None
+    jobs = 1
+    for override in overrides:
+        length = sweep_length(override)
+        if length is None:
+            return None
+        jobs *= length
+    return jobs
 
 
 def machine() -> dict:

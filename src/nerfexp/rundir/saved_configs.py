@@ -10,11 +10,17 @@ importable function (``torch.load`` of a pickle with ``weights_only: false``, sa
   the trainer's ``default_root_dir``, where a run wrote its files: the only keys of nerfexp's configs that
   call a resolver, ``${hydra:runtime.output_dir}``). The commands that read a run back build none of them.
 - Every interpolation left, nested ones included, must be a plain reference to another key (``${scale.width}``,
-  ``${..near}``, ``${a.${b}}``); an escaped one (``\\${x}``) is text. Any resolver (``oc.create``, which
-  makes a node that Hydra then builds, ``oc.decode``, ``oc.env``, which would read the reader's environment,
-  ``oc.select``, ``oc.dict.keys``, ``oc.dict.values``, ``oc.deprecated``, ``now``, ``hydra`` or any other)
-  is refused. So the config is checked as it will be built: what a plain reference yields is another key
-  of the same file, which is checked too, and nothing outside the file reaches what is built or written.
+  ``${..near}``, ``${a.${b}}``). Any resolver (``oc.create``, which makes a node that Hydra then builds,
+  ``oc.decode``, ``oc.env``, which would read the reader's environment, ``oc.select``, ``oc.dict.keys``,
+  ``oc.dict.values``, ``oc.deprecated``, ``now``, ``hydra`` or any other) is refused, and so is an escaped
+  interpolation (``\\${x}``, at any depth of escaping) and a key holding ``${``: resolving the config once
+  turns escaped text into a live interpolation, which Hydra resolves again when it builds the objects
+  (its ``instantiate`` resolves the config in place, then reads it). So the config is checked as it will
+  be built: what a plain reference yields is another key of the same file, which is checked too.
+- After the caller's overrides, the whole config is resolved once and no value or key of the result may
+  hold ``${`` (``check_resolved``): whatever path text takes to become an interpolation, what reaches the
+  objects is the plain string or number it is, and nothing outside the file reaches what is built or
+  written.
 - Every ``_target_`` must be one of:
 
   - a class defined in nerfexp (``nerfexp.*``, the class itself rather than something a module imported);
@@ -32,6 +38,7 @@ from pathlib import Path
 
 from hydra.utils import get_class
 from omegaconf import DictConfig, OmegaConf
+from omegaconf.grammar.gen.OmegaConfGrammarLexer import OmegaConfGrammarLexer
 from omegaconf.grammar_parser import parse
 from omegaconf.grammar_visitor import OmegaConfGrammarParser
 
@@ -52,20 +59,32 @@ def targets(node, path: str = "") -> Iterator[tuple[str, object]]:
     return ((key, value) for key, value in entries(node, path) if key.split(".")[-1] == "_target_")
 
 
+def grammar_nodes(value: str) -> Iterator[object]:
+    """The nodes of OmegaConf's parse tree of the string ``value`` (contexts and tokens), in the order
+    written; none where it holds no ``${`` (OmegaConf's own test of whether a string is interpolated).
+    Raises OmegaConf's GrammarParseError where ``value`` is not a string OmegaConf can resolve."""
+    if "${" not in value:
+        return
+    pending = [parse(value)]
+    while pending:
+        node = pending.pop()
+        yield node
+        pending.extend(node.getChild(i) for i in reversed(range(node.getChildCount())))  # tokens have none
+
+
 def resolvers(value: str) -> list[str]:
     """The resolvers that the string ``value`` calls when OmegaConf resolves it, in the order written, those
     in another interpolation's key or arguments included (``${a.${oc.env:X}}``: ``oc.env``); none where its
-    interpolations are all plain references or it has none. An escaped ``\\${x}`` is text. Raises OmegaConf's
-    GrammarParseError where ``value`` is not a string OmegaConf can resolve."""
-    if "${" not in value:  # OmegaConf's own test of whether a string is interpolated
-        return []
-    names, pending = [], [parse(value)]
-    while pending:
-        context = pending.pop()
-        if isinstance(context, OmegaConfGrammarParser.InterpolationResolverContext):
-            names.append(context.resolverName().getText())
-        pending.extend(context.getChild(i) for i in reversed(range(context.getChildCount())))  # tokens have none
-    return names
+    interpolations are all plain references or it has none."""
+    return [node.resolverName().getText() for node in grammar_nodes(value)
+            if isinstance(node, OmegaConfGrammarParser.InterpolationResolverContext)]
+
+
+def escapes_interpolation(value: str) -> bool:
+    """Whether the string ``value`` holds an escaped interpolation (``\\${x}``, or ``\\\\\\${x}``: an escaped
+    backslash before one), text that OmegaConf resolves to a live ``${x}``."""
+    return any(node.getSymbol().type == OmegaConfGrammarLexer.ESC_INTER
+               for node in grammar_nodes(value) if hasattr(node, "getSymbol"))  # the tokens
 
 
 def buildable(target: object) -> bool:
@@ -84,21 +103,41 @@ def buildable(target: object) -> bool:
 
 
 def check_saved_config(plain: dict, source: Path) -> None:
-    """A ConfigError naming ``source`` (the file the config came from) and the key for the first value of
-    ``plain`` (a saved config's containers, unresolved) that calls a resolver (``resolvers``), then for the
-    first ``_target_`` that a saved config may not build (``buildable``). Nothing is built or resolved."""
+    """A ConfigError naming ``source`` (the file the config came from) and the key for the first key of
+    ``plain`` (a saved config's containers, unresolved) that holds ``${``, or value that calls a resolver
+    (``resolvers``) or holds an escaped interpolation (``escapes_interpolation``), then for the first
+    ``_target_`` that a saved config may not build (``buildable``). Nothing is built or resolved."""
     for key, value in entries(plain):
+        if "${" in key:
+            raise ConfigError(f"{source}: the key {key!r} holds '${{': a run directory from elsewhere is read as "
+                              "data: its keys are names, never interpolations")
         called = resolvers(value) if isinstance(value, str) else []
         if called:
             raise ConfigError(
                 f"{source}: {key}={value!r} uses the resolver {called[0]}: a run directory from elsewhere is read "
                 "as data: only plain references ${key} to its own keys are followed")
+        if isinstance(value, str) and escapes_interpolation(value):
+            raise ConfigError(
+                f"{source}: {key}={value!r} holds an escaped interpolation, text that becomes a live one when the "
+                "run's objects are built: a run directory from elsewhere is read as data: only plain references "
+                "${key} to its own keys are followed")
     for key, target in targets(plain):
         if not buildable(target):
             raise ConfigError(
                 f"{source}: {key}={target!r} is not a class nerfexp builds from a run's saved config (nerfexp's "
                 "own classes, lightning.Trainer, torch optimizers, Lightning loggers and callbacks): a run "
                 "directory from elsewhere is read as data, never run")
+
+
+def check_resolved(resolved: dict, source: Path) -> None:
+    """A ConfigError naming ``source`` and the key where a value or key of ``resolved`` (a saved config's
+    containers after the caller's overrides, resolved once) holds ``${``: text that Hydra would resolve
+    again when it builds the objects."""
+    for key, value in entries(resolved):
+        if "${" in key or (isinstance(value, str) and "${" in value):
+            shown = f"the key {key!r}" if "${" in key else f"{key}, resolved, is {value!r}:"
+            raise ConfigError(f"{source}: {shown} text with '${{' in it, which building the run's objects would "
+                              "resolve again: a run directory from elsewhere is read as data, never resolved twice")
 
 
 def without(plain: dict, dotted: str) -> None:

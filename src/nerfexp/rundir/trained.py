@@ -17,8 +17,9 @@ from omegaconf.errors import OmegaConfBaseException
 
 from nerfexp.errors import ConfigError, NerfexpError
 from nerfexp.memory import network_bytes, require_memory
+from nerfexp.reading import UnreadableFile, read_yaml_text
 from nerfexp.rundir.layout import LAST_CHECKPOINT, RESULTS, RUN_CONFIG, read_json, sha256
-from nerfexp.rundir.saved_configs import as_data
+from nerfexp.rundir.saved_configs import as_data, check_resolved
 
 if TYPE_CHECKING:
     import lightning as L
@@ -79,11 +80,15 @@ def run_config(run_dir: Path, overrides: list[str] = ()) -> DictConfig:
     (e.g. ``data.root=...`` for a scene that moved). The file is read as data: a ``_target_`` in it that
     is not one of the classes nerfexp builds, or an interpolation that is not a plain reference to another
     of its keys, is a ConfigError (``nerfexp.rundir.saved_configs``), and the keys only training builds are left
-    out. A reference that the config cannot follow is a ConfigError naming the key, before anything is built."""
+    out. A reference that the config cannot follow, or a value that resolves to text holding ``${``
+    (``check_resolved``), is a ConfigError naming the key, before anything is built. The file is read bounded
+    (``nerfexp.reading.read_yaml_text``: its size, no YAML aliases)."""
     source = Path(run_dir) / RUN_CONFIG
     try:
-        cfg = _current(source.read_text(), source)
-    except (OmegaConfBaseException, yaml.YAMLError, UnicodeDecodeError) as error:
+        cfg = _current(read_yaml_text(source), source)
+    except UnreadableFile as error:
+        raise ConfigError(f"{source}: not a config nerfexp can read ({error.reason})") from None
+    except (OmegaConfBaseException, yaml.YAMLError) as error:
         raise ConfigError(f"{source}: not a config nerfexp can read ({str(error).splitlines()[0]})") from None
     OmegaConf.set_struct(cfg, True)  # an override of a key the run does not have is a typo, not a new key
     try:
@@ -92,10 +97,11 @@ def run_config(run_dir: Path, overrides: list[str] = ()) -> DictConfig:
         raise ConfigError(f"cannot apply {' '.join(overrides)} to {Path(run_dir) / RUN_CONFIG}: "
                           f"{str(error).splitlines()[0]}") from None
     try:
-        OmegaConf.to_container(cfg, resolve=True)  # plain references only (and the overrides'): nothing runs
+        resolved = OmegaConf.to_container(cfg, resolve=True)  # plain references only (and the overrides'): nothing runs
     except OmegaConfBaseException as error:
         where = f" at {error.full_key}" if error.full_key else ""
         raise ConfigError(f"{source}: cannot resolve the config{where}: {str(error).splitlines()[0]}") from None
+    check_resolved(resolved, source)
     return cfg
 
 
@@ -178,15 +184,20 @@ class TrainedRun(NamedTuple):
 
 
 def load_run(run: str | Path, overrides: list[str] = (), chunk: int | None = None,
-             refuse: Callable[[Path, DictConfig], None] | None = None) -> TrainedRun:
+             refuse: Callable[[Path, DictConfig], None] | None = None,
+             check: Callable[[DictConfig], None] | None = None) -> TrainedRun:
     """The run at ``run`` (a run directory, or a checkpoint file in one) read as data (``find_run``,
     ``run_config`` with ``overrides``, ``load_module``): its module in eval mode on the GPU where there is
     one, rendering ``chunk`` rays at once (None: the run's ``model.chunk``). ``refuse(run_dir, saved
-    config)``, where given, is called before the checkpoint is read, to raise for runs a command cannot use."""
+    config)``, where given, is called before the checkpoint is read, to raise for runs a command cannot use;
+    ``check(config with the overrides)`` then, to raise for settings out of their domains (the commands pass
+    ``nerfexp.settings.checks.check_run_settings``, a layer above this one)."""
     run_dir, checkpoint = find_run(run)
     if refuse is not None:
         refuse(run_dir, run_config(run_dir))
     cfg = run_config(run_dir, overrides)
+    if check is not None:
+        check(cfg)
     module, step = load_module(cfg, checkpoint)
     if chunk is not None:  # refused where it cannot fit, before any rendering
         samples, field = module.renderer.samples_per_ray, cfg.model.renderer.field

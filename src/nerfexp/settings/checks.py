@@ -18,12 +18,10 @@ from omegaconf import MISSING, DictConfig, Node, OmegaConf
 from nerfexp.config_keys import leaves, source_key
 from nerfexp.errors import ConfigError
 from nerfexp.extras import require
-from nerfexp.memory import hash_table_bytes, network_bytes, require_memory, scene_bytes
-from nerfexp.settings.schema import PASSED_ON, REFERENCES, SCHEMA, matching
+from nerfexp.memory import grid_bytes, hash_table_bytes, network_bytes, parameter_bytes, require_memory, scene_bytes
+from nerfexp.settings.schema import FLOAT32_TOP_OCTAVE, PASSED_ON, REFERENCES, SCHEMA, matching
 from nerfexp.settings.unused import check_used
 from nerfexp.training.perceptual import check_weights_file
-
-FLOAT32_TOP_OCTAVE = 18  # the largest k of sin(2^k pi x) still meaningful for float32 positions (see above)
 
 
 def is_reference(key: str, node: Node) -> bool:
@@ -45,15 +43,15 @@ def named(cfg: DictConfig, key: str, value) -> str:
     return f"{key}={value}" if source == key else f"{source}={value} (which sets {key})"
 
 
-def check_rules(cfg: DictConfig) -> None:
-    """A ConfigError for the first leaf whose value breaks its ``SCHEMA`` rule, or that no rule covers.
-    Keys outside ``scale`` come first, so that a scale value is named with the key it sets."""
+def check_rules(cfg: DictConfig, strict: bool = True) -> None:
+    """A ConfigError for the first leaf whose value breaks its ``SCHEMA`` rule, or, where ``strict``, that no
+    rule covers. Keys outside ``scale`` come first, so that a scale value is named with the key it sets."""
     found = sorted((item for item in checked_settings(cfg) if item[1] is not MISSING),
                    key=lambda item: item[0].startswith("scale."))
     for key, value in found:
         pattern = matching(SCHEMA, key)
         if pattern is None:
-            if matching(PASSED_ON, key) is None:
+            if strict and matching(PASSED_ON, key) is None:
                 raise ConfigError(f"{key}={value}: not a setting nerfexp reads "
                                   "(`nerfexp --cfg job` shows those it reads)")
             continue
@@ -71,11 +69,7 @@ def check_frequencies(cfg: DictConfig) -> None:
         key, n_freqs, scale = f"encoding.{name}.n_freqs", encoding.n_freqs, encoding.get("input_scale", 1.0)
         top = n_freqs - 1 + math.log2(scale)  # the octave of the highest frequency the encoding sees
         if n_freqs > 0 and top > FLOAT32_TOP_OCTAVE:
-            most = FLOAT32_TOP_OCTAVE + 1 - math.log2(scale)
-            if most < 1:  # the scale alone puts the lowest frequency past the limit
-                raise ConfigError(f"{named(cfg, f'encoding.{name}.input_scale', scale)}: frequencies above "
-                                  f"2^{FLOAT32_TOP_OCTAVE} pi are noise for float32 positions (docs/numerics.md); "
-                                  f"use at most 2^{FLOAT32_TOP_OCTAVE}")
+            most = FLOAT32_TOP_OCTAVE + 1 - math.log2(scale)  # >= 1: the rule keeps the scale <= 2^18
             raise ConfigError(f"{key}={n_freqs}: frequencies above 2^{FLOAT32_TOP_OCTAVE} pi are noise for float32 "
                               f"positions (docs/numerics.md); use at most {math.floor(most)} with input_scale "
                               f"{scale:g}")
@@ -111,25 +105,71 @@ def samples_per_ray(cfg: DictConfig) -> int:
     return 2 * renderer.n_coarse + renderer.n_fine if renderer.hierarchical else renderer.n_single
 
 
-def check_memory(cfg: DictConfig) -> None:
-    """A ConfigError naming the setting where the scene, a training batch, an evaluation chunk or the hash
-    tables would need more than the machine's memory (``nerfexp.memory``)."""
+def sample_keys(cfg: DictConfig) -> list[str]:
+    """The keys whose values ``samples_per_ray`` adds up."""
+    hierarchical = cfg.model.renderer.hierarchical
+    if hierarchical == "proposal":
+        return ["proposal.n_samples", "proposal.n_final"]
+    return ["model.renderer.n_coarse", "model.renderer.n_fine"] if hierarchical else ["model.renderer.n_single"]
+
+
+def settings_named(cfg: DictConfig, keys: list[str]) -> str:
+    """``KEY=VALUE, ...``: each of ``keys`` as the user sets it (``named``)."""
+    return ", ".join(named(cfg, key, OmegaConf.select(cfg, key)) for key in keys)
+
+
+def check_memory(cfg: DictConfig, training: bool = True) -> None:
+    """A ConfigError naming every setting an estimate multiplies (the one a user set among them) where the
+    scene, a training batch (where ``training``), an evaluation chunk, a network's weights, the hash tables or
+    the occupancy grid would need more than the machine's memory (``nerfexp.memory``)."""
     data, field = cfg.data, cfg.model.renderer.field
     if "image_size" in data:
         views = (data.n_train or 0) + data.n_val + data.n_test
+        keys = ["data.image_size", *(["data.supersample"] if "supersample" in data else []),
+                "data.n_train", "data.n_val", "data.n_test"]
         needed = scene_bytes(views, data.image_size, data.image_size, data.get("supersample", 1))
-        require_memory(named(cfg, "data.image_size", data.image_size), f"a scene of {views} views", needed)
+        require_memory(settings_named(cfg, keys), f"a scene of {views} views of {data.image_size} x "
+                       f"{data.image_size} pixels", needed)
     samples = samples_per_ray(cfg)
-    width = max(field.width, cfg.view_dependence.get("hidden", 0))
-    for key, rays, what, training in (("datamodule.batch_rays", cfg.datamodule.batch_rays, "a training batch", True),
-                                      ("model.chunk", cfg.model.chunk, "an evaluation chunk", False)):
-        needed = network_bytes(rays, samples, width, field.depth, training)
-        require_memory(named(cfg, key, rays), f"{what} of {rays} rays x {samples} samples", needed)
+    hidden = cfg.view_dependence.get("hidden", 0)
+    width, width_key = max((field.width, "model.renderer.field.width"), (hidden, "view_dependence.hidden"))
+    batches = [("model.chunk", "an evaluation chunk", False)]
+    if training:
+        batches.insert(0, ("datamodule.batch_rays", "a training batch", True))
+    for key, what, kept in batches:
+        rays = OmegaConf.select(cfg, key)
+        needed = network_bytes(rays, samples, width, field.depth, kept)
+        require_memory(settings_named(cfg, [key, *sample_keys(cfg), width_key, "model.renderer.field.depth"]),
+                       f"{what} of {rays} rays x {samples} samples through {field.depth} layers of {width} units",
+                       needed)
+    networks = [("model.renderer.field", "a field"), ("view_dependence", "a view head")]
+    if cfg.model.renderer.hierarchical == "proposal":
+        networks.append(("proposal.network", "a proposal network"))
+    for key, what in networks:
+        network = OmegaConf.select(cfg, key)
+        size, depth = (network.get("width", network.get("hidden")), network.get("depth", 1))
+        if size is not None:
+            size_key = f"{key}.width" if "width" in network else f"{key}.hidden"
+            keys = [size_key, *([f"{key}.depth"] if "depth" in network else [])]
+            require_memory(settings_named(cfg, keys), f"training {what} of {depth} layers of {size} units",
+                           parameter_bytes(size, depth))
     position = cfg.encoding.position
     if "log2_table_size" in position:
         needed = hash_table_bytes(position.n_levels, position.log2_table_size, position.features_per_level)
-        require_memory(named(cfg, "encoding.position.log2_table_size", position.log2_table_size),
-                       f"hash tables of {position.n_levels} levels", needed)
+        keys = [f"encoding.position.{key}" for key in ("n_levels", "log2_table_size", "features_per_level")]
+        require_memory(settings_named(cfg, keys), f"a hash encoding of {position.n_levels} levels", needed)
+    grid = cfg.acceleration.get("grid")
+    if grid is not None:
+        require_memory(settings_named(cfg, ["acceleration.grid.resolution"]),
+                       f"an occupancy grid of {grid.resolution}^3 cells", grid_bytes(grid.resolution))
+
+
+def check_hash_levels(cfg: DictConfig) -> None:
+    """A ConfigError where a hash grid encoding's coarsest resolution is above its finest."""
+    position = cfg.encoding.position
+    if "coarsest" in position and "finest" in position and position.coarsest > position.finest:
+        raise ConfigError(f"{settings_named(cfg, ['encoding.position.coarsest', 'encoding.position.finest'])}: "
+                          "expected coarsest <= finest (the levels' resolutions go from one to the other)")
 
 
 SPARSE_OPTIMIZERS = ("nerfexp.training.optimizers.LazyAdam",)  # take the hash table's sparse gradients
@@ -165,23 +205,37 @@ def check_lpips(cfg: DictConfig) -> None:
                        OmegaConf.select(cfg, "model.lpips_weights", default=None))
 
 
-def check_settings(cfg: DictConfig) -> None:
+def check_settings(cfg: DictConfig, training: bool = True, scoring: bool = True) -> None:
     """A ConfigError for the first setting that is out of its domain (``check_rules``), a frequency
-    float32 cannot resolve, a skip connection past the field's depth, ray bounds with near not before far,
-    sparse gradients without an optimizer that takes them, a size that would not fit in memory, a missing
-    optional package, or LPIPS weights that must be there and are not."""
+    float32 cannot resolve, a skip connection past the field's depth, hash grid levels out of order, ray
+    bounds with near not before far, sparse gradients without an optimizer that takes them, a size that would
+    not fit in memory, a missing optional package, or LPIPS weights that must be there and are not (where
+    ``scoring``). ``training``: False for a run read back (``check_run_settings``)."""
     missing = sorted(key for key, value in checked_settings(cfg) if value is MISSING)
     if missing:
         raise ConfigError(f"missing mandatory value: {', '.join(missing)} (set it on the command line, "
                           f"e.g. {missing[0]}=...)")
-    check_rules(cfg)
+    check_rules(cfg, strict=training)
     check_frequencies(cfg)
     check_skips(cfg)
+    check_hash_levels(cfg)
     check_ray_bounds(cfg)
     check_sparse_gradients(cfg)
-    check_memory(cfg)
+    check_memory(cfg, training)
     check_extras(cfg)
-    check_lpips(cfg)
+    if scoring:
+        check_lpips(cfg)
+
+
+def check_run_settings(cfg: DictConfig, scoring: bool = False) -> None:
+    """``check_settings`` for a run read back (nerfexp-eval, -render, -export, -view): its saved config with the
+    user's ``KEY=VALUE`` overrides, checked before anything is built from it, a bad value named as the user set
+    it. What only training builds is left out: the keys removed when a run is read back (callbacks, logger,
+    ``trainer.default_root_dir``) are not there, and a training batch's memory is not estimated (a run trained
+    on a larger machine is read back on a smaller one); a key of a run made by an earlier nerfexp that no rule
+    covers is the run's, not a user's mistake, and is passed over. LPIPS's weights are looked for only where
+    the command is ``scoring`` the test views (nerfexp-eval): a render needs none."""
+    check_settings(cfg, training=False, scoring=scoring)
 
 
 class SettingsCheck(Callback):

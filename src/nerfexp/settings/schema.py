@@ -14,13 +14,30 @@ from collections.abc import Callable
 from fnmatch import fnmatchcase
 from typing import get_args
 
+import torch
+
+from nerfexp.data.video import FPS_RANGE
+from nerfexp.geometry.cameras import POSITION_LIMIT
 from nerfexp.nerf.backgrounds import BACKGROUNDS
+from nerfexp.nerf.encodings import HASH_MAX_LOG2_TABLE_SIZE, HASH_RESOLUTION_LIMIT
 from nerfexp.nerf.fields import DENSITY_ACTIVATIONS, SH_MAX_DEGREE
 from nerfexp.nerf.volume_renderer import HIERARCHIES
 from nerfexp.training.guard_actions import COLLAPSE_ACTIONS, NONFINITE_ACTIONS
 from nerfexp.training.perceptual import SETTINGS as LPIPS_SETTINGS
 
 SEED_LIMIT = 2 ** 32  # seeds are whole numbers in [0, 2^32): numpy's and Lightning's range
+# Counts (steps, rays, samples, units, views, ...) at most 2^63 - 1: torch and numpy hold whole numbers, and the
+# loggers their steps, in 64-bit integers. Counts that size arrays are bounded by the memory estimates too
+# (nerfexp.settings.checks.check_memory), and COLMAP's by its C ints.
+INTEGER_LIMIT = 2 ** 63 - 1
+C_INT_LIMIT = 2 ** 31 - 1
+FLOAT32_TOP_OCTAVE = 18  # the largest k of sin(2^k pi x) still meaningful for float32 positions (checks.py)
+# Offsets of a raw density or roughness (a bias, noise) within +-88: exp and softplus of the raw value stay finite
+# float32 numbers (exp overflows float32 past log of its largest value, 88.7...)
+RAW_LIMIT = math.floor(math.log(torch.finfo(torch.float32).max))
+# A loss term's weight at most 2^24: weighted more, the colour loss (about 1 at most) falls below float32's
+# resolution of their sum, and training ignores the images
+LOSS_WEIGHT_LIMIT = 2.0 ** 24
 
 # (what is expected, the test); what is expected may be a function that says it, where saying it is dear
 Rule = tuple[str | Callable[[], str], Callable[[object], bool]]
@@ -31,18 +48,40 @@ def is_whole(value) -> bool:
 
 
 def is_real(value) -> bool:
-    return isinstance(value, int | float) and not isinstance(value, bool) and math.isfinite(value)
+    """A finite number (a whole number of any size is one: it is never converted to a float to be tested)."""
+    return isinstance(value, int | float) and not isinstance(value, bool) and (isinstance(value, int)
+                                                                             or math.isfinite(value))
+
+
+def is_position(value) -> bool:
+    """A coordinate in scene units within ``POSITION_LIMIT`` of 0."""
+    return is_real(value) and abs(value) <= POSITION_LIMIT
+
+
+def is_power_of_two(value: float) -> bool:
+    return value > 0 and float(value).is_integer() and int(value) & (int(value) - 1) == 0
+
+
+def bound_text(value: float) -> str:
+    """A bound as a rule says it: a power of two from 2^20 on as ``2^24``, one less than a power of two
+    past 2^32 as ``2^63 - 1``, a whole number in full, another number as ``{:g}`` does."""
+    if abs(value) >= 2 ** 20 and is_power_of_two(abs(value)):
+        return f"{'-' if value < 0 else ''}2^{int(abs(value)).bit_length() - 1}"
+    if value > 2 ** 32 and is_power_of_two(value + 1):
+        return f"2^{int(value + 1).bit_length() - 1} - 1"
+    return str(value) if isinstance(value, int) else f"{value:g}"
 
 
 def whole(low: int, high: int | None = None) -> Rule:
     """A whole number in [low, high] (high: None for no upper bound)."""
-    expected = f"a whole number >= {low}" if high is None else f"a whole number in [{low}, {high}]"
+    expected = f"a whole number >= {low}" if high is None else f"a whole number in [{low}, {bound_text(high)}]"
     return expected, lambda v: is_whole(v) and v >= low and (high is None or v <= high)
 
 
 def real(low: float, high: float | None = None, *, above: bool = False) -> Rule:
     """A finite number >= ``low`` (> ``low`` where ``above``), and <= ``high`` where given."""
-    expected = f"a finite number {'>' if above else '>='} {low:g}" + ("" if high is None else f" and <= {high:g}")
+    expected = (f"a finite number {'>' if above else '>='} {bound_text(low)}"
+                + ("" if high is None else f" and <= {bound_text(high)}"))
     return expected, lambda v: (is_real(v) and (v > low if above else v >= low)
                                 and (high is None or v <= high))
 
@@ -90,18 +129,29 @@ def whole_list(low: int) -> Rule:
     return f"a list of whole numbers >= {low}", lambda v: isinstance(v, list) and all(whole(low)[1](x) for x in v)
 
 
-COUNT = whole(1)
-NONNEGATIVE_COUNT = whole(0)
-POSITIVE = real(0, above=True)
+COUNT = whole(1, INTEGER_LIMIT)
+NONNEGATIVE_COUNT = whole(0, INTEGER_LIMIT)
+COLMAP_COUNT = whole(1, C_INT_LIMIT)
 FRACTION = real(0, 1)
+# Adam moves each weight by about the learning rate per step: above 1 a step outweighs the weights themselves
+# (initialised within +-1); its eps (added to the gradients' scale) and the weight decay are fractions too
+LEARNING_RATE = real(0, 1, above=True)
+ADAM_EPS = real(0, 1, above=True)
+NEAR = real(0, POSITION_LIMIT)  # distances along rays, in scene units (geometry.cameras.POSITION_LIMIT)
+FAR = real(0, POSITION_LIMIT, above=True)
+RAW_OFFSET = real(-RAW_LIMIT, RAW_LIMIT)
+LOSS_WEIGHT = real(0, LOSS_WEIGHT_LIMIT)
+# gamma(s x): a scale above 2^18 puts even the lowest frequency past float32's (and with n_freqs, check_frequencies)
+INPUT_SCALE = real(0, 2.0 ** FLOAT32_TOP_OCTAVE, above=True)
+FPS = real(*FPS_RANGE)  # data.video's frames kept per second (nerfexp.data.video.FPS_RANGE)
 BOOLEAN = ("true or false", lambda v: isinstance(v, bool))
 TEXT = ("a text", lambda v: isinstance(v, str) and v != "")
 TARGET = ("a dotted Python name (module.Class)", lambda v: isinstance(v, str) and v != "")
 NULL = ("null", lambda v: v is None)
 PATH = ("a path", lambda v: isinstance(v, str) and v != "")
-BOX = ("[[x0, y0, z0], [x1, y1, z1]] of finite numbers with x0 < x1, y0 < y1, z0 < z1, or null",
+BOX = ("[[x0, y0, z0], [x1, y1, z1]] of numbers within +-2^24 with x0 < x1, y0 < y1, z0 < z1, or null",
        lambda v: v is None or (isinstance(v, list) and len(v) == 2 and all(isinstance(c, list) and len(c) == 3
-                                                                         and all(map(is_real, c)) for c in v)
+                                                                         and all(map(is_position, c)) for c in v)
                                and all(a < b for a, b in zip(*v))))
 BETAS = ("[beta1, beta2], each a finite number in [0, 1)",
          lambda v: isinstance(v, list) and len(v) == 2 and all(is_real(b) and 0 <= b < 1 for b in v))
@@ -125,8 +175,8 @@ SCHEMA: dict[str, Rule] = {
     "resume": optional(PATH, "train from scratch"),
     # scale: the sizes the groups read (each checked again where it lands)
     "scale.steps": COUNT,
-    "scale.lr": POSITIVE,
-    "scale.lr_final": POSITIVE,
+    "scale.lr": LEARNING_RATE,
+    "scale.lr_final": LEARNING_RATE,
     "scale.lr_warmup_steps": NONNEGATIVE_COUNT,
     "scale.batch_rays": COUNT,
     "scale.depth": COUNT,
@@ -139,66 +189,66 @@ SCHEMA: dict[str, Rule] = {
     "scale.chunk": COUNT,
     "scale.val_every": COUNT,
     "scale.image_size": COUNT,
-    "scale.position_input_scale": POSITIVE,
+    "scale.position_input_scale": INPUT_SCALE,
     "scale.max_side": optional(COUNT, "never shrink"),
     "scale.test_stride": COUNT,
-    "scale.hash_log2_table_size": whole(1, 62),
-    "scale.hash_finest": COUNT,
+    "scale.hash_log2_table_size": whole(1, HASH_MAX_LOG2_TABLE_SIZE),
+    "scale.hash_finest": whole(1, HASH_RESOLUTION_LIMIT - 1),
     # the model
     "model.chunk": COUNT,
     "model.compile": BOOLEAN,
     "model.lpips": choice(*LPIPS_SETTINGS),
     "model.lpips_weights": optional(PATH, "the torch hub cache's"),  # and that the file is there (check_lpips)
-    "model.lr_final": POSITIVE,
+    "model.lr_final": LEARNING_RATE,
     "model.lr_warmup_steps": NONNEGATIVE_COUNT,
-    "model.optimizer.lr": POSITIVE,
+    "model.optimizer.lr": LEARNING_RATE,
     "model.optimizer.betas": BETAS,
-    "model.optimizer.eps": POSITIVE,
-    "model.optimizer.weight_decay": real(0),
+    "model.optimizer.eps": ADAM_EPS,
+    "model.optimizer.weight_decay": FRACTION,
     "model.optimizer.fused": BOOLEAN,
     "model.renderer.hierarchical": HIERARCHY,
     "model.renderer.n_coarse": COUNT,
     "model.renderer.n_fine": COUNT,
     "model.renderer.n_single": COUNT,
-    "model.renderer.near": optional(real(0), "from the scene"),
-    "model.renderer.far": optional(POSITIVE, "from the scene"),
+    "model.renderer.near": optional(NEAR, "from the scene"),
+    "model.renderer.far": optional(FAR, "from the scene"),
     "model.renderer.background": choice(*BACKGROUNDS),
     "model.renderer.field.depth": COUNT,
     "model.renderer.field.width": COUNT,
     "model.renderer.field.skips": SKIPS,
     "model.renderer.field.density_activation": choice(*DENSITY_ACTIVATIONS),
-    "model.renderer.field.density_bias": real(-math.inf, above=True),
-    "model.renderer.field.density_noise_std": real(0),
+    "model.renderer.field.density_bias": RAW_OFFSET,
+    "model.renderer.field.density_noise_std": real(0, RAW_LIMIT),
     "proposal.network.depth": COUNT,
     "proposal.network.width": COUNT,
     "proposal.network.skips": SKIPS,
     "proposal.network.density_activation": choice(*DENSITY_ACTIVATIONS),
-    "proposal.network.density_bias": real(-math.inf, above=True),
+    "proposal.network.density_bias": RAW_OFFSET,
     "proposal.n_samples": ("a non-empty list of sample counts, each a whole number >= 1",
                            lambda v: isinstance(v, list) and v != [] and all(COUNT[1](n) for n in v)),
     "proposal.n_final": COUNT,
-    "proposal.interlevel_weight": POSITIVE,  # it alone trains the proposal networks
-    "proposal.distortion_weight": real(0),
+    "proposal.interlevel_weight": real(0, LOSS_WEIGHT_LIMIT, above=True),  # it alone trains the proposal networks
+    "proposal.distortion_weight": LOSS_WEIGHT,
     # encodings and view dependence
     "encoding.*.n_freqs": NONNEGATIVE_COUNT,  # and the float32 limit (check_frequencies)
-    "encoding.*.input_scale": POSITIVE,
+    "encoding.*.input_scale": INPUT_SCALE,
     "encoding.position.n_levels": COUNT,
     "encoding.position.features_per_level": COUNT,
-    "encoding.position.log2_table_size": whole(1, 62),
-    "encoding.position.coarsest": COUNT,
-    "encoding.position.finest": COUNT,
+    "encoding.position.log2_table_size": whole(1, HASH_MAX_LOG2_TABLE_SIZE),
+    "encoding.position.coarsest": whole(1, HASH_RESOLUTION_LIMIT - 1),  # and <= finest (check_hash_levels)
+    "encoding.position.finest": whole(1, HASH_RESOLUTION_LIMIT - 1),
     "encoding.position.include_input": BOOLEAN,
     "encoding.position.sparse_gradients": BOOLEAN,  # and an optimizer that takes them (check_sparse_gradients)
     "view_dependence.degree": whole(0, SH_MAX_DEGREE),
     "view_dependence.hidden": COUNT,
     "view_dependence.n_levels": whole(1, 6),  # bands up to l = 32, where the float32 basis is still accurate
-    "view_dependence.roughness_bias": real(-math.inf, above=True),
-    "view_dependence.normal_weight": real(0),
-    "view_dependence.orientation_weight": real(0),
+    "view_dependence.roughness_bias": RAW_OFFSET,
+    "view_dependence.normal_weight": LOSS_WEIGHT,
+    "view_dependence.orientation_weight": LOSS_WEIGHT,
     # data
     "data.root": PATH,
     "data.video": optional(PATH, "the photographs in images/"),
-    "data.fps": POSITIVE,
+    "data.fps": FPS,
     "data.image_size": COUNT,
     "data.supersample": COUNT,
     "data.downscale": COUNT,
@@ -208,17 +258,17 @@ SCHEMA: dict[str, Rule] = {
     "data.n_val": COUNT,
     "data.n_test": COUNT,
     "data.test_stride": COUNT,
-    "data.holdout": whole(2),
+    "data.holdout": whole(2, INTEGER_LIMIT),
     "data.ndc": BOOLEAN,
-    "data.bound": POSITIVE,
-    "data.near": optional(real(0), "from the scene"),
-    "data.far": optional(POSITIVE, "from the scene"),
+    "data.bound": FAR,
+    "data.near": optional(NEAR, "from the scene"),
+    "data.far": optional(FAR, "from the scene"),
     "data.background": choice(*BACKGROUNDS),
     "data.aabb": BOX,
     "data.camera_model": TEXT,  # COLMAP's model names (checked against pycolmap's list when it runs)
     "data.matcher": optional(choice("exhaustive", "sequential"), "sequential for a video, else exhaustive"),
-    "data.max_features": COUNT,
-    "data.threads": ("-1 (every core) or a whole number >= 1", lambda v: v == -1 or COUNT[1](v)),
+    "data.max_features": COLMAP_COUNT,
+    "data.threads": (f"-1 (every core) or {COLMAP_COUNT[0]}", lambda v: v == -1 or COLMAP_COUNT[1](v)),
     "data.min_registered": real(0, 1, above=True),
     "data.verbose": BOOLEAN,
     "datamodule.batch_rays": COUNT,
@@ -250,7 +300,7 @@ SCHEMA: dict[str, Rule] = {
     # callbacks
     "callbacks.checkpoint.dirpath": PATH,
     "callbacks.checkpoint.save_last": BOOLEAN,
-    "callbacks.checkpoint.save_top_k": whole(-1),
+    "callbacks.checkpoint.save_top_k": whole(-1, INTEGER_LIMIT),
     "callbacks.checkpoint.every_n_train_steps": COUNT,
     "callbacks.checkpoint.enable_version_counter": BOOLEAN,
     "callbacks.guard.dirpath": optional(PATH, "no debug files"),

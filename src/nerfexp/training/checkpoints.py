@@ -7,10 +7,14 @@ process killed during it (a time limit, the out-of-memory killer) leaves neither
 the new one to resume from. ``AtomicCheckpointIO`` streams ``torch.save`` into a temporary file in the
 checkpoint's own folder and renames it over the checkpoint (``nerfexp.files.atomic_file``), so a kill
 at any moment leaves the previous checkpoint whole. Every trainer config uses it (``trainer.plugins``).
+
+``torch.save`` turns the OSError of a write to a file object (a full disk) into a RuntimeError that names
+neither the file nor the reason ("unexpected pos"); ``save_whole`` raises the OSError itself, which
+``atomic_file`` makes a ``WriteError`` naming the checkpoint.
 """
 
 from pathlib import Path
-from typing import Any
+from typing import Any, BinaryIO
 
 import torch
 from fsspec.core import url_to_fs
@@ -18,6 +22,42 @@ from fsspec.implementations.local import LocalFileSystem
 from lightning.pytorch.plugins.io import TorchCheckpointIO
 
 from nerfexp.files import atomic_file
+
+
+class ErrorKeepingWriter:
+    """A binary file's ``write`` and ``flush``, keeping the OSError a write raised (``error``; None while
+    none did), for a caller whose own error hides it (``torch.save``)."""
+
+    def __init__(self, file: BinaryIO):
+        self.file = file
+        self.error: OSError | None = None
+
+    def write(self, data) -> int:
+        try:
+            return self.file.write(data)
+        except OSError as error:
+            self.error = error
+            raise
+
+    def flush(self) -> None:
+        try:
+            self.file.flush()
+        except OSError as error:
+            self.error = error
+            raise
+
+
+def save_whole(obj: object, path: Path) -> None:
+    """``torch.save(obj)`` to ``path`` atomically (``atomic_file``); a write that fails raises its own
+    OSError (a ``WriteError`` naming ``path``), not torch's RuntimeError."""
+    with atomic_file(path) as file:
+        writer = ErrorKeepingWriter(file)
+        try:
+            torch.save(obj, writer)
+        except RuntimeError:
+            if writer.error is None:
+                raise
+            raise writer.error from None
 
 
 class AtomicCheckpointIO(TorchCheckpointIO):
@@ -30,5 +70,4 @@ class AtomicCheckpointIO(TorchCheckpointIO):
         if storage_options is not None or not isinstance(filesystem, LocalFileSystem):
             super().save_checkpoint(checkpoint, path, storage_options)
             return
-        with atomic_file(Path(local_path)) as file:  # streamed: no second copy of the checkpoint in memory
-            torch.save(checkpoint, file)
+        save_whole(checkpoint, Path(local_path))  # streamed: no second copy of the checkpoint in memory

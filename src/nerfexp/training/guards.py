@@ -25,7 +25,7 @@ from lightning.fabric.utilities import move_data_to_device
 from torch import Tensor
 
 from nerfexp.errors import FieldCollapseError, NonFiniteError
-from nerfexp.files import atomic_file
+from nerfexp.training.checkpoints import save_whole
 from nerfexp.training.guard_actions import COLLAPSE_ACTIONS, NONFINITE_ACTIONS
 
 log = logging.getLogger(__name__)
@@ -186,8 +186,7 @@ class TrainingGuard(L.Callback):
             "gradients": {name: p.grad.detach().cpu() for name, p in pl_module.named_parameters()
                           if p.grad is not None},
         }
-        with atomic_file(path) as file:
-            torch.save(record, file)
+        save_whole(record, path)
 
     def _watch_collapse(self, step: int, max_opacities: dict[str, float]) -> None:
         """Count each network's consecutive batches in which no ray reaches ``collapse_opacity``."""

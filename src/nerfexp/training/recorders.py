@@ -16,6 +16,7 @@ import lightning as L
 import numpy as np
 import torch
 
+from nerfexp import manifest
 from nerfexp.files import atomic_write
 from nerfexp.pixels import depth_image, png_bytes, to_uint8
 from nerfexp.rundir.layout import (
@@ -105,6 +106,7 @@ def keep_metrics_through(output_dir: Path, step: int) -> None:
     text = "".join(json.dumps(record) + "\n" for record in kept).encode()
     if path.exists() and path.read_bytes() != text:
         atomic_write(path, text)
+        manifest.record(output_dir, [METRICS])
 
 
 class RunRecorder(L.Callback):
@@ -115,7 +117,8 @@ class RunRecorder(L.Callback):
     The last step is always validated (``val_psnr`` of a run shorter than ``scale.val_every`` too), and
     each validation logs one line: step, PSNR, SSIM (and LPIPS) and the training's wall-clock seconds so far. Each
     test view's render, its ground truth and their absolute difference (per channel, in [0, 1]) are
-    saved as ``test/r_{i}.png``, ``r_{i}_target.png``, ``r_{i}_error.png``, with ``r_{i}_depth.png``.
+    saved as ``test/r_{i}.png``, ``r_{i}_target.png``, ``r_{i}_error.png``, with ``r_{i}_depth.png``. Every
+    file it writes is recorded in the run's manifest as it is written (``nerfexp.manifest``).
 
     The elapsed time and the last validation PSNR are part of the checkpoint, so a resumed run keeps
     counting from where it stopped, and a test in processes that did not train (``trainer=ddp`` spawns
@@ -203,8 +206,10 @@ class RunRecorder(L.Callback):
         if split == "test":
             images = {"": item["rgb"], "_target": item["target"], "_depth": depth,
                       "_error": (item["rgb"] - item["target"]).abs()}
-            for suffix, image in images.items():
-                atomic_write(self.output_dir / TEST_DIR / f"r_{index}{suffix}.png", png_bytes(to_uint8(image)))
+            names = [f"{TEST_DIR}/r_{index}{suffix}.png" for suffix in images]
+            for name, image in zip(names, images.values(), strict=True):
+                atomic_write(self.output_dir / name, png_bytes(to_uint8(image)))
+            manifest.record(self.output_dir, names)
         if index < 4 and trainer.loggers and not trainer.sanity_checking:
             side_by_side = torch.cat([item["rgb"], item["target"], depth[..., None].expand(-1, -1, 3)], 1)
             for logger in trainer.loggers:
