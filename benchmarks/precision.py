@@ -139,8 +139,8 @@ def field_workloads(points: int, encoding_only: bool = False):
                 return Workload(lambda _: {"features": encoding(positions)}, optimizer, targets)
 
             def forward(deterministic: bool) -> dict[str, Tensor]:
-                rgb, sigma = net(positions, directions)
-                return {"rgb": rgb, "sigma": sigma}
+                out = net(positions, directions)
+                return {"rgb": out.rgb, "sigma": out.sigma}
             return Workload(forward, optimizer_for(cfg, net), targets)
         return make
     return build

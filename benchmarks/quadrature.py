@@ -1,6 +1,6 @@
 """Error against cost for the renderer: analytic fields rendered with stratified and hierarchical sampling.
 
-For each field of ``nerfexp.nerf.analytic`` (a slab, a thin shell, a Gaussian blob), a batch of rays aimed so
+For each field of ``tests/analytic.py`` (a slab, a thin shell, a Gaussian blob), a batch of rays aimed so
 that its surfaces fall everywhere relative to the sample grid is rendered by ``VolumeRenderer`` with
 deterministic (test-time) sampling in float32, as in training, by:
 
@@ -8,14 +8,14 @@ deterministic (test-time) sampling in float32, as in training, by:
 - ``hierarchical 1:3``: N / 4 coarse and 3 N / 4 fine samples (1.25 N network evaluations per ray);
 - ``hierarchical, 16 coarse`` and ``hierarchical, 64 coarse``: a fixed coarse pass, growing fine samples.
 
-Each is scored against the float64 truth (``nerfexp.nerf.analytic.render_errors``: mean absolute opacity and
+Each is scored against the float64 truth (``tests.analytic.render_errors``: mean absolute opacity and
 colour error, opacity-weighted mean absolute depth error) and timed: the wall time to render the batch,
 the median of ``--repeats`` repeats, every configuration once per repeat in a shuffled order, so that
 machine load affects all alike (torch threads as the machine sets them). Writes
 ``benchmarks/results/quadrature.json``, ``.md`` (tables) and ``.png`` (error against wall time and
 against network evaluations per ray, log-log, one line per method).
 
-    python benchmarks/quadrature.py [--rays 2048] [--repeats 7]
+    python -m benchmarks.quadrature [--rays 2048] [--repeats 7]   # from the repository root (it imports tests.analytic)
 """
 
 import argparse
@@ -29,16 +29,16 @@ from pathlib import Path
 
 import torch
 from matplotlib.figure import Figure
+from tests.analytic import GaussianBlob, Shell, Slab, aimed_rays, cost_for_error, render_errors
 
 from nerfexp.files import atomic_write
-from nerfexp.nerf.analytic import GaussianBlob, Shell, Slab, aimed_rays, cost_for_error, render_errors
 from nerfexp.nerf.backgrounds import BACKGROUNDS
-from nerfexp.nerf.volume_renderer import VolumeRenderer
+from nerfexp.nerf.volume_renderer import VolumeRenderer, final_output
 from nerfexp.rundir.layout import machine
 
 RESULTS = Path(__file__).parent / "results"
 NEAR, FAR, BACKGROUND = 2.0, 6.0, "white"
-FIELDS = {  # name: (field, how rays are aimed at it: see nerfexp.nerf.analytic.aimed_rays)
+FIELDS = {  # name: (field, how rays are aimed at it: see tests.analytic.aimed_rays)
     "slab": (Slab(), dict(impact=0.0, distance=(3.5, 4.5), cone_degrees=60.0)),  # |z| < 0.5, density 3
     "shell": (Shell(), dict(impact=1.1, distance=(3.5, 4.5))),  # radius 1, 0.1 thick, density 10
     "blob": (GaussianBlob(), dict(impact=0.6, distance=(3.5, 4.5))),  # r = 0.3, peak density 5
@@ -64,7 +64,7 @@ def render(model: VolumeRenderer, origins, directions) -> tuple[dict, float]:
     with torch.no_grad():
         out = model(origins, directions, deterministic=True)
     seconds = time.perf_counter() - start
-    return out["fine" if model.hierarchical else "coarse"], seconds
+    return final_output(out), seconds
 
 
 def measure(n_rays: int, repeats: int) -> list[dict]:
@@ -124,7 +124,7 @@ def markdown(report: dict) -> str:
     lines = [
         "# Quadrature error against cost",
         "",
-        f"`python benchmarks/quadrature.py`: {settings['rays']} rays per field, deterministic sampling, float32, "
+        f"`python -m benchmarks.quadrature`: {settings['rays']} rays per field, deterministic sampling, float32, "
         f"near {NEAR}, far {FAR}, {BACKGROUND} background; times are the median of {settings['repeats']} renders "
         f"of the whole batch. Machine: {report['machine']['device']} on {report['machine']['host']}, torch "
         f"{report['torch']}; load average {report['load_average']['start']} at the start, "

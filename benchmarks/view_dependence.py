@@ -29,8 +29,9 @@ from hydra.utils import instantiate
 
 from nerfexp.data.glossy import MIRROR, intersect_glossy
 from nerfexp.files import atomic_write
+from nerfexp.products.trained import load_module
 from nerfexp.rundir.layout import RESULTS, read_json
-from nerfexp.rundir.trained import find_run, load_module, run_config
+from nerfexp.rundir.trained import find_run, run_config
 
 OUT = Path(__file__).parent / "results"
 OBJECTS = ("base", "mirror", "torus", "background")  # intersect_glossy's indices, then the misses

@@ -1,16 +1,18 @@
 """Helpers shared by the tests: the real config shrunk to run in seconds, and the console scripts run
 as a user runs them."""
 
+import argparse
 import contextlib
 import errno
 import hashlib
 import json
 import os
+import re
 import signal
 import socket
 import subprocess
 import sys
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from pathlib import Path
 
 import lightning as L
@@ -205,6 +207,32 @@ def cameras_at(distance: list[float], elevation_deg: list[float], azimuth_deg: l
     e, a = torch.deg2rad(e), torch.deg2rad(a)
     eye = r[:, None] * torch.stack([e.cos() * a.cos(), e.cos() * a.sin(), e.sin()], -1)
     return look_at(eye, torch.zeros(3, dtype=torch.float64), torch.tensor([0.0, 0.0, 1.0], dtype=torch.float64))
+
+
+def added_arguments(build_parser: Callable[[], argparse.ArgumentParser]) -> tuple[argparse.ArgumentParser, list]:
+    """The parser ``build_parser()`` makes, and the action of every argument added to it, as ``add_argument``
+    returns each (argparse has no public list of a parser's arguments)."""
+    actions, add = [], argparse.ArgumentParser.add_argument
+
+    def recorded(parser, *args, **kwargs):
+        actions.append(add(parser, *args, **kwargs))
+        return actions[-1]
+
+    argparse.ArgumentParser.add_argument = recorded
+    try:
+        parser = build_parser()
+    finally:
+        argparse.ArgumentParser.add_argument = add
+    return parser, actions
+
+
+def undocumented_arguments(build_parser: Callable[[], argparse.ArgumentParser]) -> list[str]:
+    """The arguments of ``build_parser()``'s parser that have no help text (``added_arguments``); every option
+    its usage line shows was seen added, so that none escapes the check (one added through a group)."""
+    parser, actions = added_arguments(build_parser)
+    options = {option for action in actions for option in action.option_strings}
+    assert set(re.findall(r"(?<![\w-])--?[A-Za-z][\w-]*", parser.format_usage())) <= options
+    return [action.dest for action in actions if not action.help]
 
 
 def one_error_line(result, prog: str = "nerfexp") -> str:

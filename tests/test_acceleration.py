@@ -10,7 +10,7 @@ from hydra import compose, initialize_config_module
 from hydra.utils import instantiate
 
 from nerfexp.data.procedural import objects_box
-from nerfexp.nerf.analytic import aimed_rays
+from tests.analytic import aimed_rays
 from tests.helpers import TINY, final_state, kill_at, read_json, run_nerfexp
 
 

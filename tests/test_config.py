@@ -80,7 +80,7 @@ def test_hashgrid_has_instant_ngps_field_and_optimizer_and_no_decay_on_its_table
 def test_paper_scale_is_the_papers_network():
     cfg, model = build("scale=paper")
     r = model.renderer
-    assert (r.n_coarse, r.n_fine, r.evaluations_per_ray) == (64, 128, 64 + 192)
+    assert (r.sampler.n_coarse, r.sampler.n_fine, r.evaluations_per_ray) == (64, 128, 64 + 192)
     assert cfg.datamodule.batch_rays == 4096 and cfg.model.optimizer.lr == 5e-4 and cfg.model.lr_final == 5e-5
     assert cfg.encoding.position.n_freqs == 10 and cfg.encoding.direction.n_freqs == 4
     # 8 x 256 with the skip into the sixth layer, a 128-wide view layer: 595,844 parameters per network.
@@ -136,10 +136,11 @@ def test_every_key_of_a_config_is_an_argument_of_the_class_it_builds(overrides):
         assert keys <= set(parameters), f"{path} ({node['_target_']}): {sorted(keys - set(parameters))}"
 
 
-def test_the_fields_training_noise_is_a_model_setting_that_llff_sets_to_the_papers():
+def test_the_fields_training_noise_is_the_scene_formats_and_llffs_is_the_papers():
     cfg, model = build()
     assert cfg.model.renderer.field.density_noise_std == 0 and model.renderer.coarse.density_noise_std == 0
     cfg, model = build("data=llff", "data.root=/x")
-    assert "density_noise_std" not in cfg.data and model.renderer.fine.density_noise_std == 1.0
-    cfg, model = build("data=llff", "data.root=/x", "model.renderer.field.density_noise_std=0.5")
-    assert model.renderer.coarse.density_noise_std == 0.5
+    assert cfg.data.density_noise_std == 1.0 and model.renderer.fine.density_noise_std == 1.0
+    for override in ("data.density_noise_std=0.5", "model.renderer.field.density_noise_std=0.5"):
+        cfg, model = build("data=llff", "data.root=/x", override)
+        assert model.renderer.coarse.density_noise_std == model.renderer.fine.density_noise_std == 0.5

@@ -11,8 +11,9 @@ from hydra.utils import instantiate
 from nerfexp.data.rays import RandomRays, rank_slice
 from nerfexp.data.views import Views
 from nerfexp.errors import ConfigError
+from nerfexp.products.trained import load_module
 from nerfexp.rundir.layout import LAST_CHECKPOINT
-from nerfexp.rundir.trained import load_module, run_config
+from nerfexp.rundir.trained import run_config
 from nerfexp.training.metrics import psnr, ssim
 from tests.helpers import TINY, read_json, run_nerfexp
 

@@ -15,9 +15,10 @@ from tests.helpers import TINY, run_nerfexp
 LOGGED = [*TINY, "scale.steps=40", "scale.val_every=30"]  # validations at steps 30 and 40
 
 
-def train_with(logger: str, run_dir: Path) -> list[tuple[int, float]]:
-    """Run the LOGGED config with ``logger``; its validations (step, PSNR) as metrics.jsonl has them."""
-    result = run_nerfexp(*LOGGED, f"logger={logger}", f"hydra.run.dir={run_dir}", cwd=run_dir)
+def train_with(logger: str, run_dir: Path, *overrides: str) -> list[tuple[int, float]]:
+    """Run the LOGGED config with ``logger`` (and ``overrides``); its validations (step, PSNR) as metrics.jsonl
+    has them."""
+    result = run_nerfexp(*LOGGED, f"logger={logger}", *overrides, f"hydra.run.dir={run_dir}", cwd=run_dir)
     assert result.returncode == 0, result.stderr[-3000:]
     records = [json.loads(line) for line in (run_dir / "metrics.jsonl").read_text().splitlines()]
     validations = [(r["step"], r["psnr"]) for r in records if r["split"] == "val"]
@@ -54,13 +55,16 @@ def test_csv_logger_holds_the_scores_hyperparameters_and_images(tmp_path):
 def test_mlflow_logger_holds_the_scores_hyperparameters_and_images(tmp_path):
     from mlflow import MlflowClient
 
-    validations = train_with("mlflow", tmp_path)
+    validations = train_with("mlflow", tmp_path, "tags=[baseline,lego]", "notes=first try")
     client = MlflowClient(tracking_uri=f"sqlite:///{tmp_path}/mlflow.db")
     (run,) = client.search_runs([client.get_experiment_by_name("nerfexp").experiment_id])
     assert run.info.status == "FINISHED"
     history = client.get_metric_history(run.info.run_id, "val/psnr")
     assert sorted((m.step, m.value) for m in history) == validations
     assert run.data.params["encoding"] == "posenc" and run.data.params["scale.steps"] == "40"
+    # the labels as run tags (the notes: MLflow's run description), whole, as the parameters may not be
+    assert json.loads(run.data.tags["tags"]) == ["baseline", "lego"]
+    assert run.data.tags["mlflow.note.content"] == "first try"
     images = [a.path for a in client.list_artifacts(run.info.run_id, "images")]
     test_view_0 = "images/test~render_target_depth~0+step+40+"  # MLflow's name for the key at a step
     (test_image,) = [p for p in images if p.startswith(test_view_0) and p.endswith(".png")]
@@ -70,10 +74,12 @@ def test_mlflow_logger_holds_the_scores_hyperparameters_and_images(tmp_path):
 
 @pytest.mark.slow
 def test_wandb_logger_offline_holds_the_run_and_its_images(tmp_path):
-    train_with("wandb", tmp_path)
+    train_with("wandb", tmp_path, "tags=[baseline,lego]", "notes=first try")
     (offline,) = (tmp_path / "wandb").glob("offline-run-*")  # offline: kept here for `wandb sync`
     record = next(offline.glob("run-*.wandb")).read_bytes()
     assert b"val/psnr" in record and b"posenc" in record  # the scores' key and a hyper-parameter's value
+    # the run's tags and notes, each a text of the run's record (its length before it), beside the config's JSON
+    assert b"\x04lego" in record and b"\x09first try" in record and b'"first try"' in record
     # test view 0 (W&B adds its own step and a hash to the name)
     (image,) = (offline / "files" / "media" / "images" / "test" / "render_target_depth").glob("0_*.png")
     assert np.array_equal(pixels(image), logged_test_image(tmp_path))

@@ -4,6 +4,8 @@ error naming the extra when one is missing, and a wheel built without warnings t
 import ast
 import importlib.metadata
 import importlib.util
+import json
+import math
 import os
 import re
 import shutil
@@ -13,6 +15,7 @@ import zipfile
 from pathlib import Path
 
 import pytest
+import setuptools
 import tomllib
 from omegaconf import OmegaConf
 
@@ -20,7 +23,7 @@ from nerfexp.commands import render
 from nerfexp.commands.train import check_launcher
 from nerfexp.extras import EXTRAS, MissingExtraError, require
 from nerfexp.settings.checks import check_extras
-from tests.helpers import REPO, command
+from tests.helpers import REPO, TINY, command
 
 PYPROJECT = tomllib.loads((REPO / "pyproject.toml").read_text())
 
@@ -122,28 +125,70 @@ def config_folders() -> set[str]:
             for folder, _, _ in os.walk(conf, followlinks=True) if "__pycache__" not in folder}
 
 
-def test_every_config_folder_is_a_package():
-    listed = {p for p in PYPROJECT["tool"]["setuptools"]["packages"] if p.startswith("nerfexp.conf")}
-    assert listed == config_folders()
+def test_setuptools_finds_every_package_and_every_config_folder():
+    find = PYPROJECT["tool"]["setuptools"]["packages"]["find"]  # found, never listed by hand
+    (where,) = find["where"]
+    found = set(setuptools.find_namespace_packages(REPO / where, exclude=find["exclude"]))
+    code = {".".join(path.parent.relative_to(REPO / where).parts) for path in (REPO / where).rglob("__init__.py")
+            if not path.is_relative_to(REPO / where / "nerfexp" / "conf")}  # the link to conf/
+    assert {"nerfexp.settings", "nerfexp.nerf"} <= code
+    assert found == code | config_folders()
 
 
-def test_the_wheel_builds_without_warnings_and_holds_every_config(tmp_path):
-    source = tmp_path / "source"  # built outside the repository: pip builds in the tree it is given
+@pytest.fixture(scope="module")
+def wheel(tmp_path_factory) -> tuple[Path, str]:
+    """A wheel built from a copy of the tree (pip builds in the tree it is given), and pip's log."""
+    folder = tmp_path_factory.mktemp("wheel")
+    source = folder / "source"
     source.mkdir()
     for name in ("pyproject.toml", "README.md"):
         shutil.copy(REPO / name, source / name)
-    for name in ("src", "conf"):  # conf/sweeps, a link to sweeps/, copied as the folder it points to
-        shutil.copytree(REPO / name, source / name, ignore=shutil.ignore_patterns("__pycache__", "*.egg-info"))
-    isolation = [] if importlib.util.find_spec("setuptools") is None else ["--no-build-isolation"]
-    done = subprocess.run([sys.executable, "-m", "pip", "wheel", "--no-deps", *isolation, "-w", str(tmp_path / "dist"),
-                           "-v", str(source)], capture_output=True, text=True, timeout=600)
+    # src/nerfexp/conf, a link to conf/ (and conf/sweeps, one to sweeps/), copied as the folder it points to
+    shutil.copytree(REPO / "src", source / "src", ignore=shutil.ignore_patterns("__pycache__", "*.egg-info"))
+    done = subprocess.run([sys.executable, "-m", "pip", "wheel", "--no-deps", "--no-build-isolation",  # no network
+                           "-w", str(folder / "dist"), "-v", str(source)], capture_output=True, text=True, timeout=600)
     assert done.returncode == 0, done.stderr[-3000:]
-    log = done.stdout + done.stderr
+    (built,) = (folder / "dist").glob("nerfexp-*.whl")
+    return built, done.stdout + done.stderr
+
+
+@pytest.mark.slow
+def test_the_wheel_builds_without_warnings_and_holds_every_config(wheel):
+    built, log = wheel
     assert not re.findall(r".*(?:is absent from the `packages`|Installing 'nerfexp[.\w]*' as data).*", log)
-    (wheel,) = (tmp_path / "dist").glob("nerfexp-*.whl")
-    names = set(zipfile.ZipFile(wheel).namelist())
+    names = set(zipfile.ZipFile(built).namelist())
     assert {"nerfexp/training/lpips_alex_v0.1.pth", "nerfexp/training/lpips_LICENSE.txt"} <= names  # LPIPS's heads
     in_wheel = {name for name in names if name.startswith("nerfexp/conf/")}
     configs = {"nerfexp/conf/" + os.path.relpath(os.path.join(folder, f), REPO / "conf").replace(os.sep, "/")
                for folder, _, files in os.walk(REPO / "conf", followlinks=True) for f in files if f.endswith(".yaml")}
     assert configs and configs <= in_wheel
+
+
+@pytest.mark.slow
+def test_the_wheel_installed_without_the_source_tree_runs(wheel, tmp_path):
+    """Installed as a user installs it (not editable) into a fresh environment that reuses the installed
+    dependencies: the help and a few steps of a tiny run, started outside the repository."""
+    built, _ = wheel
+    venv = tmp_path / "venv"
+    subprocess.run([sys.executable, "-m", "venv", "--system-site-packages", "--without-pip", str(venv)], check=True)
+    python, env = venv / "bin" / "python", {k: v for k, v in os.environ.items() if k != "PYTHONPATH"}
+    # --ignore-installed: beside (not over) the editable nerfexp of the system's site-packages, which the venv sees
+    install = subprocess.run([str(python), "-m", "pip", "install", "--no-deps", "--no-index", "--ignore-installed",
+                              str(built)], capture_output=True, text=True, env=env, timeout=300)
+    assert install.returncode == 0, install.stderr[-3000:]
+    elsewhere = tmp_path / "elsewhere"
+    elsewhere.mkdir()
+    where = subprocess.run([str(python), "-c", "import nerfexp.conf, nerfexp.settings.checks; print(nerfexp.__file__)"],
+                           cwd=elsewhere, capture_output=True, text=True, env=env, timeout=300)
+    assert where.returncode == 0, where.stderr[-3000:]
+    assert Path(where.stdout.strip()).is_relative_to(venv)  # the wheel's, not the repository's
+
+    nerfexp = str(venv / "bin" / "nerfexp")
+    shown = subprocess.run([nerfexp, "--help"], cwd=elsewhere, capture_output=True, text=True, env=env, timeout=300)
+    assert shown.returncode == 0, shown.stderr[-3000:]
+    assert "encoding" in shown.stdout and "view_dependence" in shown.stdout  # its config groups, read from the wheel
+    run = subprocess.run([nerfexp, *TINY, "scale.steps=3", "scale.val_every=3", "hydra.run.dir=run"],
+                         cwd=elsewhere, capture_output=True, text=True, env=env, timeout=600)
+    assert run.returncode == 0, run.stderr[-3000:]
+    results = json.loads((elsewhere / "run" / "results.json").read_text())
+    assert results["steps"] == 3 and math.isfinite(results["test_psnr"])

@@ -9,7 +9,7 @@ that a key is spelled, and an interpolation followed, one way everywhere.
 
 from collections.abc import Callable, Iterator
 
-from omegaconf import MISSING, DictConfig, ListConfig, Node, OmegaConf
+from omegaconf import MISSING, DictConfig, ListConfig, OmegaConf
 from omegaconf.errors import InterpolationToMissingValueError
 
 
@@ -28,32 +28,32 @@ def source_key(cfg: DictConfig, key: str) -> str:
     parts = key.split(".")
     node = cfg
     for i, part in enumerate(parts):
-        child = node._get_node(part) if isinstance(node, DictConfig) and part in node else None
-        if child is None:
+        if not isinstance(node, DictConfig) or part not in node:
             return key
-        named = reference(child._value())
-        if named is not None:
-            return source_key(cfg, ".".join([named, *parts[i + 1:]]))
-        node = child
+        if OmegaConf.is_interpolation(node, part):  # its text, from the section that holds it (never resolved)
+            named = reference(OmegaConf.to_container(node, resolve=False)[part])
+            return key if named is None else source_key(cfg, ".".join([named, *parts[i + 1:]]))
+        node = node[part]
     return key
 
 
-def leaves(cfg: DictConfig, skip: Callable[[str, Node], bool] = lambda key, node: False,
+def leaves(cfg: DictConfig, skip: Callable[[str, object], bool] = lambda key, written: False,
            prefix: str = "") -> Iterator[tuple[str, object]]:
-    """Each leaf of ``cfg`` as (dotted key, resolved value), ``hydra`` and the keys that ``skip(key, node)``
-    names aside: a list is one leaf (a plain list), and a section that an interpolation names is walked
+    """Each leaf of ``cfg`` as (dotted key, resolved value), ``hydra`` and the keys that ``skip(key, written)``
+    names aside (``written``: the value as the config writes it, an interpolation its text, a section a plain
+    container): a list is one leaf (a plain list), and a section that an interpolation names is walked
     under the key that names it (``datamodule.scene.root``). A value made from Hydra's runtime
     (``${hydra:runtime.output_dir}/...``) is given unresolved, its text: it exists only once the job runs. A
     mandatory value not set is ``MISSING`` (``???``), and an interpolation of one is left out: the key
     set to ``???`` is the one to name."""
+    written = OmegaConf.to_container(cfg, resolve=False)
     for name in cfg.keys():
-        key, node = f"{prefix}{name}", cfg._get_node(name)
-        if key == "hydra" or skip(key, node):
+        key, raw = f"{prefix}{name}", written[name]
+        if key == "hydra" or skip(key, raw):
             continue
-        raw = node._value()
         if isinstance(raw, str) and "${hydra:" in raw:
             yield key, raw
-        elif node._is_missing():
+        elif OmegaConf.is_missing(cfg, name):
             yield key, MISSING
         else:
             try:

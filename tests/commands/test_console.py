@@ -21,7 +21,7 @@ from nerfexp.commands import evaluate, render, report, scene, view
 from nerfexp.commands.console import one_line_errors
 from nerfexp.files import WriteError
 from nerfexp.training.progress import StepProgressBar
-from tests.helpers import REPO, TINY, command, run_nerfexp
+from tests.helpers import REPO, TINY, command, run_nerfexp, undocumented_arguments
 
 OWN_LINE = re.compile(r"\[\d{4}-\d\d-\d\d \d\d:\d\d:\d\d,\d{3}\]\[nerfexp[.\w]*\]\[INFO\] - ")  # nerfexp's log format
 
@@ -49,8 +49,7 @@ def test_every_commands_help_reads_cleanly(module):
     parser = module.build_parser()
     text = parser.format_help()
     assert parser.description and "``" not in text
-    undocumented = [action.dest for action in parser._actions if not action.help]
-    assert undocumented == []
+    assert undocumented_arguments(module.build_parser) == []
 
 
 def test_a_run_prints_its_own_lines_only(tmp_path):

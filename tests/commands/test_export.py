@@ -33,6 +33,7 @@ from nerfexp.data.procedural import (
 from nerfexp.data.views import Views
 from nerfexp.errors import NerfexpError
 from nerfexp.geometry.cameras import camera_rays, focal_from_fov
+from nerfexp.nerf.fields import FieldOutputs
 from nerfexp.nerf.occupancy import OccupancyGrid
 from nerfexp.nerf.volume_renderer import VolumeRenderer
 from nerfexp.pixels import to_uint8
@@ -44,7 +45,7 @@ from nerfexp.products.mesh import (
     final_field,
     view_points,
 )
-from tests.helpers import digests, read_ply, run_nerfexp
+from tests.helpers import digests, read_ply, run_nerfexp, undocumented_arguments
 
 F64 = torch.float64
 THRESHOLD = 50.0  # nerfexp-export's default
@@ -68,8 +69,8 @@ class BuiltInSceneField(nn.Module):
         distance = object_distances(positions).amin(-1)
         return (THRESHOLD * (1 - distance / RAMP)).clamp_min(0).to(positions.dtype)
 
-    def forward(self, positions: Tensor, directions: Tensor) -> tuple[Tensor, Tensor]:
-        return (1 + directions) / 2, self.density(positions)
+    def forward(self, positions: Tensor, directions: Tensor) -> FieldOutputs:
+        return FieldOutputs(rgb=(1 + directions) / 2, sigma=self.density(positions))
 
 
 def true_surface(spacing: float) -> np.ndarray:
@@ -287,7 +288,7 @@ def test_the_commands_help_explains_every_option():
     parser = build_parser()
     text = " ".join(parser.format_help().split())  # argparse wraps lines
     assert parser.description and "``" not in text
-    assert [action.dest for action in parser._actions if not action.help] == []
+    assert undocumented_arguments(build_parser) == []
     assert "absorbs 1 - exp(-sigma h) of the light" in text and "63% over 0.02" in text
 
 

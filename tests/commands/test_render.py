@@ -32,8 +32,9 @@ from nerfexp.products.frames import (
     render_path,
     scene_focus_depth,
 )
+from nerfexp.products.trained import load_module
 from nerfexp.reading import RECORD_BYTES
-from nerfexp.rundir.trained import load_module, run_config
+from nerfexp.rundir.trained import run_config
 from tests.helpers import TINY, cameras_at, digests, run_nerfexp
 
 

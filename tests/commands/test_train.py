@@ -185,7 +185,7 @@ def test_default_run_directories_of_runs_started_at_once_differ(tmp_path):
 @pytest.mark.slow
 def test_lpips_is_recorded_in_every_file_where_alexnets_weights_are_given(tmp_path, tiny):
     from nerfexp.training.perceptual import LpipsScorer, lpips_network
-    from tests.training.test_perceptual import alexnet_state
+    from tests.training.alexnet import alexnet_state
 
     weights, run = tmp_path / "alexnet.pth", tmp_path / "run"
     torch.save(alexnet_state(), weights)  # made here: no test reads the ImageNet weights

@@ -18,13 +18,13 @@ import torch
 from hydra.utils import instantiate
 from PIL import Image
 from viser import transforms as viser_transforms
-from viser._viser import CameraHandle
 
 from nerfexp import manifest
 from nerfexp.commands import view
 from nerfexp.geometry.cameras import camera_rays, focal_from_fov, look_at
 from nerfexp.geometry.viewer_cameras import vertical_fov
 from nerfexp.products.camera_files import read_camera_path
+from nerfexp.products.trained import load_run
 from nerfexp.products.viewer import (
     ProgressiveRenderer,
     Viewer,
@@ -37,7 +37,7 @@ from nerfexp.products.viewer import (
     viewer_pose,
 )
 from nerfexp.rundir.layout import CAMERA_PATH
-from nerfexp.rundir.trained import load_run, run_config
+from nerfexp.rundir.trained import run_config
 from tests.browser import close_page, open_page, page_screenshot
 from tests.helpers import command
 
@@ -50,30 +50,23 @@ POSES = [  # (eye, target, world up)
 
 
 def viser_wxyz(eye, target, up) -> np.ndarray:
-    """The orientation viser gives a camera at ``eye`` looking at ``target`` with up direction ``up``: its
-    own ``CameraHandle._update_wxyz`` (what the server computes when a program sets look_at), on a camera
-    handle whose client is never reached."""
-    camera = CameraHandle(SimpleNamespace())
-    camera._state.position, camera._state.look_at = np.array(eye), np.array(target)
-    camera._state.up_direction = np.array(up)
-    camera._update_wxyz()
-    return camera._state.wxyz
+    """The orientation of a viser camera at ``eye`` looking at ``target`` with up direction ``up``, worked
+    out by hand in viser's convention (``CameraHandle.wxyz``: OpenCV's axes, x right, y down, z forward, the
+    rotation's columns) and made a quaternion by viser's own ``transforms.SO3``."""
+    eye, target, up = (np.asarray(v, dtype=np.float64) for v in (eye, target, up))
+    forward = (target - eye) / np.linalg.norm(target - eye)
+    right = np.cross(forward, up)
+    right = right / np.linalg.norm(right)
+    down = np.cross(forward, right)
+    return viser_transforms.SO3.from_matrix(np.stack([right, down, forward], -1)).wxyz
 
 
 @pytest.mark.parametrize("eye, target, up", POSES)
 def test_a_viewer_camera_looking_at_a_point_is_the_camera_look_at_gives(eye, target, up):
     eye, target, up = (torch.tensor(v, dtype=torch.float64) for v in (eye, target, up))
     expected = look_at(eye, target, up)
-    # viser's own orientation of the camera
     c2w = viewer_c2w(torch.from_numpy(viser_wxyz(eye.numpy(), target.numpy(), up.numpy())), eye)
     torch.testing.assert_close(c2w, expected, atol=1e-9, rtol=0)
-    # by hand, OpenCV's axes: x right, y down, z forward; its rotation as viser makes a quaternion of it
-    forward = (target - eye) / (target - eye).norm()
-    right = torch.linalg.cross(forward, up)
-    right = right / right.norm()
-    down = torch.linalg.cross(forward, right)
-    wxyz = viser_transforms.SO3.from_matrix(torch.stack([right, down, forward], -1).numpy()).wxyz
-    torch.testing.assert_close(viewer_c2w(torch.from_numpy(wxyz), eye), expected, atol=1e-9, rtol=0)
     # and back: the pose a frustum is drawn at
     back_wxyz, position = viewer_pose(expected)
     torch.testing.assert_close(position, eye)

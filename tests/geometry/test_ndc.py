@@ -6,8 +6,8 @@ import pytest
 import torch
 
 from nerfexp.geometry.ndc import ndc_rays
-from nerfexp.nerf.analytic import Slab
 from nerfexp.nerf.volume_renderer import VolumeRenderer
+from tests.analytic import Slab
 
 FOCAL, HEIGHT, WIDTH = 50.0, 30, 40
 

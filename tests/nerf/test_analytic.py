@@ -36,9 +36,9 @@ import math
 import pytest
 import torch
 
-from nerfexp.nerf.analytic import GaussianBlob, Shell, Slab, aimed_rays, cost_for_error, render_errors, segments_truth
 from nerfexp.nerf.backgrounds import BACKGROUNDS
 from nerfexp.nerf.volume_renderer import VolumeRenderer
+from tests.analytic import GaussianBlob, Shell, Slab, aimed_rays, cost_for_error, render_errors, segments_truth
 
 NEAR, FAR = 2.0, 6.0
 WHITE = BACKGROUNDS["white"]
@@ -55,7 +55,7 @@ def brute_force(field, origin, direction, near, far, n=1_000_001):
     cumulative trapezoid rule, T = exp(-tau), and the depth by its definition int t p / int p, p = sigma T
     (not the by-parts forms the fields use)."""
     t = torch.linspace(near, far, n, dtype=torch.float64)
-    _, sigma = field(origin + t[:, None] * direction, direction[None])
+    sigma = field(origin + t[:, None] * direction, direction[None]).sigma
     tau = torch.cat([torch.zeros(1, dtype=torch.float64), torch.cumulative_trapezoid(sigma, t)])
     p = sigma * torch.exp(-tau)
     mass = torch.trapezoid(p, t)
@@ -229,7 +229,7 @@ def test_stratified_blob_cut_by_the_range_converges_at_the_predicted_order_and_c
     rendered = render(BLOB, origins, directions, ns[-1], hierarchical=False)[0]["opacity"]
     end = NEAR if cut == "near" else FAR
     t = torch.tensor([end - 1e-3, end, end + 1e-3], dtype=torch.float64)  # sigma' by central difference
-    _, sigma = BLOB(origins[:, None] + t[:, None] * directions[:, None], directions[:, None])
+    sigma = BLOB(origins[:, None] + t[:, None] * directions[:, None], directions[:, None]).sigma
     if cut == "near":
         predicted = (h**2 / 24) * (sigma[:, 2] - sigma[:, 0]) / 2e-3 * (1 - truth["opacity"])
     else:

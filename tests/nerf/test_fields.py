@@ -28,9 +28,8 @@ def test_density_depends_on_position_only_and_colour_on_direction():
     x = torch.randn(64, 3)
     d1 = torch.nn.functional.normalize(torch.randn(64, 3), dim=-1)
     d2 = torch.nn.functional.normalize(torch.randn(64, 3), dim=-1)
-    rgb1, sigma1 = field(x, d1)
-    rgb2, sigma2 = field(x, d2)
-    assert rgb1.shape == (64, 3) and sigma1.shape == (64,)
+    (rgb1, sigma1, penalties), (rgb2, sigma2, _) = field(x, d1), field(x, d2)
+    assert rgb1.shape == (64, 3) and sigma1.shape == (64,) and penalties is None  # the paper's head: no penalties
     assert torch.equal(sigma1, sigma2)
     assert not torch.allclose(rgb1, rgb2)
     assert ((rgb1 >= 0) & (rgb1 <= 1)).all() and (sigma1 >= 0).all()
@@ -92,7 +91,7 @@ def test_truncated_exp_is_exp_finite_everywhere_with_bounded_gradient():
 @pytest.mark.parametrize("activation", ["relu", "softplus", "trunc_exp"])
 def test_density_activations_are_config_choices(activation):
     field = NeRFField(IdentityEncoding(), DiffuseHead, depth=2, width=16, skips=(), density_activation=activation)
-    rgb, sigma = field(torch.randn(32, 3) * 100, torch.zeros(32, 3))
+    sigma = field(torch.randn(32, 3) * 100, torch.zeros(32, 3)).sigma
     assert torch.isfinite(sigma).all() and (sigma >= 0).all()
     with pytest.raises(ValueError, match="field.density_activation: expected one of .*'trunc_exp'.*got 'exp'"):
         NeRFField(IdentityEncoding(), DiffuseHead, depth=2, width=16, skips=(), density_activation="exp")
@@ -110,7 +109,8 @@ def test_the_reflection_head_s_penalties_use_the_density_normals_taken_by_finite
     field = reflection_field()
     x = torch.randn(20, 3, dtype=torch.float64)
     d = torch.nn.functional.normalize(torch.randn(20, 3, dtype=torch.float64), dim=-1)
-    rgb, sigma, penalties = field(x, d)
+    out = field(x, d)
+    penalties, sigma = out.penalties, out.sigma
     assert penalties.shape == (20, 2) and field.penalty_names == ("normals", "orientation")
 
     def raw(points):  # the raw density: the activation inverted (softplus^-1 = log(expm1))
@@ -127,10 +127,10 @@ def test_the_reflection_head_s_penalties_use_the_density_normals_taken_by_finite
 def test_the_reflection_penalties_train_the_density_and_are_left_out_without_gradients():
     field = reflection_field(torch.float32)
     x, d = torch.randn(50, 3), torch.nn.functional.normalize(torch.randn(50, 3), dim=-1)
-    _, _, penalties = field(x, d)
+    penalties = field(x, d).penalties
     penalties[:, 0].sum().backward()  # R_p: through the density's gradient (create_graph) and the predicted normals
     assert field.trunk[0].weight.grad.abs().sum() > 0 and field.view_head.normal.weight.grad.abs().sum() > 0
     assert all(torch.isfinite(p.grad).all() for p in field.parameters() if p.grad is not None)
     with torch.no_grad():  # rendering for evaluation: colour and density only, no second pass
-        rgb, sigma = field(x, d)
-    assert rgb.shape == (50, 3) and ((rgb >= 0) & (rgb <= 1)).all() and sigma.shape == (50,)
+        rgb, sigma, penalties = field(x, d)
+    assert rgb.shape == (50, 3) and ((rgb >= 0) & (rgb <= 1)).all() and sigma.shape == (50,) and penalties is None

@@ -7,9 +7,10 @@ from types import SimpleNamespace
 import pytest
 import torch
 
-from nerfexp.nerf.analytic import GaussianBlob, Slab, aimed_rays
+from nerfexp.nerf.fields import FieldOutputs
 from nerfexp.nerf.occupancy import OccupancyGrid, cell_corners, cell_indices, density_threshold
 from nerfexp.nerf.volume_renderer import VolumeRenderer, padded_size, query_packed
+from tests.analytic import GaussianBlob, Slab, aimed_rays
 
 BOX = [[-1.0, -1.0, -1.0], [1.0, 1.0, 1.0]]
 NEAR, FAR = 2.0, 6.0
@@ -200,12 +201,12 @@ def test_a_packed_batch_is_padded_with_kept_points_and_gives_each_kept_sample_it
     class Positional(torch.nn.Module):
         def forward(self, points, viewdirs):
             seen.append((points.clone(), viewdirs.clone()))
-            return points * 2, points[:, 0]
+            return FieldOutputs(rgb=points * 2, sigma=points[:, 0])
 
     generator = torch.Generator().manual_seed(0)
     points, viewdirs = torch.randn(7, 40, 3, generator=generator), torch.randn(7, 3, generator=generator)
     keep = torch.rand(7, 40, generator=generator) < 0.6
-    rgb, sigma = query_packed(Positional(), points, viewdirs, keep)
+    rgb, sigma, penalties = query_packed(Positional(), points, viewdirs, keep)
     n = int(keep.sum())
     assert len(seen) == 1 and len(seen[0][0]) == padded_size(n) > n  # 170 kept, padded to 176
     batch, dirs = seen[0]
@@ -213,3 +214,4 @@ def test_a_packed_batch_is_padded_with_kept_points_and_gives_each_kept_sample_it
     torch.testing.assert_close(dirs[n:], dirs[: padded_size(n) - n])
     torch.testing.assert_close(rgb, torch.where(keep[..., None], points * 2, 0), rtol=0, atol=0)
     torch.testing.assert_close(sigma, torch.where(keep, points[..., 0], 0), rtol=0, atol=0)
+    assert penalties is None  # none answered, none made up

@@ -9,11 +9,12 @@ import pytest
 import torch
 
 from nerfexp.nerf.encodings import IdentityEncoding
-from nerfexp.nerf.fields import DensityField
+from nerfexp.nerf.fields import DensityField, FieldOutputs
 from nerfexp.nerf.proposal import ProposalSampler, distortion_loss, interlevel_loss, outer_bound
-from nerfexp.nerf.sampling import dilate_weights, sample_pdf, stratified_samples
-from nerfexp.nerf.volume_renderer import VolumeRenderer, resampling_bins
-from tests.nerf.test_volume_renderer import rays_down_z, slab
+from nerfexp.nerf.samplers import Rays
+from nerfexp.nerf.sampling import dilate_weights, resampling_bins, sample_pdf, stratified_samples
+from nerfexp.nerf.volume_renderer import VolumeRenderer
+from tests.analytic import rays_down_z, slab
 
 
 def random_histogram(generator, n, low=0.0, high=1.0):
@@ -111,7 +112,8 @@ def test_the_field_evaluates_only_samples_drawn_from_the_last_proposal_histogram
     near, far = torch.full((1,), 2.0, dtype=torch.float64), torch.full((1,), 6.0, dtype=torch.float64)
     t = stratified_samples(near, far, 8, deterministic=True)
     for n_next in (16, 24):
-        weights, _ = renderer._propose(renderer.proposal.networks[0], origins, directions, t, far)
+        weights, _ = renderer.proposal_weights(renderer.proposal.networks[0], Rays(origins, directions, directions,
+                                                                                   near, far), t)
         t = sample_pdf(resampling_bins(t, near, far), dilate_weights(weights), n_next, deterministic=True)
     torch.testing.assert_close(out["coarse"]["t_starts"], t, rtol=0, atol=0)
     # the slab lies at t in (3.5, 4.5): every sample the field evaluates is within a first-round spacing of it
@@ -153,7 +155,7 @@ class DensityFieldWithColour(torch.nn.Module):
 
     def forward(self, positions, directions):
         sigma = self.scale * 3.0 * (positions[..., 2].abs() < 0.5)
-        return torch.full((*sigma.shape, 3), 0.5) * self.scale, sigma
+        return FieldOutputs(rgb=torch.full((*sigma.shape, 3), 0.5) * self.scale, sigma=sigma)
 
 
 def test_the_distortion_loss_is_added_with_its_weight():

@@ -5,21 +5,9 @@ import pytest
 import torch
 from torch import nn
 
-from nerfexp.nerf.analytic import Slab
+from nerfexp.nerf.fields import FieldOutputs
 from nerfexp.nerf.volume_renderer import VolumeRenderer
-
-
-def slab(sigma=3.0, half_width=0.5, shift=0.0) -> Slab:
-    """Density ``sigma`` where |z - shift| < half_width, else 0; colour (0.2, 0.4, 0.6)."""
-    return Slab(lower=shift - half_width, upper=shift + half_width, density=sigma, colour=(0.2, 0.4, 0.6))
-
-
-def rays_down_z(n):
-    origins = torch.zeros(n, 3, dtype=torch.float64)
-    origins[:, 2] = 4.0
-    directions = torch.zeros(n, 3, dtype=torch.float64)
-    directions[:, 2] = -1.0
-    return origins, directions
+from tests.analytic import rays_down_z, slab
 
 
 @pytest.mark.parametrize("shift", [0.0, 0.1, 0.2, -0.13])
@@ -75,7 +63,7 @@ class Fog(nn.Module):
 
     def forward(self, positions, directions):
         sigma = torch.full(positions.shape[:-1], 0.1, dtype=positions.dtype)
-        return torch.ones(*sigma.shape, 3, dtype=positions.dtype), sigma
+        return FieldOutputs(rgb=torch.ones(*sigma.shape, 3, dtype=positions.dtype), sigma=sigma)
 
 
 def test_hierarchical_rendering_reaches_back_to_near():

@@ -447,3 +447,45 @@ def test_report_csv_text_cells_that_a_spreadsheet_would_read_as_a_formula_are_pr
     write_report([tmp_path], tmp_path, reference="ablation=complete")
     rows = {row["variant"]: row for row in read_csv(tmp_path / "report.csv")}
     assert rows["ablation=no_posenc"]["psnr_diff"] == "-2.5"  # a negative number stays a number
+
+
+def labelled(run: Path, tags: list, notes: str | None = None) -> Path:
+    """``run`` (``make_run``'s) with the labels nerfexp records: in status.json, and in results.json where it has
+    one."""
+    for name in ("status.json", "results.json"):
+        if (run / name).exists():
+            record = json.loads((run / name).read_text())
+            (run / name).write_text(json.dumps({**record, "tags": tags, "notes": notes}))
+    return run
+
+
+def test_runs_that_differ_only_in_tags_and_notes_are_one_variant_that_shows_them(tmp_path):
+    labelled(make_run(tmp_path, "0", ["hierarchical=true", "seed=0", "tags=[baseline]", "notes=first try"],
+                      psnr=20.0), ["baseline"], "first try")
+    labelled(make_run(tmp_path, "1", ["seed=1", "tags=[baseline,x|y]", "hierarchical=true"], psnr=22.0),
+             ["baseline", "x|y"])
+    labelled(make_run(tmp_path, "2", ["hierarchical=true", "seed=2"], state="failed", error="ValueError: x"),
+             ["late"])  # from a sweep file: no override; a job that failed has its tags in its status
+    make_run(tmp_path, "3", ["hierarchical=false", "seed=0"], psnr=25.0)
+    variants = group_variants(find_runs([tmp_path]))
+    assert [(v.label, len(v.runs), v.mean("test_psnr")) for v in variants] == [("hierarchical=false", 1, 25.0),
+                                                                            ("hierarchical=true", 3, 21.0)]
+    assert (variants[1].tags, variants[1].notes) == (["baseline", "x|y", "late"], ["first try"])
+    assert (variants[0].tags, variants[0].notes) == ([], [])  # an earlier nerfexp's run: no labels
+    write_report([tmp_path], tmp_path)
+    rows = {row["variant"]: row for row in read_csv(tmp_path / "report.csv")}
+    assert json.loads(rows["hierarchical=true"]["tags"]) == ["baseline", "x|y", "late"]
+    assert json.loads(rows["hierarchical=true"]["notes"]) == ["first try"]
+    assert (rows["hierarchical=false"]["tags"], rows["hierarchical=false"]["notes"]) == ("[]", "[]")
+    report = (tmp_path / "report.md").read_text()
+    assert "| variant | tags | runs |" in report
+    assert "| hierarchical=true | baseline, x\\|y, late | 2/3 | 21.00 ± 1.41 |" in report  # | kept in its cell
+    assert "| hierarchical=false |  | 1/1 |" in report and "- hierarchical=true: first try" in report
+    html = (tmp_path / "report.html").read_text()
+    assert "<td>baseline, x|y, late</td>" in html and "<li>hierarchical=true: first try</li>" in html
+
+
+def test_a_run_whose_labels_are_not_as_nerfexp_writes_them_is_damaged(tmp_path):
+    labelled(make_run(tmp_path, "0", ["seed=0"]), "baseline")  # a text, not a list
+    (run,) = find_runs([tmp_path])
+    assert run.state == "damaged" and run.detail == "results.json: tags or notes that are not as nerfexp writes them"

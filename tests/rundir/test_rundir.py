@@ -12,6 +12,7 @@ import time
 from pathlib import Path
 
 import pytest
+import tomllib
 from hydra.utils import get_class, instantiate
 from omegaconf import OmegaConf
 
@@ -27,8 +28,10 @@ from nerfexp.rundir.layout import (
     process_start,
     read_metrics,
 )
-from nerfexp.rundir.trained import find_run, run_config
-from tests.helpers import digests, one_error_line, run_nerfexp
+from nerfexp.rundir.trained import SHIMS_UNTIL, find_run, run_config
+from tests.helpers import REPO, digests, one_error_line, run_nerfexp
+
+PYPROJECT = tomllib.loads((REPO / "pyproject.toml").read_text())
 
 # The config an LLFF run saved before the layers (as nerfexp wrote it then, abridged to what builds
 # objects): the old module paths of every class, and the field's noise read from the data group.
@@ -92,6 +95,12 @@ def test_a_run_made_before_the_layers_is_read_with_the_current_classes(tmp_path)
     model = instantiate(cfg.model)
     assert model.renderer.coarse.density_noise_std == 1.0 and model.renderer.grid is not None
     assert "callbacks" not in cfg  # only training builds them (nerfexp.rundir.saved_configs.TRAINING_ONLY)
+
+
+def test_the_shims_for_runs_made_before_the_layers_go_by_the_version_they_name():
+    version = tuple(int(part) for part in PYPROJECT["project"]["version"].split("."))
+    assert version < SHIMS_UNTIL, ("nerfexp has reached the version that drops the shims of nerfexp.rundir.trained "
+                                   "(MOVED_TARGETS, OLD_NOISE): remove them, or name a later version")
 
 
 def test_a_run_is_found_by_its_directory_or_a_checkpoint_in_it(tmp_path):

@@ -14,6 +14,7 @@ from torch.utils.data import DataLoader
 
 from nerfexp.errors import FieldCollapseError, NonFiniteError
 from nerfexp.nerf.encodings import HashGridEncoding
+from nerfexp.nerf.fields import FieldOutputs
 from nerfexp.nerf.volume_renderer import VolumeRenderer
 from nerfexp.training.guards import TrainingGuard
 from nerfexp.training.module import NeRFModule
@@ -33,7 +34,7 @@ class LinearField(nn.Module):
     def forward(self, positions, directions):
         self.calls += 1
         out = self.layer(positions)
-        return torch.sigmoid(out[..., :3]), self.activation(out[..., 3] + self.density_bias)
+        return FieldOutputs(rgb=torch.sigmoid(out[..., :3]), sigma=self.activation(out[..., 3] + self.density_bias))
 
 
 class NaNFrom(LinearField):
@@ -45,8 +46,8 @@ class NaNFrom(LinearField):
         self.first = first
 
     def forward(self, positions, directions):
-        rgb, sigma = super().forward(positions, directions)
-        return rgb, sigma * (math.nan if self.calls > self.first else 1.0)
+        rgb, sigma, _ = super().forward(positions, directions)
+        return FieldOutputs(rgb=rgb, sigma=sigma * (math.nan if self.calls > self.first else 1.0))
 
 
 class EmptyBut(nn.Module):
@@ -60,7 +61,7 @@ class EmptyBut(nn.Module):
     def forward(self, positions, directions):
         self.calls += 1
         sigma = torch.full(positions.shape[:-1], float(self.calls % self.period == 0))
-        return torch.sigmoid(self.raw).expand(*positions.shape[:-1], 3), sigma
+        return FieldOutputs(rgb=torch.sigmoid(self.raw).expand(*positions.shape[:-1], 3), sigma=sigma)
 
 
 class HashField(nn.Module):
@@ -75,7 +76,7 @@ class HashField(nn.Module):
 
     def forward(self, positions, directions):
         out = self.layer(self.position_encoding(positions))
-        return torch.sigmoid(out[..., :3]), F.softplus(out[..., 3])
+        return FieldOutputs(rgb=torch.sigmoid(out[..., :3]), sigma=F.softplus(out[..., 3]))
 
 
 def module(coarse: nn.Module, fine: nn.Module, optimizer=torch.optim.Adam) -> NeRFModule:

@@ -1,13 +1,20 @@
+import csv
 import functools
 import math
+from pathlib import Path
+from unittest import mock
 
 import lightning as L
 import pytest
 import torch
+from lightning.pytorch.loggers import CSVLogger
 from torch import nn
 from torch.utils.data import DataLoader
 
 from nerfexp.errors import ConfigError
+from nerfexp.nerf.encodings import HashGridEncoding, PositionalEncoding
+from nerfexp.nerf.fields import DensityField, FieldOutputs, NeRFField, ViewMLPHead
+from nerfexp.nerf.proposal import ProposalSampler
 from nerfexp.nerf.volume_renderer import VolumeRenderer
 from nerfexp.training.module import NeRFModule, seeded_random
 
@@ -21,7 +28,8 @@ class OpaqueField(nn.Module):
         self.colour = nn.Parameter(torch.tensor(colour))
 
     def forward(self, positions, directions):
-        return self.colour.expand(*positions.shape[:-1], 3), torch.full(positions.shape[:-1], 1e6)
+        sigma = torch.full(positions.shape[:-1], 1e6)
+        return FieldOutputs(rgb=self.colour.expand(*sigma.shape, 3), sigma=sigma)
 
 
 class ConstantField(nn.Module):
@@ -31,7 +39,7 @@ class ConstantField(nn.Module):
 
     def forward(self, positions, directions):
         sigma = nn.functional.softplus(self.raw).expand(positions.shape[:-1])
-        return torch.sigmoid(self.raw).expand(*positions.shape[:-1], 3), sigma
+        return FieldOutputs(rgb=torch.sigmoid(self.raw).expand(*positions.shape[:-1], 3), sigma=sigma)
 
 
 def module(field, lr=1e-3, lr_final=1e-4, lr_warmup_steps=0):
@@ -66,6 +74,50 @@ def test_networks_are_named_as_the_renderer_outputs():
     flat = NeRFModule(VolumeRenderer(ConstantField, hierarchical=False, n_coarse=4, n_fine=4, n_single=8, near=2.0,
                                      far=6.0), functools.partial(torch.optim.Adam, lr=1e-3), lr_final=1e-4)
     assert flat.networks == {"coarse": flat.renderer.coarse}
+
+
+def hash_grid_module(hierarchical, sparse_gradients=False) -> NeRFModule:
+    """Fields and proposal networks on small hash grids: the tables in every network's copy of the encoding."""
+    grid = HashGridEncoding(n_levels=3, log2_table_size=6, coarsest=2, finest=16, aabb=[[-1.0] * 3, [1.0] * 3],
+                            sparse_gradients=sparse_gradients)
+    head = functools.partial(ViewMLPHead, direction_encoding=PositionalEncoding(2), hidden=8)
+    field = functools.partial(NeRFField, grid, head, depth=2, width=8, skips=())
+    proposal = functools.partial(ProposalSampler, functools.partial(DensityField, grid, depth=1, width=8, skips=()),
+                                 n_samples=[8], n_final=8)
+    renderer = VolumeRenderer(field, hierarchical, 8, 8, 8, near=2.0, far=6.0, proposal=proposal)
+    return NeRFModule(renderer, functools.partial(torch.optim.Adam, lr=1e-3, weight_decay=1e-6), lr_final=1e-4)
+
+
+@pytest.mark.parametrize("hierarchical", [True, False, "proposal"])
+def test_every_parameter_lands_in_exactly_one_group_named_by_its_component(hierarchical):
+    m = hash_grid_module(hierarchical)
+    groups = m.named_parameter_groups()
+    assert list(groups) == ["networks", "hash_tables"] and groups["hash_tables"]["weight_decay"] == 0.0
+    assert set(groups["networks"]) == {"params"}  # the optimizer's own options
+    order = [id(p) for p in m.parameters()]
+    placed = [id(p) for group in groups.values() for p in group["params"]]
+    assert sorted(placed) == sorted(order)  # each parameter once
+    for group in groups.values():  # in parameters()' order, as the optimizer's state was laid out before
+        ids = [id(p) for p in group["params"]]
+        assert ids == [i for i in order if i in set(ids)]
+    # the tables of every copy: one per field, and one per proposal network
+    tables = {id(p) for module in m.modules() if isinstance(module, HashGridEncoding) for p in module.parameters()}
+    copies = {True: 2, False: 1, "proposal": 2}[hierarchical]
+    assert {id(p) for p in groups["hash_tables"]["params"]} == tables and len(tables) == 2 * copies
+    optimizer = m.optimizer(m.parameter_groups())
+    assert [g["weight_decay"] for g in optimizer.param_groups] == [1e-6, 0.0]
+    # without a trainable encoding, the networks alone
+    assert list(module(ConstantField).named_parameter_groups()) == ["networks"]
+
+
+@pytest.mark.parametrize(("world_size", "sparse"), [(1, True), (2, False)])
+def test_several_processes_make_the_encodings_sparse_gradients_dense(world_size, sparse):
+    m = hash_grid_module(True, sparse_gradients=True)
+    m.trainer = L.Trainer(logger=False, enable_checkpointing=False, enable_progress_bar=False)
+    with mock.patch.object(L.Trainer, "world_size", world_size):
+        m.on_fit_start()
+    grids = [module for module in m.modules() if isinstance(module, HashGridEncoding)]
+    assert len(grids) == 2 and all(g.sparse_gradients is sparse for g in grids)
 
 
 def learning_rates(m: NeRFModule, steps: int) -> list[float]:
@@ -238,7 +290,7 @@ def whole_image(size: int) -> dict:
 
 def test_lpips_is_scored_once_built_and_kept_out_of_the_model(tmp_path, caplog):
     from nerfexp.training.perceptual import LpipsScorer, lpips_network
-    from tests.training.test_perceptual import alexnet_state
+    from tests.training.alexnet import alexnet_state
 
     torch.manual_seed(0)
     torch.save(alexnet_state(), tmp_path / "alexnet.pth")
@@ -274,3 +326,26 @@ def test_without_lpips_an_image_is_scored_nan_there(monkeypatch, tmp_path):
     off.lpips = False
     off.setup("test")
     assert off.lpips_scorer is None
+
+
+def test_training_values_are_logged_on_the_steps_the_logger_writes_and_only_there(tmp_path):
+    # log_every_n_steps=3 over 7 steps: Lightning writes after the 3rd and the 6th batch (rows of steps 2 and 5,
+    # counted from 0); a value logged on another step is never written, so the module logs none there
+    class Batches(L.Callback):
+        started = 0
+
+        def on_train_batch_start(self, *args):
+            self.started += 1
+
+    m, batches, calls = module(ConstantField), Batches(), []
+    log = m.log
+    m.log = lambda name, *args, **kwargs: calls.append((name, batches.started)) or log(name, *args, **kwargs)
+    trainer = L.Trainer(max_steps=7, accelerator="cpu", log_every_n_steps=3, logger=CSVLogger(tmp_path),
+                        callbacks=[batches], enable_checkpointing=False, enable_progress_bar=False,
+                        enable_model_summary=False)
+    trainer.fit(m, train_dataloaders=DataLoader([batch(8) for _ in range(7)], batch_size=None))
+    with open(Path(trainer.logger.log_dir) / "metrics.csv") as file:
+        rows = list(csv.DictReader(file))
+    for name in ("train/loss", "train/rays_per_s"):  # in training_step and in on_train_batch_end
+        assert [int(row["step"]) for row in rows if row.get(name)] == [2, 5], name
+        assert [batch for logged, batch in calls if logged == name] == [3, 6], name

@@ -107,7 +107,8 @@ def files_of(folder: Path) -> dict:
     (["seed=1", "scale.lr=0.01", "scale.steps=90"], "the checkpoint was trained with seed=0, scale.lr=0.005; this run "
                                                     "sets seed=1, scale.lr=0.01: resume with the checkpoint's settings "
                                                     "or start a new run"),
-    (["encoding=hashgrid", "scale.steps=90"], "the checkpoint was trained with encoding=posenc, "),
+    # field=nerf: the tiny run's scale.depth, width and skips, which hashgrid's own field=ngp would leave unused
+    (["encoding=hashgrid", "field=nerf", "scale.steps=90"], "the checkpoint was trained with encoding=posenc, "),
     (["scale.width=64", "scale.steps=90"],
      "the checkpoint was trained with scale.width=32; this run sets scale.width=64:"),
     ([f"trainer.precision={OTHER_PRECISION}", "scale.steps=90"],

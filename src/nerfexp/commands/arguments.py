@@ -7,11 +7,11 @@ from pathlib import Path
 
 from omegaconf import DictConfig
 
+from nerfexp.domains import bound_text
 from nerfexp.errors import ConfigError
 from nerfexp.memory import require_memory
-from nerfexp.rundir.trained import TrainedRun, load_run, run_config
+from nerfexp.rundir.trained import run_config
 from nerfexp.settings.checks import check_run_settings
-from nerfexp.settings.schema import bound_text
 
 
 def positive(kind: type, high: float | None = None) -> Callable[[str], int | float]:
@@ -74,13 +74,6 @@ def run_settings(run_dir: Path, overrides: list[str]) -> DictConfig:
     return cfg
 
 
-def read_run(run: Path, overrides: list[str], chunk: int | None,
-             refuse: Callable[[Path, DictConfig], None] | None = None) -> TrainedRun:
-    """The run at ``run`` read back (``load_run``: ``refuse`` as there) with ``overrides`` checked as
-    ``run_settings`` checks them, before its checkpoint is read."""
-    return load_run(run, overrides, chunk, refuse, check=check_run_settings)
-
-
 def add_run_arguments(parser: argparse.ArgumentParser) -> None:
     """``RUN [KEY=VALUE ...]``: a run directory (or a checkpoint file in one) and changes to its config."""
     parser.add_argument("run", type=Path, help="a run directory (its checkpoints/last.ckpt), or a checkpoint file")
@@ -90,6 +83,6 @@ def add_run_arguments(parser: argparse.ArgumentParser) -> None:
 
 def add_chunk_argument(parser: argparse.ArgumentParser, also: str = "") -> None:
     """``--chunk N``: the rays a command that renders a trained run renders at once, which bounds its memory
-    (checked when the run is loaded: ``nerfexp.rundir.trained.load_run``); ``also``: what else it sets there."""
+    (checked when the run is loaded: ``nerfexp.products.trained.load_run``); ``also``: what else it sets there."""
     parser.add_argument("--chunk", type=positive(int),
                         help=f"rays rendered at once, which bounds the memory (default: the run's model.chunk){also}")

@@ -9,8 +9,9 @@ from omegaconf import DictConfig
 from nerfexp.commands.arguments import add_run_arguments, command_parser, run_settings
 from nerfexp.commands.console import run_command
 from nerfexp.manifest import check_ours
+from nerfexp.products.trained import load_module
 from nerfexp.rundir.layout import EVAL, read_json
-from nerfexp.rundir.trained import find_run, load_module
+from nerfexp.rundir.trained import find_run
 
 
 def evaluate(cfg: DictConfig, run_dir: Path, checkpoint: Path) -> dict:

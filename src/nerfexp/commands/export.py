@@ -35,7 +35,6 @@ from nerfexp.commands.arguments import (
     command_parser,
     fitting,
     positive,
-    read_run,
 )
 from nerfexp.commands.console import run_command
 from nerfexp.data.base import Scene
@@ -55,8 +54,8 @@ from nerfexp.products.mesh import (
     view_points,
 )
 from nerfexp.products.ply import face_rows, ply_bytes, vertex_rows
+from nerfexp.products.trained import TrainedRun, load_run
 from nerfexp.rundir.layout import EXPORT_DIR
-from nerfexp.rundir.trained import TrainedRun
 
 MESH = "mesh.ply"
 DENSITY_LIMIT = float(torch.finfo(torch.float32).max)  # the field's densities are float32 numbers
@@ -73,9 +72,9 @@ def refuse_ndc(run_dir: Path, saved: DictConfig) -> None:
 
 
 def trained_run(run: Path, overrides: list[str], chunk: int | None) -> tuple[TrainedRun, Scene]:
-    """The run at ``run`` read as ``nerfexp-eval`` reads it (``read_run``), runs trained on NDC rays refused
-    before their checkpoint is read (``refuse_ndc``), and its scene."""
-    loaded = read_run(run, overrides, chunk, refuse=refuse_ndc)
+    """The run at ``run`` read back (``load_run``), runs trained on NDC rays refused before their checkpoint is
+    read (``refuse_ndc``), and its scene."""
+    loaded = load_run(run, overrides, chunk, refuse=refuse_ndc)
     return loaded, instantiate(loaded.cfg.data)
 
 

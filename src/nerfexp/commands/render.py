@@ -25,7 +25,6 @@ from nerfexp.commands.arguments import (
     command_parser,
     fitting,
     positive,
-    read_run,
     within,
 )
 from nerfexp.commands.console import run_command
@@ -37,6 +36,7 @@ from nerfexp.manifest import check_ours, folder_files, record_folder
 from nerfexp.memory import frame_bytes, path_bytes
 from nerfexp.products.camera_files import DEFAULT_FPS, CameraPath, read_camera_path
 from nerfexp.products.frames import PATHS, frame_size, render_path, training_path
+from nerfexp.products.trained import load_run
 from nerfexp.rundir.layout import RENDER_DIR
 
 CAMERAS = "cameras.json"  # a render's cameras, in the format --cameras reads (``camera_path_record``)
@@ -50,7 +50,7 @@ def render_run(run: Path, overrides: list[str], n_frames: int, fps: float | None
     along ``cameras`` (None: a ``training_path``), frames ``size`` pixels wide (``frame_size``; None: the
     cameras' own size) played at ``fps`` (None: the cameras'; 30 for a training path). Returns the folder
     and the number of frames."""
-    run_dir, _, cfg, module, _ = read_run(run, overrides, chunk)
+    run_dir, _, cfg, module, _ = load_run(run, overrides, chunk)
     out_dir = run_dir / RENDER_DIR
     check_render_folder(run_dir)
     scene = instantiate(cfg.data)

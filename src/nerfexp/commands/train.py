@@ -25,6 +25,7 @@ from nerfexp.errors import ConfigError, NerfexpError
 from nerfexp.extras import require
 from nerfexp.manifest import record_matching
 from nerfexp.reading import UnreadableFile
+from nerfexp.rundir.labels import run_labels
 from nerfexp.rundir.layout import (
     LAST_CHECKPOINT,
     RESULTS,
@@ -36,6 +37,7 @@ from nerfexp.rundir.layout import (
     write_status,
 )
 from nerfexp.settings.checks import check_settings
+from nerfexp.settings.rows import check_row
 from nerfexp.settings.schema import PASSED_ON, matching
 from nerfexp.settings.unused import unused_settings, without_unused
 
@@ -61,7 +63,7 @@ def train(cfg: DictConfig) -> dict | None:
     import lightning as L
 
     from nerfexp.data.datamodule import fill_ray_bounds
-    from nerfexp.rundir.trained import check_weights
+    from nerfexp.products.trained import check_weights
     from nerfexp.training.callbacks import KeepSigtermHandler
     from nerfexp.training.loggers import finish
     from nerfexp.training.precision import fill_precision
@@ -72,6 +74,7 @@ def train(cfg: DictConfig) -> dict | None:
     sweep = HydraConfig.get().mode == RunMode.MULTIRUN
     if sweep:
         check_settings(cfg)  # missing mandatory values first
+        check_row(cfg, HydraConfig.get().runtime.choices, list(HydraConfig.get().overrides.task))
     unused = unused_settings(cfg, list(HydraConfig.get().overrides.task))  # a sweep's job: recorded as null
     for override, reason in unused:
         log.warning("%s: not used with %s; results.json records it as null", override, reason)
@@ -96,7 +99,7 @@ def train(cfg: DictConfig) -> dict | None:
         check_weights(resumed.weights, model, Path(cfg.resume))
     overrides = list(HydraConfig.get().overrides.task)
     recorded = without_unused(cfg, resolved, [override for override, _ in unused])
-    recorder = RunRecorder(runtime.output_dir, choices, recorded, overrides, settings, resumes)
+    recorder = RunRecorder(runtime.output_dir, choices, recorded, overrides, settings, resumes, run_labels(cfg))
     callbacks = [instantiate(c) for c in cfg.callbacks.values()] + [recorder] + progress_bars(cfg.trainer)
     if in_launcher_job():  # SIGTERM handled by job_signals, not by Lightning (see KeepSigtermHandler)
         callbacks.append(KeepSigtermHandler())
@@ -151,8 +154,9 @@ def main(cfg: DictConfig) -> float | None:
     hydra_config = HydraConfig.get()
     output_dir, overrides = hydra_config.runtime.output_dir, list(hydra_config.overrides.task)
     writes = is_global_zero()  # under SLURM every process of a distributed job runs this; rank 0 records
+    labels = run_labels(cfg)  # in every status: a report shows the tags of a job that did not finish too
     if writes:
-        write_status(output_dir, "running", overrides)
+        write_status(output_dir, "running", overrides, **labels)
         record_matching(output_dir, (RUN_CONFIG.parent.name,))  # Hydra wrote it before the job started
         if hydra_config.mode == RunMode.MULTIRUN:
             try:
@@ -171,7 +175,7 @@ def main(cfg: DictConfig) -> float | None:
             details = {"signal": ended_by, "error": f"ended by {ended_by}"} if ended_by else {
                 "error": f"{type(error).__name__}: {error}"}
             try:
-                write_status(output_dir, "failed", overrides, **details)
+                write_status(output_dir, "failed", overrides, **details, **labels)
             except OSError as status_error:
                 unrecorded = f"; not recorded in status.json ({file_error_line(status_error)})"
         if ended_by and in_launcher_job():  # an Exception, which the launcher returns to the sweep
@@ -194,7 +198,7 @@ def main(cfg: DictConfig) -> float | None:
                 record_matching(output_dir, (*RUN_LIBRARY_FILES, f"{hydra_config.job.name}.log"))
     if results is None:  # not global rank 0
         return None
-    write_status(output_dir, "finished", overrides)
+    write_status(output_dir, "finished", overrides, **labels)
     return results["val_psnr"]
 
 

@@ -17,7 +17,6 @@ from nerfexp.commands.arguments import (
     fitting,
     port,
     positive,
-    read_run,
 )
 from nerfexp.commands.console import run_command
 from nerfexp.commands.signals import ending_signals
@@ -25,6 +24,7 @@ from nerfexp.extras import require
 from nerfexp.manifest import check_ours
 from nerfexp.memory import frame_bytes
 from nerfexp.products.frames import KINDS
+from nerfexp.products.trained import load_run
 from nerfexp.products.viewer import SAVE_ADVICE, Viewer, say
 from nerfexp.rundir.layout import CAMERA_PATH
 
@@ -49,7 +49,7 @@ def view_run(run: Path, overrides: list[str], host: str, port: int, chunk: int |
     ``http://host:port`` (port 0: any free one) until SIGINT or SIGTERM, which end the process as
     ``nerfexp.commands.signals.ending_signals`` does (exit status 130 or 143)."""
     viser = require("viser", "nerfexp-view")
-    run_dir, _, cfg, module, step = read_run(run, overrides, chunk)
+    run_dir, _, cfg, module, step = load_run(run, overrides, chunk)
     check_ours(run_dir, [CAMERA_PATH.as_posix()], "nerfexp-view", SAVE_ADVICE)  # where a saved camera path goes
     if warning := remote_warning(host, run_dir):
         print(warning, file=sys.stderr, flush=True)

@@ -2,12 +2,15 @@
 the rest of nerfexp uses spelled out, with a default where a format may leave it out."""
 
 import abc
+from typing import ClassVar
 
 from torch import Tensor
 
 from nerfexp.data.views import Views
+from nerfexp.domains import BOX, COUNT, FAR, NEAR, PATH, RAW_LIMIT, Rule, choice, optional, real
 from nerfexp.errors import ConfigError
 from nerfexp.geometry.boxes import frustum_aabb, parse_aabb
+from nerfexp.nerf.backgrounds import BACKGROUNDS
 
 
 class Scene(abc.ABC):
@@ -17,13 +20,31 @@ class Scene(abc.ABC):
         background: the name of the colour where rays absorb nothing (``nerfexp.nerf.backgrounds``).
         near, far: the ray parameter's bounds (None where the format finds them: ``ray_bounds``).
         aabb: the occupancy grid's box from the config, ``[[x0, y0, z0], [x1, y1, z1]]``, or None.
+        density_noise_std: the std of the N(0, std^2) noise the field adds to raw densities in training on
+            such a scene (the paper's 1 for real forward-facing captures, 0 for synthetic ones); the field's
+            config reads it (``${data.density_noise_std}``), so the scene's format chooses it and the
+            command line still can.
     Methods with a default: ``bounding_box``, ``ray_bounds``, ``depth_bounds``, ``model_rays``.
     """
+
+    # the domains of the arguments every format shares (nerfexp.domains; a format adds its own)
+    DOMAINS: ClassVar[dict[str, Rule]] = {
+        "root": PATH,
+        "max_side": optional(COUNT, "never shrink"),
+        "n_train": optional(COUNT, "all"),
+        "n_val": COUNT,
+        "near": optional(NEAR, "from the scene"),
+        "far": optional(FAR, "from the scene"),
+        "background": choice(*BACKGROUNDS),
+        "aabb": BOX,
+        "density_noise_std": real(0, RAW_LIMIT),
+    }
 
     background: str
     near: float | None
     far: float | None
     aabb: list | None = None
+    density_noise_std: float = 0.0
 
     @abc.abstractmethod
     def views(self, split: str) -> Views:

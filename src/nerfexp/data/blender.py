@@ -14,6 +14,7 @@ import json
 import math
 from dataclasses import dataclass
 from pathlib import Path, PurePosixPath
+from typing import ClassVar
 
 import torch
 from torch import Tensor
@@ -22,6 +23,7 @@ from tqdm import tqdm
 from nerfexp.data.base import Scene
 from nerfexp.data.images import downscale_rgba, fit_factor, has_alpha, read_image
 from nerfexp.data.views import Views
+from nerfexp.domains import COUNT, Rule
 from nerfexp.errors import DatasetError
 from nerfexp.files import atomic_write
 from nerfexp.geometry.cameras import focal_from_fov, pose_problem
@@ -153,6 +155,8 @@ class BlenderScene(Scene):
     where ``max_side`` is set, by the smallest further integer factor that brings the longer image
     side to at most ``max_side`` pixels (so CPU-sized runs fit scenes of any resolution)."""
 
+    DOMAINS: ClassVar[dict[str, Rule]] = {**Scene.DOMAINS, "downscale": COUNT, "test_stride": COUNT}
+
     root: str
     downscale: int = 1
     max_side: int | None = None
@@ -163,6 +167,7 @@ class BlenderScene(Scene):
     far: float = 6.0
     background: str = "white"
     aabb: list | None = None  # the occupancy grid's box; None: [-1.5, 1.5]^3 (``bounding_box``)
+    density_noise_std: float = 0.0  # the field's training noise on raw density (``Scene``)
 
     def bounding_box(self) -> Tensor:
         """[2, 3]: [-1.5, 1.5]^3, the box that holds the objects of NeRF's synthetic scenes (as in nerfacc)."""

@@ -41,6 +41,7 @@ it centred) give this; a model that breaks it is refused with a DatasetError rat
 
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import ClassVar
 
 import numpy as np
 import torch
@@ -58,8 +59,22 @@ from nerfexp.data.colmap_sfm import (
     undistort,
 )
 from nerfexp.data.images import downscale_rgba, fit_factor, read_image
-from nerfexp.data.video import video_frames
+from nerfexp.data.video import FPS_RANGE, video_frames
 from nerfexp.data.views import Views, holdout_split
+from nerfexp.domains import (
+    BOOLEAN,
+    COUNT,
+    FAR,
+    INTEGER_LIMIT,
+    PATH,
+    TEXT,
+    Applies,
+    Rule,
+    choice,
+    optional,
+    real,
+    whole,
+)
 from nerfexp.errors import DatasetError
 
 PERCENTILES = (0.1, 99.9)  # of each image's point distances: near and far (as LLFF's imgs2poses)
@@ -141,6 +156,9 @@ def shared_focal(reconstruction, image_ids: list[int], where: Path) -> tuple[flo
                            f"({0.5 * width:g}, {0.5 * height:g}) by more than {PIXEL_TOLERANCE} px; nerfexp's cameras "
                            f"have it at the centre: reconstruct without refining it (COLMAP's default)")
     return float(focal), width, height
+
+C_INT_LIMIT = 2 ** 31 - 1  # COLMAP's counts (features per image, threads): its C ints
+
 
 
 @dataclass
@@ -230,6 +248,25 @@ class ColmapScene(Scene):
     rest, validation views the first ``n_val`` test views. ``near`` and ``far`` None: from the sparse
     points (``ray_bounds()``)."""
 
+    DOMAINS: ClassVar[dict[str, Rule]] = {
+        **Scene.DOMAINS,
+        "video": optional(PATH, "the photographs in images/"),
+        "fps": real(*FPS_RANGE),
+        "downscale": COUNT,
+        "holdout": whole(2, INTEGER_LIMIT),
+        "bound": FAR,
+        "camera_model": TEXT,  # COLMAP's model names (checked against pycolmap's list when it runs)
+        "matcher": optional(choice("exhaustive", "sequential"), "sequential for a video, else exhaustive"),
+        "max_features": whole(1, C_INT_LIMIT),
+        "threads": (f"-1 (every core) or a whole number in [1, {C_INT_LIMIT}]",
+                    lambda v: v == -1 or whole(1, C_INT_LIMIT)[1](v)),
+        "min_registered": real(0, 1, above=True),
+        "verbose": BOOLEAN,
+    }
+    APPLIES: ClassVar[dict[str, Applies]] = {  # nerfexp.domains: when an argument does nothing
+        "fps": lambda scene: None if scene.get("video") is not None else "data.video=null (photographs, not a video)",
+    }
+
     root: str
     video: str | None = None
     fps: float = 2.0
@@ -243,6 +280,7 @@ class ColmapScene(Scene):
     far: float | None = None
     background: str = "white"
     aabb: list | None = None  # the occupancy grid's box; None: bound from the training cameras
+    density_noise_std: float = 0.0  # the field's training noise on raw density (``Scene``)
     camera_model: str = "SIMPLE_RADIAL"
     matcher: str | None = None
     max_features: int = 4096

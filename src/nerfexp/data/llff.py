@@ -24,6 +24,7 @@ images are made ``Views``.
 import io
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import ClassVar
 
 import numpy as np
 import torch
@@ -33,6 +34,7 @@ from tqdm import tqdm
 from nerfexp.data.base import Scene
 from nerfexp.data.images import downscale_rgba, fit_factor, read_image
 from nerfexp.data.views import IMAGE_SUFFIXES, Views, holdout_split
+from nerfexp.domains import BOOLEAN, COUNT, INTEGER_LIMIT, Rule, whole
 from nerfexp.errors import ConfigError, DatasetError
 from nerfexp.files import atomic_write
 from nerfexp.geometry.cameras import look_at, pixel_directions, pose_problem
@@ -173,13 +175,15 @@ def read_images(files: list[Path], poses_path: Path, size: tuple[float, float], 
     return torch.cat(images)
 
 
-def load_llff(root, factor: int = 1, holdout: int = 8, n_val: int = 2, max_side: int | None = None) -> LLFFData:
+def load_llff(root, factor: int = 1, holdout: int = 8, n_val: int = 2, max_side: int | None = None,
+              n_train: int | None = None) -> LLFFData:
     """Load an LLFF scene, its images shrunk by the integer ``factor`` (``images_{factor}/`` as they are
     where that folder exists, else ``images/`` area-averaged), and then, where ``max_side`` is set, by
     the smallest further integer factor that brings the longer side to at most ``max_side`` pixels.
 
     The focal length is the recorded one times (loaded width / recorded width): focal / factor when
-    the factor divides the width, and still right for images stored at another resolution.
+    the factor divides the width, and still right for images stored at another resolution. Splits:
+    ``holdout_split`` (``n_train``: the first that many training views; None: all).
     """
     for name, value in (("factor", factor), ("max_side", max_side)):
         if value is not None and value < 1:
@@ -197,7 +201,7 @@ def load_llff(root, factor: int = 1, holdout: int = 8, n_val: int = 2, max_side:
     rgba = read_images(image_files(folder, len(poses), poses_path), poses_path, (height, width), shrink, max_side)
     c2w, bounds, scale = normalize_poses(llff_to_c2w(poses), bounds)
     views = Views(rgba=rgba, c2w=c2w.float(), focal=focal * rgba.shape[2] / width)
-    return LLFFData(views=views, bounds=bounds, scale=scale, splits=holdout_split(len(poses), holdout, n_val))
+    return LLFFData(views=views, bounds=bounds, scale=scale, splits=holdout_split(len(poses), holdout, n_val, n_train))
 
 
 def write_llff(root, images: Tensor, c2w: Tensor, focal: float, bounds: Tensor) -> None:
@@ -236,30 +240,35 @@ def check_forward_facing(views: Views) -> None:
 
 @dataclass
 class LLFFScene(Scene):
-    """An LLFF-format scene (``data=llff``): test views every ``holdout``-th image, training views
-    the rest, validation the first ``n_val`` test views.
+    """An LLFF-format scene (``data=llff``): test views every ``holdout``-th image, training views the
+    first ``n_train`` of the rest (None: all), validation the first ``n_val`` test views.
 
     With ``ndc`` the model renders NDC rays (``nerfexp.geometry.ndc``) with t in [near, far] = [0, 1], from
     the near plane to infinity; without it, world rays with t in [near, far] in the scaled scene's
     units, which must enclose the scaled depth bounds.
     """
 
+    DOMAINS: ClassVar[dict[str, Rule]] = {**Scene.DOMAINS, "factor": COUNT, "holdout": whole(2, INTEGER_LIMIT),
+                                          "ndc": BOOLEAN}
+
     root: str
     factor: int = 4
     max_side: int | None = None
     holdout: int = 8
+    n_train: int | None = None  # the first n_train training views; None: all
     n_val: int = 2
     ndc: bool = True
     near: float = 0.0
     far: float = 1.0
     background: str = "black"
     aabb: list | None = None  # the occupancy grid's box; None: ``bounding_box``
+    density_noise_std: float = 1.0  # the field's training noise on raw density (``Scene``)
     _data: LLFFData | None = field(default=None, init=False, repr=False)
 
     def load(self) -> LLFFData:
         """All images and poses, loaded once and kept."""
         if self._data is None:
-            data = load_llff(self.root, self.factor, self.holdout, self.n_val, self.max_side)
+            data = load_llff(self.root, self.factor, self.holdout, self.n_val, self.max_side, self.n_train)
             if self.ndc:
                 check_forward_facing(data.views)
             else:

@@ -15,6 +15,7 @@ normal there (zero for a miss).
 import math
 from collections.abc import Callable
 from dataclasses import dataclass
+from typing import ClassVar
 
 import torch
 from torch import Tensor
@@ -22,6 +23,7 @@ from tqdm import tqdm
 
 from nerfexp.data.base import Scene
 from nerfexp.data.views import Views
+from nerfexp.domains import COUNT, Rule
 from nerfexp.geometry.cameras import camera_rays, focal_from_fov, look_at
 
 NEAR, FAR = 2.0, 6.0
@@ -291,12 +293,17 @@ def load_procedural(split: str, n_views: int, height: int, width: int, supersamp
     return Views(rgba=torch.cat(images), c2w=c2w.float(), focal=focal)
 
 
+TRAIN_VIEWS = 100  # the built-in scene's training set: as many views as each Realistic Synthetic scene has
+
+
 @dataclass
 class ProceduralScene(Scene):
     """The built-in scene as a dataset (``data=procedural``): ``views(split)`` renders that split."""
 
+    DOMAINS: ClassVar[dict[str, Rule]] = {**Scene.DOMAINS, "image_size": COUNT, "n_test": COUNT, "supersample": COUNT}
+
     image_size: int = 64
-    n_train: int = 100
+    n_train: int | None = TRAIN_VIEWS  # None: the scene's whole training set, TRAIN_VIEWS views
     n_val: int = 2
     n_test: int = 8
     supersample: int = 2
@@ -304,9 +311,11 @@ class ProceduralScene(Scene):
     far: float = FAR
     background: str = "white"
     aabb: list | None = None  # the occupancy grid's box; None: the objects' extent and a pixel (``bounding_box``)
+    density_noise_std: float = 0.0  # the field's training noise on raw density (``Scene``)
 
     def views(self, split: str) -> Views:
-        n_views = {"train": self.n_train, "val": self.n_val, "test": self.n_test}[split]
+        n_train = TRAIN_VIEWS if self.n_train is None else self.n_train
+        n_views = {"train": n_train, "val": self.n_val, "test": self.n_test}[split]
         return load_procedural(split, n_views, self.image_size, self.image_size, self.supersample)
 
     def bounding_box(self) -> Tensor:

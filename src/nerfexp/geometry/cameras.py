@@ -9,6 +9,8 @@ Ray directions are unit vectors, so a ray parameter ``t`` is a distance in world
 import torch
 from torch import Tensor
 
+from nerfexp.domains import POSITION_LIMIT
+
 
 def focal_from_fov(width: int, camera_angle_x: float) -> float:
     """Focal length in pixels of a camera whose horizontal field of view is ``camera_angle_x``."""
@@ -53,10 +55,6 @@ def look_at(eye: Tensor, target: Tensor, up: Tensor) -> Tensor:
 
 
 RIGID_TOLERANCE = 1e-3  # how far a stored rotation may be from orthonormal (float32 poses are ~1e-7 off)
-# How far from the origin a camera, and how far along a ray a sample, may be, in scene units: rays, samples
-# and the networks' inputs are float32, whose neighbouring values 2^24 away from 0 are one whole unit apart, so
-# beyond it positions have no sub-unit resolution (a scene is a few units across: docs/numerics.md)
-POSITION_LIMIT = 2.0 ** 24
 
 
 def rotation_problem(rotation: Tensor, tolerance: float = RIGID_TOLERANCE) -> str | None:

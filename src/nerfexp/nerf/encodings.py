@@ -1,20 +1,47 @@
-"""Input encodings for the field: each maps [..., in_dim] to [..., out_dim] and reports ``out_dim``."""
+"""Input encodings for the field: each an ``Encoding``, mapping [..., in_dim] to [..., out_dim] and reporting
+``out_dim``."""
 
 import math
 from collections.abc import Sequence
+from typing import ClassVar
 
 import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
+from nerfexp.domains import BOOLEAN, COUNT, FLOAT32_TOP_OCTAVE, NONNEGATIVE_COUNT, Applies, Rule, real, whole
 from nerfexp.nerf.bounds import Bounded
 
 HASH_PRIMES = (1, 2654435761, 805459861)  # Instant-NGP's, one per axis; 1 keeps neighbours along x together
 HASH_MAX_LOG2_TABLE_SIZE = 30  # a level's table at most 2^30 rows, the encoding's own limit
 HASH_RESOLUTION_LIMIT = 2 ** 20  # resolutions below it: a cell's integer corner times a prime stays within int64
+# gamma(s x): a scale above 2^18 puts even the lowest frequency past float32's (and with n_freqs, the settings'
+# check_frequencies)
+INPUT_SCALE = real(0, 2.0 ** FLOAT32_TOP_OCTAVE, above=True)
 
 
-class IdentityEncoding(nn.Module):
+class Encoding(nn.Module):
+    """The encoding axis's component: maps [..., in_dim] to [..., out_dim]; the field is built from ``out_dim``.
+
+    ``parameter_groups`` names the encoding's own optimizer parameter groups, {name: {"params": [...],
+    option: value}} (nerfstudio's ``get_param_groups``; ``NeRFModule.parameter_groups`` merges them by name
+    across the networks' copies); by default none, and its parameters, if any, train with the networks'.
+    ``sparse_gradients``: whether its parameters get sparse gradients (``NeRFModule.on_fit_start`` turns them
+    dense where several processes train). ``DOMAINS`` and ``APPLIES`` declare its constructor's settings
+    (``nerfexp.domains``).
+    """
+
+    DOMAINS: ClassVar[dict[str, Rule]] = {}
+    APPLIES: ClassVar[dict[str, Applies]] = {}
+    in_dim: int
+    out_dim: int
+    sparse_gradients: bool = False
+
+    def parameter_groups(self) -> dict[str, dict]:
+        return {}
+
+
+class IdentityEncoding(Encoding):
     """Raw coordinates, unchanged: the "No Pos. Encoding" ablation."""
 
     def __init__(self, in_dim: int = 3):
@@ -26,7 +53,7 @@ class IdentityEncoding(nn.Module):
         return x
 
 
-class PositionalEncoding(nn.Module):
+class PositionalEncoding(Encoding):
     """gamma(p) = (p, sin(2^0 pi p), cos(2^0 pi p), ..., sin(2^(L-1) pi p), cos(2^(L-1) pi p)).
 
     Applied per coordinate, L = ``n_freqs``; the raw input comes first when ``include_input``.
@@ -44,6 +71,12 @@ class PositionalEncoding(nn.Module):
     >>> PositionalEncoding(n_freqs=1)(torch.tensor([[0.5, 0.0, 0.0]]))[0, 3:6]  # sin(pi x)
     tensor([1., 0., 0.])
     """
+
+    DOMAINS = {
+        "n_freqs": NONNEGATIVE_COUNT,  # and the float32 limit (the settings' check_frequencies)
+        "input_scale": INPUT_SCALE,
+        "include_input": BOOLEAN,
+    }
 
     def __init__(self, n_freqs: int, in_dim: int = 3, include_input: bool = True, input_scale: float = 1.0):
         super().__init__()
@@ -169,7 +202,7 @@ def level_resolutions(n_levels: int, coarsest: int, finest: int) -> list[int]:
     return resolutions
 
 
-class HashGridEncoding(Bounded):
+class HashGridEncoding(Bounded, Encoding):
     """The multiresolution hash encoding of Instant-NGP (Mueller et al. 2022): positions [..., 3] ->
     trainable features [..., L F] (and the raw position first, with ``include_input``).
 
@@ -197,6 +230,16 @@ class HashGridEncoding(Bounded):
     (``nerfexp.training.optimizers.LazyAdam``) reads and updates those rows only, whatever T; the dense
     levels keep dense gradients. torch.optim.Adam refuses sparse gradients.
     """
+
+    DOMAINS = {
+        "n_levels": COUNT,
+        "features_per_level": COUNT,
+        "log2_table_size": whole(1, HASH_MAX_LOG2_TABLE_SIZE),
+        "coarsest": whole(1, HASH_RESOLUTION_LIMIT - 1),  # and <= finest (the settings' check_hash_levels)
+        "finest": whole(1, HASH_RESOLUTION_LIMIT - 1),
+        "include_input": BOOLEAN,
+        "sparse_gradients": BOOLEAN,  # and an optimizer that takes them (the settings' check_sparse_gradients)
+    }
 
     def __init__(self, n_levels: int = 16, features_per_level: int = 2, log2_table_size: int = 19,
                  coarsest: int = 16, finest: int = 2048, include_input: bool = False, init_range: float = 1e-4,
@@ -234,6 +277,12 @@ class HashGridEncoding(Bounded):
         row_dtype = torch.int32 if len(hashed) * self.table_size <= 2**31 else torch.int64
         first_rows = self.table_size * torch.arange(len(hashed), dtype=row_dtype)[:, None]
         self.register_buffer("level_offsets", first_rows, persistent=False)  # [L_h, 1]: each level's first row
+
+    def parameter_groups(self) -> dict[str, dict]:
+        """The tables, dense and hashed, in a group of their own without weight decay: Instant-NGP decays the
+        networks' weights only, since most steps leave most table entries untouched, and decay would wipe out the
+        ones rarely seen."""
+        return {"hash_tables": {"params": list(self.parameters()), "weight_decay": 0.0}}
 
     def forward(self, x: Tensor) -> Tensor:
         """x [..., 3] -> [..., out_dim] in the table's dtype (float32 in training), autocast or not.

@@ -1,13 +1,16 @@
-"""The radiance field F(x, d) -> (rgb, sigma): the paper's MLP with a swappable view-dependence head."""
+"""The radiance field F(x, d) -> (rgb, sigma): the paper's MLP with a swappable view-dependence head (a
+``ColourHead``), answering ``FieldOutputs``."""
 
 import copy
 from collections.abc import Callable
+from typing import ClassVar, NamedTuple
 
 import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
-from nerfexp.nerf.reflection import normal_penalties
+from nerfexp.domains import COUNT, RAW_LIMIT, RAW_OFFSET, Applies, Rule, choice, real, whole, whole_list
+from nerfexp.nerf.encodings import Encoding
 
 TRUNC_EXP_GRADIENT_CLAMP = 15.0  # the gradient of trunc_exp is at most e^15 = 3.3e6 per unit of upstream gradient
 
@@ -43,6 +46,41 @@ DENSITY_ACTIVATIONS: dict[str, Callable[[Tensor], Tensor]] = {
 }
 
 
+class FieldOutputs(NamedTuple):
+    """What a field answers at samples [..., S], by name (nerfstudio's field heads)."""
+
+    rgb: Tensor | None  # [..., S, 3] in [0, 1]; None for a density-only query
+    sigma: Tensor  # [..., S] >= 0
+    penalties: Tensor | None = None  # [..., S, P]: the colour head's weighted penalties (``penalty_names``), or None
+
+
+class ColourHead(nn.Module):
+    """The view-dependence axis's component: the field's trunk features h [..., S, F] and unit view directions
+    [..., S or 1, 3] (one per ray broadcasts over its samples) -> rgb [..., S, 3] in [0, 1].
+
+    The field builds it from the trunk width (``in_features``, its first argument). A head with ``uses_normals``
+    answers (rgb, predicted normals [..., S, 3]) instead, and the field asks its ``penalties`` of the density's
+    gradient, weighted by ``penalty_weights`` [P] and named ``penalty_names`` (Ref-NeRF's,
+    ``nerfexp.nerf.reflection``); the others have none. ``DOMAINS`` and ``APPLIES`` declare its constructor's
+    settings (``nerfexp.domains``).
+    """
+
+    DOMAINS: ClassVar[dict[str, Rule]] = {}
+    APPLIES: ClassVar[dict[str, Applies]] = {}
+    uses_normals: ClassVar[bool] = False
+    penalty_names: ClassVar[tuple[str, ...]] = ()
+
+    def __init__(self):
+        super().__init__()
+        self.register_buffer("penalty_weights", torch.zeros(len(self.penalty_names)), persistent=False)  # [P]
+
+    def penalties(self, normals: Tensor, gradient: Tensor, directions: Tensor) -> Tensor:
+        """The per-sample penalties [..., S, P], unweighted, of the predicted ``normals`` [..., S, 3] given the
+        density's ``gradient`` d raw / dx [..., S, 3] and the unit ``directions`` [..., S or 1, 3]; asked only
+        of a head with ``uses_normals``."""
+        raise NotImplementedError(f"{type(self).__name__} predicts no normals")
+
+
 class DensityField(nn.Module):
     """sigma from the encoded position alone: a trunk of ReLU layers and one linear density unit.
 
@@ -53,11 +91,20 @@ class DensityField(nn.Module):
     network (``nerfexp.nerf.proposal``); with a colour head, ``NeRFField``.
 
     Args:
-        position_encoding: module with ``out_dim``, maps [..., 3] -> [..., out_dim].
+        position_encoding: maps [..., 3] -> [..., out_dim].
         density_activation: a key of ``DENSITY_ACTIVATIONS``.
     """
 
-    def __init__(self, position_encoding: nn.Module, depth: int = 8, width: int = 256, skips: tuple[int, ...] = (5,),
+    DOMAINS: ClassVar[dict[str, Rule]] = {
+        "depth": COUNT,
+        "width": COUNT,
+        "skips": whole_list(0),
+        "density_activation": choice(*DENSITY_ACTIVATIONS),
+        "density_bias": RAW_OFFSET,
+    }
+    APPLIES: ClassVar[dict[str, Applies]] = {}
+
+    def __init__(self, position_encoding: Encoding, depth: int = 8, width: int = 256, skips: tuple[int, ...] = (5,),
                  density_activation: str = "relu", density_bias: float = 0.0):
         super().__init__()
         if density_activation not in DENSITY_ACTIVATIONS:
@@ -103,12 +150,14 @@ class NeRFField(DensityField):
     Evaluation is deterministic.
 
     Args:
-        position_encoding: module with ``out_dim``, maps [..., 3] -> [..., out_dim].
-        view_head: builds the colour head from the trunk width (see ``ViewMLPHead``).
+        position_encoding: maps [..., 3] -> [..., out_dim].
+        view_head: builds the colour head from the trunk width (see ``ColourHead``).
         density_activation: a key of ``DENSITY_ACTIVATIONS``.
     """
 
-    def __init__(self, position_encoding: nn.Module, view_head: Callable[[int], nn.Module], depth: int = 8,
+    DOMAINS = {**DensityField.DOMAINS, "density_noise_std": real(0, RAW_LIMIT)}
+
+    def __init__(self, position_encoding: Encoding, view_head: Callable[[int], ColourHead], depth: int = 8,
                  width: int = 256, skips: tuple[int, ...] = (5,), density_activation: str = "relu",
                  density_bias: float = 0.0, density_noise_std: float = 0.0):
         super().__init__(position_encoding, depth, width, skips, density_activation, density_bias)
@@ -116,15 +165,18 @@ class NeRFField(DensityField):
             raise ValueError(f"field.density_noise_std: expected a standard deviation >= 0, got {density_noise_std}")
         self.density_noise_std = density_noise_std
         self.view_head = view_head(width)
-        self.uses_normals = getattr(self.view_head, "uses_normals", False)
 
-    def forward(self, positions: Tensor, directions: Tensor) -> tuple[Tensor, ...]:
+    @property
+    def uses_normals(self) -> bool:
+        return self.view_head.uses_normals
+
+    def forward(self, positions: Tensor, directions: Tensor) -> FieldOutputs:
         """positions [..., S, 3] and unit directions [..., S or 1, 3] (one per ray broadcasts over
-        its samples) -> (rgb [..., S, 3] in [0, 1], sigma [..., S] >= 0).
+        its samples) -> ``rgb`` [..., S, 3] in [0, 1], ``sigma`` [..., S] >= 0.
 
-        A head that predicts normals (``uses_normals``: Ref-NeRF's, ``nerfexp.nerf.reflection``) also gets,
-        while gradients are enabled (training), the density's normals from d raw / dx, and the field answers
-        a third tensor: the head's weighted penalties per sample [..., S, P] (``penalty_names``), which the
+        A head that predicts normals (``ColourHead.uses_normals``: Ref-NeRF's, ``nerfexp.nerf.reflection``) also
+        gets, while gradients are enabled (training), the density's gradient d raw / dx, and the field answers
+        ``penalties`` too: the head's weighted penalties per sample [..., S, P] (``penalty_names``), which the
         renderer composites. The gradient is taken with ``create_graph`` so the penalties train the density
         too; it costs a second pass back through the trunk for every sample (docs/components.md)."""
         with_normals = self.uses_normals and torch.is_grad_enabled()
@@ -138,23 +190,26 @@ class NeRFField(DensityField):
             raw = raw + self.density_noise_std * torch.randn_like(raw)
         sigma = self.activation(raw)
         if not self.uses_normals:
-            return self.view_head(h, directions), sigma
+            return FieldOutputs(rgb=self.view_head(h, directions), sigma=sigma)
         rgb, normals = self.view_head(h, directions)
         if not with_normals:
-            return rgb, sigma
-        penalties = normal_penalties(normals, gradient, directions) * self.view_head.penalty_weights.to(rgb.dtype)
-        return rgb, sigma, penalties
+            return FieldOutputs(rgb=rgb, sigma=sigma)
+        head = self.view_head
+        penalties = head.penalties(normals, gradient, directions) * head.penalty_weights.to(rgb.dtype)
+        return FieldOutputs(rgb=rgb, sigma=sigma, penalties=penalties)
 
     @property
     def penalty_names(self) -> tuple[str, ...]:
         """The names of the penalties ``forward`` answers per sample (none for the paper's heads)."""
-        return getattr(self.view_head, "penalty_names", ())
+        return self.view_head.penalty_names
 
 
-class ViewMLPHead(nn.Module):
+class ViewMLPHead(ColourHead):
     """The paper's head: a linear feature of the trunk, joined with gamma(d), one ReLU layer, rgb."""
 
-    def __init__(self, in_features: int, direction_encoding: nn.Module, hidden: int = 128):
+    DOMAINS = {"hidden": COUNT}
+
+    def __init__(self, in_features: int, direction_encoding: Encoding, hidden: int = 128):
         super().__init__()
         self.direction_encoding = direction_encoding
         self.feature = nn.Linear(in_features, in_features)
@@ -172,7 +227,7 @@ class ViewMLPHead(nn.Module):
         return torch.sigmoid(self.rgb(F.relu(x, inplace=True)))
 
 
-class DiffuseHead(nn.Module):
+class DiffuseHead(ColourHead):
     """rgb from the position alone, the view direction unused: the "No View Dependence" ablation."""
 
     def __init__(self, in_features: int):
@@ -212,8 +267,10 @@ def sh_basis(directions: Tensor, degree: int) -> Tensor:
     return torch.stack(out, -1)
 
 
-class SphericalHarmonicsHead(nn.Module):
+class SphericalHarmonicsHead(ColourHead):
     """rgb = sigmoid(sum_k c_k Y_k(d)): the field predicts SH coefficients per colour channel."""
+
+    DOMAINS = {"degree": whole(0, SH_MAX_DEGREE)}
 
     def __init__(self, in_features: int, degree: int = 2):
         super().__init__()

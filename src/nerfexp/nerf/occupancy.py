@@ -12,10 +12,12 @@ Everything outside the box counts as empty: no sample there is evaluated.
 import logging
 import math
 from collections.abc import Callable, Sequence
+from typing import ClassVar
 
 import torch
 from torch import Tensor
 
+from nerfexp.domains import COUNT, FRACTION, NONNEGATIVE_COUNT, Applies, Rule, real
 from nerfexp.nerf.bounds import Bounded
 
 log = logging.getLogger(__name__)
@@ -70,7 +72,21 @@ class OccupancyGrid(Bounded):
     The bounds are a buffer: ``aabb`` [2, 3] here or, left None, set once from the scene
     (``set_bounds``, which ``NeRFModule`` calls when training starts). ``density``, ``occupied`` and
     ``aabb`` are saved in checkpoints, so a resumed run continues with the same grid.
+
+    It is not a sampler but a component beside them: the renderer queries the networks through it, whichever
+    sampler placed the samples (``VolumeRenderer``).
     """
+
+    DOMAINS: ClassVar[dict[str, Rule]] = {
+        "resolution": COUNT,
+        "threshold": real(0, 1, above=True),
+        "decay": FRACTION,
+        "warmup_steps": NONNEGATIVE_COUNT,
+        "update_every": COUNT,
+        "early_stop_transmittance": real(0, 1),
+        "segments": COUNT,
+    }
+    APPLIES: ClassVar[dict[str, Applies]] = {}
 
     def __init__(self, resolution: int = 32, threshold: float = 0.01, decay: float = 0.95, warmup_steps: int = 256,
                  update_every: int = 16, early_stop_transmittance: float = 1e-4, segments: int = 4,

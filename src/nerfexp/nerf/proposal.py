@@ -11,9 +11,17 @@ mass of each interval (a step function of t whose integral over an interval is i
 """
 
 from collections.abc import Callable, Sequence
+from typing import TYPE_CHECKING
 
 import torch
 from torch import Tensor, nn
+
+from nerfexp.domains import COUNT, LOSS_WEIGHT, LOSS_WEIGHT_LIMIT, real
+from nerfexp.nerf.samplers import Rays, Sampler
+from nerfexp.nerf.sampling import dilate_weights, resampling_bins, sample_pdf, stratified_samples
+
+if TYPE_CHECKING:
+    from nerfexp.nerf.volume_renderer import VolumeRenderer
 
 
 def outer_bound(edges: Tensor, proposal_edges: Tensor, proposal_weights: Tensor) -> Tensor:
@@ -73,12 +81,13 @@ def distortion_loss(edges: Tensor, weights: Tensor) -> Tensor:
     return between + within
 
 
-class ProposalSampler(nn.Module):
-    """The proposal networks and their settings; the sampling itself is ``VolumeRenderer``'s (it owns the
-    queries, with or without an occupancy grid).
-
-    Round k evaluates network k at ``n_samples[k]`` samples (stratified for the first round, else drawn from
-    the previous round's histogram); the NeRF evaluates ``n_final`` samples drawn from the last round's.
+class ProposalSampler(Sampler):
+    """The proposal networks, their settings and their sampling (``nerfexp.nerf.samplers``): round k evaluates
+    network k at ``n_samples[k]`` samples (stratified for the first round, else drawn from the previous round's
+    histogram, dilated by one interval); the field (named "coarse", as without hierarchy) evaluates ``n_final``
+    samples drawn from the last round's, and in training its output holds the interlevel (and distortion) losses
+    under ``regularizers``. The proposals are queried through the renderer's occupancy grid too: the grid learns
+    the field's density, and a proposal need not place samples where the field is empty.
 
     Args:
         network: builds a density-only network (``nerfexp.nerf.fields.DensityField``), once per round.
@@ -88,6 +97,15 @@ class ProposalSampler(nn.Module):
         distortion_weight: the distortion loss's weight on the NeRF's weights (mip-NeRF 360: 0.01,
             nerfacto: 0.002); 0: off.
     """
+
+    DOMAINS = {
+        # the networks' own: nerfexp.nerf.fields.DensityField.DOMAINS
+        "n_samples": ("a non-empty list of sample counts, each a whole number >= 1",
+                      lambda v: isinstance(v, list) and v != [] and all(COUNT[1](n) for n in v)),
+        "n_final": COUNT,
+        "interlevel_weight": real(0, LOSS_WEIGHT_LIMIT, above=True),  # it alone trains the proposal networks
+        "distortion_weight": LOSS_WEIGHT,
+    }
 
     def __init__(self, network: Callable[[], nn.Module], n_samples: Sequence[int], n_final: int,
                  interlevel_weight: float = 1.0, distortion_weight: float = 0.0):
@@ -99,6 +117,30 @@ class ProposalSampler(nn.Module):
         self.n_final = n_final
         self.interlevel_weight = interlevel_weight
         self.distortion_weight = distortion_weight
+
+    @property
+    def samples_per_ray(self) -> int:
+        return sum(self.n_samples) + self.n_final
+
+    def render(self, renderer: "VolumeRenderer", rays: Rays, deterministic: bool) -> dict[str, dict[str, Tensor]]:
+        """{"coarse": the field's output}; in training (with gradients enabled) the output's ``regularizers``
+        hold the proposal losses."""
+        counts = [*self.n_samples, self.n_final]  # samples of each round, then the field's
+        t = stratified_samples(rays.near, rays.far, counts[0], deterministic)
+        histograms, evaluated = [], 0
+        for net, n_next in zip(self.networks, counts[1:]):
+            weights, evaluated_here = renderer.proposal_weights(net, rays, t)
+            bins = resampling_bins(t, rays.near, rays.far)
+            histograms.append((bins, weights))
+            evaluated = evaluated + evaluated_here
+            t = sample_pdf(bins, dilate_weights(weights), n_next, deterministic)
+        out = renderer.render_at(renderer.coarse, rays, t)
+        out["evaluated"] = out["evaluated"] + evaluated
+        if torch.is_grad_enabled():
+            edges = torch.cat([t, rays.far[:, None]], -1)  # the field's intervals [t_i, t_{i+1}], the last to far
+            losses = self.losses(edges, out["weights"], histograms, rays.near, rays.far)
+            out["regularizers"] = {**out.get("regularizers", {}), **losses}
+        return {"coarse": out}
 
     def losses(self, edges: Tensor, weights: Tensor, histograms: list[tuple[Tensor, Tensor]], near: Tensor,
                far: Tensor) -> dict[str, Tensor]:

@@ -14,6 +14,9 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
+from nerfexp.domains import COUNT, LOSS_WEIGHT, RAW_OFFSET, whole
+from nerfexp.nerf.fields import ColourHead
+
 
 @functools.cache
 def _legendre_recurrence(l_max: int) -> tuple[list[float], dict[tuple[int, int], tuple[float, float]]]:
@@ -105,7 +108,7 @@ def _unit(x: Tensor) -> Tensor:
     return F.normalize(x, dim=-1, eps=math.sqrt(torch.finfo(x.dtype).tiny))
 
 
-class ReflectionHead(nn.Module):
+class ReflectionHead(ColourHead):
     """Ref-NeRF's colour: rgb = clamp(linear_to_srgb(c_d + s * c_s), 0, 1).
 
     From the trunk features h: the diffuse colour c_d = sigmoid(raw - ln 3), the specular tint s, the roughness
@@ -113,11 +116,18 @@ class ReflectionHead(nn.Module):
     The specular colour c_s = sigmoid(MLP([b, IDE(omega_r, rho), n' . omega_o])) sees the view only through the
     reflection omega_r of omega_o about n'. Departures from the paper: the directional MLP has one ReLU layer of
     ``hidden`` (not 8 x 256), so that it costs like the paper's NeRF view head; the normals' losses
-    (``normal_penalties``, weighted by ``normal_weight`` and ``orientation_weight``) are taken by the field,
-    which has the density's gradient, and composited by the renderer. ``uses_normals``: forward returns
-    (rgb, predicted normals), not rgb alone.
+    (``penalties``, weighted by ``normal_weight`` and ``orientation_weight``) are asked by the field, which has
+    the density's gradient, and composited by the renderer. ``uses_normals``: forward returns (rgb, predicted
+    normals), not rgb alone.
     """
 
+    DOMAINS = {
+        "hidden": COUNT,
+        "n_levels": whole(1, 6),  # bands up to l = 32, where the float32 basis is still accurate
+        "roughness_bias": RAW_OFFSET,
+        "normal_weight": LOSS_WEIGHT,
+        "orientation_weight": LOSS_WEIGHT,
+    }
     uses_normals = True
     penalty_names = ("normals", "orientation")  # the columns of ``normal_penalties``
 
@@ -148,6 +158,10 @@ class ReflectionHead(nn.Module):
                        cosine], -1)
         specular = torch.sigmoid(self.specular(F.relu(self.hidden(x), inplace=True)))  # [..., S, 3]
         return linear_to_srgb(diffuse + tint * specular).clamp(0, 1), normals
+
+    def penalties(self, normals: Tensor, gradient: Tensor, directions: Tensor) -> Tensor:
+        """``normal_penalties``: [..., S, 2]."""
+        return normal_penalties(normals, gradient, directions)
 
 
 def normal_penalties(predicted: Tensor, gradient: Tensor, directions: Tensor) -> Tensor:

@@ -38,6 +38,14 @@ def intervals(t: Tensor, far: Tensor) -> tuple[Tensor, Tensor]:
     return t, torch.cat([t[..., 1:], far[..., None]], -1)
 
 
+def resampling_bins(t: Tensor, near: Tensor, far: Tensor) -> Tensor:
+    """The PDF bins [B, S+1] to resample from the weights of the intervals of samples t [B, S]: those
+    intervals, the first reaching back to ``near`` [B] (the first sample lies up to one spacing past near,
+    and what lies before it must still be reachable by the new samples, else a density at near is lost
+    however many are drawn), the last ending at ``far`` [B]."""
+    return torch.cat([near[:, None], t[:, 1:], far[:, None]], -1)
+
+
 def dilate_weights(weights: Tensor) -> Tensor:
     """Each interval's weight raised to the largest of its own and its two neighbours': [..., S].
 

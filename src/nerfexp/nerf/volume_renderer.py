@@ -1,17 +1,36 @@
-"""Rays to pixels: sample, query the field(s), composite. The paper's coarse-to-fine pipeline."""
+"""Rays to pixels: sample (a ``nerfexp.nerf.samplers.Sampler``), query the field(s), composite."""
 
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
+from typing import ClassVar
 
 import torch
 from torch import Tensor, nn
 
+from nerfexp.domains import COUNT, FAR, NEAR, Applies, Rule, choice, optional
 from nerfexp.nerf.backgrounds import BACKGROUNDS
+from nerfexp.nerf.fields import FieldOutputs
 from nerfexp.nerf.occupancy import OccupancyGrid
 from nerfexp.nerf.proposal import ProposalSampler
 from nerfexp.nerf.quadrature import composite, optical_depths, render_weights
-from nerfexp.nerf.sampling import dilate_weights, intervals, sample_pdf, stratified_samples
+from nerfexp.nerf.samplers import HierarchicalSampler, Rays, Sampler, StratifiedSampler
+from nerfexp.nerf.sampling import intervals
 
 HIERARCHIES = (True, False, "proposal")  # the sampling axis: the paper's coarse + fine, one network, proposals
+HIERARCHY_SAMPLES = {  # what each choice of the sampling axis reads, as said when another's setting is set
+    True: "hierarchical=true (a coarse network of model.renderer.n_coarse samples and a fine one of n_coarse + "
+          "n_fine; set scale.n_coarse and scale.n_fine)",
+    False: "hierarchical=false (one network of model.renderer.n_single samples; set scale.n_single)",
+    "proposal": "hierarchical=proposal (proposal networks choose the samples; set proposal.n_samples and "
+                "proposal.n_final)",
+}
+
+
+def hierarchy_reads(reader: bool | str) -> Applies:
+    """The reason a renderer's argument is unused unless its ``hierarchical`` is ``reader``, the choice that
+    reads it."""
+    def reason(config: Mapping) -> str | None:
+        return None if config["hierarchical"] == reader else HIERARCHY_SAMPLES[config["hierarchical"]]
+    return reason
 
 
 def final_output(outputs: dict[str, dict[str, Tensor]]) -> dict[str, Tensor]:
@@ -37,16 +56,13 @@ def padded_size(n: int) -> int:
     return -(-n // quantum) * quantum
 
 
-def resampling_bins(t: Tensor, near: Tensor, far: Tensor) -> Tensor:
-    """The PDF bins [B, S+1] to resample from the weights of the intervals of samples t [B, S]: those
-    intervals, the first reaching back to ``near`` [B] (the first sample lies up to one spacing past near,
-    and what lies before it must still be reachable by the new samples, else a density at near is lost
-    however many are drawn), the last ending at ``far`` [B]."""
-    return torch.cat([near[:, None], t[:, 1:], far[:, None]], -1)
+def each_output(outputs: FieldOutputs, function: Callable[[Tensor], Tensor]) -> FieldOutputs:
+    """``function`` of each output a field answered (None stays None)."""
+    return FieldOutputs(*(None if out is None else function(out) for out in outputs))
 
 
-def query_packed(field: Callable[[Tensor, Tensor | None], tuple[Tensor, ...]], points: Tensor,
-                 viewdirs: Tensor | None, keep: Tensor) -> tuple[Tensor, ...]:
+def query_packed(field: Callable[[Tensor, Tensor | None], FieldOutputs], points: Tensor,
+                 viewdirs: Tensor | None, keep: Tensor) -> FieldOutputs:
     """Evaluate ``field`` only at the samples ``keep`` [B, S] (bool) of ``points`` [B, S, 3], rays' unit
     ``viewdirs`` [B, 3] (None for a density query, ``density_query``), as one flat batch of N = keep.sum()
     points; the others get zeros (sigma = 0, rgb = 0).
@@ -63,28 +79,26 @@ def query_packed(field: Callable[[Tensor, Tensor | None], tuple[Tensor, ...]], p
     rays, samples = (torch.cat([i, i[: padded_size(n) - n]]) for i in index)  # [P]: the kept, then again
     outputs = field(points[rays, samples], None if viewdirs is None else viewdirs[rays])  # each [P, ...]
     B, S = keep.shape  # rays, samples
-    return tuple(out.new_zeros(B, S, *out.shape[1:]).index_put(index, out[:n]) for out in outputs)
+    return each_output(outputs, lambda out: out.new_zeros(B, S, *out.shape[1:]).index_put(index, out[:n]))
 
 
-def density_query(net: nn.Module) -> Callable[[Tensor, Tensor | None], tuple[Tensor]]:
+def density_query(net: nn.Module) -> Callable[[Tensor, Tensor | None], FieldOutputs]:
     """A density-only network (``DensityField``) as a field the renderer queries: (positions, None)
-    -> (sigma,); it is queried without directions."""
-    return lambda positions, directions: (net.density(positions),)
+    -> its ``sigma`` alone; it is queried without directions."""
+    return lambda positions, directions: FieldOutputs(rgb=None, sigma=net.density(positions))
 
 
 class VolumeRenderer(nn.Module):
     """Renders rays with one field (``hierarchical=False``), a coarse and a fine field (``True``), or
-    proposal networks and one field (``"proposal"``).
+    proposal networks and one field (``"proposal"``): the sampling axis, each choice a ``Sampler``
+    (``nerfexp.nerf.samplers``), which places the samples and renders them through ``render_at`` and
+    ``proposal_weights``.
 
-    Hierarchical: ``n_coarse`` stratified samples through the coarse field; its weights, dilated by
-    one interval (``dilate_weights``) as a piecewise-constant PDF over the coarse intervals, give
-    ``n_fine`` more samples by inverse-transform sampling; the fine field
-    evaluates all n_coarse + n_fine. Without it, one field evaluates ``n_single`` stratified samples
-    (the paper's "No Hierarchical" row: 256, the same network evaluations per ray as 64 + 192).
-    Proposal (mip-NeRF 360, ``nerfexp.nerf.proposal``): ``proposal``'s density-only networks resample the
-    ray in rounds, each from the dilated weights of the one before, and the one field (named "coarse", as
-    without hierarchy) evaluates only the last round's ``proposal.n_final`` samples; in training its output
-    holds the interlevel (and distortion) losses under ``regularizers``.
+    Hierarchical (``HierarchicalSampler``): ``n_coarse`` stratified samples through the coarse field, and
+    ``n_fine`` more from its weights, the fine field evaluating all n_coarse + n_fine. Without it
+    (``StratifiedSampler``), one field evaluates ``n_single`` stratified samples. Proposal (mip-NeRF 360,
+    ``nerfexp.nerf.proposal.ProposalSampler``): ``proposal``'s density-only networks resample the ray in rounds,
+    and the one field (named "coarse", as without hierarchy) evaluates only the last round's samples.
 
     With an occupancy ``grid`` (``acceleration=occupancy``) the samples stay where they are, but the
     networks evaluate only those in occupied cells of the grid, packed into one flat batch
@@ -92,17 +106,33 @@ class VolumeRenderer(nn.Module):
     the rays are also marched in ``grid.segments`` consecutive runs of samples: a run is evaluated
     only for the rays that still let through at least eps of the light after the runs before it, so
     the colour a stopped ray loses is at most eps (what could still reach the samples left out), and
-    no sample is evaluated twice. The proposal networks are queried through the grid too: the grid
-    learns the field's density, and a proposal need not place samples where the field is empty.
+    no sample is evaluated twice. Whichever sampler runs, its networks are queried through the grid.
     ``stats`` holds the last call's samples per ray evaluated.
 
     Args:
-        field: builds a field (called once per network), e.g. a partial ``NeRFField``.
+        field: builds a field (called once per network of the sampler's ``field_names``), e.g. a partial
+            ``NeRFField``.
         hierarchical: True, False or "proposal".
         near, far: ray distance bounds; background: a key of ``BACKGROUNDS``.
         grid: an ``OccupancyGrid``, or None to evaluate every sample.
         proposal: builds the ``ProposalSampler`` (called only when hierarchical is "proposal").
     """
+
+    DOMAINS: ClassVar[dict[str, Rule]] = {
+        "hierarchical": choice(*HIERARCHIES),
+        "n_coarse": COUNT,
+        "n_fine": COUNT,
+        "n_single": COUNT,
+        "near": optional(NEAR, "from the scene"),
+        "far": optional(FAR, "from the scene"),
+        "background": choice(*BACKGROUNDS),
+    }
+    APPLIES: ClassVar[dict[str, Applies]] = {
+        "n_coarse": hierarchy_reads(True),
+        "n_fine": hierarchy_reads(True),
+        "n_single": hierarchy_reads(False),
+        "proposal": hierarchy_reads("proposal"),
+    }
 
     def __init__(self, field: Callable[[], nn.Module], hierarchical: bool | str, n_coarse: int, n_fine: int,
                  n_single: int, near: float, far: float, background: str = "white",
@@ -114,25 +144,29 @@ class VolumeRenderer(nn.Module):
             raise ValueError(f"hierarchical: expected true, false or proposal, got {hierarchical!r}")
         if hierarchical == "proposal" and proposal is None:
             raise ValueError("hierarchical=proposal needs the proposal networks (model.renderer.proposal)")
-        self.hierarchical = hierarchical is True
+        # The proposal sampler holds networks: it is kept as ``proposal``, the name its weights are saved under
+        # in checkpoints; the other samplers hold none.
         self.proposal = proposal() if hierarchical == "proposal" else None
-        self.n_coarse = n_coarse if self.hierarchical else n_single
-        self.n_fine = n_fine if self.hierarchical else 0
+        self._sampler = (None if self.proposal is not None
+                         else HierarchicalSampler(n_coarse, n_fine) if hierarchical else StratifiedSampler(n_single))
         self.near, self.far = near, far
         self.coarse = field()
-        self.fine = field() if self.hierarchical else None
+        self.fine = field() if "fine" in self.sampler.field_names else None
         self.register_buffer("background", torch.tensor(BACKGROUNDS[background]), persistent=False)
         self.grid = grid
         self.stats: dict[str, Tensor | float] = {}
         self._trained = {"rays": 0, "evaluations": 0.0}  # training totals, for evaluations_per_ray
 
     @property
+    def sampler(self) -> Sampler:
+        """The sampling axis's component: the proposal sampler, the hierarchy or one stratified network."""
+        return self.proposal if self.proposal is not None else self._sampler
+
+    @property
     def samples_per_ray(self) -> int:
-        """Samples per ray, all networks: n_coarse + (n_coarse + n_fine) hierarchical, the proposal rounds'
-        and the field's with proposals, else n_single."""
-        if self.proposal is not None:
-            return sum(self.proposal.n_samples) + self.proposal.n_final
-        return self.n_coarse + (self.n_coarse + self.n_fine if self.hierarchical else 0)
+        """Samples per ray, all networks (the sampler's): n_coarse + (n_coarse + n_fine) hierarchical, the
+        proposal rounds' and the field's with proposals, else n_single."""
+        return self.sampler.samples_per_ray
 
     @property
     def evaluations_per_ray(self) -> float:
@@ -146,17 +180,17 @@ class VolumeRenderer(nn.Module):
         """Each colour network's density (positions [N, 3] -> sigma [N]), for ``OccupancyGrid.update``."""
         return [net.density for net in (self.coarse, self.fine) if net is not None]
 
-    def _query(self, field: Callable[[Tensor, Tensor | None], tuple[Tensor, ...]], points: Tensor,
-               viewdirs: Tensor | None, starts: Tensor, ends: Tensor) -> tuple[tuple[Tensor, ...], Tensor | float]:
-        """The field's outputs (rgb [B, S, 3], sigma [B, S], ...: sigma second, or alone for a density
-        query, whose ``viewdirs`` are None) at the points [B, S, 3], ``starts``, ``ends`` [B, S] their
-        intervals in distance units, and the samples evaluated: all of them without a grid, else those the
-        grid keeps, marched in segments for early termination (see the class docstring)."""
+    def _query(self, field: Callable[[Tensor, Tensor | None], FieldOutputs], points: Tensor,
+               viewdirs: Tensor | None, starts: Tensor, ends: Tensor) -> tuple[FieldOutputs, Tensor | float]:
+        """The field's outputs (each [B, S, ...]; ``sigma`` alone for a density query, whose ``viewdirs`` are
+        None) at the points [B, S, 3], ``starts``, ``ends`` [B, S] their intervals in distance units, and the
+        samples evaluated: all of them without a grid, else those the grid keeps, marched in segments for
+        early termination (see the class docstring)."""
         B, S, _ = points.shape  # rays, samples, xyz
         if self.grid is None:  # one flat batch [B S, 3]: 2-D matrix products, no copies of 3-D activations
             flat_dirs = None if viewdirs is None else viewdirs[:, None, :].expand(B, S, 3).reshape(B * S, 3)
             outputs = field(points.reshape(B * S, 3), flat_dirs)
-            return tuple(out.reshape(B, S, *out.shape[1:]) for out in outputs), float(B * S)
+            return each_output(outputs, lambda out: out.reshape(B, S, *out.shape[1:])), float(B * S)
         keep = self.grid.occupied_at(points)
         eps = self.grid.early_stop_transmittance
         if eps == 0:
@@ -168,49 +202,49 @@ class VolumeRenderer(nn.Module):
             segment = slice(k * S // n_segments, (k + 1) * S // n_segments)
             alive = keep[:, segment] & (torch.exp(-depth_before) >= eps)[:, None]
             outputs = query_packed(field, points[:, segment], viewdirs, alive)
-            sigma = outputs[1] if len(outputs) > 1 else outputs[0]
-            depth_before = depth_before + optical_depths(sigma.detach().to(starts.dtype), starts[:, segment],
-                                                         ends[:, segment]).sum(-1)
+            depth_before = depth_before + optical_depths(outputs.sigma.detach().to(starts.dtype),
+                                                         starts[:, segment], ends[:, segment]).sum(-1)
             parts.append(outputs)
             evaluated = evaluated + alive.sum()
-        return tuple(torch.cat(column, 1) for column in zip(*parts)), evaluated
+        joined = (None if column[0] is None else torch.cat(column, 1) for column in zip(*parts))
+        return FieldOutputs(*joined), evaluated
 
     @staticmethod
-    def _samples(origins: Tensor, directions: Tensor, t: Tensor, far: Tensor) -> tuple[Tensor, ...]:
+    def _samples(rays: Rays, t: Tensor) -> tuple[Tensor, ...]:
         """The sample points [B, S, 3] of rays o + t d at t [B, S], and the intervals they stand for
         (``intervals``, the last ending at far [B]): in units of t, ``t_starts``, ``t_ends`` [B, S], and in
         distance, ``starts``, ``ends`` [B, S] (an interval [t_i, t_{i+1}] is (t_{i+1} - t_i) |d| long)."""
-        points = origins[:, None, :] + directions[:, None, :] * t[..., None]
-        lengths = torch.linalg.vector_norm(directions, dim=-1, keepdim=True)  # [B, 1]
-        t_starts, t_ends = intervals(t, far)
+        points = rays.origins[:, None, :] + rays.directions[:, None, :] * t[..., None]
+        lengths = torch.linalg.vector_norm(rays.directions, dim=-1, keepdim=True)  # [B, 1]
+        t_starts, t_ends = intervals(t, rays.far)
         return points, t_starts, t_ends, t_starts * lengths, t_ends * lengths
 
-    def _propose(self, net: nn.Module, origins: Tensor, directions: Tensor, t: Tensor,
-                 far: Tensor) -> tuple[Tensor, Tensor | float]:
-        """A proposal network's interval weights [B, S] at samples t [B, S], and the samples it evaluated."""
-        points, _, _, starts, ends = self._samples(origins, directions, t, far)
-        (sigmas,), evaluated = self._query(density_query(net), points, None, starts, ends)
-        weights, _ = render_weights(sigmas.to(t.dtype), starts, ends)
+    def proposal_weights(self, net: nn.Module, rays: Rays, t: Tensor) -> tuple[Tensor, Tensor | float]:
+        """A density-only network's interval weights [B, S] at samples t [B, S] of ``rays``, and the samples
+        it evaluated."""
+        points, _, _, starts, ends = self._samples(rays, t)
+        outputs, evaluated = self._query(density_query(net), points, None, starts, ends)
+        weights, _ = render_weights(outputs.sigma.to(t.dtype), starts, ends)
         return weights, evaluated
 
-    def _render(self, field: nn.Module, origins: Tensor, directions: Tensor, viewdirs: Tensor, t: Tensor,
-                far: Tensor) -> dict[str, Tensor]:
-        """Query ``field`` at samples t [B, S] of rays [B, 3]; each sample stands for its interval.
+    def render_at(self, field: nn.Module, rays: Rays, t: Tensor) -> dict[str, Tensor]:
+        """Query ``field`` at samples t [B, S] of ``rays``; each sample stands for its interval. The output
+        (see ``forward``) also holds ``evaluated``, the samples the field evaluated.
 
-        The field sees the unit ``viewdirs`` [B, 3]. A field that also answers per-sample penalties [B, S, P]
-        (``penalty_names``, e.g. Ref-NeRF's normals, ``nerfexp.nerf.reflection``) has them composited with
-        the rendering weights and averaged over the rays into ``regularizers`` {name: value}.
+        The field sees the unit ``viewdirs`` [B, 3]. A field that also answers per-sample ``penalties``
+        [B, S, P] (``penalty_names``, e.g. Ref-NeRF's normals, ``nerfexp.nerf.reflection``) has them composited
+        with the rendering weights and averaged over the rays into ``regularizers`` {name: value}.
         """
-        points, t_starts, t_ends, starts, ends = self._samples(origins, directions, t, far)
-        (rgbs, sigmas, *penalties), evaluated = self._query(field, points, viewdirs, starts, ends)
+        points, t_starts, t_ends, starts, ends = self._samples(rays, t)
+        outputs, evaluated = self._query(field, points, rays.viewdirs, starts, ends)
         # Rendering runs in the rays' precision whatever the network's: under bf16 autocast the field
         # answers in bf16 (8 significant bits), too coarse for exp/cumsum of optical depths.
-        rgbs, sigmas = rgbs.to(t.dtype), sigmas.to(t.dtype)
+        rgbs, sigmas = outputs.rgb.to(t.dtype), outputs.sigma.to(t.dtype)
         weights, _ = render_weights(sigmas, starts, ends)
         out = composite(weights, rgbs, t, self.background, self.far)
         out.update(weights=weights, t_starts=t_starts, t_ends=t_ends, evaluated=evaluated)
-        if penalties:
-            per_ray = (weights[..., None] * penalties[0].to(t.dtype)).sum(-2).mean(0)  # [P]
+        if outputs.penalties is not None:
+            per_ray = (weights[..., None] * outputs.penalties.to(t.dtype)).sum(-2).mean(0)  # [P]
             out["regularizers"] = dict(zip(field.penalty_names, per_ray.unbind(), strict=True))
         return out
 
@@ -223,10 +257,10 @@ class VolumeRenderer(nn.Module):
         paper's code). The field's view direction is ``viewdirs`` [B, 3] (unit; for NDC rays the
         world direction), by default the unit ``directions``.
 
-        Returns {"coarse": out, "fine": out} (only "coarse" without hierarchy or with proposals), each out
-        holding ``rgb`` [B, 3], ``depth`` [B] (in units of t), ``opacity`` [B], ``weights``, ``t_starts``,
-        ``t_ends`` [B, S], and ``regularizers`` {name: scalar} where its network or the proposals add losses
-        (only while gradients are enabled, for the proposals' ones).
+        Returns {"coarse": out, "fine": out} (the sampler's ``field_names``: only "coarse" without hierarchy or
+        with proposals), each out holding ``rgb`` [B, 3], ``depth`` [B] (in units of t), ``opacity`` [B],
+        ``weights``, ``t_starts``, ``t_ends`` [B, S], and ``regularizers`` {name: scalar} where its network or
+        the proposals add losses (only while gradients are enabled, for the proposals' ones).
         """
         B, _ = origins.shape  # rays, xyz
         if viewdirs is None:
@@ -234,41 +268,9 @@ class VolumeRenderer(nn.Module):
             viewdirs = directions / lengths.clamp_min(torch.finfo(lengths.dtype).tiny)
         near = torch.full((B,), self.near, dtype=origins.dtype, device=origins.device)
         far = torch.full_like(near, self.far)
-        if self.proposal is not None:
-            return self._render_proposed(origins, directions, viewdirs, near, far, deterministic)
-        t_coarse = stratified_samples(near, far, self.n_coarse, deterministic)
-        coarse = self._render(self.coarse, origins, directions, viewdirs, t_coarse, far)
-        if not self.hierarchical:
-            self._count({"coarse": coarse}, B)
-            return {"coarse": coarse}
-        bins = resampling_bins(t_coarse, near, far)
-        t_fine = sample_pdf(bins, dilate_weights(coarse["weights"]), self.n_fine, deterministic)
-        t_all = torch.sort(torch.cat([t_coarse, t_fine], -1), -1).values
-        outputs = {"coarse": coarse, "fine": self._render(self.fine, origins, directions, viewdirs, t_all, far)}
+        outputs = self.sampler.render(self, Rays(origins, directions, viewdirs, near, far), deterministic)
         self._count(outputs, B)
         return outputs
-
-    def _render_proposed(self, origins: Tensor, directions: Tensor, viewdirs: Tensor, near: Tensor, far: Tensor,
-                         deterministic: bool) -> dict[str, dict[str, Tensor]]:
-        """Proposal sampling (see the class docstring): {"coarse": the field's output}; in training (with
-        gradients enabled) the output's ``regularizers`` hold the proposal losses."""
-        counts = [*self.proposal.n_samples, self.proposal.n_final]  # samples of each round, then the field's
-        t = stratified_samples(near, far, counts[0], deterministic)
-        histograms, evaluated = [], 0
-        for net, n_next in zip(self.proposal.networks, counts[1:]):
-            weights, evaluated_here = self._propose(net, origins, directions, t, far)
-            bins = resampling_bins(t, near, far)
-            histograms.append((bins, weights))
-            evaluated = evaluated + evaluated_here
-            t = sample_pdf(bins, dilate_weights(weights), n_next, deterministic)
-        out = self._render(self.coarse, origins, directions, viewdirs, t, far)
-        out["evaluated"] = out["evaluated"] + evaluated
-        if torch.is_grad_enabled():
-            edges = torch.cat([t, far[:, None]], -1)  # the field's intervals [t_i, t_{i+1}], the last ending at far
-            losses = self.proposal.losses(edges, out["weights"], histograms, near, far)
-            out["regularizers"] = {**out.get("regularizers", {}), **losses}
-        self._count({"coarse": out}, len(origins))
-        return {"coarse": out}
 
     def _count(self, outputs: dict[str, dict], n_rays: int) -> None:
         """``stats`` of the call (samples per ray evaluated, all networks), pulled out of ``outputs`` (left

@@ -73,8 +73,7 @@ def vertex_colours(field: nn.Module, mesh: Mesh, batch: int, device: str | torch
     directions = torch.from_numpy(-mesh.normals).float().split(batch)
     colours = [torch.zeros(0, 3)]
     for x, d in tqdm(zip(positions, directions), total=len(positions), desc="vertex colours", disable=None):
-        rgb, _ = field(x.to(device), d.to(device))
-        colours.append(rgb.float().cpu())
+        colours.append(field(x.to(device), d.to(device)).rgb.float().cpu())
     return to_uint8(torch.cat(colours))
 
 

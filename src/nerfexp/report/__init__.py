@@ -25,5 +25,6 @@ The reference is the paper's complete model (``ablation=complete``) where the sw
 variant named by ``--reference``; without either the report has no differences.
 
 A variant is the set of a run's command-line overrides without the keys averaged over (``--over``,
-default ``seed``), leaving out overrides every run shares.
+default ``seed``) and the run's tags and notes (``nerfexp.rundir.labels``), leaving out overrides every run
+shares. report.md, report.csv and report.html show each variant's tags (those of all its runs) and notes.
 """

@@ -7,6 +7,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from nerfexp.reading import UnreadableFile
+from nerfexp.rundir.labels import NO_LABELS, is_notes, is_tags
 from nerfexp.rundir.layout import (
     METRICS,
     RESULTS,
@@ -28,6 +29,8 @@ class Run:
     detail: str = ""
     results: dict | None = None
     curve: list[tuple[int, float, float]] = field(default_factory=list)  # (step, wall seconds, validation PSNR)
+    tags: list[str] = field(default_factory=list)  # its labels (nerfexp.rundir.labels)
+    notes: str | None = None
 
 
 def run_precision(results: dict) -> str:
@@ -65,6 +68,15 @@ def read_curve(path: Path, ended: bool) -> list[tuple[int, float, float]]:
         raise Damaged(f"{METRICS}: a record without step, wall_time_s, split and psnr") from None
 
 
+def record_labels(name: str, record: dict) -> dict:
+    """The labels (``nerfexp.rundir.labels``) a run's ``record`` (its file ``name``) holds, ``NO_LABELS`` where it
+    has none (an earlier nerfexp's), else ``Damaged`` where one is not as nerfexp writes it."""
+    labels = {**NO_LABELS, **{key: record[key] for key in NO_LABELS if key in record}}
+    if not (is_tags(labels["tags"]) and is_notes(labels["notes"])):
+        raise Damaged(f"{name}: tags or notes that are not as nerfexp writes them")
+    return labels
+
+
 def job_overrides(path: Path) -> list[str] | None:
     """A job's command-line overrides, from whichever of its ``status.json`` and ``results.json`` can be
     read (each records them), so that a job with another file damaged still counts against its variant;
@@ -85,10 +97,11 @@ def read_run(path: Path) -> Run:
     process is gone from this host was killed (out of memory, a time limit, a signal). A run with a file
     that cannot be read as nerfexp writes it (``Damaged``) is listed as damaged with its overrides where
     they can be read (``job_overrides``; else none, and it joins no variant), and none of its numbers is
-    used."""
+    used. Its labels are those of its results, else of its status."""
     try:
         status = read_record(path / STATUS, ("state",)) or {}
         results = read_record(path / RESULTS, ("test_psnr", "test_ssim", "choices"))
+        labels = record_labels(*((RESULTS, results) if results is not None else (STATUS, status)))
     except Damaged as damage:
         return Run(path, "damaged", job_overrides(path), str(damage))
     overrides = status.get("overrides", (results or {}).get("overrides", []))
@@ -106,8 +119,8 @@ def read_run(path: Path) -> Run:
         curve = read_curve(path, ended=state != "running")
     except Damaged as damage:
         ended = "" if state == "finished" else f" (the job {state}" + (f": {detail})" if detail else ")")
-        return Run(path, "damaged", list(overrides), f"{damage}{ended}")
-    return Run(path, state, list(overrides), detail, results if state == "finished" else None, curve)
+        return Run(path, "damaged", list(overrides), f"{damage}{ended}", **labels)
+    return Run(path, state, list(overrides), detail, results if state == "finished" else None, curve, **labels)
 
 
 def find_runs(directories: list[Path]) -> list[Run]:

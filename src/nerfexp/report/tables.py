@@ -1,9 +1,11 @@
 """The report's tables: ``report.md`` (the variants with their differences to the reference and the
-paper's rows, the ranking, the paper's order, the jobs that did not finish) and ``report.csv``."""
+paper's rows, their tags and notes, the ranking, the paper's order, the jobs that did not finish) and
+``report.csv``."""
 
 
 import csv
 import io
+import json
 import math
 from pathlib import Path
 
@@ -28,7 +30,7 @@ COLUMNS = ("variant", "runs", "finished", "test_psnr_mean", "test_psnr_std", "te
            "reference", "paired_seeds", "psnr_diff", "psnr_diff_low", "psnr_diff_high",
            "ssim_diff", "ssim_diff_low", "ssim_diff_high", "lpips_diff", "lpips_diff_low", "lpips_diff_high", "verdict",
            "train_time_s", "time_per_step_s", "rays_per_s", "n_params", "evaluations_per_ray",
-           "paper_row", "paper_psnr", "paper_ssim", "psnr_minus_paper", "precision")
+           "paper_row", "paper_psnr", "paper_ssim", "psnr_minus_paper", "precision", "tags", "notes")
 
 
 # The test scores compared with the reference: higher PSNR and SSIM are better, lower LPIPS (AlexNet's, which
@@ -63,7 +65,8 @@ def reference_columns(differences: dict[str, Difference], reference: Variant | N
 def table_rows(variants: list[Variant], reference: Variant | None = None) -> list[dict]:
     """One dict per variant with the ``COLUMNS``, and its ``differences`` to the reference (computed once,
     for report.md's cells and report.csv's columns); the difference to the paper only on Blender data
-    (the paper's numbers are means over its 8 Blender scenes; other scenes are not comparable)."""
+    (the paper's numbers are means over its 8 Blender scenes; other scenes are not comparable). Its tags and
+    notes (``Variant.tags``, ``Variant.notes``) are JSON lists of texts."""
     rows = []
     for v in variants:
         paper, differences = v.paper, reference_differences(v, reference)
@@ -77,7 +80,8 @@ def table_rows(variants: list[Variant], reference: Variant | None = None) -> lis
                "evaluations_per_ray": v.mean("evaluations_per_ray"),
                "paper_row": paper[0] if paper else "", "paper_psnr": paper[1] if paper else math.nan,
                "paper_ssim": paper[2] if paper else math.nan, "psnr_minus_paper": math.nan,
-               "precision": v.precision, "differences": differences}
+               "precision": v.precision, "tags": json.dumps(v.tags), "notes": json.dumps(v.notes),
+               "differences": differences}
         if paper and v.choice("data") == "blender":
             row["psnr_minus_paper"] = row["test_psnr_mean"] - paper[1]
         rows.append(row)
@@ -168,8 +172,10 @@ def markdown(variants: list[Variant], rows: list[dict], runs: list[Run], sources
     states = {state: n for state in order if (n := sum(run.state == state for run in runs))}
     has_paper = any(row["paper_row"] for row in rows)
     has_lpips = any(v.values("test_lpips") for v in variants)
+    has_tags = any(v.tags for v in variants)
     precisions, mixed = precision_text(variants)
-    header = ["variant", "runs", "test PSNR (dB)", "test SSIM"] + (["test LPIPS"] if has_lpips else [])
+    header = ["variant", *(["tags"] if has_tags else []), "runs", "test PSNR (dB)", "test SSIM"]
+    header += ["test LPIPS"] if has_lpips else []
     header += ["precision"] if mixed else []
     if reference is not None:
         header += ["PSNR - reference (95% CI)", "SSIM - reference (95% CI)"]
@@ -187,7 +193,8 @@ def markdown(variants: list[Variant], rows: list[dict], runs: list[Run], sources
         "| " + " | ".join(header) + " |", "|" + "---|" * len(header),
     ]
     for v, row in zip(variants, rows):
-        cells = [row["variant"], f"{row['finished']}/{row['runs']}", _pm(v, "test_psnr", 2), _pm(v, "test_ssim", 3)]
+        cells = [row["variant"], *([", ".join(map(markdown_text, v.tags))] if has_tags else []),
+                 f"{row['finished']}/{row['runs']}", _pm(v, "test_psnr", 2), _pm(v, "test_ssim", 3)]
         cells += [_pm(v, "test_lpips", 3)] if has_lpips else []
         cells += [row["precision"]] if mixed else []
         if reference is not None:
@@ -211,6 +218,9 @@ def markdown(variants: list[Variant], rows: list[dict], runs: list[Run], sources
     if has_lpips:
         lines += ["", "LPIPS is AlexNet's (v0.1; lower is more alike), on the runs that scored it (docs/metrics.md); "
                   "the paper's LPIPS is VGG's, on another scale, and is not compared."]
+    if any(v.notes for v in variants):
+        lines += ["", "Notes of the variants' runs:", ""]
+        lines += [f"- {v.label}: {markdown_text(note)}" for v in variants for note in v.notes]
     lines += [""] + ranking_text(variants)
     unfinished = [run for run in runs if run.state != "finished"]
     lines += ["", "## Jobs that did not finish, or whose files are damaged (not counted)", ""]
@@ -224,6 +234,15 @@ def markdown(variants: list[Variant], rows: list[dict], runs: list[Run], sources
               f"over seeds, its band from the lowest to the highest seed, single runs faint), `{PARETO_PLOT}` "
               "(test PSNR against total training time, bars one standard deviation over seeds)."]
     return "\n".join(lines) + "\n"
+
+
+MARKUP = str.maketrans({c: f"\\{c}" for c in "\\`*_[]|"})  # what Markdown would read as markup in a cell
+
+
+def markdown_text(text: str) -> str:
+    """A tag or a note as report.md writes it: shown as typed, its Markdown characters escaped (a ``|`` would
+    end a table's cell, ``*`` start emphasis)."""
+    return text.translate(MARKUP)
 
 
 def overrides_text(overrides: list[str] | None) -> str:

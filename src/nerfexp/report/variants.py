@@ -1,5 +1,5 @@
-"""Runs grouped into variants (the same overrides, apart from the seeds), the reference variant, and
-their differences paired by seed (``nerfexp.report.comparison``)."""
+"""Runs grouped into variants (the same overrides, apart from the seeds, tags and notes), the reference
+variant, and their differences paired by seed (``nerfexp.report.comparison``)."""
 
 
 import math
@@ -9,6 +9,7 @@ from dataclasses import dataclass
 
 from nerfexp.report.comparison import Difference, paired_difference
 from nerfexp.report.runs import Run, run_precision
+from nerfexp.rundir.labels import LABELS
 
 PAPER_ABLATION = {
     "no_pe_vd_h": ("No PE, VD, H", 26.67, 0.906),
@@ -67,6 +68,16 @@ class Variant:
         return ", ".join(f"{precision} ({n})" for precision, n in sorted(counts.items()))
 
     @property
+    def tags(self) -> list[str]:
+        """Every tag of its runs (of all of them, finished or not), each once, in the order they are first met."""
+        return list(dict.fromkeys(tag for run in self.runs for tag in run.tags))
+
+    @property
+    def notes(self) -> list[str]:
+        """The notes of its runs, each different text once, in the order they are first met."""
+        return list(dict.fromkeys(run.notes for run in self.runs if run.notes is not None))
+
+    @property
     def paper(self) -> tuple[str, float, float] | None:
         return PAPER_ABLATION.get(self.choice("ablation"))
 
@@ -76,10 +87,11 @@ def _key(override: str) -> str:
 
 
 def group_variants(runs: list[Run], over: tuple[str, ...] = ("seed",)) -> list[Variant]:
-    """Runs with the same overrides, apart from the keys in ``over``, form a variant: every job started,
+    """Runs with the same overrides, apart from the keys in ``over`` and the tags and notes
+    (``nerfexp.rundir.labels``: what a run is for, not what it is), form a variant: every job started,
     damaged, failed or still running included, so that a variant counts its finished runs against all of
     them. Overrides that every run shares are left out of the labels. Variants are ranked by mean test PSNR."""
-    kept = [tuple(o for o in run.overrides if _key(o) not in over) for run in runs]
+    kept = [tuple(o for o in run.overrides if _key(o) not in (*over, *LABELS)) for run in runs]
     shared = set.intersection(*(set(k) for k in kept)) if kept else set()
     groups: dict[frozenset, tuple[tuple, list[Run]]] = {}  # the order of overrides does not matter
     for key, run in zip(kept, runs):

@@ -4,13 +4,13 @@ found and read back.
 A run's directory holds (every file written atomically):
 
 - ``status.json``: ``running`` (with host, process id and the process's start), ``finished`` or
-  ``failed`` (with the error), and the run's command-line overrides, so a report can list jobs that
-  crashed or still run.
+  ``failed`` (with the error), and the run's command-line overrides and labels (``tags``, ``notes``:
+  ``nerfexp.rundir.labels``), so a report can list jobs that crashed or still run.
 - ``metrics.jsonl``: one JSON object per evaluation: step, wall_time_s, split, psnr, ssim (means), and
   lpips where LPIPS was scored (``nerfexp.training.perceptual``; absent, never NaN, where it was not).
 - ``results.json``: final test means and per-view scores (``test_lpips`` too where scored), last
   validation PSNR, training time, throughput, parameters, the machine, the resolved choices and
-  overrides (``nerfexp.training.recorders.RunRecorder``).
+  overrides, the tags and notes (``nerfexp.training.recorders.RunRecorder``).
 - ``test/``: each test view's render (``r_{i}.png``), ground truth (``r_{i}_target.png``), absolute
   error (``r_{i}_error.png``) and depth (``r_{i}_depth.png``).
 - ``checkpoints/last.ckpt``, ``.hydra/config.yaml`` (the composed config, as Hydra saves it).
@@ -24,6 +24,7 @@ refuses before Hydra writes into the directory. ``nerfexp-manifest.json`` record
 there, with its size and SHA-256, as it is written (``nerfexp.manifest``): a file is replaced or removed only
 where it is one of them, unchanged.
 
-A finished (or interrupted) run is read back by ``find_run``, ``run_config`` and ``load_module``
-(together: ``load_run``).
+A finished (or interrupted) run's files are read back as data by ``find_run``, ``run_config`` and
+``read_checkpoint`` (``nerfexp.rundir.trained``); its model is built from them above the training layer
+(``nerfexp.products.trained``).
 """

@@ -1,31 +1,29 @@
-"""A finished (or interrupted) run read back as data: ``find_run``, ``run_config`` and ``load_module``
-(together: ``load_run``); runs made by earlier versions are read as if made by this one
-(``MOVED_TARGETS``)."""
+"""A finished (or interrupted) run's files read back as data: ``find_run`` (its directory and checkpoint),
+``run_config`` (its config) and ``read_checkpoint`` (the checkpoint's contents); runs made by earlier versions
+are read as if made by this one (``MOVED_TARGETS``). What is built from them, the model, is a layer above
+training (``nerfexp.products.trained``)."""
 
 import pickle
 import warnings
 import zipfile
-from collections.abc import Callable
 from pathlib import Path
-from typing import TYPE_CHECKING, NamedTuple
 
 import torch
 import yaml
-from hydra.utils import instantiate
 from omegaconf import DictConfig, OmegaConf, open_dict
 from omegaconf.errors import OmegaConfBaseException
 
 from nerfexp.errors import ConfigError, NerfexpError
-from nerfexp.memory import network_bytes, require_memory
 from nerfexp.reading import UnreadableFile, read_yaml_text
 from nerfexp.rundir.layout import LAST_CHECKPOINT, RESULTS, RUN_CONFIG, read_json, sha256
 from nerfexp.rundir.saved_configs import as_data, check_resolved
 
-if TYPE_CHECKING:
-    import lightning as L
-
 # Where the classes of a run's config lived before the package was split into layers (and the data group
-# held the field's density noise): a run made by an earlier nerfexp is read as if made by this one.
+# held the field's density noise): a run made by an earlier nerfexp is read as if made by this one. Both shims
+# stay until nerfexp 0.2.0 (SHIMS_UNTIL): the runs made before the layers (commit 591e713, 2026-11-23) are
+# still on researchers' disks, under the same version number, 0.1.0; a release may drop them
+# (tests/rundir/test_rundir.py fails once the version reaches it with them still here).
+SHIMS_UNTIL = (0, 2, 0)
 MOVED_TARGETS = {  # the first match of a target wins; callbacks are not read back (saved_configs.TRAINING_ONLY)
     "nerfexp.module.": "nerfexp.training.module.",
     "nerfexp.guards.": "nerfexp.training.guards.",
@@ -143,66 +141,3 @@ def read_checkpoint(path: Path) -> dict:
     if not isinstance(state, dict) or not isinstance(state.get("state_dict"), dict) or "global_step" not in state:
         raise NerfexpError(f"{path}: not a Lightning checkpoint (expected a state_dict and a global_step)")
     return state
-
-
-def load_module(cfg: DictConfig, checkpoint: Path) -> "tuple[L.LightningModule, int]":
-    """The run's model (``cfg.model``) with the weights of ``checkpoint`` (``read_checkpoint``), on the
-    CPU, and the number of optimizer steps it had taken."""
-    from nerfexp.data.datamodule import fill_ray_bounds  # it imports Lightning: only where a module is loaded
-
-    fill_ray_bounds(cfg)  # a run's saved config holds null where the scene chose near and far
-    module = instantiate(cfg.model)
-    state = read_checkpoint(checkpoint)
-    check_weights(state["state_dict"], module, checkpoint)
-    module.load_state_dict(state["state_dict"])
-    return module, state["global_step"]
-
-
-def check_weights(weights: dict[str, torch.Tensor], module: torch.nn.Module, checkpoint: Path) -> None:
-    """A NerfexpError in one line where a checkpoint's ``weights`` (a state_dict) do not fit ``module``: the
-    first parameter or buffer that one has and the other lacks, or whose shapes differ, with both shapes
-    (where torch's ``load_state_dict`` would list every one, a line each)."""
-    expected = module.state_dict()
-    for name in [*expected, *(name for name in weights if name not in expected)]:
-        if name not in weights or name not in expected:
-            where = "the checkpoint" if name not in weights else "this run's model"
-            raise NerfexpError(f"{checkpoint}: not a checkpoint of this run's model: {name} is missing from {where}")
-        if weights[name].shape != expected[name].shape:
-            raise NerfexpError(f"{checkpoint}: not a checkpoint of this run's model: {name} has shape "
-                               f"{list(weights[name].shape)} there and {list(expected[name].shape)} in this run's "
-                               "model (another network size?)")
-
-
-class TrainedRun(NamedTuple):
-    """A run read back for rendering (``load_run``)."""
-
-    run_dir: Path
-    checkpoint: Path
-    cfg: DictConfig  # the run's saved config, with the caller's overrides
-    module: "L.LightningModule"  # with the checkpoint's weights, in eval mode
-    step: int  # optimizer steps the checkpoint had taken
-
-
-def load_run(run: str | Path, overrides: list[str] = (), chunk: int | None = None,
-             refuse: Callable[[Path, DictConfig], None] | None = None,
-             check: Callable[[DictConfig], None] | None = None) -> TrainedRun:
-    """The run at ``run`` (a run directory, or a checkpoint file in one) read as data (``find_run``,
-    ``run_config`` with ``overrides``, ``load_module``): its module in eval mode on the GPU where there is
-    one, rendering ``chunk`` rays at once (None: the run's ``model.chunk``). ``refuse(run_dir, saved
-    config)``, where given, is called before the checkpoint is read, to raise for runs a command cannot use;
-    ``check(config with the overrides)`` then, to raise for settings out of their domains (the commands pass
-    ``nerfexp.settings.checks.check_run_settings``, a layer above this one)."""
-    run_dir, checkpoint = find_run(run)
-    if refuse is not None:
-        refuse(run_dir, run_config(run_dir))
-    cfg = run_config(run_dir, overrides)
-    if check is not None:
-        check(cfg)
-    module, step = load_module(cfg, checkpoint)
-    if chunk is not None:  # refused where it cannot fit, before any rendering
-        samples, field = module.renderer.samples_per_ray, cfg.model.renderer.field
-        require_memory(f"--chunk {chunk}", f"an evaluation of {chunk} rays x {samples} samples",
-                       network_bytes(chunk, samples, field.width, field.depth, training=False))
-        module.chunk = chunk
-    module.to("cuda" if torch.cuda.is_available() else "cpu").eval()
-    return TrainedRun(run_dir, checkpoint, cfg, module, step)

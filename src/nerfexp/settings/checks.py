@@ -13,20 +13,22 @@ import math
 from collections.abc import Iterator
 
 from hydra.experimental.callback import Callback
-from omegaconf import MISSING, DictConfig, Node, OmegaConf
+from omegaconf import MISSING, DictConfig, OmegaConf
 
-from nerfexp.config_keys import leaves, source_key
+from nerfexp.config_keys import leaves, reference, source_key
 from nerfexp.errors import ConfigError
 from nerfexp.extras import require
 from nerfexp.memory import grid_bytes, hash_table_bytes, network_bytes, parameter_bytes, require_memory, scene_bytes
-from nerfexp.settings.schema import FLOAT32_TOP_OCTAVE, PASSED_ON, REFERENCES, SCHEMA, matching
+from nerfexp.settings.rows import check_row
+from nerfexp.settings.schema import FLOAT32_TOP_OCTAVE, PASSED_ON, REFERENCES, matching, rule_of
 from nerfexp.settings.unused import check_used
 from nerfexp.training.perceptual import check_weights_file
 
 
-def is_reference(key: str, node: Node) -> bool:
-    """Whether ``key`` is one of ``REFERENCES`` standing for its section (an interpolation): not checked there."""
-    return key in REFERENCES and node._is_interpolation()
+def is_reference(key: str, written: object) -> bool:
+    """Whether ``key`` is one of ``REFERENCES`` standing for its section (``written``, its value as the config
+    writes it, is a plain interpolation, ``nerfexp.config_keys.reference``): not checked there."""
+    return key in REFERENCES and reference(written) is not None
 
 
 def checked_settings(cfg: DictConfig) -> Iterator[tuple[str, object]]:
@@ -38,24 +40,26 @@ def checked_settings(cfg: DictConfig) -> Iterator[tuple[str, object]]:
 def named(cfg: DictConfig, key: str, value) -> str:
     """``KEY=VALUE`` as the user sets it: where ``key``'s value comes from another key through plain
     interpolations (``${scale.lr}``, ``nerfexp.config_keys.source_key``), that key, and which key it
-    sets; else ``key`` itself."""
+    sets; else ``key`` itself. A text with a character that does not print (a newline) is quoted, escaped."""
     source = source_key(cfg, key)
+    value = repr(value) if isinstance(value, str) and not value.isprintable() else value  # one line, as it is
     return f"{key}={value}" if source == key else f"{source}={value} (which sets {key})"
 
 
 def check_rules(cfg: DictConfig, strict: bool = True) -> None:
-    """A ConfigError for the first leaf whose value breaks its ``SCHEMA`` rule, or, where ``strict``, that no
-    rule covers. Keys outside ``scale`` come first, so that a scale value is named with the key it sets."""
+    """A ConfigError for the first leaf whose value breaks its rule (its component's ``DOMAINS``, else
+    ``SCHEMA``'s: ``nerfexp.settings.schema.rule_of``), or, where ``strict``, that no rule covers. Keys outside
+    ``scale`` come first, so that a scale value is named with the key it sets."""
     found = sorted((item for item in checked_settings(cfg) if item[1] is not MISSING),
                    key=lambda item: item[0].startswith("scale."))
     for key, value in found:
-        pattern = matching(SCHEMA, key)
-        if pattern is None:
+        rule = rule_of(cfg, key)
+        if rule is None:
             if strict and matching(PASSED_ON, key) is None:
                 raise ConfigError(f"{key}={value}: not a setting nerfexp reads "
                                   "(`nerfexp --cfg job` shows those it reads)")
             continue
-        expected, valid = SCHEMA[pattern]
+        expected, valid = rule
         if not valid(value):
             raise ConfigError(f"{named(cfg, key, value)}: expected {expected() if callable(expected) else expected}")
 
@@ -206,15 +210,17 @@ def check_lpips(cfg: DictConfig) -> None:
 
 
 def check_settings(cfg: DictConfig, training: bool = True, scoring: bool = True) -> None:
-    """A ConfigError for the first setting that is out of its domain (``check_rules``), a frequency
+    """A ConfigError for a missing optional package (first: a component whose package is missing cannot say
+    what its settings are), then the first setting that is out of its domain (``check_rules``), a frequency
     float32 cannot resolve, a skip connection past the field's depth, hash grid levels out of order, ray
     bounds with near not before far, sparse gradients without an optimizer that takes them, a size that would
-    not fit in memory, a missing optional package, or LPIPS weights that must be there and are not (where
+    not fit in memory, or LPIPS weights that must be there and are not (where
     ``scoring``). ``training``: False for a run read back (``check_run_settings``)."""
     missing = sorted(key for key, value in checked_settings(cfg) if value is MISSING)
     if missing:
         raise ConfigError(f"missing mandatory value: {', '.join(missing)} (set it on the command line, "
                           f"e.g. {missing[0]}=...)")
+    check_extras(cfg)  # first: a component whose package is missing cannot say what its settings are
     check_rules(cfg, strict=training)
     check_frequencies(cfg)
     check_skips(cfg)
@@ -222,7 +228,6 @@ def check_settings(cfg: DictConfig, training: bool = True, scoring: bool = True)
     check_ray_bounds(cfg)
     check_sparse_gradients(cfg)
     check_memory(cfg, training)
-    check_extras(cfg)
     if scoring:
         check_lpips(cfg)
 
@@ -247,6 +252,7 @@ class SettingsCheck(Callback):
     def on_run_start(self, config: DictConfig, **kwargs) -> None:
         try:
             check_settings(config)
+            check_row(config, config.hydra.runtime.choices, list(config.hydra.overrides.task))
             check_used(config, list(config.hydra.overrides.task))
         except ConfigError as error:
             raise SystemExit(f"nerfexp: error: {error}") from None

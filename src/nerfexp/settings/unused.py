@@ -1,46 +1,27 @@
-"""Settings that do nothing with the rest of the config: ``APPLIES`` lists the keys that do something only
-with certain other settings (``scale.n_fine`` only with ``hierarchical=true``). A user's override of one
-that does not apply stops a single run (``check_used``); in a sweep, whose jobs combine values, the job
-runs and its record holds null for it (``without_unused``).
+"""Settings that do nothing with the rest of the config. A key does something when what nerfexp builds or reads
+(``ROOTS``: the model, the data module, the trainer, ...) holds it, directly or through the references that
+carry it there (``model.optimizer.lr: ${scale.lr}``, ``datamodule.scene: ${data}``), and no component on the way
+declares it idle: a component's ``APPLIES`` (``nerfexp.domains``) says when one of its arguments does nothing
+(``VolumeRenderer``'s ``n_fine`` without the hierarchy), and ``CROSSING`` holds the few rules that span several
+components. A key nothing reads (``scale.lr`` where ``optimizer=ngp`` sets its own rate) is named with the
+choice that left it unread and the options that read it.
+
+A user's override of a key that does nothing stops a single run (``check_used``); in a sweep, whose jobs combine
+values, the job runs and its record holds null for it (``without_unused``).
 """
 
-from collections.abc import Callable
+import functools
+from collections.abc import Callable, Mapping
+from importlib.resources import files
 
+from hydra.core.hydra_config import HydraConfig
 from omegaconf import DictConfig, OmegaConf
 
 from nerfexp.config_keys import entries, reference
 from nerfexp.errors import ConfigError
-from nerfexp.settings.schema import matching
+from nerfexp.settings.schema import component_class, matching
 
-HIERARCHY_SAMPLES = {  # what each choice of the sampling axis reads, as said when another key is set
-    True: "hierarchical=true (a coarse network of model.renderer.n_coarse samples and a fine one of n_coarse + "
-          "n_fine; set scale.n_coarse and scale.n_fine)",
-    False: "hierarchical=false (one network of model.renderer.n_single samples; set scale.n_single)",
-    "proposal": "hierarchical=proposal (proposal networks choose the samples; set proposal.n_samples and "
-                "proposal.n_final)",
-}
-
-
-def hierarchy_reads(choice: bool | str) -> Callable[[DictConfig], str | None]:
-    """The reason a key is unused unless ``hierarchical`` is ``choice``."""
-    def reason(cfg: DictConfig) -> str | None:
-        return None if cfg.hierarchical == choice else HIERARCHY_SAMPLES[cfg.hierarchical]
-    return reason
-
-
-hierarchical_only, single_only, proposal_only = (hierarchy_reads(c) for c in (True, False, "proposal"))
-
-
-def needs(section: str, key: str, group: str) -> Callable[[DictConfig], str | None]:
-    """The reason a key is unused unless ``section`` has ``key``: the choice of ``group`` made it absent."""
-    def reason(cfg: DictConfig) -> str | None:
-        node = OmegaConf.select(cfg, section)
-        return None if isinstance(node, DictConfig) and key in node else f"this {group} (it has no {section}.{key})"
-    return reason
-
-
-def video_only(cfg: DictConfig) -> str | None:
-    return None if OmegaConf.select(cfg, "data.video") is not None else "data.video=null (photographs, not a video)"
+ROOTS = ("model", "datamodule", "trainer", "callbacks", "logger", "seed", "resume", "tags", "notes")
 
 
 def lpips_scored(cfg: DictConfig) -> str | None:
@@ -52,22 +33,9 @@ def boxed(cfg: DictConfig) -> str | None:
     return None if uses else "acceleration=none and encoding other than hashgrid (nothing reads the box)"
 
 
-# Keys that do something only with certain other settings: key pattern -> why it is unused (None: it is used).
-APPLIES: dict[str, Callable[[DictConfig], str | None]] = {
-    "scale.n_coarse": hierarchical_only,
-    "scale.n_fine": hierarchical_only,
-    "model.renderer.n_coarse": hierarchical_only,
-    "model.renderer.n_fine": hierarchical_only,
-    "scale.n_single": single_only,
-    "model.renderer.n_single": single_only,
-    "proposal.*": proposal_only,
-    "scale.view_hidden": needs("view_dependence", "hidden", "view_dependence"),
-    "scale.position_input_scale": needs("encoding.position", "input_scale", "encoding"),
-    "scale.hash_*": needs("encoding.position", "log2_table_size", "encoding"),
-    "scale.image_size": needs("data", "image_size", "data"),
-    "scale.max_side": needs("data", "max_side", "data"),
-    "scale.test_stride": needs("data", "test_stride", "data"),
-    "data.fps": video_only,
+# Rules that span components (key pattern -> why it is unused, or None): the box serves the grid or the hash grid,
+# the weights the LPIPS scorer of the module.
+CROSSING: dict[str, Callable[[DictConfig], str | None]] = {
     "data.aabb": boxed,
     "model.lpips_weights": lpips_scored,
 }
@@ -78,16 +46,112 @@ def overridden_key(override: str) -> str:
     return override.split("=", 1)[0].lstrip("+~")
 
 
+def readers(plain: dict) -> dict[str, list[str]]:
+    """For each key that another key's value names in a plain reference (``${scale.lr}``), those keys."""
+    found: dict[str, list[str]] = {}
+    for key, raw in entries(plain):
+        if (named := reference(raw)) is not None:
+            found.setdefault(named, []).append(key)
+    return found
+
+
+def idle_reason(cfg: DictConfig, key: str) -> str | None:
+    """Why the components on the way to ``key`` (a key under ``ROOTS``) leave it idle (their ``APPLIES``), or
+    None where none does."""
+    parts = key.split(".")
+    for depth in range(1, len(parts)):
+        node = OmegaConf.select(cfg, ".".join(parts[:depth]))
+        if not isinstance(node, DictConfig) or "_target_" not in node:
+            continue
+        applies = getattr(component_class(node.get("_target_")), "APPLIES", {})
+        if parts[depth] in applies:
+            reason = applies[parts[depth]](OmegaConf.to_container(node, resolve=True))
+            if reason:
+                return reason
+    return None
+
+
+@functools.cache
+def options_reading(key: str) -> dict[str, list[str]]:
+    """The options of nerfexp's config groups whose file reads ``key`` (``${key}``): {group: [option, ...]}."""
+    found: dict[str, list[str]] = {}
+    for folder in files("nerfexp.conf").iterdir():
+        if folder.is_dir():
+            for option in sorted(folder.iterdir(), key=lambda path: path.name):
+                if option.name.endswith(".yaml") and f"${{{key}}}" in option.read_text():
+                    found.setdefault(folder.name, []).append(option.name.removesuffix(".yaml"))
+    return found
+
+
+def chooser(group: str, option: str, chosen: Mapping) -> str:
+    """`` (chosen by GROUP=OPTION)`` where another chosen option's defaults chose ``group``'s ``option``."""
+    for other, other_option in chosen.items():
+        path = files("nerfexp.conf") / other / f"{other_option}.yaml"
+        if other != group and isinstance(other_option, str) and path.is_file() \
+                and f"override /{group}: {option}" in path.read_text():
+            return f", which {other}={other_option} chooses"
+    return ""
+
+
+def unread_reason(key: str, chosen: Mapping) -> str:
+    """Why nothing reads ``key``: the chosen options of the groups whose other options read it."""
+    reading = options_reading(key)
+    said = [f"{group}={chosen.get(group)}{chooser(group, chosen.get(group), chosen)} ({group}="
+            f"{', '.join(options)} read{'s' if len(options) == 1 else ''} {key})" for group, options in reading.items()
+            if chosen.get(group) not in options]
+    return "; ".join(said) or "this config (nothing in it reads the key)"
+
+
+def unused_reason(cfg: DictConfig, key: str, chosen: Mapping, plain: dict | None = None,
+                  seen: frozenset[str] = frozenset()) -> str | None:
+    """Why ``key`` does nothing in ``cfg`` (its groups' options ``chosen``), or None where it does something
+    (see the module's docstring)."""
+    if (pattern := matching(CROSSING, key)) is not None and (reason := CROSSING[pattern](cfg)):
+        return reason
+    if key.split(".")[0] in ROOTS:
+        return idle_reason(cfg, key)
+    plain = OmegaConf.to_container(cfg, resolve=False) if plain is None else plain
+    carried = [reader + key[len(named):] for named, keys in readers(plain).items() for reader in keys
+               if (key == named or key.startswith(f"{named}.")) and reader not in seen]
+    if not carried:
+        return unread_reason(key, chosen)
+    reasons = [unused_reason(cfg, reader, chosen, plain, seen | {key}) for reader in carried]
+    return None if None in reasons else reasons[0]
+
+
+def group_choices(cfg: DictConfig) -> Mapping:
+    """The config groups' options of the run of ``cfg``: its ``hydra.runtime.choices``, else (a job's own
+    config, which has no ``hydra``) the running job's; none outside Hydra."""
+    if "hydra" in cfg:
+        return cfg.hydra.runtime.choices
+    return HydraConfig.get().runtime.choices if HydraConfig.initialized() else {}
+
+
 def unused_settings(cfg: DictConfig, overrides: list[str]) -> list[tuple[str, str]]:
-    """The ``overrides`` a user gave whose key does nothing with the rest of ``cfg`` (``APPLIES``), each
+    """The ``overrides`` a user gave whose key does nothing with the rest of ``cfg`` (``unused_reason``), each
     with the reason: [(override, reason)]. Defaults the user did not set are never listed."""
+    chosen, plain = group_choices(cfg), OmegaConf.to_container(cfg, resolve=False)
     unused = []
     for override in overrides:
-        pattern = matching(APPLIES, overridden_key(override))
-        reason = APPLIES[pattern](cfg) if pattern else None
-        if reason:
+        key = overridden_key(override)
+        if key in chosen or key.split(".")[0] == "hydra" or not has_key(plain, key):
+            continue  # a group's option, Hydra's own, or a key removed by a later override (~key)
+        if reason := unused_reason(cfg, key, chosen, plain):
             unused.append((override, reason))
     return unused
+
+
+def has_key(plain: dict, key: str) -> bool:
+    """Whether the plain containers ``plain`` hold the dotted ``key`` (list items by index)."""
+    node = plain
+    for part in key.split("."):
+        if isinstance(node, dict) and part in node:
+            node = node[part]
+        elif isinstance(node, list) and part.isdigit() and int(part) < len(node):
+            node = node[int(part)]
+        else:
+            return False
+    return True
 
 
 def without_unused(cfg: DictConfig, resolved: dict, overrides: list[str]) -> dict:
@@ -106,4 +170,3 @@ def check_used(cfg: DictConfig, overrides: list[str]) -> None:
     """A ConfigError for the first of ``overrides`` that does nothing (``unused_settings``)."""
     for override, reason in unused_settings(cfg, overrides)[:1]:
         raise ConfigError(f"{override}: not used with {reason}")
-

@@ -1,6 +1,6 @@
 """What nerfexp records beyond scalars, written to whatever Lightning logger a run has (``conf/logger/``):
-images and hyper-parameters. Lightning's loggers share ``log_metrics`` and ``log_hyperparams`` but not
-images, so each kind gets its own writer:
+images, hyper-parameters and the run's labels (tags, notes). Lightning's loggers share ``log_metrics`` and
+``log_hyperparams`` but not images or labels, so each kind gets its own writer:
 
 - TensorBoard: ``add_image``; the hyper-parameters as HPARAMS summaries (its HPARAMS view);
 - Weights & Biases: ``WandbLogger.log_image``;
@@ -40,6 +40,24 @@ def log_hyperparams(logger: Logger, params: dict) -> None:
             writer.file_writer.add_summary(summary)
     else:
         logger.log_hyperparams(params)
+
+
+def log_labels(logger: Logger, tags: list[str], notes: str | None) -> None:
+    """Give a run's labels (``nerfexp.rundir.labels``) to ``logger`` where it keeps them apart from the
+    hyper-parameters (which hold them too): W&B's run ``tags`` and ``notes``; MLflow's run tags ``tags`` (the
+    list as JSON) and ``mlflow.note.content`` (the run's description in MLflow's UI). TensorBoard and CSV have
+    only the hyper-parameters."""
+    if isinstance(logger, WandbLogger):
+        run = logger.experiment
+        if tags:
+            run.tags = tuple(tags)
+        if notes is not None:
+            run.notes = notes
+    elif isinstance(logger, MLFlowLogger):
+        named = {"tags": json.dumps(tags) if tags else None, "mlflow.note.content": notes}
+        for key, value in named.items():
+            if value is not None:
+                logger.experiment.set_tag(logger.run_id, key, value)
 
 
 def log_image(logger: Logger, key: str, pixels: np.ndarray, step: int, fallback_dir: Path) -> None:

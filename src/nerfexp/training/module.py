@@ -14,7 +14,7 @@ from torch import Tensor, nn
 
 from nerfexp.errors import ConfigError
 from nerfexp.nerf.bounds import Bounded
-from nerfexp.nerf.encodings import HashGridEncoding
+from nerfexp.nerf.encodings import Encoding
 from nerfexp.nerf.volume_renderer import VolumeRenderer, final_output
 from nerfexp.training.metrics import psnr, ssim
 from nerfexp.training.perceptual import NOT_SCORED, ImageTooSmall, LpipsScorer, lpips_scorer
@@ -50,8 +50,8 @@ class NeRFModule(L.LightningModule):
     Each step logs ``train/samples_per_ray`` (evaluated by the networks, all of them together) and
     ``train/rays_per_s`` (rays over the step's host wall-clock time).
     ``compile``: each network is compiled with ``torch.compile`` (in place, so checkpoints keep their keys).
-    Hash tables with sparse gradients (``HashGridEncoding(sparse_gradients=True)``) get dense ones when more
-    than one process trains (``on_fit_start``).
+    Encodings with sparse gradients (``Encoding.sparse_gradients``: the hash tables', with
+    ``HashGridEncoding(sparse_gradients=True)``) get dense ones when more than one process trains (``on_fit_start``).
     """
 
     def __init__(self, renderer: VolumeRenderer, optimizer: Callable[..., torch.optim.Optimizer],
@@ -65,6 +65,7 @@ class NeRFModule(L.LightningModule):
         self._lpips_decided = False
         self.diagnostics: dict[str, dict[str, Tensor]] = {}
         self._step_started: float | None = None
+        self._batch_number = 0  # the training batch under way, counted from 1 (on_train_batch_start)
         if compile:
             check_compiler()
             for net in self.networks.values():
@@ -72,8 +73,9 @@ class NeRFModule(L.LightningModule):
 
     @property
     def networks(self) -> dict[str, nn.Module]:
-        """The renderer's networks under the names its outputs use: coarse and fine, or coarse alone."""
-        return {name: net for name in ("coarse", "fine") if (net := getattr(self.renderer, name)) is not None}
+        """The renderer's networks under the names its outputs use (its sampler's ``field_names``): coarse and
+        fine, or coarse alone."""
+        return {name: getattr(self.renderer, name) for name in self.renderer.sampler.field_names}
 
     def training_step(self, batch: dict[str, Tensor], batch_idx: int) -> Tensor:
         """One step on ``batch``; its stratified jitter is drawn from ``batch["seed"]`` where the batch
@@ -102,15 +104,18 @@ class NeRFModule(L.LightningModule):
     @property
     def writes_logs(self) -> bool:
         """Whether the loggers write this training step's values: every ``trainer.log_every_n_steps`` steps.
-        A value logged on another step is never written (a progress bar shows the last one written), and
-        ``self.log`` costs about a millisecond a call: a tenth of a small step on a CPU."""
-        return self.trainer._logger_connector.should_update_logs  # Lightning's own test, asked where it decides
+        A value logged on another step is never written (a progress bar shows the last one written), and each
+        ``self.log`` call costs a share of a small CPU step (docs/acceleration.md). Lightning writes them
+        after the batches whose number is a multiple of it, and once it is to stop (each batch takes one
+        optimizer step, so that number is ``global_step + 1`` as the batch starts)."""
+        every = self.trainer.log_every_n_steps
+        return every > 0 and (self._batch_number % every == 0 or self.trainer.should_stop)
 
     def on_fit_start(self) -> None:
-        """With several processes (DDP), the hash tables' gradients are made dense: DDP all-reduces the
-        gradients it expects dense (sparse ones only of nn.Embedding) and stops at a sparse one, and NCCL
-        has no sparse all-reduce. LazyAdam then updates the tables as torch.optim.Adam does."""
-        sparse = [m for m in self.renderer.modules() if isinstance(m, HashGridEncoding) and m.sparse_gradients]
+        """With several processes (DDP), the encodings' gradients (the hash tables') are made dense: DDP
+        all-reduces the gradients it expects dense (sparse ones only of nn.Embedding) and stops at a sparse one,
+        and NCCL has no sparse all-reduce. LazyAdam then updates the tables as torch.optim.Adam does."""
+        sparse = [m for m in self.renderer.modules() if isinstance(m, Encoding) and m.sparse_gradients]
         if self.trainer.world_size > 1 and sparse:
             for module in sparse:
                 module.sparse_gradients = False
@@ -139,6 +144,7 @@ class NeRFModule(L.LightningModule):
 
     def on_train_batch_start(self, batch: dict, batch_idx: int) -> None:
         self._step_started = time.perf_counter()
+        self._batch_number = self.trainer.global_step + 1
 
     def on_train_batch_end(self, outputs, batch: dict, batch_idx: int) -> None:
         if self._step_started is not None and self.writes_logs:
@@ -193,13 +199,29 @@ class NeRFModule(L.LightningModule):
         return self._evaluate(batch)
 
     def parameter_groups(self) -> list[dict]:
-        """The networks' parameters, and those of their encodings (modules named ``*_encoding``: the hash
-        tables) in a group of their own without weight decay. Instant-NGP decays the MLPs' weights only:
-        most steps leave most table entries untouched, and decay would wipe out the ones rarely seen."""
-        named = list(self.named_parameters())
-        tables = [p for name, p in named if "_encoding." in name]
-        others = [p for name, p in named if "_encoding." not in name]
-        return [{"params": others}] + ([{"params": tables, "weight_decay": 0.0}] if tables else [])
+        """The optimizer's parameter groups, ``named_parameter_groups`` in order."""
+        return list(self.named_parameter_groups().values())
+
+    def named_parameter_groups(self) -> dict[str, dict]:
+        """{name: {"params": [...], option: value}}: first "networks", every parameter no component claims
+        (with the optimizer's own options), then the groups the components name (``Encoding.parameter_groups``
+        of every encoding in the renderer, merged by name across the networks' copies: the hash tables', without
+        weight decay), each where it is not empty. Each group holds its parameters in ``parameters()``' order,
+        so that an optimizer's state is laid out as it always was and earlier checkpoints resume."""
+        options: dict[str, dict] = {}
+        group_of: dict[int, str] = {}  # id(parameter) -> the name of the group a component put it in
+        for module in self.renderer.modules():
+            if isinstance(module, Encoding):
+                for name, group in module.parameter_groups().items():
+                    own = {key: value for key, value in group.items() if key != "params"}
+                    if options.setdefault(name, own) != own:
+                        raise ValueError(f"parameter group {name!r}: {type(module).__name__} asks for {own}, "
+                                         f"another encoding for {options[name]}")
+                    group_of.update((id(p), name) for p in group["params"])
+        groups = {"networks": {"params": []}, **{name: {"params": [], **own} for name, own in options.items()}}
+        for parameter in self.parameters():
+            groups[group_of.get(id(parameter), "networks")]["params"].append(parameter)
+        return {name: group for name, group in groups.items() if name == "networks" or group["params"]}
 
     def configure_optimizers(self):
         optimizer = self.optimizer(self.parameter_groups())

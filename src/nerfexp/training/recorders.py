@@ -19,6 +19,7 @@ import torch
 from nerfexp import manifest
 from nerfexp.files import atomic_write
 from nerfexp.pixels import depth_image, png_bytes, to_uint8
+from nerfexp.rundir.labels import NO_LABELS
 from nerfexp.rundir.layout import (
     EVAL,
     METRICS,
@@ -30,7 +31,7 @@ from nerfexp.rundir.layout import (
     read_metrics,
     write_json,
 )
-from nerfexp.training.loggers import log_hyperparams, log_image
+from nerfexp.training.loggers import log_hyperparams, log_image, log_labels
 from nerfexp.training.resume import RESUMES, SETTINGS
 
 log = logging.getLogger("nerfexp")
@@ -129,17 +130,20 @@ class RunRecorder(L.Callback):
 
     Each checkpoint also records the run's ``settings`` (``nerfexp.training.resume.checkpoint_settings``)
     and ``resumes`` (``nerfexp.training.resume.resume_record``), which ``results.json`` lists too, so that
-    a resume is checked against the settings that trained the checkpoint. A resumed run's
+    a resume is checked against the settings that trained the checkpoint. The run's ``labels`` (its tags and
+    notes, ``nerfexp.rundir.labels``) go to ``results.json`` and to each logger. A resumed run's
     ``metrics.jsonl`` keeps the lines of the steps up to its checkpoint's: later ones came from training
     that the resumed run does again, and would stand twice for the same steps.
     """
 
     def __init__(self, output_dir: str, choices: dict, run_config: dict | None = None,
-                 overrides: list[str] = (), settings: dict | None = None, resumes: list[dict] = ()):
+                 overrides: list[str] = (), settings: dict | None = None, resumes: list[dict] = (),
+                 labels: dict | None = None):
         self.output_dir = Path(output_dir)
         self.choices, self.run_config, self.overrides = dict(choices), run_config, list(overrides)
         self.settings = settings
         self.resumes = list(resumes)
+        self.labels = {**NO_LABELS, **(labels or {})}  # {"tags": [...], "notes": text or None}
         self.last_val_psnr: float | None = None
         self.elapsed_s, self._started, self.steps, self.trained = 0.0, None, 0, False
         self._scores: dict[int, dict[str, float]] = {}  # image index -> its scores (SCORES)
@@ -148,12 +152,15 @@ class RunRecorder(L.Callback):
         return self.elapsed_s + (time.perf_counter() - self._started if self._started is not None else 0.0)
 
     def on_fit_start(self, trainer, pl_module):
-        """Declare the run's hyper-parameters (its choices and overrides) to each logger
-        (``nerfexp.training.loggers``: TensorBoard's HPARAMS view, MLflow's parameters, ...)."""
+        """Declare the run's hyper-parameters (its choices, overrides and the labels it has) to each logger
+        (``nerfexp.training.loggers``: TensorBoard's HPARAMS view, MLflow's parameters, ...), and its labels
+        where a logger keeps them apart (W&B's tags and notes, MLflow's run tags)."""
         if trainer.is_global_zero:
-            params = {**self.choices, **dict(o.lstrip("+~").split("=", 1) for o in self.overrides if "=" in o)}
+            params = {**self.choices, **dict(o.lstrip("+~").split("=", 1) for o in self.overrides if "=" in o),
+                      **{key: value for key, value in self.labels.items() if value}}
             for logger in trainer.loggers:
                 log_hyperparams(logger, params)
+                log_labels(logger, **self.labels)
 
     def on_train_start(self, trainer, pl_module):
         self._started = time.perf_counter()
@@ -259,7 +266,7 @@ class RunRecorder(L.Callback):
             "batch_rays": batch_rays, "processes": trainer.world_size, "precision": str(trainer.precision),
             "n_params": sum(p.numel() for p in pl_module.parameters()),
             "evaluations_per_ray": renderer.evaluations_per_ray,
-            "machine": machine(), "choices": self.choices, "overrides": self.overrides,
+            "machine": machine(), "choices": self.choices, "overrides": self.overrides, **self.labels,
             "config": self.run_config, "resumes": self.resumes,
         }
         if trainer.ckpt_path is not None:  # the weights scored: the checkpoint the test loaded

@@ -8,7 +8,7 @@ the model, the data (where the scene lies, ``data.root``, aside), the data modul
 precision, the learning rates and their schedule. A checkpoint of an earlier nerfexp, which records no
 settings, is compared with the config saved in its run directory (``.hydra/config.yaml``, before Hydra
 writes this run's there); one that lies in no run directory, with the network's shapes alone
-(``nerfexp.rundir.trained.check_weights``).
+(``nerfexp.products.trained.check_weights``, called by the command).
 
 A job reads the checkpoint once (``read_resumed``), keeping of it only what resuming needs (``Resumed``):
 Lightning reads it again, whole, to continue training from it.
@@ -27,6 +27,7 @@ from omegaconf import DictConfig, OmegaConf
 
 from nerfexp.config_keys import leaves, source_key
 from nerfexp.errors import NerfexpError
+from nerfexp.rundir.labels import LABELS
 from nerfexp.rundir.layout import RUN_CONFIG
 from nerfexp.rundir.trained import read_checkpoint, run_config
 from nerfexp.training.precision import fill_precision
@@ -51,6 +52,7 @@ MAY_DIFFER = (
     "model.optimizer.fused",  # the same update, by one kernel or a loop
     "trainer.plugins",  # how checkpoints are written (nerfexp.training.checkpoints), not what is trained
     "model.lpips", "model.lpips_weights",  # what the evaluations score, not what is trained
+    *LABELS,  # tags and notes: what the run is for, not what it trains (nerfexp.rundir.labels)
 )
 DERIVED = ("data.near", "data.far")  # null in a config: set from the scene (fill_ray_bounds), which is compared
 

@@ -1,4 +1,5 @@
-"""Density fields whose renders have closed forms: the truth that the renderer's quadrature converges to.
+"""Density fields whose renders have closed forms: the truth that the renderer's quadrature converges to
+(for the tests and ``benchmarks/quadrature.py``; nothing of nerfexp uses them).
 
 Conventions (every field here): a ray x(t) = o + t d, with d a unit vector, is rendered over [near, far].
 Its transmittance is T(t) = exp(-tau(t)), tau(t) = int_near^t sigma(x(s)) ds, and it terminates at t
@@ -14,7 +15,8 @@ Each field has one colour c, so a ray's colour is opacity c + (1 - opacity) back
 ``forward`` is the field interface of ``nerfexp.nerf.fields``: positions [..., S, 3] and directions
 [..., S or 1, 3] -> (rgb [..., S, 3], sigma [..., S]), in the positions' dtype. Truths are float64.
 At the end, what tests and benchmarks need to score a renderer against the truth: rays aimed at a field
-(``aimed_rays``), mean errors (``render_errors``), and the cost of an accuracy (``cost_for_error``).
+(``aimed_rays``; ``rays_down_z``, straight down onto a ``slab``), mean errors (``render_errors``), and the cost
+of an accuracy (``cost_for_error``).
 
 Example: a ray down z through the slab |z| < 1/2 of density 3 absorbs 1 - exp(-3) of the light:
 >>> slab = Slab(normal=(0.0, 0.0, 1.0), lower=-0.5, upper=0.5, density=3.0)
@@ -28,6 +30,8 @@ import math
 import numpy as np
 import torch
 from torch import Tensor, nn
+
+from nerfexp.nerf.fields import FieldOutputs
 
 
 def segments_truth(starts: Tensor, ends: Tensor, density: float, near: float, far: float) -> tuple[Tensor, Tensor]:
@@ -110,11 +114,11 @@ class AnalyticField(nn.Module, abc.ABC):
                           far: float) -> tuple[Tensor, Tensor]:
         """The exact opacity and depth [B] of float64 rays [B, 3] over [near, far]."""
 
-    def forward(self, positions: Tensor, directions: Tensor) -> tuple[Tensor, Tensor]:
-        """positions [..., S, 3], directions [..., S or 1, 3] (unused) -> (rgb [..., S, 3], sigma [..., S])."""
+    def forward(self, positions: Tensor, directions: Tensor) -> FieldOutputs:
+        """positions [..., S, 3], directions [..., S or 1, 3] (unused) -> rgb [..., S, 3], sigma [..., S]."""
         sigma = self.density(positions)
         rgb = positions.new_tensor(self.colour).expand(*sigma.shape, 3)
-        return rgb, sigma
+        return FieldOutputs(rgb=rgb, sigma=sigma)
 
     def truth(self, origins: Tensor, directions: Tensor, near: float, far: float,
               background: tuple[float, float, float] = (1.0, 1.0, 1.0)) -> dict[str, Tensor]:
@@ -292,3 +296,17 @@ def cost_for_error(target: float, costs: list[float], errors: list[float]) -> fl
     before, after = errors[k - 1], errors[k]  # before > target >= after
     fraction = math.log(before / target) / math.log(before / after) if after > 0 else 0.0
     return costs[k - 1] * (costs[k] / costs[k - 1]) ** fraction
+
+
+def slab(sigma: float = 3.0, half_width: float = 0.5, shift: float = 0.0) -> Slab:
+    """Density ``sigma`` where |z - shift| < half_width, else 0; colour (0.2, 0.4, 0.6)."""
+    return Slab(lower=shift - half_width, upper=shift + half_width, density=sigma, colour=(0.2, 0.4, 0.6))
+
+
+def rays_down_z(n: int) -> tuple[Tensor, Tensor]:
+    """``n`` rays from (0, 0, 4) straight down z (float64): origins and directions [n, 3]."""
+    origins = torch.zeros(n, 3, dtype=torch.float64)
+    origins[:, 2] = 4.0
+    directions = torch.zeros(n, 3, dtype=torch.float64)
+    directions[:, 2] = -1.0
+    return origins, directions

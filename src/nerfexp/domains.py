@@ -1,0 +1,118 @@
+"""The vocabulary of settings' domains: a ``Rule`` is what a setting's value must be, in words for the error,
+and the test. Components declare the domains of their own arguments next to their class with it
+(``DOMAINS``: argument name -> Rule, e.g. ``PositionalEncoding.DOMAINS``), and the settings check
+(``nerfexp.settings``) reads them from the class a config's ``_target_`` names; the keys no component owns
+have theirs in ``nerfexp.settings.schema.SCHEMA``. Pure Python: every layer may use it, ``nerf/`` included.
+
+A component may also declare when its arguments do nothing (``APPLIES``: argument name -> a function of the
+component's own config, resolved as plain data, giving the reason it is unused, or None where it is used),
+which the unused-settings check (``nerfexp.settings.unused``) reads the same way.
+"""
+
+import math
+from collections.abc import Callable, Mapping
+
+# (what is expected, the test); what is expected may be a function that says it, where saying it is dear
+Rule = tuple[str | Callable[[], str], Callable[[object], bool]]
+# a component's config (its arguments, resolved, as plain data) -> why an argument does nothing, or None
+Applies = Callable[[Mapping], str | None]
+
+# Counts (steps, rays, samples, units, views, ...) at most 2^63 - 1: torch and numpy hold whole numbers, and the
+# loggers their steps, in 64-bit integers. Counts that size arrays are bounded by the memory estimates too
+# (nerfexp.settings.checks.check_memory).
+INTEGER_LIMIT = 2 ** 63 - 1
+
+
+def is_whole(value) -> bool:
+    return isinstance(value, int) and not isinstance(value, bool)
+
+
+def is_real(value) -> bool:
+    """A finite number (a whole number of any size is one: it is never converted to a float to be tested)."""
+    return isinstance(value, int | float) and not isinstance(value, bool) and (isinstance(value, int)
+                                                                             or math.isfinite(value))
+
+
+def is_power_of_two(value: float) -> bool:
+    return value > 0 and float(value).is_integer() and int(value) & (int(value) - 1) == 0
+
+
+def bound_text(value: float) -> str:
+    """A bound as a rule says it: a power of two from 2^20 on as ``2^24``, one less than a power of two
+    past 2^32 as ``2^63 - 1``, a whole number in full, another number as ``{:g}`` does."""
+    if abs(value) >= 2 ** 20 and is_power_of_two(abs(value)):
+        return f"{'-' if value < 0 else ''}2^{int(abs(value)).bit_length() - 1}"
+    if value > 2 ** 32 and is_power_of_two(value + 1):
+        return f"2^{int(value + 1).bit_length() - 1} - 1"
+    return str(value) if isinstance(value, int) else f"{value:g}"
+
+
+def whole(low: int, high: int | None = None) -> Rule:
+    """A whole number in [low, high] (high: None for no upper bound)."""
+    expected = f"a whole number >= {low}" if high is None else f"a whole number in [{low}, {bound_text(high)}]"
+    return expected, lambda v: is_whole(v) and v >= low and (high is None or v <= high)
+
+
+def real(low: float, high: float | None = None, *, above: bool = False) -> Rule:
+    """A finite number >= ``low`` (> ``low`` where ``above``), and <= ``high`` where given."""
+    expected = (f"a finite number {'>' if above else '>='} {bound_text(low)}"
+                + ("" if high is None else f" and <= {bound_text(high)}"))
+    return expected, lambda v: (is_real(v) and (v > low if above else v >= low)
+                                and (high is None or v <= high))
+
+
+def yaml_word(value) -> str:
+    """``value`` as a config writes it: true and false for booleans, null for None."""
+    return "null" if value is None else str(value).lower() if isinstance(value, bool) else str(value)
+
+
+def choice(*values) -> Rule:
+    """One of ``values`` (strings or booleans: 1 and 0, equal to True and False, are neither)."""
+    return f"one of {', '.join(map(yaml_word, values))}", lambda v: isinstance(v, str | bool) and v in values
+
+
+def optional(rule: Rule, meaning: str) -> Rule:
+    """``rule``, or null meaning ``meaning``."""
+    return f"{rule[0]}, or null ({meaning})", lambda v: v is None or rule[1](v)
+
+
+def whole_list(low: int) -> Rule:
+    return f"a list of whole numbers >= {low}", lambda v: isinstance(v, list) and all(whole(low)[1](x) for x in v)
+
+
+COUNT = whole(1, INTEGER_LIMIT)
+NONNEGATIVE_COUNT = whole(0, INTEGER_LIMIT)
+FRACTION = real(0, 1)
+BOOLEAN = ("true or false", lambda v: isinstance(v, bool))
+TEXT = ("a text", lambda v: isinstance(v, str) and v != "")
+PATH = ("a path", lambda v: isinstance(v, str) and v != "")
+NULL = ("null", lambda v: v is None)
+
+# Numbers several layers' domains share, here so that none imports upward for one.
+# How far from the origin a camera, and how far along a ray a sample, may be, in scene units: rays, samples
+# and the networks' inputs are float32, whose neighbouring values 2^24 away from 0 are one whole unit apart, so
+# beyond it positions have no sub-unit resolution (a scene is a few units across: docs/numerics.md)
+POSITION_LIMIT = 2.0 ** 24
+# Offsets of a raw density or roughness (a bias, noise) within +-88: exp and softplus of the raw value stay finite
+# float32 numbers (exp overflows float32 past log of its largest value, (2 - 2^-23) 2^127, 88.7...)
+RAW_LIMIT = math.floor(math.log((2 - 2.0 ** -23) * 2.0 ** 127))
+# A loss term's weight at most 2^24: weighted more, the colour loss (about 1 at most) falls below float32's
+# resolution of their sum, and training ignores the images
+LOSS_WEIGHT_LIMIT = 2.0 ** 24
+FLOAT32_TOP_OCTAVE = 18  # the largest k of sin(2^k pi x) still meaningful for float32 positions
+
+NEAR = real(0, POSITION_LIMIT)  # distances along rays, in scene units
+FAR = real(0, POSITION_LIMIT, above=True)
+RAW_OFFSET = real(-RAW_LIMIT, RAW_LIMIT)
+LOSS_WEIGHT = real(0, LOSS_WEIGHT_LIMIT)
+
+
+def is_position(value) -> bool:
+    """A coordinate in scene units within ``POSITION_LIMIT`` of 0."""
+    return is_real(value) and abs(value) <= POSITION_LIMIT
+
+
+BOX = ("[[x0, y0, z0], [x1, y1, z1]] of numbers within +-2^24 with x0 < x1, y0 < y1, z0 < z1, or null",
+       lambda v: v is None or (isinstance(v, list) and len(v) == 2 and all(isinstance(c, list) and len(c) == 3
+                                                                         and all(map(is_position, c)) for c in v)
+                               and all(a < b for a, b in zip(*v))))

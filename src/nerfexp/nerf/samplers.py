@@ -1,0 +1,100 @@
+"""The sampling axis: where along each ray the fields are evaluated, and by which networks (nerfacc's
+``AbstractTransEstimator``: one interface for every way of placing samples).
+
+A ``Sampler`` places samples on a batch of ``Rays`` and renders them through the renderer's two steps,
+``VolumeRenderer.render_at`` (a colour network at samples t: its composited output) and
+``VolumeRenderer.proposal_weights`` (a density-only network's interval weights at samples t). Both query the
+networks through the occupancy grid where there is one: the grid's skipping is a component beside the samplers,
+applied to whichever runs. The samplers: ``HierarchicalSampler`` (the paper's coarse + fine), ``StratifiedSampler``
+(one network) and ``nerfexp.nerf.proposal.ProposalSampler`` (mip-NeRF 360's proposal networks).
+
+Conventions: ``t`` are sample positions along the rays [B, S], sorted, in units of the rays' directions; the
+renderer's outputs are {network name: output} with the names of ``field_names``.
+"""
+
+from typing import TYPE_CHECKING, ClassVar, NamedTuple
+
+import torch
+from torch import Tensor, nn
+
+from nerfexp.domains import Applies, Rule
+from nerfexp.nerf.sampling import dilate_weights, resampling_bins, sample_pdf, stratified_samples
+
+if TYPE_CHECKING:
+    from nerfexp.nerf.volume_renderer import VolumeRenderer
+
+
+class Rays(NamedTuple):
+    """A batch of B rays o + t d for t in [near, far]."""
+
+    origins: Tensor  # [B, 3]
+    directions: Tensor  # [B, 3], not necessarily unit (NDC rays' are not)
+    viewdirs: Tensor  # [B, 3] unit: the view direction the colour networks see
+    near: Tensor  # [B]
+    far: Tensor  # [B]
+
+
+class Sampler(nn.Module):
+    """Places samples on rays and renders them: the sampling axis's component.
+
+    ``field_names``: the colour networks it renders with (the renderer builds one field for each, under that name,
+    and its outputs carry the same names). ``samples_per_ray``: samples per ray, all networks together, before
+    any are skipped. ``render``: the renderer's outputs for a batch of rays. ``DOMAINS`` and ``APPLIES`` declare
+    its constructor's settings (``nerfexp.domains``), where a user configures it.
+    """
+
+    DOMAINS: ClassVar[dict[str, Rule]] = {}
+    APPLIES: ClassVar[dict[str, Applies]] = {}
+    field_names: ClassVar[tuple[str, ...]] = ("coarse",)
+
+    @property
+    def samples_per_ray(self) -> int:
+        raise NotImplementedError
+
+    def render(self, renderer: "VolumeRenderer", rays: Rays, deterministic: bool) -> dict[str, dict[str, Tensor]]:
+        """{name: the renderer's output} for each of ``field_names`` (see ``VolumeRenderer.forward``), each
+        still holding ``evaluated``, the samples its networks evaluated (the renderer counts them).
+        ``deterministic``: evenly spaced samples instead of jittered ones."""
+        raise NotImplementedError
+
+
+class HierarchicalSampler(Sampler):
+    """The paper's: ``n_coarse`` stratified samples through the coarse field; its weights, dilated by one interval
+    (``dilate_weights``) as a piecewise-constant PDF over the coarse intervals, give ``n_fine`` more samples by
+    inverse-transform sampling; the fine field evaluates all n_coarse + n_fine."""
+
+    field_names = ("coarse", "fine")
+
+    def __init__(self, n_coarse: int, n_fine: int):
+        super().__init__()
+        self.n_coarse = n_coarse
+        self.n_fine = n_fine
+
+    @property
+    def samples_per_ray(self) -> int:
+        return self.n_coarse + (self.n_coarse + self.n_fine)
+
+    def render(self, renderer: "VolumeRenderer", rays: Rays, deterministic: bool) -> dict[str, dict[str, Tensor]]:
+        t_coarse = stratified_samples(rays.near, rays.far, self.n_coarse, deterministic)
+        coarse = renderer.render_at(renderer.coarse, rays, t_coarse)
+        bins = resampling_bins(t_coarse, rays.near, rays.far)
+        t_fine = sample_pdf(bins, dilate_weights(coarse["weights"]), self.n_fine, deterministic)
+        t_all = torch.sort(torch.cat([t_coarse, t_fine], -1), -1).values
+        return {"coarse": coarse, "fine": renderer.render_at(renderer.fine, rays, t_all)}
+
+
+class StratifiedSampler(Sampler):
+    """One field evaluates ``n_samples`` stratified samples (the paper's "No Hierarchical" row: 256, the same
+    network evaluations per ray as 64 + 192)."""
+
+    def __init__(self, n_samples: int):
+        super().__init__()
+        self.n_samples = n_samples
+
+    @property
+    def samples_per_ray(self) -> int:
+        return self.n_samples
+
+    def render(self, renderer: "VolumeRenderer", rays: Rays, deterministic: bool) -> dict[str, dict[str, Tensor]]:
+        t = stratified_samples(rays.near, rays.far, self.n_samples, deterministic)
+        return {"coarse": renderer.render_at(renderer.coarse, rays, t)}

@@ -1,0 +1,55 @@
+"""The recipe of docs/developing.md, followed from the tests' own folder: a toy encoding (a class and a
+config file, nothing of nerfexp edited) composes, is checked by its own domains, trains a few steps, sweeps
+beside the paper's positional encoding and reaches the report."""
+
+import csv
+
+import pytest
+import torch
+from hydra import compose, initialize_config_module
+from hydra.utils import instantiate
+
+from nerfexp.errors import ConfigError
+from nerfexp.settings.checks import check_settings
+from tests.components.toy import PowerEncoding
+from tests.helpers import REPO, TINY, one_error_line, run_nerfexp
+
+SEARCH = f"hydra.searchpath=[file://{REPO / 'tests' / 'components'}]"  # where encoding/toy.yaml lies
+
+
+def test_the_toy_encoding_maps_each_coordinate_to_its_powers():
+    x = torch.tensor([[2.0, -1.0, 0.5]])
+    assert torch.equal(PowerEncoding(n_powers=3, gain=0.5)(x), 0.5 * torch.tensor([[2.0, -1.0, 0.5, 4.0, 1.0, 0.25,
+                                                                                   8.0, -1.0, 0.125]]))
+
+
+def composed(*overrides: str):
+    with initialize_config_module("nerfexp.conf", version_base=None):
+        return compose("config", overrides=[SEARCH, "encoding=toy", *overrides], return_hydra_config=True)
+
+
+def test_it_composes_into_the_field_and_its_own_domains_check_it():
+    cfg = composed()
+    assert cfg.model.renderer.field.position_encoding._target_ == "tests.components.toy.PowerEncoding"
+    check_settings(cfg)  # its keys have rules: the class's DOMAINS, nothing central
+    with pytest.raises(ConfigError, match=r"^encoding.position.n_powers=0: expected a whole number in \[1, "):
+        check_settings(composed("encoding.position.n_powers=0"))
+    model = instantiate(cfg.model)
+    assert model.renderer.coarse.trunk[0].in_features == 9  # 3 coordinates x 3 powers
+
+
+@pytest.mark.slow
+def test_it_trains_sweeps_beside_posenc_and_reaches_the_report(tmp_path):
+    bad = run_nerfexp(*TINY, SEARCH, "encoding=toy", "encoding.position.gain=100",
+                      f"hydra.run.dir={tmp_path / 'bad'}", cwd=tmp_path)
+    assert one_error_line(bad) == "nerfexp: error: encoding.position.gain=100: expected a finite number > 0 and <= 16"
+    sweep = tmp_path / "sweep"
+    done = run_nerfexp("-m", *TINY, SEARCH, "encoding=posenc,toy", f"hydra.sweep.dir={sweep}", cwd=tmp_path)
+    assert done.returncode == 0, done.stderr[-3000:]
+    report = run_nerfexp(str(sweep), cwd=tmp_path, script="nerfexp-report")
+    assert report.returncode == 0, report.stderr[-3000:]
+    with open(sweep / "report.csv") as file:
+        rows = {row["variant"]: row for row in csv.DictReader(file)}
+    assert set(rows) == {"encoding=posenc", "encoding=toy"}
+    assert all(row["finished"] == "1" for row in rows.values())
+    assert rows["encoding=toy"]["n_params"] != rows["encoding=posenc"]["n_params"]  # 9 inputs, not 63
