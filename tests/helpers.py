@@ -5,19 +5,27 @@ import argparse
 import contextlib
 import errno
 import hashlib
+import io
 import json
+import logging
 import os
+import random
 import re
 import signal
 import socket
 import subprocess
 import sys
+import threading
+import traceback
+import warnings
 from collections.abc import Callable, Iterator
+from importlib.metadata import entry_points
 from pathlib import Path
 
 import lightning as L
 import numpy as np
 import torch
+from hydra.core.global_hydra import GlobalHydra
 
 from nerfexp.geometry.cameras import look_at
 
@@ -40,10 +48,107 @@ def command(script: str, *args: str) -> tuple[list[str], dict]:
     return [str(Path(sys.executable).with_name(script)), *args], env
 
 
-def run_nerfexp(*args: str, cwd: Path, script: str = "nerfexp") -> subprocess.CompletedProcess:
-    """Run a console script as a user would; ``cwd`` receives anything written to relative paths."""
-    argv, env = command(script, *args)
-    return subprocess.run(argv, cwd=cwd, capture_output=True, text=True, env=env, timeout=900)
+def run_nerfexp(*args: str, cwd: Path, script: str = "nerfexp", new_process: bool = False
+                ) -> subprocess.CompletedProcess:
+    """Run a console script as a user would; ``cwd`` receives anything written to relative paths. Its exit
+    status, standard output and standard error come back as from a process.
+
+    By default the script's entry point runs in this process (``run_in_this_process``): starting a process
+    that trains imports Lightning first, which costs more than a tiny run itself. ``new_process=True`` starts
+    a new Python process instead, for what only a process shows: signals, a process that kills itself,
+    distributed training and launchers, what a command imports, output to pipes as it happens."""
+    if new_process:
+        argv, env = command(script, *args)
+        return subprocess.run(argv, cwd=cwd, capture_output=True, text=True, env=env, timeout=900)
+    return run_in_this_process(script, *args, cwd=cwd)
+
+
+# Overrides that only a process of its own can run: a callback that kills its process, processes that
+# data-parallel training spawns, the launchers' jobs (run_nerfexp's new_process=True)
+NEEDS_A_PROCESS = re.compile(r"KillAtStep|trainer=(ddp|slurm)|hydra/launcher=")
+
+
+def run_in_this_process(script: str, *args: str, cwd: Path) -> subprocess.CompletedProcess:
+    """Call console script ``script``'s entry point with ``args`` in this process, in ``cwd``, as its own
+    process would run it (``command``'s environment: Hydra's one-line errors, warnings ignored), and return
+    what that process would have: SystemExit's status (its message on standard error, status 1, as Python
+    prints it), a traceback and status 1 for any other exception, and what it wrote to stdout and stderr.
+    What the command changes of the process (working directory, argv, environment, logging, warnings
+    filters, signal handlers, random states, torch's settings) is put back afterwards (``isolated``)."""
+    assert not NEEDS_A_PROCESS.search(" ".join(args)), f"{args}: run with run_nerfexp(..., new_process=True)"
+    (entry,) = entry_points(group="console_scripts", name=script)
+    main = entry.load()
+    out, err = (io.TextIOWrapper(io.BytesIO(), encoding="utf-8", write_through=True) for _ in range(2))
+    status = 0
+    with isolated(cwd, [script, *args]), contextlib.redirect_stdout(out), contextlib.redirect_stderr(err):
+        os.environ["HYDRA_FULL_ERROR"] = "0"
+        try:
+            main() if script == "nerfexp" else main(list(args))  # nerfexp's cli reads sys.argv, as Hydra does
+        except SystemExit as end:
+            if isinstance(end.code, str):
+                print(end.code, file=sys.stderr)
+            status = end.code if isinstance(end.code, int) else 0 if end.code is None else 1
+        except BaseException:  # noqa: BLE001 -- as an uncaught exception ends a process: its traceback, status 1
+            traceback.print_exc()
+            status = 1
+    return subprocess.CompletedProcess([script, *args], status, out.buffer.getvalue().decode(),
+                                       err.buffer.getvalue().decode())
+
+
+@contextlib.contextmanager
+def isolated(cwd: Path, argv: list[str]) -> Iterator[None]:
+    """Inside the block, ``cwd`` is the working directory and ``argv`` sys.argv; afterwards the process's
+    state a command may change is as before: the environment, logging's handlers and levels (Hydra
+    configures logging for each run, with a file handler in its directory), warnings filters, the
+    handlers of SIGINT, SIGTERM and SIGUSR2, threading's excepthook, the random states, torch's global
+    settings, and Hydra's global state (a test's own compose API, which the command's Hydra replaces)."""
+    saved_argv, saved_cwd, saved_env = sys.argv, os.getcwd(), dict(os.environ)
+    loggers = [logging.getLogger(), *(logger for logger in logging.Logger.manager.loggerDict.values()
+                                      if isinstance(logger, logging.Logger))]
+    saved_loggers = {logger: (list(logger.handlers), logger.level, logger.propagate, logger.disabled)
+                     for logger in loggers}
+    saved_signals = {s: signal.getsignal(s) for s in (signal.SIGINT, signal.SIGTERM, signal.SIGUSR2)}
+    saved_hook, saved_torch = threading.excepthook, (torch.get_num_threads(), torch.get_default_dtype(),
+                                                     torch.get_float32_matmul_precision(),
+                                                     torch.are_deterministic_algorithms_enabled())
+    saved_random = (random.getstate(), np.random.get_state(), torch.random.get_rng_state())
+    composing = GlobalHydra.instance()  # a test's own compose API (a fixture's initialize_config_module)
+    saved_hydra = composing.hydra if composing.is_initialized() else None
+    composing.clear()  # the command's @hydra.main initializes it anew
+    sys.argv = argv
+    os.chdir(cwd)
+    try:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")  # as PYTHONWARNINGS=ignore does for a command's process
+            yield
+    finally:
+        sys.argv = saved_argv
+        os.chdir(saved_cwd)
+        composing.clear()
+        if saved_hydra is not None:
+            composing.initialize(saved_hydra)
+        os.environ.clear()
+        os.environ.update(saved_env)
+        for logger in [logging.getLogger(), *logging.Logger.manager.loggerDict.values()]:
+            if not isinstance(logger, logging.Logger):
+                continue
+            handlers, level, propagate, disabled = saved_loggers.get(logger, ([], logging.NOTSET, True, False))
+            for handler in logger.handlers:
+                if handler not in handlers:
+                    handler.close()  # a run's log file: closed, not written to by later tests
+            logger.handlers[:], logger.propagate, logger.disabled = handlers, propagate, disabled
+            logger.setLevel(level)  # and the loggers' cached levels cleared
+        for signum, handler in saved_signals.items():
+            signal.signal(signum, handler)
+        threading.excepthook = saved_hook
+        threads, dtype, matmul, deterministic = saved_torch
+        torch.set_num_threads(threads)
+        torch.set_default_dtype(dtype)
+        torch.set_float32_matmul_precision(matmul)
+        torch.use_deterministic_algorithms(deterministic)
+        random.setstate(saved_random[0])
+        np.random.set_state(saved_random[1])
+        torch.random.set_rng_state(saved_random[2])
 
 
 def start_nerfexp(*args: str, cwd: Path) -> subprocess.Popen:

@@ -70,7 +70,7 @@ def test_an_accelerated_run_killed_and_resumed_ends_as_the_uninterrupted_run(tmp
     alone, killed = tmp_path / "alone", tmp_path / "killed"
     for run_dir, extra in ((alone, []), (killed, kill_at(30))):
         run_dir.mkdir()
-        run_nerfexp(*accelerated, *extra, f"hydra.run.dir={run_dir}", cwd=run_dir)
+        run_nerfexp(*accelerated, *extra, f"hydra.run.dir={run_dir}", cwd=run_dir, new_process=bool(extra))
     assert final_state(killed)["step"] == 30
     resumed = run_nerfexp(*accelerated, f"resume={killed}/checkpoints/last.ckpt", f"hydra.run.dir={killed}",
                           cwd=killed)

@@ -62,7 +62,7 @@ def test_a_batch_that_does_not_divide_among_the_processes_is_refused():
 
 def test_a_batch_that_does_not_divide_is_one_line_before_any_process_starts(tmp_path):
     done = run_nerfexp(*DDP[:2], "trainer.devices=3", "scale.batch_rays=256", f"hydra.run.dir={tmp_path}",
-                       cwd=tmp_path)
+                       new_process=True, cwd=tmp_path)
     lines = done.stderr.strip().splitlines()
     assert done.returncode == 1 and "Traceback" not in done.stderr
     assert lines[-1] == ("nerfexp: error: scale.batch_rays=256 is the global batch, split evenly over 3 processes "
@@ -96,7 +96,7 @@ def ddp_sweep(tmp_path_factory) -> Path:
     sweep again, into other directories, and a second job that hangs. ``trainer=ddp`` spawns instead."""
     root = tmp_path_factory.mktemp("ddp")
     done = run_nerfexp("-m", *TINY, *DDP, "scale.steps=20", "scale.val_every=10", "data.n_test=3", "seed=0,1",
-                       f"hydra.sweep.dir={root / 'sweep'}", cwd=root)
+                       f"hydra.sweep.dir={root / 'sweep'}", new_process=True, cwd=root)
     assert done.returncode == 0, done.stderr[-3000:]
     return root / "sweep"
 
@@ -137,7 +137,7 @@ def test_distributed_evaluation_of_a_checkpoint_scores_as_one_process(ddp_sweep,
     assert results["test_ssim"] == pytest.approx(sum(s for _, s in truth) / 3, abs=1e-6)
 
     # nerfexp-eval on the run's trainer (2 processes) scores every view once, as one process does
-    scored = run_nerfexp(str(run_dir), cwd=tmp_path, script="nerfexp-eval")
+    scored = run_nerfexp(str(run_dir), new_process=True, cwd=tmp_path, script="nerfexp-eval")
     assert scored.returncode == 0, scored.stderr[-3000:]
     evaluation = read_json(run_dir / "eval.json")
     assert evaluation["processes"] == 2 and evaluation["step"] == 20
@@ -152,10 +152,11 @@ def test_distributed_evaluation_of_a_checkpoint_scores_as_one_process(ddp_sweep,
 def test_hash_tables_train_with_dense_gradients_under_ddp(tmp_path):
     # DDP all-reduces dense gradients (a sparse one stops its reducer: "Cannot access storage of
     # SparseTensorImpl"): with several processes the module makes the tables' gradients dense, once, and says so
-    done = run_nerfexp(*TINY, *DDP, "encoding=hashgrid", "encoding.position.sparse_gradients=true",
+    # field=nerf: the tiny run's scale.depth, width and skips, which hashgrid's own field=ngp would leave unused
+    done = run_nerfexp(*TINY, *DDP, "encoding=hashgrid", "field=nerf", "encoding.position.sparse_gradients=true",
                        "model.optimizer._target_=nerfexp.training.optimizers.LazyAdam",
                        "scale.hash_log2_table_size=12", "scale.hash_finest=64", "scale.steps=10", "scale.val_every=10",
-                       f"hydra.run.dir={tmp_path}", cwd=tmp_path)
+                       f"hydra.run.dir={tmp_path}", new_process=True, cwd=tmp_path)
     assert done.returncode == 0, done.stderr[-3000:]
     results = read_json(tmp_path / "results.json")
     assert (results["processes"], results["steps"]) == (2, 10)

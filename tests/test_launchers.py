@@ -92,7 +92,7 @@ def test_bf16_trains_with_float32_rendering(monkeypatch, tmp_path):
 def test_a_sweep_through_the_submitit_local_launcher(tmp_path):
     sweep = tmp_path / "sweep"
     done = run_nerfexp("-m", "hydra/launcher=submitit_local", *TINY, "scale.steps=10", "scale.val_every=10",
-                       "seed=0,1", f"hydra.sweep.dir={sweep}", cwd=tmp_path)
+                       "seed=0,1", f"hydra.sweep.dir={sweep}", new_process=True, cwd=tmp_path)
     assert done.returncode == 0, done.stderr[-3000:]
     assert sorted(p.name for p in sweep.iterdir()) == [".submitit", "0", "1", "multirun.yaml"]
     for job in (0, 1):

@@ -98,7 +98,8 @@ def test_the_array_runs_its_jobs_two_at_a_time_and_a_failing_job_stops_no_other(
 def test_a_job_at_its_time_limit_records_sigterm_and_resume_continues_it(cluster, tmp_path):
     # a minute's limit (SLURM's least), its notice (submitit's USR2) 10 s before: SLURM sends both while it trains
     first = run_nerfexp(*ON_SLURM, "trainer.devices=2", "scale.steps=1000000", "hydra.launcher.timeout_min=1",
-                        "hydra.launcher.signal_delay_s=10", f"hydra.sweep.dir={tmp_path / 'first'}", cwd=tmp_path)
+                        "hydra.launcher.signal_delay_s=10", f"hydra.sweep.dir={tmp_path / 'first'}", cwd=tmp_path,
+                        new_process=True)
     run_dir = tmp_path / "first" / "0"
     checkpoint = run_dir / "checkpoints" / "last.ckpt"
     assert first.returncode == 1, first.stderr[-3000:]
@@ -113,7 +114,7 @@ def test_a_job_at_its_time_limit_records_sigterm_and_resume_continues_it(cluster
     step = torch.load(checkpoint, map_location="cpu", weights_only=True)["global_step"]
     assert step > 0
     resumed = run_nerfexp(*ON_SLURM, "trainer.devices=2", f"scale.steps={step + 30}", f"resume={checkpoint}",
-                          f"hydra.sweep.dir={tmp_path / 'resumed'}", cwd=tmp_path)
+                          f"hydra.sweep.dir={tmp_path / 'resumed'}", new_process=True, cwd=tmp_path)
     assert resumed.returncode == 0, resumed.stderr[-3000:]
     results = read_json(tmp_path / "resumed" / "0" / "results.json")
     assert results["steps"] == step + 30 and results["processes"] == 2

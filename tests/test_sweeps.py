@@ -129,7 +129,7 @@ def test_smoke_sweep_through_the_report(tmp_path):
     done = run_nerfexp("+sweeps=smoke", f"hydra.sweep.dir={sweep}", cwd=tmp_path)
     assert done.returncode == 0, done.stderr[-3000:]
     assert re.findall(r"\] - (job \d of \d): ", done.stdout) == [f"job {k} of 4" for k in (1, 2, 3, 4)]
-    report = run_nerfexp(str(sweep), cwd=tmp_path, script="nerfexp-report")
+    report = run_nerfexp(str(sweep), cwd=tmp_path, script="nerfexp-report", new_process=True)
     assert report.returncode == 0, report.stderr[-3000:]
     with open(sweep / "report.csv") as file:
         rows = list(csv.DictReader(file))

@@ -129,7 +129,8 @@ def test_a_piped_evaluation_draws_no_progress_bar(tiny_run, tmp_path):
     run = tmp_path / "run"
     shutil.copytree(tiny_run, run)
     # bars on, as in the default config (the tiny config turns them off); stdout and stderr are pipes here
-    result = run_nerfexp(str(run), "trainer.enable_progress_bar=true", cwd=tmp_path, script="nerfexp-eval")
+    result = run_nerfexp(str(run), "trainer.enable_progress_bar=true", cwd=tmp_path, script="nerfexp-eval",
+                         new_process=True)
     assert result.returncode == 0, result.stderr[-3000:]
     assert "test PSNR" in result.stdout
     for stream in (result.stdout, result.stderr):

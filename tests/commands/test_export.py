@@ -231,7 +231,7 @@ def test_exporting_a_trained_run_writes_a_mesh_and_points_that_read_back(tiny_ru
 
     checkpoint = tiny_run / "checkpoints" / "last.ckpt"  # a checkpoint path works as a run directory does
     result = run_nerfexp(str(checkpoint), "--resolution", "16", "--threshold", f"{threshold}", "--chunk", "300",
-                         cwd=tmp_path, script="nerfexp-export")
+                         new_process=True, cwd=tmp_path, script="nerfexp-export")
     assert result.returncode == 0, result.stderr[-3000:]
     summary = result.stdout.strip().splitlines()
     out = tiny_run / "export"

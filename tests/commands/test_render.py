@@ -82,7 +82,8 @@ def direct_render(module: torch.nn.Module, c2w: list, size: int, focal: float) -
 
 @pytest.mark.slow
 def test_an_orbit_of_a_trained_run_gives_videos_and_frames_of_its_renders(tiny_run, tmp_path):
-    result = run_nerfexp(str(tiny_run), "--frames", "6", "--size", "32", cwd=tmp_path, script="nerfexp-render")
+    result = run_nerfexp(str(tiny_run), "--frames", "6", "--size", "32", cwd=tmp_path, script="nerfexp-render",
+                         new_process=True)
     assert result.returncode == 0, result.stderr[-3000:]
     out = tiny_run / "render"
     cameras = json.loads((out / "cameras.json").read_text())

@@ -29,7 +29,7 @@ def test_a_short_run_learns_the_scene_and_writes_every_output(tmp_path):
                  "scale.width=64", "scale.skips=[2]", "scale.view_hidden=32", "scale.n_coarse=24",
                  "scale.n_fine=24", "scale.image_size=32", "data.n_train=40", "data.n_test=2",
                  "trainer.enable_progress_bar=false", f"hydra.run.dir={tmp_path}"]
-    result = run_nerfexp(*overrides, cwd=tmp_path)
+    result = run_nerfexp(*overrides, new_process=True, cwd=tmp_path)
     assert result.returncode == 0, result.stderr[-3000:]
     results = read_json(tmp_path / "results.json")
     # Not an empty scene: an all-white image scores about 9 dB here; the threshold asks for +6 dB.
@@ -37,8 +37,9 @@ def test_a_short_run_learns_the_scene_and_writes_every_output(tmp_path):
     assert results["test_psnr"] > baseline + 6, (results["test_psnr"], baseline)
     assert 0 < results["test_ssim"] <= 1 and results["steps"] == 400 and results["n_params"] > 0
     assert results["choices"] == {"encoding": "posenc", "view_dependence": "mlp", "data": "procedural",
-                                  "scale": "cpu", "trainer": "default", "acceleration": "none",
-                                  "callbacks": "default", "logger": "tensorboard", "hierarchical": True, "seed": 0}
+                                  "field": "nerf", "optimizer": "adam", "scale": "cpu", "trainer": "default",
+                                  "acceleration": "none", "callbacks": "default", "logger": "tensorboard",
+                                  "hierarchical": True, "seed": 0}
     # the test scored the checkpoint this run wrote, and says which, by path and content
     written = tmp_path / "checkpoints" / "last.ckpt"
     assert results["checkpoint"] == {"path": "checkpoints/last.ckpt",
@@ -107,7 +108,7 @@ def test_readme_multirun_trains_four_variants(tmp_path, tiny):
 
 
 def test_unknown_component_is_named(tmp_path):
-    result = run_nerfexp("encoding=posenk", cwd=tmp_path)
+    result = run_nerfexp("encoding=posenk", new_process=True, cwd=tmp_path)
     assert result.returncode == 1
     assert result.stderr == "nerfexp: error: encoding=posenk: no such option (choose from hashgrid, none, posenc)\n"
 
@@ -134,7 +135,7 @@ def test_missing_dataset_folder_is_one_clear_line(tmp_path):
 def test_a_blender_format_scene_written_by_the_exporter_trains(tmp_path, tiny):
     scene = tmp_path / "scene"
     exported = run_nerfexp(str(scene), "--resolution", "24", "--n-train", "10", "--n-val", "1", "--n-test", "2",
-                           cwd=tmp_path, script="nerfexp-scene")
+                           new_process=True, cwd=tmp_path, script="nerfexp-scene")
     assert exported.returncode == 0, exported.stderr[-2000:]
     overrides = [o for o in tiny if not o.startswith(("data.", "scale.image_size"))]
     result = run_nerfexp("data=blender", f"data.root={scene}", "data.downscale=2", "data.n_val=1", "data.test_stride=1",
@@ -170,7 +171,7 @@ def test_default_run_directories_of_runs_started_at_once_differ(tmp_path):
     # two commands started together (most often in the same second): their default directories
     # (outputs/DATE/HH-MM-SS-MICROSECONDS) differ
     def default_dir(_) -> str:
-        shown = run_nerfexp("--cfg", "hydra", "--resolve", cwd=tmp_path)
+        shown = run_nerfexp("--cfg", "hydra", "--resolve", new_process=True, cwd=tmp_path)
         lines = shown.stdout.splitlines()
         return next(line.split("dir: ")[1] for line in lines if line.startswith("    dir: outputs/"))
 

@@ -25,7 +25,7 @@ def records(run_dir: Path) -> list[tuple]:
 
 @pytest.mark.slow
 def test_a_killed_run_resumed_ends_as_the_uninterrupted_run(tiny_run, tmp_path, tiny):
-    killed = run_nerfexp(*tiny, *kill_at(30), f"hydra.run.dir={tmp_path}", cwd=tmp_path)
+    killed = run_nerfexp(*tiny, *kill_at(30), f"hydra.run.dir={tmp_path}", new_process=True, cwd=tmp_path)
     assert killed.returncode == -signal.SIGKILL, killed.stderr[-3000:]
     assert not (tmp_path / "results.json").exists() and final_state(tmp_path)["step"] == 30
     assert read_json(tmp_path / "status.json")["state"] == "running"  # as a killed job leaves it
@@ -52,7 +52,7 @@ def test_a_killed_run_resumed_ends_as_the_uninterrupted_run(tiny_run, tmp_path, 
 
 @pytest.mark.slow
 def test_an_evaluation_reproduces_the_runs_test_scores(tiny_run, tmp_path):
-    result = run_nerfexp(str(tiny_run), cwd=tmp_path, script="nerfexp-eval")
+    result = run_nerfexp(str(tiny_run), new_process=True, cwd=tmp_path, script="nerfexp-eval")
     assert result.returncode == 0, result.stderr[-3000:]
     scores, results = read_json(tiny_run / "eval.json"), read_json(tiny_run / "results.json")
     # the same weights, views and chunking as the run's own final test: the same numbers exactly
