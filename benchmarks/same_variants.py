@@ -6,8 +6,8 @@ installs of nerfexp (clean clones, each with its own environment) and compare th
     python benchmarks/same_variants.py compare OUT/before OUT/after
 
 ``run`` trains each variant of ``VARIANTS`` (300 steps; the default experiment at its own length) into
-``OUT/NAME``, one process at a time; run it alone on the machine: a hash grid's scatter-added gradients
-summed by threads another process slows down can come out in another order (seen once, see the results).
+``OUT/NAME``, one process at a time; run it alone on the machine: beside another process that trained, the
+hash grid's variants once came out different in the fourth decimal of PSNR (docs/testing.md).
 ``compare`` writes ``benchmarks/results/same_variants.md`` and ``.json``: per variant, whether the scores
 in results.json and every image under ``test/`` are identical.
 """
