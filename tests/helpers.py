@@ -73,8 +73,7 @@ def run_in_this_process(script: str, *args: str, cwd: Path) -> subprocess.Comple
     process would run it (``command``'s environment: Hydra's one-line errors, warnings ignored), and return
     what that process would have: SystemExit's status (its message on standard error, status 1, as Python
     prints it), a traceback and status 1 for any other exception, and what it wrote to stdout and stderr.
-    What the command changes of the process (working directory, argv, environment, logging, warnings
-    filters, signal handlers, random states, torch's settings) is put back afterwards (``isolated``)."""
+    What the command changes of the process is put back afterwards (``isolated``)."""
     assert not NEEDS_A_PROCESS.search(" ".join(args)), f"{args}: run with run_nerfexp(..., new_process=True)"
     (entry,) = entry_points(group="console_scripts", name=script)
     main = entry.load()
@@ -95,6 +94,12 @@ def run_in_this_process(script: str, *args: str, cwd: Path) -> subprocess.Comple
                                        err.buffer.getvalue().decode())
 
 
+def all_loggers() -> list[logging.Logger]:
+    """The root logger and every logger made so far (placeholders left out)."""
+    return [logging.getLogger(), *(logger for logger in logging.Logger.manager.loggerDict.values()
+                                   if isinstance(logger, logging.Logger))]
+
+
 @contextlib.contextmanager
 def isolated(cwd: Path, argv: list[str]) -> Iterator[None]:
     """Inside the block, ``cwd`` is the working directory and ``argv`` sys.argv; afterwards the process's
@@ -102,11 +107,9 @@ def isolated(cwd: Path, argv: list[str]) -> Iterator[None]:
     configures logging for each run, with a file handler in its directory), warnings filters, the
     handlers of SIGINT, SIGTERM and SIGUSR2, threading's excepthook, the random states, torch's global
     settings, and Hydra's global state (a test's own compose API, which the command's Hydra replaces)."""
-    saved_argv, saved_cwd, saved_env = sys.argv, os.getcwd(), dict(os.environ)
-    loggers = [logging.getLogger(), *(logger for logger in logging.Logger.manager.loggerDict.values()
-                                      if isinstance(logger, logging.Logger))]
+    saved_argv, saved_env = sys.argv, dict(os.environ)
     saved_loggers = {logger: (list(logger.handlers), logger.level, logger.propagate, logger.disabled)
-                     for logger in loggers}
+                     for logger in all_loggers()}
     saved_signals = {s: signal.getsignal(s) for s in (signal.SIGINT, signal.SIGTERM, signal.SIGUSR2)}
     saved_hook, saved_torch = threading.excepthook, (torch.get_num_threads(), torch.get_default_dtype(),
                                                      torch.get_float32_matmul_precision(),
@@ -116,22 +119,18 @@ def isolated(cwd: Path, argv: list[str]) -> Iterator[None]:
     saved_hydra = composing.hydra if composing.is_initialized() else None
     composing.clear()  # the command's @hydra.main initializes it anew
     sys.argv = argv
-    os.chdir(cwd)
     try:
-        with warnings.catch_warnings():
+        with contextlib.chdir(cwd), warnings.catch_warnings():
             warnings.simplefilter("ignore")  # as PYTHONWARNINGS=ignore does for a command's process
             yield
     finally:
         sys.argv = saved_argv
-        os.chdir(saved_cwd)
         composing.clear()
         if saved_hydra is not None:
             composing.initialize(saved_hydra)
         os.environ.clear()
         os.environ.update(saved_env)
-        for logger in [logging.getLogger(), *logging.Logger.manager.loggerDict.values()]:
-            if not isinstance(logger, logging.Logger):
-                continue
+        for logger in all_loggers():
             handlers, level, propagate, disabled = saved_loggers.get(logger, ([], logging.NOTSET, True, False))
             for handler in logger.handlers:
                 if handler not in handlers:
