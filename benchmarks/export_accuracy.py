@@ -39,7 +39,7 @@ QUANTILES = (0.5, 0.9, 0.99)
 
 def visible_surface(views) -> np.ndarray:
     """The exact surface points [M, 3] that the pixels of ``views`` see (their rays' first hits)."""
-    origins, directions = camera_rays(views.c2w.double(), views.height, views.width, views.focal)
+    origins, directions = camera_rays(views.c2w.double(), views.height, views.width, views.intrinsics)  # each its lens
     t, _, _ = intersect_scene(origins.reshape(-1, 3), directions.reshape(-1, 3))
     hit = torch.isfinite(t)
     return (origins.reshape(-1, 3)[hit] + t[hit, None] * directions.reshape(-1, 3)[hit]).numpy()

@@ -1,10 +1,24 @@
-"""Shared fixtures: the real config, shrunk to run in seconds on a CPU (``tests.helpers.TINY``)."""
+"""Shared fixtures: the real config, shrunk to run in seconds on a CPU (``tests.helpers.TINY``), and no test
+reaching the internet."""
 
 from pathlib import Path
 
 import pytest
 
-from tests.helpers import TINY, run_nerfexp
+from nerfexp.training import perceptual
+from tests.helpers import NO_INTERNET, TINY, run_nerfexp
+from tests.training.weights_server import refused_url
+
+
+@pytest.fixture(autouse=True)
+def no_downloads(monkeypatch):
+    """No test downloads AlexNet's weights (LPIPS fetches them where they are missing, ``fetch_alexnet``): its
+    address is one where nothing listens, and HTTPS goes through a proxy that is not there (``NO_INTERNET``,
+    also the environment of the commands ``run_nerfexp`` starts as processes). The download tests serve their
+    own files on 127.0.0.1 (``tests.training.weights_server``)."""
+    monkeypatch.setattr(perceptual, "ALEXNET_URL", refused_url(perceptual.ALEXNET_FILE))
+    for name, value in NO_INTERNET.items():
+        monkeypatch.setenv(name, value)
 
 
 @pytest.fixture

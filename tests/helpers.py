@@ -41,10 +41,19 @@ TINY = [
 TINY_SINGLE = "scale.n_single=48"  # hierarchical=false: as many evaluations per ray as 16 + (16 + 16)
 
 
+# HTTPS through a proxy where nothing listens (port 9, discard): a test's command downloads nothing, e.g. AlexNet's
+# weights for LPIPS (urllib reads these variables); servers on this machine (the viewer's, the download tests') are
+# reached directly
+NO_INTERNET = {"https_proxy": "http://127.0.0.1:9", "HTTPS_PROXY": "http://127.0.0.1:9",
+               "no_proxy": "127.0.0.1,localhost", "NO_PROXY": "127.0.0.1,localhost"}
+
+
 def command(script: str, *args: str) -> tuple[list[str], dict]:
-    """The command line of a console script and the environment to run it in as a user would."""
+    """The command line of a console script and the environment to run it in as a user would, without the
+    internet (``NO_INTERNET``)."""
     pythonpath = os.pathsep.join(filter(None, [str(REPO), os.environ.get("PYTHONPATH")]))
-    env = {**os.environ, "HYDRA_FULL_ERROR": "0", "PYTHONWARNINGS": "ignore", "PYTHONPATH": pythonpath}
+    env = {**os.environ, "HYDRA_FULL_ERROR": "0", "PYTHONWARNINGS": "ignore", "PYTHONPATH": pythonpath,
+           **NO_INTERNET}
     return [str(Path(sys.executable).with_name(script)), *args], env
 
 

@@ -169,7 +169,8 @@ def big_cameras(tmp_path) -> str:
     """A --cameras file of one camera whose frames are 200,000 pixels square."""
     path = tmp_path / "cameras.json"
     identity = [[1.0, 0.0, 0.0, 0.0], [0.0, 1.0, 0.0, 0.0], [0.0, 0.0, 1.0, 4.0], [0.0, 0.0, 0.0, 1.0]]
-    path.write_text(json.dumps({"height": 200_000, "width": 200_000, "focal": 100.0, "c2w": [identity]}))
+    lens = {"camera_model": "PINHOLE", "fl_x": 100.0, "fl_y": 100.0, "cx": 100_000.0, "cy": 100_000.0}
+    path.write_text(json.dumps({"height": 200_000, "width": 200_000, **lens, "c2w": [identity]}))
     return str(path)
 
 

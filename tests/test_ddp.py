@@ -11,6 +11,7 @@ from hydra.utils import instantiate
 from nerfexp.data.rays import RandomRays, rank_slice
 from nerfexp.data.views import Views
 from nerfexp.errors import ConfigError
+from nerfexp.geometry.lenses import Intrinsics
 from nerfexp.products.trained import load_module
 from nerfexp.rundir.layout import LAST_CHECKPOINT
 from nerfexp.rundir.trained import run_config
@@ -24,7 +25,8 @@ RAYS = ("origins", "directions", "rgb")
 def views(n=4, h=16, w=16) -> Views:
     c2w = torch.eye(4).repeat(n, 1, 1)
     c2w[:, :3, 3] = torch.arange(n, dtype=torch.float32)[:, None]  # a camera per view, told apart by origin
-    return Views(rgba=torch.rand(n, h, w, 4, generator=torch.Generator().manual_seed(0)), c2w=c2w, focal=12.0)
+    return Views(rgba=torch.rand(n, h, w, 4, generator=torch.Generator().manual_seed(0)), c2w=c2w,
+                 intrinsics=Intrinsics.pinhole(12.0, h, w, (n,)))
 
 
 @pytest.mark.parametrize("world_size", [2, 4])

@@ -14,6 +14,7 @@ from nerfexp.data.procedural import TRAIN_VIEWS
 from nerfexp.data.views import Views
 from nerfexp.errors import ConfigError
 from nerfexp.geometry.cameras import look_at
+from nerfexp.geometry.lenses import Intrinsics
 from nerfexp.settings.checks import check_settings
 from nerfexp.settings.rows import check_row
 from nerfexp.settings.unused import check_used
@@ -42,7 +43,8 @@ def scenes(tmp_path_factory) -> dict[str, list[str]]:
     blender, llff = tmp_path_factory.mktemp("blender"), tmp_path_factory.mktemp("llff")
     rgba = torch.cat([images, torch.ones_like(images[..., :1])], -1)
     for split, views in (("train", slice(0, N_VIEWS)), ("val", slice(0, 2)), ("test", slice(0, 2))):
-        write_blender(blender, split, Views(rgba=rgba[views], c2w=c2w[views].float(), focal=10.0), 0.7)
+        lenses = Intrinsics.pinhole(10.0, SIDE, SIDE, (len(rgba[views]),))
+        write_blender(blender, split, Views(rgba=rgba[views], c2w=c2w[views].float(), intrinsics=lenses), 0.7)
     write_llff(llff, images, c2w, 10.0, torch.tensor([[3.0, 5.0]] * N_VIEWS))
     return {"procedural": ["data=procedural", f"scale.image_size={SIDE}", "data.supersample=1"],
             "blender": ["data=blender", f"data.root={blender}"],

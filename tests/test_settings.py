@@ -295,13 +295,13 @@ def test_any_override_or_argument_of_a_command_reading_a_run_back_is_one_line_or
             module, _ = load_module(cfg, saved_run / LAST_CHECKPOINT)
             scene = instantiate(cfg.data)
             views = scene.views("test")
-            frame = render_frame(module, scene, views.c2w[0], views.height, views.width, views.focal)
+            frame = render_frame(module, scene, views.c2w[0], views.height, views.width, views.intrinsics[0])
         else:
             _, _, cfg, module, _ = load_run(args.run, args.overrides, args.chunk)
             scene = instantiate(cfg.data)
             cameras = training_path(scene, cfg.data, args.path, args.frames or 2, args.focus, args.fps or 30.0)
-            height, width, focal = frame_size(cameras.height, cameras.width, cameras.focal, args.size)
-            frame = render_frame(module, scene, cameras.c2w[-1], height, width, focal)
+            height, width, lens = frame_size(cameras.height, cameras.width, cameras.intrinsics, args.size)
+            frame = render_frame(module, scene, cameras.c2w[-1], height, width, lens)
     except NerfexpError as error:
         assert "\n" not in str(error), str(error)
         if isinstance(error, ConfigError) and "cannot apply" not in str(error):

@@ -33,6 +33,7 @@ from nerfexp.data.procedural import (
 from nerfexp.data.views import Views
 from nerfexp.errors import NerfexpError
 from nerfexp.geometry.cameras import camera_rays, focal_from_fov
+from nerfexp.geometry.lenses import Intrinsics
 from nerfexp.nerf.fields import FieldOutputs
 from nerfexp.nerf.occupancy import OccupancyGrid
 from nerfexp.nerf.volume_renderer import VolumeRenderer
@@ -180,12 +181,13 @@ class ExactModule:
 
 def test_points_from_the_scenes_exact_depths_lie_on_its_surface_in_the_absorbed_colour():
     size = 32
-    views = Views(rgba=torch.zeros(2, size, size, 4), c2w=scene_cameras("test", 2).float(),
-                  focal=focal_from_fov(size, CAMERA_ANGLE_X))
+    lenses = Intrinsics.pinhole(focal_from_fov(size, CAMERA_ANGLE_X), size, size, (2,))
+    lenses.params[1, 2:] += torch.tensor([3.0, -2.0], dtype=torch.float64)  # the second view's off the centre
+    views = Views(rgba=torch.zeros(2, size, size, 4), c2w=scene_cameras("test", 2).float(), intrinsics=lenses)
     points, colours = view_points(ExactModule(), ProceduralScene(), views, min_opacity=0.5)
 
     # one point per pixel whose ray hits an object other than a rod (whose 0.3 is below 0.5)
-    origins, directions = camera_rays(views.c2w, size, size, views.focal)  # the float32 rays it renders
+    origins, directions = camera_rays(views.c2w, size, size, views.intrinsics)  # the float32 rays it renders
     t, _, index = intersect_scene(origins.double(), directions.double())
     assert len(points) == (torch.isfinite(t) & (index < 3)).sum() > 200
     # on the surface (distance 0 to the nearest object), to float32's rounding of depths near 4

@@ -22,6 +22,7 @@ from viser import transforms as viser_transforms
 from nerfexp import manifest
 from nerfexp.commands import view
 from nerfexp.geometry.cameras import camera_rays, focal_from_fov, look_at
+from nerfexp.geometry.lenses import Intrinsics
 from nerfexp.geometry.viewer_cameras import vertical_fov
 from nerfexp.products.camera_files import read_camera_path
 from nerfexp.products.trained import load_run
@@ -76,7 +77,7 @@ def test_a_viewer_camera_looking_at_a_point_is_the_camera_look_at_gives(eye, tar
 def test_the_viewers_centre_pixel_sees_the_point_looked_at_and_its_top_row_sees_up():
     eye, target, up = torch.tensor([3.0, 1.0, 2.0]), torch.tensor([0.5, -0.5, 0.25]), torch.tensor([0.0, 0.0, 1.0])
     wxyz = torch.from_numpy(viser_wxyz(eye.double().numpy(), target.double().numpy(), up.double().numpy()))
-    origins, directions = camera_rays(viewer_c2w(wxyz, eye), 3, 3, 2.0)
+    origins, directions = camera_rays(viewer_c2w(wxyz, eye), 3, 3, Intrinsics.pinhole(2.0, 3, 3))
     torch.testing.assert_close(origins[1, 1], eye.double())
     torch.testing.assert_close(directions[1, 1], ((target - eye) / (target - eye).norm()).double())
     assert directions[0, 1] @ up.double() > directions[1, 1] @ up.double() > directions[2, 1] @ up.double()
@@ -175,11 +176,13 @@ def test_a_saved_camera_path_is_read_back_by_nerfexp_render(tmp_path):
     path = saved_camera_path(keyframes, max_width=25)
     # 25 made even (12.5 pairs round to 12); the first keyframe's 32 x 16 aspect and vertical field of view, 1 rad
     assert (path.name, path.width, path.height) == ("viewer", 24, 12)
-    assert path.focal == pytest.approx(6 / math.tan(0.5))
+    focal = 6 / math.tan(0.5)  # a pinhole centred on the 24 x 12 frames
+    torch.testing.assert_close(path.intrinsics.params, torch.tensor([focal, focal, 12.0, 6.0], dtype=torch.float64))
+    assert not path.intrinsics.is_distorted()
     (tmp_path / CAMERA_PATH.name).write_text(json.dumps(path.record()))
     read = read_camera_path(tmp_path / CAMERA_PATH.name)
-    assert (read.name, read.height, read.width, read.focal, read.fps) == (
-        path.name, path.height, path.width, path.focal, path.fps)
+    assert (read.name, read.height, read.width, read.fps) == (path.name, path.height, path.width, path.fps)
+    assert torch.equal(read.intrinsics.params, path.intrinsics.params) and not read.intrinsics.is_distorted()
     torch.testing.assert_close(read.c2w, torch.stack([k.c2w for k in keyframes]))
 
 
@@ -294,7 +297,8 @@ def test_the_viewer_sends_renders_of_the_first_test_camera_to_a_real_browser(tin
         # render of the same camera, apart from where the page's panels lie over it
         width, height = int(match[2]), int(match[3])
         loaded = load_run(tiny_run)
-        request = ViewRequest(first, vertical_fov(views.height, views.focal), height, width, "opacity")
+        fy = views.intrinsics.params[0, 1].item()  # the viewer's initial camera: the first test view's
+        request = ViewRequest(first, vertical_fov(views.height, fy), height, width, "opacity")
         expected = render_request(loaded.module, instantiate(loaded.cfg.data), threading.Lock(), request, height,
                                   width, lambda: False).astype(int)
         assert np.median(np.abs(255 - expected).max(-1)) > 48  # the frame is far from viser's white page

@@ -12,6 +12,7 @@ from PIL import Image
 
 from nerfexp.data import procedural
 from nerfexp.geometry.cameras import camera_rays, look_at
+from nerfexp.geometry.lenses import Intrinsics
 
 UP = torch.tensor([0.0, 0.0, 1.0], dtype=torch.float64)
 
@@ -72,9 +73,11 @@ def render_photographs(c2w: torch.Tensor, focal: float) -> tuple[np.ndarray, tor
     plane and the dome surrounds everything, so the scene occludes them by its alpha (2 x 2 rays per
     pixel: anti-aliased edges, which SIFT locates more precisely than one ray's staircase; at 256 px
     and one ray the centre error was 0.013-0.014, at the 1% limit), and the floor occludes the dome
-    where it is hit. Distances are the scene's wherever any of a pixel's rays hits it."""
-    rgba = procedural.render_rgba(c2w, SIZE, SIZE, focal, supersample=2).double()  # [N, H, W, 4]
-    origins, directions = camera_rays(c2w, SIZE, SIZE, focal)  # [N, H, W, 3]
+    where it is hit. Distances are the scene's wherever any of a pixel's rays hits it. The camera is an
+    ideal pinhole of focal length ``focal`` (pixels) centred on the image."""
+    lens = Intrinsics.pinhole(focal, SIZE, SIZE)
+    rgba = procedural.render_rgba(c2w, SIZE, SIZE, lens, supersample=2).double()  # [N, H, W, 4]
+    origins, directions = camera_rays(c2w, SIZE, SIZE, lens)  # [N, H, W, 3]
     t_floor = (FLOOR_Z - origins[..., 2]) / directions[..., 2]
     floor_xy = (origins + t_floor[..., None] * directions)[..., :2]
     on_floor = (t_floor > 0) & (floor_xy.abs() < FLOOR_HALF).all(-1)

@@ -116,7 +116,8 @@ def test_fuzz_transforms_files_load_exactly_or_fail_naming_the_file(tmp_path_fac
         assert str(root) in str(error) and "\n" not in str(error), str(error)
     else:  # loaded: the pose, angle and image written
         assert torch.equal(views.c2w[0], torch.tensor(matrix, dtype=torch.float32))
-        assert views.focal == pytest.approx(0.5 * 8 / math.tan(0.5 * angle))
+        fx, fy, cx, cy = views.intrinsics.params[0].tolist()  # a pinhole centred on the 8 x 8 image
+        assert fx == fy == pytest.approx(0.5 * 8 / math.tan(0.5 * angle)) and (cx, cy) == (4.0, 4.0)
         assert torch.equal(views.rgba[0], torch.from_numpy(PIXELS).float() / 255)
 
 

@@ -10,6 +10,7 @@ from nerfexp.data.procedural import CAMERA_ANGLE_X, ProceduralScene, objects_box
 from nerfexp.data.views import Views
 from nerfexp.errors import ConfigError
 from nerfexp.geometry.boxes import frustum_aabb
+from nerfexp.geometry.lenses import Intrinsics
 
 NEAR, FAR = 2.0, 6.0
 
@@ -41,7 +42,12 @@ def test_the_box_comes_from_the_config_then_the_scene_then_the_cameras():
     assert explicit.box(None, NEAR, FAR).tolist() == [[-1, -2, -3], [1, 2, 3]]
     with pytest.raises(ConfigError, match="data.aabb: expected"):
         ProceduralScene(aabb=[[0, 0, 0], [1, -1, 1]]).box(None, NEAR, FAR)
-    views = Views(rgba=torch.zeros(20, 8, 8, 4), c2w=scene_cameras("train", 20).float(), focal=10.0)
-    assert torch.equal(BoxlessScene().box(views, NEAR, FAR), frustum_aabb(views.c2w, 8, 8, 10.0, NEAR, FAR))
+    # the training views' own lenses bound it: each its own, principal points off the centre by up to 2 px
+    lenses = Intrinsics.pinhole(10.0, 8, 8, (20,))
+    lenses.params[:, 2] += torch.linspace(-2, 2, 20, dtype=torch.float64)
+    views = Views(rgba=torch.zeros(20, 8, 8, 4), c2w=scene_cameras("train", 20).float(), intrinsics=lenses)
+    box = BoxlessScene().box(views, NEAR, FAR)
+    assert torch.equal(box, frustum_aabb(views.c2w, lenses, 8, 8, NEAR, FAR))
+    assert not torch.equal(box, frustum_aabb(views.c2w, Intrinsics.pinhole(10.0, 8, 8, (20,)), 8, 8, NEAR, FAR))
     with pytest.raises(ConfigError, match="set data.aabb"):
         BoxlessScene().box(None, NEAR, FAR)

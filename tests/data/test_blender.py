@@ -12,8 +12,16 @@ from PIL import Image
 from nerfexp.data.blender import load_blender, write_blender
 from nerfexp.data.views import Views
 from nerfexp.errors import DatasetError
+from nerfexp.geometry.lenses import Intrinsics
 
 ANGLE = 0.6911112070083618
+
+
+def assert_centred_pinholes(views: Views, focal: float) -> None:
+    """Every view's lens is an undistorted pinhole of focal length ``focal`` (both axes) centred on its image."""
+    expected = torch.tensor([focal, focal, views.width / 2, views.height / 2], dtype=torch.float64)
+    torch.testing.assert_close(views.intrinsics.params, expected.expand(len(views), 4))
+    assert not views.intrinsics.is_distorted().any()
 
 
 def make_views(n=6, height=6, width=8, seed=0) -> Views:
@@ -24,7 +32,7 @@ def make_views(n=6, height=6, width=8, seed=0) -> Views:
     q = q * torch.linalg.det(q).sign()[:, None, None]  # rotations (det +1), not reflections: camera poses
     c2w = torch.eye(4).repeat(n, 1, 1)
     c2w[:, :3, :3], c2w[:, :3, 3] = q.float(), torch.randn(n, 3, generator=g)
-    return Views(rgba=rgba, c2w=c2w, focal=1.0)
+    return Views(rgba=rgba, c2w=c2w, intrinsics=Intrinsics.pinhole(1.0, height, width, (n,)))
 
 
 @pytest.fixture
@@ -48,7 +56,7 @@ def test_round_trip(scene):
     loaded = load_blender(root, "train")
     assert torch.equal(loaded.c2w, views.c2w)
     torch.testing.assert_close(loaded.rgba, views.rgba, atol=0.5 / 255, rtol=0)  # 8-bit rounding
-    assert loaded.focal == pytest.approx(0.5 * 8 / math.tan(0.5 * ANGLE))
+    assert_centred_pinholes(loaded, 0.5 * 8 / math.tan(0.5 * ANGLE))
     assert not list(root.rglob("*.tmp"))  # no temporary files left behind
 
 
@@ -56,7 +64,7 @@ def test_downscale_by_two_halves_size_and_focal(scene):
     root, _ = scene
     full, half = load_blender(root, "train"), load_blender(root, "train", downscale=2)
     assert half.rgba.shape == (6, 3, 4, 4)
-    assert half.focal == pytest.approx(full.focal / 2)
+    assert_centred_pinholes(half, full.intrinsics.params[0, 0].item() / 2)
     # alpha is the block mean; colour is the alpha-weighted block mean
     blocks = full.rgba.reshape(6, 3, 2, 4, 2, 4)
     alpha = blocks[..., 3].mean((2, 4))
@@ -70,14 +78,17 @@ def test_downscale_does_not_bleed_transparent_colour(tmp_path):
     rgba = torch.zeros(1, 2, 2, 4)
     rgba[..., 2] = 1
     rgba[0, 0, 0] = torch.tensor([1.0, 0, 0, 1])
-    write_blender(tmp_path, "train", Views(rgba=rgba, c2w=torch.eye(4)[None], focal=1.0), ANGLE)
+    views = Views(rgba=rgba, c2w=torch.eye(4)[None], intrinsics=Intrinsics.pinhole(1.0, 2, 2, (1,)))
+    write_blender(tmp_path, "train", views, ANGLE)
     assert load_blender(tmp_path, "train", downscale=2).rgba[0, 0, 0].tolist() == [1, 0, 0, 0.25]
 
 
 def test_downscale_not_dividing_the_size_keeps_the_whole_image(tmp_path):
     write_blender(tmp_path, "train", make_views(n=1, height=5, width=7), ANGLE)
     views = load_blender(tmp_path, "train", downscale=2)
-    assert views.rgba.shape == (1, 2, 3, 4) and views.focal == pytest.approx(0.5 * 3 / math.tan(0.5 * ANGLE))
+    assert views.rgba.shape == (1, 2, 3, 4)
+    fx, _, cx, cy = views.intrinsics.params[0].tolist()  # the field of view across the 3 columns kept
+    assert fx == pytest.approx(0.5 * 3 / math.tan(0.5 * ANGLE)) and (cx, cy) == (1.5, 1.0)
 
 
 @pytest.mark.parametrize("stride, max_views, frames", [
@@ -205,6 +216,7 @@ def test_scene_caps_the_image_side_for_cpu_sized_runs(tmp_path):
     capped = BlenderScene(str(tmp_path), max_side=5).views("train")
     direct = load_blender(tmp_path, "train", downscale=4)
     assert capped.rgba.shape == (6, 3, 4, 4)
-    assert capped.focal == pytest.approx(direct.focal)
+    torch.testing.assert_close(capped.intrinsics.params, direct.intrinsics.params)
+    assert_centred_pinholes(capped, 0.5 * 4 / math.tan(0.5 * ANGLE))
     torch.testing.assert_close(capped.rgba, direct.rgba)
     assert BlenderScene(str(tmp_path), max_side=16).views("train").rgba.shape == (6, 12, 16, 4)

@@ -19,6 +19,7 @@ from nerfexp.data.colmap_sfm import read_model
 from nerfexp.data.datamodule import fill_ray_bounds
 from nerfexp.errors import DatasetError
 from nerfexp.geometry.cameras import camera_rays, focal_from_fov, look_at
+from nerfexp.geometry.lenses import Intrinsics, pixel_rays
 from tests.data.photographs import (
     FOCAL,
     HEIGHT,
@@ -72,9 +73,16 @@ def test_pipeline_recovers_the_true_cameras_up_to_a_similarity(tmp_path):
     scene = ColmapScene(root=str(tmp_path), threads=2)
     data = scene.load()
     assert data.names == [f"{i:03d}.png" for i in range(N_VIEWS)]  # every view registered, in name order
-    # SIMPLE_RADIAL (the default) estimated a small distortion: the images were undistorted to PINHOLE
-    assert (tmp_path / "colmap" / "undistorted" / "images").is_dir() and data.image_dir.parent.name == "undistorted"
-    assert data.focal == pytest.approx(focal_true, rel=0.01)
+    # SIMPLE_RADIAL (the default) estimated a small distortion: it goes into the rays, and the images are
+    # read from where they are, never resampled into an undistorted copy
+    assert not (tmp_path / "colmap" / "undistorted").exists() and data.image_dir == tmp_path / "images"
+    lenses = data.intrinsics
+    assert lenses.shape == (N_VIEWS,) and not lenses.fisheye.any()
+    fx, fy, cx, cy = lenses.params.unbind(-1)
+    assert torch.equal(fx, fy) and fx.tolist() == pytest.approx([focal_true] * N_VIEWS, rel=0.01)  # one f
+    assert cx.tolist() == [SIZE / 2] * N_VIEWS and cy.tolist() == [SIZE / 2] * N_VIEWS  # not refined: centred
+    k1 = lenses.distortion[:, 0]  # the photographs are a pinhole's: what COLMAP estimated is small
+    assert (k1 == k1[0]).all() and abs(k1[0].item()) < 0.05 and not lenses.distortion[:, 1:].any(), lenses.distortion
 
     s, R, t = umeyama(data.c2w[:, :3, 3], c2w_true[:, :3, 3])  # recovered world -> true world
     centres = s * data.c2w[:, :3, 3] @ R.T + t
@@ -91,7 +99,9 @@ def test_pipeline_recovers_the_true_cameras_up_to_a_similarity(tmp_path):
 
     test, train = scene.views("test"), scene.views("train")
     assert len(test) == 4 and len(train) == 26 and len(scene.views("val")) == 2  # every 8th image is a test view
-    assert test.rgba.shape[1:] == (data.height, data.width, 4) and test.focal == pytest.approx(data.focal)
+    assert test.rgba.shape[1:] == (data.height, data.width, 4)
+    assert torch.equal(test.intrinsics.params, data.intrinsics.params[::8])
+    assert torch.equal(test.intrinsics.distortion, data.intrinsics.distortion[::8])
     torch.testing.assert_close(test.c2w, data.c2w[::8].float())
 
     # a second load reads the cache: nothing reconstructed or rewritten, and images/ untouched
@@ -125,11 +135,13 @@ def colmap_pose(eye, target=(0.0, 0.0, 0.0), up=(0.0, 0.0, 1.0)) -> pycolmap.Rig
     return pycolmap.Rigid3d(pycolmap.Rotation3d(R), -R @ eye)
 
 
-def hand_made_model(principal_point=(WIDTH / 2, HEIGHT / 2), ring=RING) -> pycolmap.Reconstruction:
-    """Pinhole cameras on ``ring`` and the two POINTS, each point observed by every camera."""
+def hand_made_model(principal_point=(WIDTH / 2, HEIGHT / 2), ring=RING, model="SIMPLE_PINHOLE",
+                    distortion=()) -> pycolmap.Reconstruction:
+    """Cameras on ``ring`` sharing one lens (COLMAP's ``model``: f, the principal point, then ``distortion``'s
+    coefficients), and the two POINTS, each point observed by every camera where COLMAP projects it."""
     reconstruction = pycolmap.Reconstruction()
     reconstruction.add_camera_with_trivial_rig(pycolmap.Camera(
-        model="SIMPLE_PINHOLE", width=WIDTH, height=HEIGHT, params=[FOCAL, *principal_point], camera_id=1))
+        model=model, width=WIDTH, height=HEIGHT, params=[FOCAL, *principal_point, *distortion], camera_id=1))
     camera = reconstruction.cameras[1]
     for i, eye in enumerate(ring, start=1):
         pose = colmap_pose(eye)
@@ -154,7 +166,9 @@ def test_reads_a_model_written_as_text_or_binary(tmp_path, form):
 
     scene = ColmapScene(root=str(tmp_path), holdout=2, n_val=1)
     data = scene.load()
-    assert data.names == [f"view_{i}.png" for i in range(1, 5)] and data.focal == FOCAL
+    assert data.names == [f"view_{i}.png" for i in range(1, 5)]
+    assert data.intrinsics.params.tolist() == [[FOCAL, FOCAL, WIDTH / 2, HEIGHT / 2]] * 4
+    assert not data.intrinsics.is_distorted().any()
     # the mean camera centre is the origin and the cameras are 4 from it: with bound 4 the scale is 1
     assert data.scale == pytest.approx(1.0) and torch.allclose(data.centre, torch.zeros(3, dtype=torch.float64))
     expected = look_at(torch.tensor(RING, dtype=torch.float64), torch.zeros(3, dtype=torch.float64), UP)
@@ -184,7 +198,8 @@ def test_the_conventions_by_hand_on_a_colmap_3_text_model(tmp_path):
     torch.testing.assert_close(c2w, expected)
     # the origin is in front of the camera, on its axis: pycolmap projects it to the image centre
     assert image.project_point(np.zeros(3)) == pytest.approx([4.0, 3.0])
-    origin, direction = camera_rays(c2w, 2, 2, 10.0)  # the ray through the centre is the mean of the four
+    # the ray through the centre is the mean of the four
+    origin, direction = camera_rays(c2w, 2, 2, Intrinsics.pinhole(10.0, 2, 2))
     assert torch.nn.functional.normalize(direction.sum((0, 1)), dim=-1).tolist() == pytest.approx([-1.0, 0, 0])
 
 
@@ -251,12 +266,44 @@ def test_unsupported_camera_model(tmp_path):
         ColmapScene(root=str(tmp_path), camera_model="EQUIRECTANGULAR").load()
 
 
-def test_off_centre_principal_point(tmp_path):
+def assert_rays_through_the_keypoints_hit_the_points(tmp_path, data) -> None:
+    """The ray of each image through the image coordinates where COLMAP observed each of POINTS (its
+    keypoints, projected by COLMAP's own lens model) passes through that point: nerfexp's lens inverts
+    COLMAP's (principal point, distortion) exactly. The scene is not rescaled (RING at bound 4: scale 1)."""
+    reconstruction = read_model(tmp_path / "sparse")
+    for k, image_id in enumerate(sorted(reconstruction.images)):
+        image = reconstruction.images[image_id]
+        keypoints = torch.tensor(np.array([point.xy for point in image.points2D]), dtype=torch.float64)
+        d = pixel_rays(keypoints, data.intrinsics[k]) @ data.c2w[k, :3, :3].T  # [2, 3] world directions
+        to_points = torch.tensor(POINTS, dtype=torch.float64) - data.c2w[k, :3, 3]
+        miss = torch.linalg.vector_norm(torch.linalg.cross(to_points, d, dim=-1), dim=-1)
+        assert miss.max() < 1e-9, (image.name, miss)
+
+
+def test_an_off_centre_principal_point_is_read_into_the_rays(tmp_path):
     (tmp_path / "sparse").mkdir()
-    hand_made_model(principal_point=(5.0, 3.0)).write_binary(tmp_path / "sparse")
+    hand_made_model(principal_point=(5.0, 3.5)).write_binary(tmp_path / "sparse")
     write_images(tmp_path, [f"view_{i}.png" for i in range(1, 5)])
-    with pytest.raises(DatasetError, match=r"principal point \(5, 3\) is off the image centre \(4, 3\)"):
-        ColmapScene(root=str(tmp_path)).load()
+    data = ColmapScene(root=str(tmp_path)).load()
+    assert data.intrinsics.params.tolist() == [[FOCAL, FOCAL, 5.0, 3.5]] * 4
+    assert_rays_through_the_keypoints_hit_the_points(tmp_path, data)
+
+
+def test_a_distorted_model_is_read_with_its_distortion_and_its_images_as_they_are(tmp_path):
+    (tmp_path / "sparse").mkdir()
+    hand_made_model(model="SIMPLE_RADIAL", distortion=(0.1,)).write_binary(tmp_path / "sparse")
+    write_images(tmp_path, [f"view_{i}.png" for i in range(1, 5)])
+    scene = ColmapScene(root=str(tmp_path), holdout=2)
+    data = scene.load()
+    assert data.image_dir == tmp_path / "images"
+    assert data.intrinsics.params.tolist() == [[FOCAL, FOCAL, WIDTH / 2, HEIGHT / 2]] * 4
+    assert data.intrinsics.distortion[:, 0].tolist() == [0.1] * 4 and not data.intrinsics.distortion[:, 1:].any()
+    assert not data.intrinsics.fisheye.any()
+    assert_rays_through_the_keypoints_hit_the_points(tmp_path, data)
+    views = scene.views("train")  # views 2 and 4: their images read as they are, their lenses kept
+    assert views.rgba.shape == (2, HEIGHT, WIDTH, 4) and (views.rgba[0, ..., :3] == 10 / 255).all()
+    assert views.intrinsics.distortion[:, 0].tolist() == [0.1] * 2
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["images", "sparse"]  # no undistorted copy written
 
 
 def test_a_cache_folder_without_a_model_is_left_alone(tmp_path):

@@ -11,6 +11,7 @@ from nerfexp.data import glossy as G
 from nerfexp.data.blender import BlenderScene
 from nerfexp.data.procedural import CAMERA_ANGLE_X, scene_cameras, shade
 from nerfexp.geometry.cameras import camera_rays, focal_from_fov
+from nerfexp.geometry.lenses import Intrinsics
 
 F64 = torch.float64
 
@@ -126,9 +127,9 @@ def test_mirror_pixels_show_the_tinted_environment_in_the_reflected_direction():
     # leaves the scene: its pixel is F tint environment(r), r = d - 2 (d.n) n, F = F0 + (1 - F0) (1 - cos)^5.
     c2w = scene_cameras("train", 100)[-1:]
     size = 32
-    focal = focal_from_fov(size, CAMERA_ANGLE_X)
-    image = G.render_glossy_rgba(c2w, size, size, focal, supersample=1)[0]  # [H, W, 4]
-    origins, directions = (x[0].reshape(-1, 3) for x in camera_rays(c2w, size, size, focal))
+    lens = Intrinsics.pinhole(focal_from_fov(size, CAMERA_ANGLE_X), size, size)
+    image = G.render_glossy_rgba(c2w, size, size, lens, supersample=1)[0]  # [H, W, 4]
+    origins, directions = (x[0].reshape(-1, 3) for x in camera_rays(c2w, size, size, lens))
     centre, radius = torch.tensor(G.MIRROR[0], dtype=F64), G.MIRROR[1]
     q = origins - centre
     b = (q * directions).sum(-1)
@@ -207,16 +208,17 @@ def test_rays_that_miss_are_transparent_and_images_are_finite_in_range():
     c2w = scene_cameras("val", 2)
     size = 24
     focal = focal_from_fov(size, CAMERA_ANGLE_X)
-    images = G.render_glossy_rgba(c2w, size, size, focal, supersample=2)
+    lens = Intrinsics.pinhole(focal, size, size)
+    images = G.render_glossy_rgba(c2w, size, size, lens, supersample=2)
     assert images.shape == (2, size, size, 4) and torch.isfinite(images).all()
     assert images.min() >= 0 and images.max() <= 1
     # Every sub-pixel ray of a pixel passes farther than SCENE_RADIUS from the origin: the pixel is empty.
-    origins, directions = camera_rays(c2w, 2 * size, 2 * size, 2 * focal)
+    origins, directions = camera_rays(c2w, 2 * size, 2 * size, Intrinsics.pinhole(2 * focal, 2 * size, 2 * size))
     distance = torch.linalg.cross(-origins, directions, dim=-1).norm(dim=-1)  # from the origin to the ray
     far = (distance > G.SCENE_RADIUS).reshape(2, size, 2, size, 2).all(-1).all(-2)
     assert far.any() and (~far).any()
     assert (images[far] == 0).all()
-    assert torch.equal(images, G.render_glossy_rgba(c2w, size, size, focal, supersample=2))  # deterministic
+    assert torch.equal(images, G.render_glossy_rgba(c2w, size, size, lens, supersample=2))  # deterministic
 
 
 def test_nerfexp_scene_glossy_writes_a_blender_dataset(tmp_path):

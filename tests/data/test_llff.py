@@ -14,6 +14,7 @@ from nerfexp.data.llff import LLFFScene, load_llff, write_llff
 from nerfexp.data.procedural import CAMERA_ANGLE_X, intersect_scene, render_rgba
 from nerfexp.errors import ConfigError, DatasetError
 from nerfexp.geometry.cameras import camera_rays, focal_from_fov, look_at
+from nerfexp.geometry.lenses import Intrinsics
 from nerfexp.nerf.encodings import IdentityEncoding
 from nerfexp.nerf.fields import DiffuseHead, NeRFField
 from nerfexp.training.metrics import psnr
@@ -21,6 +22,7 @@ from tests.helpers import read_json, run_nerfexp
 
 HEIGHT, WIDTH = 30, 40
 FOCAL = focal_from_fov(WIDTH, CAMERA_ANGLE_X)
+LENS = Intrinsics.pinhole(FOCAL, HEIGHT, WIDTH)
 UP = torch.tensor([0.0, 0.0, 1.0], dtype=torch.float64)
 
 
@@ -38,7 +40,7 @@ def forward_facing_cameras(n_side: int = 4, spacing: float = 0.2) -> torch.Tenso
 
 def true_bounds(c2w: torch.Tensor) -> torch.Tensor:
     """[N, 2]: the nearest and farthest depth along each camera's axis (-z) of the surfaces it sees."""
-    origins, directions = camera_rays(c2w, HEIGHT, WIDTH, FOCAL)  # [N, H, W, 3]
+    origins, directions = camera_rays(c2w, HEIGHT, WIDTH, LENS)  # [N, H, W, 3]
     t, _, _ = intersect_scene(origins, directions)
     depth = t * -(directions * c2w[:, None, None, :3, 2]).sum(-1)  # distance along the axis
     hit = torch.isfinite(depth)
@@ -51,7 +53,7 @@ def scene(tmp_path_factory):
     """A 16-view forward-facing LLFF scene: (root, images [16, H, W, 3] as written, c2w, bounds)."""
     root = tmp_path_factory.mktemp("llff")
     c2w = forward_facing_cameras()
-    rgba = render_rgba(c2w, HEIGHT, WIDTH, FOCAL)
+    rgba = render_rgba(c2w, HEIGHT, WIDTH, LENS)
     images = rgba[..., :3] * rgba[..., 3:]  # opaque photographs: the scene on black
     bounds = true_bounds(c2w)
     write_llff(root, images, c2w, FOCAL, bounds)
@@ -66,6 +68,14 @@ def test_the_file_holds_llff_columns_down_right_back_centre_hwf(scene):
     right, up, back, centre = c2w[5, :3, :4].T
     torch.testing.assert_close(pose.T, torch.stack([-up, right, back, centre, torch.tensor([HEIGHT, WIDTH, FOCAL])]))
     assert rows[5, 15:].tolist() == bounds[5].tolist()
+
+
+def assert_centred_pinholes(views, fx: float, fy: float) -> None:
+    """Every view's lens is an undistorted pinhole with focal lengths ``fx``, ``fy`` and its principal point
+    at the centre of its (possibly shrunk) image."""
+    expected = torch.tensor([fx, fy, views.width / 2, views.height / 2], dtype=torch.float64)
+    torch.testing.assert_close(views.intrinsics.params, expected.expand(len(views), 4))
+    assert not views.intrinsics.is_distorted().any()
 
 
 def expected_poses(c2w: torch.Tensor, scale: float) -> torch.Tensor:
@@ -86,7 +96,8 @@ def test_a_written_scene_loads_back_with_its_poses_bounds_and_split(scene):
     root, images, c2w, bounds = scene
     data = load_llff(root, factor=1)
     views = data.views
-    assert (views.height, views.width) == (HEIGHT, WIDTH) and views.focal == pytest.approx(FOCAL)
+    assert (views.height, views.width) == (HEIGHT, WIDTH)
+    assert_centred_pinholes(views, FOCAL, FOCAL)
     torch.testing.assert_close(views.rgba[..., :3], images.float(), rtol=0, atol=1e-6)
     assert (views.rgba[..., 3] == 1).all()
     # Bounds: scaled so that the nearest is 1 / 0.75.
@@ -110,6 +121,7 @@ def test_a_written_scene_loads_back_with_its_poses_bounds_and_split(scene):
     assert data.splits["val"].tolist() == [0, 8]
     test = data.split("test")
     assert torch.equal(test.c2w, views.c2w[[0, 8]]) and torch.equal(test.rgba, views.rgba[[0, 8]])
+    assert torch.equal(test.intrinsics.params, views.intrinsics.params[[0, 8]])
     assert load_llff(root, factor=1, holdout=5, n_val=1).splits["val"].tolist() == [0]
     assert load_llff(root, factor=1, holdout=5).splits["test"].tolist() == [0, 5, 10, 15]
 
@@ -117,11 +129,14 @@ def test_a_written_scene_loads_back_with_its_poses_bounds_and_split(scene):
 def test_a_factor_shrinks_images_and_focal(scene):
     root, *_ = scene
     full, half = load_llff(root, factor=1).views, load_llff(root, factor=2).views
-    assert half.rgba.shape == (16, 15, 20, 4) and half.focal == pytest.approx(FOCAL / 2)
+    assert half.rgba.shape == (16, 15, 20, 4)
+    assert_centred_pinholes(half, FOCAL / 2, FOCAL / 2)
     torch.testing.assert_close(half.rgba, full.rgba.reshape(16, 15, 2, 20, 2, 4).mean((2, 4)))
     torch.testing.assert_close(half.c2w, full.c2w)
     capped = LLFFScene(str(root), factor=1, max_side=15).views("train")  # 40 wide: a further factor ceil(40 / 15) = 3
-    assert capped.rgba.shape == (14, 10, 13, 4) and capped.focal == pytest.approx(FOCAL * 13 / 40)
+    assert capped.rgba.shape == (14, 10, 13, 4)
+    # 40 x 30 area-averaged to 13 x 10 over the same extent: fx follows the width, fy the height
+    assert_centred_pinholes(capped, FOCAL * 13 / 40, FOCAL * 10 / 30)
 
 
 def test_a_shrunk_image_folder_is_used_as_it_is(tmp_path):
@@ -131,7 +146,8 @@ def test_a_shrunk_image_folder_is_used_as_it_is(tmp_path):
     for i in range(4):
         Image.fromarray(np.full((2, 3, 3), 60 * i, dtype=np.uint8), "RGB").save(tmp_path / "images_4" / f"{i}.jpg")
     views = load_llff(tmp_path, factor=4).views
-    assert views.rgba.shape == (4, 2, 3, 4) and views.focal == pytest.approx(10.0 / 4)
+    assert views.rgba.shape == (4, 2, 3, 4)
+    assert_centred_pinholes(views, 10.0 / 4, 10.0 / 4)
     assert views.rgba[:, 0, 0, 0].mul(255).round().tolist() == [0, 60, 120, 180]
 
 

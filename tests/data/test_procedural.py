@@ -7,7 +7,6 @@ import torch
 
 from nerfexp.data import procedural as P
 from nerfexp.data.procedural import (
-    CAMERA_ANGLE_X,
     FAR,
     NEAR,
     ProceduralScene,
@@ -16,7 +15,8 @@ from nerfexp.data.procedural import (
     scene_cameras,
     signed_distances,
 )
-from nerfexp.geometry.cameras import camera_rays, focal_from_fov, pixel_directions
+from nerfexp.geometry.cameras import camera_rays, focal_from_fov
+from nerfexp.geometry.lenses import Intrinsics, distortion_vector, pixel_grid, pixel_rays
 
 F64 = torch.float64
 
@@ -26,8 +26,13 @@ def ray(origin, direction):
     return torch.tensor(origin, dtype=F64)[None], (d / d.norm())[None]
 
 
+def lens(size: int) -> Intrinsics:
+    """The built-in scene's camera at ``size`` x ``size`` pixels: a centred pinhole."""
+    return Intrinsics.pinhole(focal_from_fov(size, P.CAMERA_ANGLE_X), size, size)
+
+
 def render(c2w, size, supersample=2):
-    return P.render_rgba(c2w, size, size, focal_from_fov(size, P.CAMERA_ANGLE_X), supersample)
+    return P.render_rgba(c2w, size, size, lens(size), supersample)
 
 
 # ---- intersections, against hand-computed values ----
@@ -206,7 +211,7 @@ def test_centre_is_opaque_and_corners_are_background():
     centre, radius, _ = P.GLOSSY
     assert math.dist(centre, (0, 0, 0)) + 4 * 2 / focal_from_fov(size, P.CAMERA_ANGLE_X) < radius
     # The corner rays pass farther than SCENE_RADIUS from the origin: they miss everything.
-    corner = pixel_directions(2 * size, 2 * size, 2 * focal_from_fov(size, P.CAMERA_ANGLE_X), dtype=F64)[0, 0]
+    corner = pixel_rays(pixel_grid(2 * size, 2 * size, dtype=F64), lens(2 * size))[0, 0]
     assert 4 * math.sin(math.acos(-corner[2].item())) > P.SCENE_RADIUS
     alpha = render(c2w, size)[..., 3]
     assert (alpha[:, size // 2 - 1:size // 2 + 1, size // 2 - 1:size // 2 + 1] == 1).all()
@@ -222,11 +227,16 @@ def test_alpha_is_binary_except_at_edges():
     assert (rgb[alpha == 0] == 0).all() and rgb.min() >= 0 and rgb.max() <= 1
 
 
-def test_supersampling_averages_the_finer_render():
+@pytest.mark.parametrize("distorted", [False, True], ids=["pinhole", "distorted-off-centre"])
+def test_supersampling_averages_the_finer_render(distorted):
     c2w, size, s = P.scene_cameras("test", 2), 16, 2
     focal = focal_from_fov(size, P.CAMERA_ANGLE_X)
-    coarse = P.render_rgba(c2w, size, size, focal, supersample=s)
-    fine = P.render_rgba(c2w, s * size, s * size, s * focal, supersample=1)  # same rays, one per pixel
+    # (fx, fy, cx, cy) of the coarse pixels; the fine image's pixels are s times smaller: all of them times s
+    params = torch.tensor([focal, 1.1 * focal, 7.0, 9.5] if distorted else [focal, focal, 8.0, 8.0], dtype=F64)
+    distortion = distortion_vector({"k1": -0.1, "p2": 0.01} if distorted else {})
+    coarse = P.render_rgba(c2w, size, size, Intrinsics(params, distortion, torch.tensor(False)), supersample=s)
+    fine_lens = Intrinsics(s * params, distortion, torch.tensor(False))
+    fine = P.render_rgba(c2w, s * size, s * size, fine_lens, supersample=1)  # same rays, one per pixel
     blocks = lambda x: x.reshape(2, size, s, size, s, -1).mean((2, 4))  # noqa: E731
     premultiplied = lambda x: x[..., :3] * x[..., 3:]  # noqa: E731
     torch.testing.assert_close(coarse[..., 3:], blocks(fine[..., 3:]))
@@ -237,7 +247,9 @@ def test_load_procedural_views():
     views = P.load_procedural("val", 3, 20, 30, supersample=1)
     assert views.rgba.shape == (3, 20, 30, 4) and views.rgba.dtype == torch.float32
     assert views.c2w.dtype == torch.float32 and torch.equal(views.c2w, P.scene_cameras("val", 3).float())
-    assert views.focal == pytest.approx(15 / math.tan(0.5 * P.CAMERA_ANGLE_X))
+    focal = 15 / math.tan(0.5 * P.CAMERA_ANGLE_X)
+    torch.testing.assert_close(views.intrinsics.params, torch.tensor([[focal, focal, 15.0, 10.0]] * 3, dtype=F64))
+    assert not views.intrinsics.is_distorted().any()
 
 
 def ray_meets_box(origins: torch.Tensor, directions: torch.Tensor, box: torch.Tensor) -> torch.Tensor:
@@ -253,7 +265,7 @@ def test_every_pixel_that_shows_an_object_has_its_ray_through_the_scenes_box():
     scene = ProceduralScene(image_size=64, n_test=8)
     views = scene.views("test")
     shown = views.rgba[..., 3] > 0  # [N, H, W]: some object in the pixel
-    rays = [camera_rays(c2w, views.height, views.width, views.focal) for c2w in views.c2w]
+    rays = [camera_rays(c2w, views.height, views.width, views.intrinsics[k]) for k, c2w in enumerate(views.c2w)]
     origins, directions = (torch.stack(r).double() for r in zip(*rays))
     assert ray_meets_box(origins, directions, scene.bounding_box().double())[shown].all()
     assert not ray_meets_box(origins, directions, objects_box().double())[shown].all()  # the exact box cuts some
@@ -263,7 +275,7 @@ def test_signed_distances_vanish_where_rays_hit_and_change_sign_across_the_surfa
     # the scene's distances (signed_distances) against its ray intersections (intersect_scene): two
     # formulas of the same shapes, on every pixel ray of two views
     c2w = scene_cameras("test", 2)
-    origins, directions = camera_rays(c2w, 48, 48, focal_from_fov(48, CAMERA_ANGLE_X))
+    origins, directions = camera_rays(c2w, 48, 48, lens(48))
     origins, directions = origins.double().reshape(-1, 3), directions.double().reshape(-1, 3)
     t, normal, index = intersect_scene(origins, directions)
     hit = torch.isfinite(t)

@@ -325,7 +325,11 @@ def test_video_to_frames_to_colmap_to_posed_views(tmp_path, monkeypatch):
     rotation_error = rotation_degrees(c2w_true[:, :3, :3].transpose(1, 2) @ R @ data.c2w[:, :3, :3])
     assert centre_error.max() < 0.02 * procedural.SCENE_RADIUS, centre_error
     assert rotation_error.max() < 1.0, rotation_error
-    assert data.focal == pytest.approx(focal_true, rel=0.02)
+    fx, fy, cx, cy = data.intrinsics.params.unbind(-1)  # SIMPLE_RADIAL: one f, the principal point not refined
+    assert torch.equal(fx, fy) and fx.tolist() == pytest.approx([focal_true] * N_VIEWS, rel=0.02)
+    assert cx.tolist() == cy.tolist() == [SIZE / 2] * N_VIEWS
+    assert abs(data.intrinsics.distortion[0, 0].item()) < 0.05 and not data.intrinsics.distortion[:, 1:].any()
+    assert data.image_dir == tmp_path / FRAMES and not (tmp_path / "colmap" / "undistorted").exists()  # as they are
     train = scene.views("train")  # holdout 8: frames 0 and 8 are test views
     assert len(train) == N_VIEWS - 2 and train.rgba.shape[1:] == (data.height, data.width, 4)
 

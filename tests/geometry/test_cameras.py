@@ -1,6 +1,7 @@
 import torch
 
 from nerfexp.geometry.cameras import camera_rays, focal_from_fov, look_at
+from nerfexp.geometry.lenses import Intrinsics
 
 
 def _hit(origins, directions, point):
@@ -16,7 +17,7 @@ def test_ray_through_a_known_pixel_hits_a_known_point():
     # y = 50 + 200 * 0.21 / 4 = 60.5, the centre of pixel (row 60, column 65).
     c2w = torch.eye(4, dtype=torch.float64)
     c2w[2, 3] = 4.0
-    origins, directions = camera_rays(c2w, 100, 100, 200.0)
+    origins, directions = camera_rays(c2w, 100, 100, Intrinsics.pinhole(200.0, 100, 100))
     distance = _hit(origins, directions, torch.tensor([0.31, -0.21, 0.0], dtype=torch.float64))
     assert distance[60, 65] < 1e-12
     assert torch.argmin(distance).item() == 60 * 100 + 65
@@ -31,7 +32,7 @@ def test_look_at_camera_sees_the_target_in_the_image_centre():
     assert torch.isclose(torch.linalg.det(R), torch.tensor(1.0, dtype=torch.float64))
     assert c2w[2, 1] > 0  # the camera's up has a positive world-z component
     # With an even image size the target lies on the corner shared by the four central pixels.
-    origins, directions = camera_rays(c2w, 8, 8, 10.0)
+    origins, directions = camera_rays(c2w, 8, 8, Intrinsics.pinhole(10.0, 8, 8))
     distance = _hit(origins, directions, torch.zeros(3, dtype=torch.float64))
     centre = distance[3:5, 3:5]
     torch.testing.assert_close(centre, centre[0, 0].expand(2, 2))

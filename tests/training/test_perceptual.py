@@ -1,6 +1,7 @@
 """LPIPS (nerfexp.training.perceptual) on AlexNet weights each test makes (no test needs, or downloads, the
 ImageNet ones): against the lpips package's own network, against a float64 reference written out here, the
-[-1, 1] input convention, known-content truths, and the one line or error where the weights are missing."""
+[-1, 1] input convention, known-content truths, and the one line or error where the weights are missing and
+cannot be downloaded (the download itself: test_lpips_download.py)."""
 
 import hashlib
 import importlib.util
@@ -15,6 +16,7 @@ import torch.nn.functional as F
 
 from nerfexp.errors import ConfigError
 from nerfexp.pixels import quantize
+from nerfexp.training import perceptual
 from nerfexp.training.perceptual import (
     ALEXNET_FILE,
     HEADS,
@@ -30,6 +32,7 @@ from nerfexp.training.perceptual import (
     lpips_scorer,
 )
 from tests.training.alexnet import alexnet_state, torchvision_alexnet_features
+from tests.training.weights_server import refused_url
 
 
 @pytest.fixture
@@ -217,20 +220,22 @@ def test_a_damaged_file_or_one_that_would_run_code_is_refused_as_data(tmp_path, 
 
 def test_without_weights_auto_says_where_it_looked_in_one_line_and_true_refuses(tmp_path, monkeypatch, weights):
     monkeypatch.setenv("TORCH_HOME", str(tmp_path / "torch"))  # an empty hub cache
+    monkeypatch.setattr(perceptual, "ALEXNET_URL", refused_url(ALEXNET_FILE))  # offline (test_lpips_download.py)
     cache = hub_weights_file()
     assert cache == tmp_path / "torch" / "hub" / "checkpoints" / ALEXNET_FILE
     none, line = lpips_scorer("auto", None)
     assert none is None and "\n" not in line
-    assert line.startswith(f"LPIPS not scored: no AlexNet ImageNet weights at {cache} (")
+    assert line.startswith(f"LPIPS not scored: no AlexNet ImageNet weights at {cache}, and downloading them failed "
+                           "(Connection refused): put ")
     assert "model.lpips_weights=FILE" in line and "model.lpips=false" in line
-    with pytest.raises(ConfigError, match=f"^model.lpips=true: no AlexNet ImageNet weights at {cache}: put "):
+    with pytest.raises(ConfigError, match=f"^model.lpips=true: no AlexNet ImageNet weights at {cache}, and "):
         lpips_scorer(True, None)
     with pytest.raises(ConfigError, match="^model.lpips_weights=/no/such.pth: no such file; expected torchvision's"):
         lpips_scorer("auto", "/no/such.pth")  # a file the config names must be there, even under auto
     assert lpips_scorer(False, "/no/such.pth") == (None, "")
     check_weights_file("auto", None)  # nothing to check: auto reads the hub cache where it has the file
 
-    cache.parent.mkdir(parents=True)  # the hub cache filled, as torchvision fills it
+    cache.parent.mkdir(parents=True, exist_ok=True)  # the hub cache filled, as torchvision fills it
     cache.write_bytes(weights.read_bytes())
     for setting in ("auto", True):
         found, line = lpips_scorer(setting, None)

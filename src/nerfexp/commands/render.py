@@ -7,7 +7,8 @@ that the run directory's manifest does not show to be nerfexp-render's, ``nerfex
 with one line before any work, and checked again before it is replaced):
 ``rgb.mp4``, ``depth.mp4``, ``opacity.mp4``; the same frames as 8-bit PNGs ``rgb/0000.png``, ...,
 ``depth/0000.png``, ..., ``opacity/0000.png``, ...; and ``cameras.json``: the path's name, ``fps``,
-``height``, ``width``, ``focal`` (pixels) and ``c2w`` per frame.
+``height``, ``width``, the lens (``camera_model``, ``fl_x``, ``fl_y``, ``cx``, ``cy`` in pixels and the
+model's distortion coefficients: ``nerfexp.geometry.lens_records``) and ``c2w`` per frame.
 
 ``--cameras FILE`` renders the cameras of a file in that format instead of an orbit or a spiral: a
 ``cameras.json`` of an earlier render, or a path saved by ``nerfexp-view`` (``RUN_DIR/view/camera_path.json``).
@@ -56,10 +57,10 @@ def render_run(run: Path, overrides: list[str], n_frames: int, fps: float | None
     scene = instantiate(cfg.data)
     if cameras is None:
         cameras = training_path(scene, cfg.data, path, n_frames, focus, DEFAULT_FPS)
-    height, width, focal = frame_size(cameras.height, cameras.width, cameras.focal, size)
-    frames = CameraPath(cameras.name, cameras.c2w, height, width, focal, fps or cameras.fps)
+    height, width, lens = frame_size(cameras.height, cameras.width, cameras.intrinsics, size)
+    frames = CameraPath(cameras.name, cameras.c2w, height, width, lens, fps or cameras.fps)
     with atomic_directory(out_dir, replace=True) as new:
-        render_path(module, scene, frames.c2w, height, width, focal, new, frames.fps)
+        render_path(module, scene, frames.c2w, height, width, lens, new, frames.fps)
         (new / CAMERAS).write_text(json.dumps(frames.record(), indent=2))
         check_render_folder(run_dir)  # again: the render took a while
     record_folder(run_dir, RENDER_DIR)
@@ -90,8 +91,10 @@ def build_parser() -> argparse.ArgumentParser:
                         "scenes, i.e. data.ndc or an LLFF scene; else orbit)")
     parser.add_argument("--cameras", type=Path, metavar="FILE",
                         help="render exactly the cameras of FILE instead of a path: a JSON object with keys "
-                             "height, width, focal (pixels) and c2w (a list of 4 x 4 camera-to-world matrices, "
-                             "OpenGL convention), optionally fps and path; e.g. a path saved by nerfexp-view "
+                             "height, width, the lens (fl_x, fl_y, cx, cy in pixels, optionally camera_model and "
+                             "its coefficients, as nerfstudio names them; or one focal, a centred pinhole) and c2w "
+                             "(a list of 4 x 4 camera-to-world matrices, OpenGL convention), optionally fps and "
+                             "path; e.g. a path saved by nerfexp-view "
                              "(RUN_DIR/view/camera_path.json) or an earlier render's cameras.json")
     parser.add_argument("--frames", type=fitting(positive(int), path_bytes, "a camera path of N frames"),
                         help=f"number of frames of the path (default {DEFAULT_FRAMES})")

@@ -1,8 +1,15 @@
-"""``nerfexp-scene OUT_DIR [--scene {builtin,glossy}]``: an analytic scene written as a Blender-format dataset.
+"""``nerfexp-scene OUT_DIR [--scene {builtin,glossy}] [--format {blender,nerfstudio}] [--lens {pinhole,real}]
+[--occluders]``: an analytic scene written as a dataset, ground truth to test a format and a camera model on.
 
 ``builtin`` is the built-in still life (``data/procedural.py``, ``data=procedural``); ``glossy`` a
 strongly view-dependent one (``data/glossy.py``): a mirror sphere, a glossy torus and a clear-coated
 checker base reflecting a procedural sky. Both use the same cameras.
+
+``--format blender`` (the default) writes NeRF's Blender format (``transforms_{split}.json``, an ideal
+centred pinhole); ``--format nerfstudio`` nerfstudio's (``transforms.json``, ``data=nerfstudio``), seen
+through ``--lens pinhole`` (the Blender camera) or ``--lens real`` (``procedural.real_lens``: the principal
+point off the centre, fx != fy, OPENCV distortion), and with ``--occluders`` a transient square in every
+image that its mask leaves out (``procedural.occlude``).
 
 ``OUT_DIR`` is new, empty, or a scene this command wrote (its ``nerfexp-scene.json``, which records the
 settings, says so, and every file in it is one the folder's manifest shows this command wrote:
@@ -20,7 +27,8 @@ from nerfexp.commands.arguments import command_parser, positive
 from nerfexp.commands.console import run_command
 from nerfexp.data.blender import write_blender
 from nerfexp.data.glossy import load_glossy
-from nerfexp.data.procedural import CAMERA_ANGLE_X, load_procedural
+from nerfexp.data.nerfstudio import write_nerfstudio
+from nerfexp.data.procedural import CAMERA_ANGLE_X, load_procedural, occlude, real_lens
 from nerfexp.errors import NerfexpError
 from nerfexp.files import atomic_directory, folder_entries, foreign_message
 from nerfexp.manifest import BOOKKEEPING, check_ours, record
@@ -28,6 +36,8 @@ from nerfexp.memory import require_memory, scene_bytes
 
 LOADERS = {"builtin": load_procedural, "glossy": load_glossy}  # --scene: the function rendering a split
 SPLITS = ("train", "val", "test")
+FORMATS = ("blender", "nerfstudio")
+LENSES = ("pinhole", "real")
 MARKER = "nerfexp-scene.json"  # the settings of the scene written: the folder is this command's
 
 
@@ -54,12 +64,26 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--n-test", type=positive(int), default=20, help="test views (default 20)")
     parser.add_argument("--supersample", type=positive(int), default=2,
                         help="rays per pixel side, averaged (default 2: 4 rays per pixel)")
+    parser.add_argument("--format", choices=FORMATS, default="blender",
+                        help="blender: transforms_{train,val,test}.json (data=blender); nerfstudio: transforms.json "
+                             "with the lens and the splits (data=nerfstudio)")
+    parser.add_argument("--lens", choices=LENSES, default="pinhole",
+                        help="pinhole: the Blender camera (centred, one focal length); real (nerfstudio only): the "
+                             "principal point off the centre, fx != fy and OPENCV lens distortion")
+    parser.add_argument("--occluders", action="store_true",
+                        help="nerfstudio only: a magenta square in every image, left out by the image's mask")
     return parser
 
 
 def write_scene(args: argparse.Namespace) -> str:
     """Render the scene ``args`` describe into ``args.out_dir`` (after ``nerfexp.memory.require_memory`` for
-    its largest split and ``check_out_dir``), with its ``MARKER``; returns a one-line summary."""
+    its splits and ``check_out_dir``), with its ``MARKER``; returns a one-line summary. A real lens or
+    occluders with the Blender format, which holds neither, is a NerfexpError before any work."""
+    if args.format == "blender" and (args.lens != "pinhole" or args.occluders):
+        given = " and ".join(flag for flag, on in (("--lens real", args.lens != "pinhole"),
+                                                  ("--occluders", args.occluders)) if on)
+        raise NerfexpError(f"{given} need --format nerfstudio: the Blender format holds one centred pinhole "
+                           "and no masks")
     counts = dict(zip(SPLITS, (args.n_train, args.n_val, args.n_test), strict=True))
     largest = max(counts, key=counts.get)  # a split is rendered whole before it is written
     require_memory(f"--resolution {args.resolution} --n-{largest} {counts[largest]} --supersample {args.supersample}",
@@ -67,16 +91,24 @@ def write_scene(args: argparse.Namespace) -> str:
                                                                       args.resolution, args.supersample))
     check_out_dir(args.out_dir)
     load = LOADERS[args.scene]
+    size = args.resolution
+    lens = real_lens(size, size) if args.lens == "real" else None
     with atomic_directory(args.out_dir, replace=True) as new:
-        for split, n in counts.items():
-            views = load(split, n, args.resolution, args.resolution, args.supersample)
-            write_blender(new, split, views, CAMERA_ANGLE_X)
+        splits = ((split, load(split, n, size, size, args.supersample, lens=lens)) for split, n in counts.items())
+        if args.occluders:  # one seed per split
+            splits = ((split, occlude(views, seed)) for seed, (split, views) in enumerate(splits))
+        if args.format == "nerfstudio":
+            write_nerfstudio(new, splits)
+        else:
+            for split, views in splits:
+                write_blender(new, split, views, CAMERA_ANGLE_X)
         settings = {"scene": args.scene, "resolution": args.resolution, "views": counts,
-                    "supersample": args.supersample, "nerfexp": version("nerfexp")}
+                    "supersample": args.supersample, "format": args.format, "lens": args.lens,
+                    "occluders": args.occluders, "nerfexp": version("nerfexp")}
         (new / MARKER).write_text(json.dumps(settings, indent=2) + "\n")
         record(new, folder_entries(new))  # paths relative to the folder: true once it is renamed into place
     views = ", ".join(f"{n} {split}" for split, n in counts.items())
-    return f"the {args.scene} scene ({views} views) written to {args.out_dir}"
+    return f"the {args.scene} scene ({views} views, {args.format} format) written to {args.out_dir}"
 
 
 def main(argv: list[str] | None = None) -> None:

@@ -24,7 +24,7 @@ class Scene(abc.ABC):
             such a scene (the paper's 1 for real forward-facing captures, 0 for synthetic ones); the field's
             config reads it (``${data.density_noise_std}``), so the scene's format chooses it and the
             command line still can.
-    Methods with a default: ``bounding_box``, ``ray_bounds``, ``depth_bounds``, ``model_rays``.
+    Methods with a default: ``split_rule``, ``bounding_box``, ``ray_bounds``, ``depth_bounds``, ``model_rays``.
     """
 
     # the domains of the arguments every format shares (nerfexp.domains; a format adds its own)
@@ -49,6 +49,12 @@ class Scene(abc.ABC):
     @abc.abstractmethod
     def views(self, split: str) -> Views:
         """The posed images of ``split``: "train", "val" or "test"."""
+
+    def split_rule(self) -> str | None:
+        """How the views were split into train, val and test, where a rule (not the dataset's own files)
+        or a choice between rules made them; results.json records it as ``split``. None: the format's own
+        splits."""
+        return None
 
     def bounding_box(self) -> Tensor | None:
         """The box [2, 3] that holds the scene's content, where the format knows it; None: bound it from
@@ -79,4 +85,4 @@ class Scene(abc.ABC):
             return own
         if train_views is None:
             raise ConfigError("the scene has no bounding box and no training views to bound: set data.aabb")
-        return frustum_aabb(train_views.c2w, train_views.height, train_views.width, train_views.focal, near, far)
+        return frustum_aabb(train_views.c2w, train_views.intrinsics, train_views.height, train_views.width, near, far)

@@ -27,6 +27,7 @@ from nerfexp.domains import COUNT, Rule
 from nerfexp.errors import DatasetError
 from nerfexp.files import atomic_write
 from nerfexp.geometry.cameras import focal_from_fov, pose_problem
+from nerfexp.geometry.lenses import Intrinsics
 from nerfexp.pixels import png_bytes, to_uint8
 from nerfexp.reading import UnreadableFile, read_json
 
@@ -48,21 +49,40 @@ def write_blender(root: Path, split: str, views: Views, camera_angle_x: float) -
     atomic_write(root / TRANSFORMS.format(split=split), text.encode())
 
 
-def _is_number(value) -> bool:
+def is_number(value) -> bool:
     return isinstance(value, (int, float)) and not isinstance(value, bool)
 
 
-def _matrix(value, where: str) -> Tensor:
+def pose_matrix(value, where: str) -> Tensor:
     """A 4x4 list of numbers that is a rigid camera pose (``pose_problem``) as a float64 tensor [4, 4], or a
     DatasetError naming ``where``."""
     is_4x4 = isinstance(value, list) and len(value) == 4
-    is_4x4 = is_4x4 and all(isinstance(row, list) and len(row) == 4 and all(map(_is_number, row)) for row in value)
+    is_4x4 = is_4x4 and all(isinstance(row, list) and len(row) == 4 and all(map(is_number, row)) for row in value)
     if not is_4x4:
         raise DatasetError(f"{where}: 'transform_matrix' must be a 4x4 list of numbers, got {str(value)[:80]}")
     matrix = torch.tensor(value, dtype=torch.float64)
     if (problem := pose_problem(matrix)) is not None:
         raise DatasetError(f"{where}: 'transform_matrix' must be a rigid camera pose, but {problem}")
     return matrix
+
+
+def checked_frames(path: Path, content: dict) -> list[tuple[str, dict]]:
+    """The frames of the transforms file ``path`` (its JSON ``content``), each ``(where, frame)``: "PATH: frame
+    i" and an object holding 'file_path' and 'transform_matrix'; a DatasetError naming the file (and the frame)
+    where 'frames' is missing, not a non-empty list, or a frame lacks either key."""
+    if "frames" not in content:
+        raise DatasetError(f"{path}: missing key 'frames'")
+    frames = content["frames"]
+    if not isinstance(frames, list) or not frames:
+        raise DatasetError(f"{path}: 'frames' must be a non-empty list, got {str(frames)[:80]}")
+    for i, frame in enumerate(frames):
+        where = f"{path}: frame {i}"
+        if not isinstance(frame, dict):
+            raise DatasetError(f"{where}: expected an object with 'file_path' and 'transform_matrix'")
+        for key in ("file_path", "transform_matrix"):
+            if key not in frame:
+                raise DatasetError(f"{where}: missing key '{key}'")
+    return [(f"{path}: frame {i}", frame) for i, frame in enumerate(frames)]
 
 
 def read_transforms(path: Path) -> tuple[float, list[tuple[str, Tensor]]]:
@@ -80,22 +100,13 @@ def read_transforms(path: Path) -> tuple[float, list[tuple[str, Tensor]]]:
         if key not in content:
             raise DatasetError(f"{path}: missing key '{key}'")
     angle = content["camera_angle_x"]
-    if not (_is_number(angle) and 0 < angle < math.pi):
+    if not (is_number(angle) and 0 < angle < math.pi):
         raise DatasetError(f"{path}: 'camera_angle_x' must be a field of view in (0, pi) radians, got {angle!r}")
-    frames = content["frames"]
-    if not isinstance(frames, list) or not frames:
-        raise DatasetError(f"{path}: 'frames' must be a non-empty list, got {str(frames)[:80]}")
     parsed = []
-    for i, frame in enumerate(frames):
-        where = f"{path}: frame {i}"
-        if not isinstance(frame, dict):
-            raise DatasetError(f"{where}: expected an object with 'file_path' and 'transform_matrix'")
-        for key in ("file_path", "transform_matrix"):
-            if key not in frame:
-                raise DatasetError(f"{where}: missing key '{key}'")
+    for where, frame in checked_frames(path, content):
         if not isinstance(frame["file_path"], str):
             raise DatasetError(f"{where}: 'file_path' must be a string, got {frame['file_path']!r}")
-        parsed.append((frame["file_path"], _matrix(frame["transform_matrix"], where)))
+        parsed.append((frame["file_path"], pose_matrix(frame["transform_matrix"], where)))
     return float(angle), parsed
 
 
@@ -111,7 +122,8 @@ def load_blender(root, split: str, downscale: int = 1, max_views: int | None = N
 
     Keeps every ``stride``-th frame, then the first ``max_views`` of those; images are shrunk by
     the integer factor ``downscale`` (see ``downscale_rgba``) and the focal length is
-    0.5 W / tan(0.5 camera_angle_x) for the final width W. The images must agree in size and in having
+    0.5 W / tan(0.5 camera_angle_x) for the final width W (fy follows the height where the factor shrank
+    rows and columns differently). The images must agree in size and in having
     an alpha channel (``has_alpha``): an RGB image among RGBA ones would be read as opaque.
     """
     for name, value in (("downscale", downscale), ("stride", stride), ("max_views", max_views)):
@@ -142,10 +154,15 @@ def load_blender(root, split: str, downscale: int = 1, max_views: int | None = N
                                "opaque, its background learned as part of the scene)")
         images.append(image)
     rgba = torch.stack(images).float() / 255
+    N, H, W, _ = rgba.shape  # views, rows, columns, channels
     if downscale > 1:
         rgba = downscale_rgba(rgba, downscale)
+    h, w = rgba.shape[1:3]
+    lenses = Intrinsics.pinhole(focal_from_fov(w, camera_angle_x), h, w, (N,))
+    if h * W != H * w:  # rows and columns shrunk by different factors (the factor does not divide a side)
+        lenses.params[:, 1] *= (h * W) / (H * w)  # fy follows the height
     c2w = torch.stack([matrix for _, matrix in frames]).float()
-    return Views(rgba=rgba, c2w=c2w, focal=focal_from_fov(rgba.shape[2], camera_angle_x))
+    return Views(rgba=rgba, c2w=c2w, intrinsics=lenses)
 
 
 @dataclass
@@ -183,5 +200,4 @@ class BlenderScene(Scene):
         factor = fit_factor(max(views.height, views.width), self.max_side)
         if factor == 1:
             return views
-        rgba = downscale_rgba(views.rgba, factor)
-        return Views(rgba=rgba, c2w=views.c2w, focal=views.focal * rgba.shape[2] / views.width)
+        return views.resized(downscale_rgba(views.rgba, factor))

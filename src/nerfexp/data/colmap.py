@@ -12,13 +12,11 @@ sparse model is taken from the first of these that exists, binary or text
 and is otherwise made by ``reconstruct``: SIFT features, exhaustive or sequential matching
 (``data.matcher``; by default sequential for a video's frames, which are in time order, and exhaustive
 for photographs) and incremental mapping with one camera shared by all images, written to
-``DIR/colmap/`` (the SQLite ``database.db`` and ``sparse/0``). A model whose camera has distortion is
-undistorted to ``PINHOLE`` into ``DIR/colmap/undistorted/`` (``images/`` and ``sparse/``), and the
-images are then read from there. Feature extraction and undistortion show progress per image,
-matching and mapping per stage. Folders are built under a temporary name in ``DIR`` and renamed into
-place when complete, so an interrupted run leaves no half-made cache; nothing outside ``DIR/colmap``
-(and ``DIR/frames`` for a video) is ever written, and nothing is deleted but this run's own temporary
-folder.
+``DIR/colmap/`` (the SQLite ``database.db`` and ``sparse/0``). Feature extraction shows progress per
+image, matching and mapping per stage. Folders are built under a temporary name in ``DIR`` and renamed
+into place when complete, so an interrupted run leaves no half-made cache; nothing outside
+``DIR/colmap`` (and ``DIR/frames`` for a video) is ever written, and nothing is deleted but this run's
+own temporary folder.
 
 Conventions. COLMAP's poses are ``cam_from_world`` (x_cam = R x_world + t) for a camera that looks
 down +z with y down; nerfexp's ``c2w`` looks down -z with y up (``nerfexp.geometry.cameras``):
@@ -34,9 +32,10 @@ points it observes (LLFF's percentiles). Surfaces without features have no point
 nearer than every textured one can lie before ``near``; set ``data.near`` then. Tensors are float64
 until ``Views`` are made.
 
-The principal point must be at the image centre (within half a pixel) and fx = fy, as ``Views``
-has them: COLMAP's defaults (a shared camera, the principal point not refined, undistortion keeping
-it centred) give this; a model that breaks it is refused with a DatasetError rather than cropped.
+Cameras are taken as COLMAP estimated them, one lens per image (``image_lenses``): any principal point,
+fx and fy, and the distortion of every model ``nerfexp.geometry.lenses.PARAMETERS`` names, applied to the
+rays (never by resampling the images); a lens whose distortion cannot be inverted over its image is
+refused with a DatasetError.
 """
 
 from dataclasses import dataclass, field
@@ -50,13 +49,11 @@ from tqdm import tqdm
 
 from nerfexp.data.base import Scene
 from nerfexp.data.colmap_sfm import (
-    check_camera_model,
     find_model,
     image_files,
     read_model,
     reconstruct,
     registered_enough,
-    undistort,
 )
 from nerfexp.data.images import downscale_rgba, fit_factor, read_image
 from nerfexp.data.video import FPS_RANGE, video_frames
@@ -76,10 +73,11 @@ from nerfexp.domains import (
     whole,
 )
 from nerfexp.errors import DatasetError
+from nerfexp.geometry.cameras import normalize_centres
+from nerfexp.geometry.lenses import FISHEYE_MODELS, PARAMETERS, Intrinsics, distortion_vector, inversion_problem
 
 PERCENTILES = (0.1, 99.9)  # of each image's point distances: near and far (as LLFF's imgs2poses)
 MARGINS = (0.9, 1.1)  # near and far are widened by these factors
-PIXEL_TOLERANCE = 0.5  # principal point off-centre, or fx != fy at the image edge, by at most this (pixels)
 
 
 def colmap_to_c2w(cam_from_world: Tensor) -> Tensor:
@@ -102,22 +100,6 @@ def cam_from_world(reconstruction, image_ids: list[int]) -> Tensor:
     return torch.tensor(np.stack([reconstruction.images[i].cam_from_world().matrix() for i in image_ids]))
 
 
-def normalize(c2w: Tensor, points: Tensor, bound: float) -> tuple[Tensor, Tensor, Tensor, float]:
-    """Centre on the mean camera centre m and scale by s = bound / max_i |c_i - m|.
-
-    c2w [N, 4, 4], points [P, 3] -> (c2w with centres s (c - m), s (points - m), m [3], s).
-    """
-    centres = c2w[:, :3, 3]
-    mean = centres.mean(0)
-    radius = torch.linalg.vector_norm(centres - mean, dim=-1).max().item()
-    if not radius > 0:
-        raise DatasetError("all registered cameras are at one position: the scene's scale is undefined")
-    scale = bound / radius
-    normalized = c2w.clone()
-    normalized[:, :3, 3] = (centres - mean) * scale
-    return normalized, (points - mean) * scale, mean, scale
-
-
 def near_far(centres: Tensor, points: Tensor, observed: list[Tensor]) -> tuple[float, float]:
     """Ray bounds from the sparse points: centres [N, 3], points [P, 3], observed[i] the indices [K_i]
     of the points image i sees. near = 0.9 min_i q0.1_i, far = 1.1 max_i q99.9_i, with q_i the
@@ -134,28 +116,40 @@ def near_far(centres: Tensor, points: Tensor, observed: list[Tensor]) -> tuple[f
     return MARGINS[0] * torch.stack(low).min().item(), MARGINS[1] * torch.stack(high).max().item()
 
 
-def shared_focal(reconstruction, image_ids: list[int], where: Path) -> tuple[float, int, int]:
-    """(focal, width, height) of the one pinhole camera, principal point at the centre, of ``image_ids``."""
-    cameras = {reconstruction.images[i].camera_id for i in image_ids}
-    described = {(c.model.name, c.width, c.height, tuple(c.params)) for c in map(reconstruction.camera, cameras)}
-    if len(described) > 1:
-        raise DatasetError(f"{where}: the images use {len(described)} different cameras; nerfexp needs one shared "
-                           f"camera (COLMAP's CameraMode.SINGLE, or --ImageReader.single_camera 1)")
-    camera = reconstruction.camera(cameras.pop())
-    model, width, height = camera.model.name, camera.width, camera.height
-    if model not in ("SIMPLE_PINHOLE", "PINHOLE"):
-        raise DatasetError(f"{where}: camera model {model} is not a pinhole model (undistortion should have made it "
-                           f"PINHOLE)")
-    fx, fy, cx, cy = (camera.params[0], *camera.params) if model == "SIMPLE_PINHOLE" else camera.params
-    focal = 0.5 * (fx + fy)
-    if abs(fx - fy) / focal * 0.5 * max(width, height) > PIXEL_TOLERANCE:
-        raise DatasetError(f"{where}: focal lengths fx={fx:.6g} and fy={fy:.6g} differ (more than "
-                           f"{PIXEL_TOLERANCE} px at the image edge); nerfexp's cameras have one focal length")
-    if max(abs(cx - 0.5 * width), abs(cy - 0.5 * height)) > PIXEL_TOLERANCE:
-        raise DatasetError(f"{where}: principal point ({cx:.6g}, {cy:.6g}) is off the image centre "
-                           f"({0.5 * width:g}, {0.5 * height:g}) by more than {PIXEL_TOLERANCE} px; nerfexp's cameras "
-                           f"have it at the centre: reconstruct without refining it (COLMAP's default)")
-    return float(focal), width, height
+def colmap_lens(model: str, params, where: str) -> Intrinsics:
+    """The lens (shape []) of a COLMAP camera ``model`` with parameters ``params`` (COLMAP's order: f or
+    fx, fy, then cx, cy, then the distortion coefficients ``lenses.PARAMETERS`` names), or a DatasetError
+    naming ``where`` for a model nerfexp does not read."""
+    if model not in PARAMETERS:
+        raise DatasetError(f"{where}: camera model {model} is not one nerfexp reads ({', '.join(PARAMETERS)})")
+    names = PARAMETERS[model]
+    params = [float(v) for v in params]
+    lead = params[:len(params) - len(names)]  # (f, cx, cy) or (fx, fy, cx, cy)
+    fx, fy, cx, cy = (lead[0], *lead) if len(lead) == 3 else lead
+    distortion = distortion_vector(dict(zip(names, params[len(lead):])))
+    return Intrinsics(torch.tensor([fx, fy, cx, cy], dtype=torch.float64), distortion,
+                      torch.tensor(model in FISHEYE_MODELS))
+
+
+def image_lenses(reconstruction, image_ids: list[int], where: Path) -> tuple[Intrinsics, int, int]:
+    """(lenses [N], width, height) of the images ``image_ids``: each image's camera as it is (any principal
+    point, fx and fy, distortion), checked to be invertible over the image (``inversion_problem``); the
+    images must share one size."""
+    cameras = {camera_id: reconstruction.camera(camera_id) for camera_id in
+               sorted({reconstruction.images[i].camera_id for i in image_ids})}
+    sizes = {(camera.width, camera.height) for camera in cameras.values()}
+    if len(sizes) > 1:
+        raise DatasetError(f"{where}: the images' cameras have {len(sizes)} image sizes ({sorted(sizes)}); nerfexp "
+                           "needs images of one size")
+    lenses = {}
+    for camera_id, camera in cameras.items():
+        lens = colmap_lens(camera.model.name, camera.params, f"{where}: camera {camera_id}")
+        if problem := inversion_problem(lens, camera.height, camera.width):
+            raise DatasetError(f"{where}: camera {camera_id} ({camera.model.name}): {problem}")
+        lenses[camera_id] = lens
+    width, height = sizes.pop()
+    return Intrinsics.stack([lenses[reconstruction.images[i].camera_id] for i in image_ids]), width, height
+
 
 C_INT_LIMIT = 2 ** 31 - 1  # COLMAP's counts (features per image, threads): its C ints
 
@@ -164,13 +158,14 @@ C_INT_LIMIT = 2 ** 31 - 1  # COLMAP's counts (features per image, threads): its 
 @dataclass
 class ColmapData:
     """A posed COLMAP scene: ``names`` of the N registered images in name order, in ``image_dir``;
-    ``c2w`` [N, 4, 4] float64 normalized; the shared ``focal``, ``width`` and ``height`` of the model;
+    ``c2w`` [N, 4, 4] float64 normalized; each image's lens ``intrinsics`` [N], the images' ``width`` and
+    ``height``;
     the ray bounds ``near``, ``far``; the normalization x -> ``scale`` (x - ``centre``)."""
 
     names: list[str]
     image_dir: Path
     c2w: Tensor
-    focal: float
+    intrinsics: Intrinsics
     width: int
     height: int
     near: float
@@ -199,31 +194,25 @@ def load_colmap(root, bound: float = 4.0, camera_model: str = "SIMPLE_RADIAL", m
     n_images = len(image_files(source_dir))
     model_dir = find_model(root) or reconstruct(root, camera_model, matcher, max_features, threads, min_registered,
                                                 verbose, source_dir)
-    image_dir = source_dir
     reconstruction = read_model(model_dir)
-    for camera in reconstruction.cameras.values():
-        check_camera_model(camera.model.name)
-    if not all(camera.is_undistorted() for camera in reconstruction.cameras.values()):
-        model_dir, image_dir = undistort(root, model_dir, image_dir, len(reconstruction.reg_image_ids()), verbose)
-        reconstruction = read_model(model_dir)
     ids = sorted(reconstruction.reg_image_ids(), key=lambda i: reconstruction.images[i].name)
     registered_enough(len(ids), max(n_images, len(ids)), min_registered, f"{source_dir} (model {model_dir})")
-    focal, width, height = shared_focal(reconstruction, ids, model_dir)
+    intrinsics, width, height = image_lenses(reconstruction, ids, model_dir)
     point_ids = sorted(reconstruction.point3D_ids())
     row = {point_id: k for k, point_id in enumerate(point_ids)}
     points = torch.tensor(np.array([reconstruction.points3D[p].xyz for p in point_ids]).reshape(-1, 3))
     observed = [torch.tensor([row[p.point3D_id] for p in reconstruction.images[i].get_observation_points2D()],
                              dtype=torch.long) for i in ids]
-    c2w, points, centre, scale = normalize(colmap_to_c2w(cam_from_world(reconstruction, ids)), points, bound)
+    c2w, points, centre, scale = normalize_centres(colmap_to_c2w(cam_from_world(reconstruction, ids)), points, bound)
     near, far = near_far(c2w[:, :3, 3], points, observed)
     names = [reconstruction.images[i].name for i in ids]
-    return ColmapData(names, image_dir, c2w, focal, width, height, near, far, centre, scale)
+    return ColmapData(names, source_dir, c2w, intrinsics, width, height, near, far, centre, scale)
 
 
 def read_views(data: ColmapData, index: Tensor, downscale: int = 1, max_side: int | None = None) -> Views:
     """The images ``index`` of ``data`` as opaque ``Views``, shrunk by ``downscale`` and then, where
     ``max_side`` is set, by the smallest further integer factor that brings the longer side to at most
-    ``max_side``; the focal length follows the width."""
+    ``max_side``; the lenses follow the images' size (``Intrinsics.resized``)."""
     shrink = downscale * fit_factor(max(data.width, data.height) // downscale, max_side)
     images = []
     for i in tqdm(index.tolist(), desc="loading colmap", unit="image", disable=None):
@@ -235,7 +224,8 @@ def read_views(data: ColmapData, index: Tensor, downscale: int = 1, max_side: in
         rgba = image[None].float() / 255  # [1, H, W, 4]
         images.append(downscale_rgba(rgba, shrink) if shrink > 1 else rgba)
     rgba = torch.cat(images) if images else torch.zeros(0, data.height // shrink, data.width // shrink, 4)
-    return Views(rgba=rgba, c2w=data.c2w[index].float(), focal=data.focal * rgba.shape[2] / data.width)
+    intrinsics = data.intrinsics[index].resized((data.height, data.width), tuple(rgba.shape[1:3]))
+    return Views(rgba=rgba, c2w=data.c2w[index].float(), intrinsics=intrinsics)
 
 
 @dataclass
@@ -307,6 +297,9 @@ class ColmapScene(Scene):
         """(near, far): the configured values where set, else the sparse points' (see ``near_far``)."""
         data = self.load()
         return (data.near if self.near is None else self.near), (data.far if self.far is None else self.far)
+
+    def split_rule(self) -> str:
+        return f"every {self.holdout}th image in name order a test view (data.holdout)"
 
     def views(self, split: str) -> Views:
         data = self.load()

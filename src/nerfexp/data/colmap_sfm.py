@@ -1,14 +1,13 @@
 """COLMAP run through pycolmap: a sparse model found (``find_model``: the user's own, or nerfexp's cache) or
 made (``reconstruct``: SIFT features, exhaustive or sequential matching, incremental mapping with one
-shared camera), and undistorted to PINHOLE, with progress, under ``DIR/colmap`` built atomically (what
-the scene makes of the model, and the conventions: ``nerfexp.data.colmap``)."""
+shared camera), with progress, under ``DIR/colmap`` built atomically (what the scene makes of the model,
+its lenses included, and the conventions: ``nerfexp.data.colmap``)."""
 
 
-import concurrent.futures
 import contextlib
 import math
 import os
-from collections.abc import Callable, Iterator
+from collections.abc import Iterator
 from pathlib import Path
 
 import pycolmap
@@ -17,11 +16,11 @@ from tqdm import tqdm
 from nerfexp.data.views import IMAGE_SUFFIXES
 from nerfexp.errors import DatasetError
 from nerfexp.files import atomic_directory
+from nerfexp.geometry.lenses import PARAMETERS
 
-CACHE = "colmap"  # DIR/colmap: nerfexp's own database, sparse model and undistorted images
+CACHE = "colmap"  # DIR/colmap: nerfexp's own database and sparse model
 MODEL_FILES = ("cameras", "images", "points3D")
 MATCHERS = ("exhaustive", "sequential")
-POLL_SECONDS = 0.25  # how often a progress bar counts the output of a pycolmap call running in a thread
 ADVICE = ("try more overlap between neighbouring views (60-80%), more texture (plain walls, sky, glass and "
           "reflections give no features), sharper images, more features (data.max_features), "
           "data.matcher=exhaustive, or a camera model that fits the lens (data.camera_model=OPENCV for wide angles)")
@@ -70,11 +69,11 @@ def _colmap_log_level(verbose: bool) -> Iterator[None]:
 
 
 def check_camera_model(name: str) -> None:
-    """A DatasetError unless ``name`` is a COLMAP perspective camera model (undistortable to PINHOLE)."""
-    models = [m for m in pycolmap.CameraModelId.__members__ if m not in ("INVALID", "EQUIRECTANGULAR")]
-    if name not in models:
-        raise DatasetError(f"unsupported camera model {name!r} (data.camera_model): nerfexp needs a perspective "
-                           f"camera, one of {', '.join(models)}")
+    """A DatasetError unless ``name`` is a COLMAP camera model whose lens nerfexp reads
+    (``nerfexp.geometry.lenses.PARAMETERS``)."""
+    if name not in PARAMETERS:
+        raise DatasetError(f"unsupported camera model {name!r} (data.camera_model): nerfexp reads the lenses of "
+                           f"{', '.join(PARAMETERS)}")
 
 
 def registered_enough(n_registered: int, n_images: int, min_registered: float, where: str) -> None:
@@ -110,7 +109,8 @@ def extract_features(database: Path, image_dir: Path, names: list[str], camera_m
     The first batch makes the shared camera (CameraMode.SINGLE) and the later ones name it
     (``existing_camera_id``), so the database is the one a single call over all the images makes.
     """
-    extraction = pycolmap.FeatureExtractionOptions(num_threads=threads, use_gpu=False)
+    # an explicit count: with -1 COLMAP warns once per call (per batch) that it uses every core
+    extraction = pycolmap.FeatureExtractionOptions(num_threads=effective_threads(threads), use_gpu=False)
     extraction.sift.max_num_features = max_features
     reader = pycolmap.ImageReaderOptions(camera_model=camera_model)
     batch_size = 2 * effective_threads(threads)
@@ -167,44 +167,3 @@ def reconstruct(root, camera_model: str = "SIMPLE_RADIAL", matcher: str = "exhau
         if not is_model(work / "sparse" / "0"):
             raise DatasetError(f"COLMAP wrote no model for {image_dir} to {work / 'sparse' / '0'}")
     return cache / "sparse" / "0"
-
-
-def count_files(folder: Path) -> int:
-    """The number of files below ``folder`` (0 where it does not exist yet)."""
-    return sum(path.is_file() for path in folder.rglob("*"))
-
-
-def run_counting(task: Callable[[pycolmap.CancellationToken], None], count: Callable[[], int], bar: tqdm) -> None:
-    """``task(token)``, a pycolmap call (which releases the GIL while it works), run in a worker thread
-    while ``bar`` shows ``count()`` every POLL_SECONDS; its exception is raised here. An exception here
-    (Ctrl-C) cancels it through the token and waits for it to stop, so nothing writes after this returns."""
-    token = pycolmap.CancellationToken()
-    with concurrent.futures.ThreadPoolExecutor(max_workers=1) as pool:
-        running = pool.submit(task, token)
-        try:
-            while concurrent.futures.wait([running], timeout=POLL_SECONDS).not_done:
-                bar.update(count() - bar.n)
-        except BaseException:
-            token.cancel()
-            raise
-        running.result()
-    bar.update(count() - bar.n)
-
-
-def undistort(root: Path, model_dir: Path, image_dir: Path, n_images: int, verbose: bool = False) -> tuple[Path, Path]:
-    """The PINHOLE model and image folders of the undistorted scene, ``root/colmap/undistorted/{sparse,
-    images}``, made by COLMAP's undistorter from ``model_dir`` and ``image_dir`` unless they exist, in one
-    call (its images, model and MVS configuration as COLMAP writes them), with a progress bar counting
-    the model's ``n_images`` registered images as their undistorted files appear."""
-    final = root / CACHE / "undistorted"
-    if is_model(final / "sparse"):
-        return final / "sparse", final / "images"
-    if final.exists():
-        raise DatasetError(f"{final} exists but holds no model in sparse/; move it away (nerfexp never deletes it) "
-                           f"to undistort the images again")
-    progress = tqdm(total=n_images, desc="COLMAP undistortion to PINHOLE", unit="image",
-                    disable=None)
-    with _colmap_log_level(verbose), atomic_directory(final) as work, progress as bar:
-        run_counting(lambda token: pycolmap.undistort_images(work, model_dir, image_dir, cancellation_token=token),
-                     lambda: count_files(work / "images"), bar)
-    return final / "sparse", final / "images"

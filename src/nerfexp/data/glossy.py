@@ -42,6 +42,7 @@ from nerfexp.data.procedural import (
     unit,
 )
 from nerfexp.data.views import Views
+from nerfexp.geometry.lenses import Intrinsics
 
 SCENE_RADIUS = 1.3  # every object lies inside this ball around the origin
 
@@ -299,13 +300,15 @@ def trace_glossy(origins: Tensor, directions: Tensor, bounces: int = BOUNCES) ->
 # ---- images and views ----
 
 
-def render_glossy_rgba(c2w: Tensor, height: int, width: int, focal: float, supersample: int = 2,
+def render_glossy_rgba(c2w: Tensor, height: int, width: int, intrinsics: Intrinsics, supersample: int = 2,
                        bounces: int = BOUNCES) -> Tensor:
     """Straight-alpha images [N, H, W, 4] float32 of the glossy scene seen by cameras ``c2w`` [N, 4, 4]
     (``procedural.render_rgba`` with ``trace_glossy``)."""
-    return render_rgba(c2w, height, width, focal, supersample, functools.partial(trace_glossy, bounces=bounces))
+    return render_rgba(c2w, height, width, intrinsics, supersample, functools.partial(trace_glossy, bounces=bounces))
 
 
-def load_glossy(split: str, n_views: int, height: int, width: int, supersample: int = 2) -> Views:
-    """``n_views`` rendered views of ``split`` from the built-in scene's cameras, as ``Views``."""
-    return load_procedural(split, n_views, height, width, supersample, trace_glossy)
+def load_glossy(split: str, n_views: int, height: int, width: int, supersample: int = 2,
+                lens: Intrinsics | None = None) -> Views:
+    """``n_views`` rendered views of ``split`` from the built-in scene's cameras through ``lens`` (None: the
+    Blender pinhole), as ``Views``."""
+    return load_procedural(split, n_views, height, width, supersample, trace_glossy, lens)

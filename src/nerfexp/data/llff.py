@@ -37,7 +37,8 @@ from nerfexp.data.views import IMAGE_SUFFIXES, Views, holdout_split
 from nerfexp.domains import BOOLEAN, COUNT, INTEGER_LIMIT, Rule, whole
 from nerfexp.errors import ConfigError, DatasetError
 from nerfexp.files import atomic_write
-from nerfexp.geometry.cameras import look_at, pixel_directions, pose_problem
+from nerfexp.geometry.cameras import look_at, pose_problem
+from nerfexp.geometry.lenses import Intrinsics, pixel_rays
 from nerfexp.geometry.ndc import ndc_rays
 from nerfexp.pixels import png_bytes, to_uint8
 
@@ -147,7 +148,7 @@ class LLFFData:
 
     def split(self, name: str) -> Views:
         index = self.splits[name]
-        return Views(rgba=self.views.rgba[index], c2w=self.views.c2w[index], focal=self.views.focal)
+        return self.views.subset(index)
 
 
 def read_images(files: list[Path], poses_path: Path, size: tuple[float, float], factor: int,
@@ -200,7 +201,8 @@ def load_llff(root, factor: int = 1, holdout: int = 8, n_val: int = 2, max_side:
     height, width, focal = poses[0, :, 4].tolist()
     rgba = read_images(image_files(folder, len(poses), poses_path), poses_path, (height, width), shrink, max_side)
     c2w, bounds, scale = normalize_poses(llff_to_c2w(poses), bounds)
-    views = Views(rgba=rgba, c2w=c2w.float(), focal=focal * rgba.shape[2] / width)
+    recorded = Intrinsics.pinhole(focal, height, width, (len(poses),))  # LLFF's one centred pinhole, as recorded
+    views = Views(rgba=rgba, c2w=c2w.float(), intrinsics=recorded.resized((height, width), rgba.shape[1:3]))
     return LLFFData(views=views, bounds=bounds, scale=scale, splits=holdout_split(len(poses), holdout, n_val, n_train))
 
 
@@ -227,9 +229,10 @@ def check_forward_facing(views: Views) -> None:
 
     A ray's d_z is linear in the pixel position, so the four corner pixels' rays decide it.
     """
-    d_cam = pixel_directions(views.height, views.width, views.focal, dtype=views.c2w.dtype)
-    corners = d_cam[[0, 0, -1, -1], [0, -1, 0, -1]]  # [4, 3]
-    dz = (views.c2w[:, None, 2, :3] * corners).sum(-1)  # [N, 4]: the world z of each corner ray
+    H, W = views.height, views.width
+    centres = torch.tensor([[0.5, 0.5], [W - 0.5, 0.5], [0.5, H - 0.5], [W - 0.5, H - 0.5]], dtype=torch.float64)
+    corners = pixel_rays(centres, views.intrinsics.unsqueeze(1))  # [N, 4, 3]: the corner pixels' rays
+    dz = (views.c2w[:, None, 2, :3] * corners.to(views.c2w.dtype)).sum(-1)  # [N, 4]: the world z of each corner ray
     bad = (dz >= 0).any(-1)
     if bad.any():
         i = int(bad.nonzero()[0])
@@ -280,6 +283,9 @@ class LLFFScene(Scene):
             self._data = data
         return self._data
 
+    def split_rule(self) -> str:
+        return f"every {self.holdout}th image in file-name order a test view (data.holdout)"
+
     def views(self, split: str) -> Views:
         return self.load().split(split)
 
@@ -297,4 +303,4 @@ class LLFFScene(Scene):
         if not self.ndc:
             return origins, directions
         views = self.load().views
-        return ndc_rays(origins, directions, views.focal, views.height, views.width, NDC_NEAR)
+        return ndc_rays(origins, directions, views.intrinsics.params[0, 0].item(), views.height, views.width, NDC_NEAR)

@@ -25,8 +25,11 @@ from nerfexp.data.base import Scene
 from nerfexp.data.views import Views
 from nerfexp.domains import COUNT, Rule
 from nerfexp.geometry.cameras import camera_rays, focal_from_fov, look_at
+from nerfexp.geometry.lenses import Intrinsics, distortion_vector
 
 NEAR, FAR = 2.0, 6.0
+OCCLUDER_SIDE = 0.3  # a transient occluder's side, as a fraction of the shorter image side (``occlude``)
+OCCLUDER_COLOUR = (1.0, 0.0, 1.0)  # magenta: a colour the scene does not have
 CAMERA_ANGLE_X = 0.6911112070083618
 CAMERA_RADIUS = 4.0
 SCENE_RADIUS = 1.3
@@ -233,11 +236,12 @@ def trace(origins: Tensor, directions: Tensor) -> tuple[Tensor, Tensor]:
 Tracer = Callable[[Tensor, Tensor], tuple[Tensor, Tensor]]  # rays [R, 3] x 2 -> (rgb [R, 3], hit or alpha [R])
 
 
-def render_rgba(c2w: Tensor, height: int, width: int, focal: float, supersample: int = 2,
+def render_rgba(c2w: Tensor, height: int, width: int, intrinsics: Intrinsics, supersample: int = 2,
                 tracer: Tracer = trace) -> Tensor:
     """Straight-alpha images [N, H, W, 4] float32 of the scene seen by cameras ``c2w`` [N, 4, 4].
 
-    Each pixel averages ``supersample`` x ``supersample`` rays through the centres of its
+    ``intrinsics``: the cameras' lenses (batch shape [] or [N]). Each pixel averages ``supersample`` x
+    ``supersample`` rays through the centres of its
     sub-pixels: alpha is the covered fraction, rgb the mean colour of the covered sub-pixels.
     ``tracer`` (rays -> (rgb, hit)) is the scene: this module's ``trace``, or another analytic one
     (``nerfexp.data.glossy``).
@@ -245,7 +249,8 @@ def render_rgba(c2w: Tensor, height: int, width: int, focal: float, supersample:
     if supersample < 1:
         raise ValueError(f"supersample must be >= 1, got {supersample}")
     s = supersample
-    origins, directions = camera_rays(c2w.to(torch.float64), height * s, width * s, focal * s)
+    fine = Intrinsics(intrinsics.params * s, intrinsics.distortion, intrinsics.fisheye)  # the sub-pixels' lenses
+    origins, directions = camera_rays(c2w.to(torch.float64), height * s, width * s, fine)
     N = c2w.shape[0]
     chunks = zip(origins.reshape(-1, 3).split(RAY_CHUNK), directions.reshape(-1, 3).split(RAY_CHUNK))
     traced = [tracer(o, d) for o, d in chunks]
@@ -278,19 +283,48 @@ def scene_cameras(split: str, n: int) -> Tensor:
     return look_at(eye, torch.zeros(3, dtype=torch.float64), up)
 
 
+def real_lens(height: int, width: int) -> Intrinsics:
+    """A lens like a phone's, for the built-in scenes' cameras (``nerfexp-scene --lens real``): the Blender
+    camera's focal length f made fx = 1.03 f and fy = 0.97 f, the principal point off the centre at
+    (0.54 W, 0.47 H), and OPENCV distortion k1 = -0.12, k2 = 0.03 (barrel), p1 = 0.002, p2 = -0.003."""
+    focal = focal_from_fov(width, CAMERA_ANGLE_X)
+    params = torch.tensor([1.03 * focal, 0.97 * focal, 0.54 * width, 0.47 * height], dtype=torch.float64)
+    distortion = distortion_vector({"k1": -0.12, "k2": 0.03, "p1": 0.002, "p2": -0.003})
+    return Intrinsics(params, distortion, torch.tensor(False))
+
+
+def occlude(views: Views, seed: int, colour: tuple[float, float, float] = OCCLUDER_COLOUR) -> Views:
+    """``views`` with a transient occluder in each image and the mask that leaves it out: a solid square of
+    ``colour``, its side ``OCCLUDER_SIDE`` of the shorter image side, at a position drawn per view from
+    ``seed``; the mask is False on the square (``Views.mask``)."""
+    N, H, W, _ = views.rgba.shape  # views, rows, columns, channels
+    side = max(1, round(OCCLUDER_SIDE * min(H, W)))
+    generator = torch.Generator().manual_seed(seed)
+    rows = torch.randint(H - side + 1, (N,), generator=generator)
+    cols = torch.randint(W - side + 1, (N,), generator=generator)
+    rgba, mask = views.rgba.clone(), torch.ones(N, H, W, dtype=torch.bool)
+    for n, (i, j) in enumerate(zip(rows.tolist(), cols.tolist())):
+        rgba[n, i:i + side, j:j + side] = torch.tensor([*colour, 1.0])
+        mask[n, i:i + side, j:j + side] = False
+    return Views(rgba=rgba, c2w=views.c2w, intrinsics=views.intrinsics, mask=mask)
+
+
 def load_procedural(split: str, n_views: int, height: int, width: int, supersample: int = 2,
-                    tracer: Tracer = trace) -> Views:
-    """``n_views`` rendered views of ``split`` of the scene ``tracer`` (see ``render_rgba``), with a
+                    tracer: Tracer = trace, lens: Intrinsics | None = None) -> Views:
+    """``n_views`` rendered views of ``split`` of the scene ``tracer`` (see ``render_rgba``) through the
+    lens ``lens`` (shape []; None: the Blender scenes' pinhole, ``CAMERA_ANGLE_X`` wide, centred), with a
     progress bar, as ``Views``."""
     c2w = scene_cameras(split, n_views)
     focal = focal_from_fov(width, CAMERA_ANGLE_X)
+    lens = Intrinsics.pinhole(focal, height, width) if lens is None else lens
     group = max(1, RAYS_PER_GROUP // (height * width * supersample**2))
     images = []
     with tqdm(total=n_views, desc=f"rendering {split}", unit="view", disable=None) as bar:
         for cameras in c2w.split(group):
-            images.append(render_rgba(cameras, height, width, focal, supersample, tracer))
+            images.append(render_rgba(cameras, height, width, lens, supersample, tracer))
             bar.update(len(cameras))
-    return Views(rgba=torch.cat(images), c2w=c2w.float(), focal=focal)
+    lenses = Intrinsics(*(t.expand(n_views, *t.shape).clone() for t in (lens.params, lens.distortion, lens.fisheye)))
+    return Views(rgba=torch.cat(images), c2w=c2w.float(), intrinsics=lenses)
 
 
 TRAIN_VIEWS = 100  # the built-in scene's training set: as many views as each Realistic Synthetic scene has

@@ -7,7 +7,7 @@ import torch
 from torch import Tensor
 
 from nerfexp.errors import ConfigError
-from nerfexp.geometry.cameras import pixel_directions
+from nerfexp.geometry.lenses import Intrinsics, border_pixels, pixel_rays
 
 FRUSTUM_SAMPLES = 33  # directions per image side when bounding the cameras' frusta
 
@@ -34,23 +34,22 @@ def _flatten(value) -> list:
     return flat
 
 
-def frustum_aabb(c2w: Tensor, height: int, width: int, focal: float, near: float, far: float) -> Tensor:
-    """The box [2, 3] of all points o + t d, t in [near, far], that cameras ``c2w`` [N, 4, 4] of
-    ``height`` x ``width`` pixels and focal length ``focal`` (pixels) see (d unit).
+def frustum_aabb(c2w: Tensor, intrinsics: Intrinsics, height: int, width: int, near: float, far: float) -> Tensor:
+    """The box [2, 3] of all points o + t d, t in [near, far], that cameras ``c2w`` [N, 4, 4] with lenses
+    ``intrinsics`` [N] and images of ``height`` x ``width`` pixels see (d unit).
 
-    Bounded from ``FRUSTUM_SAMPLES``^2 directions per image, the borders included, at near and far, and
-    padded by far (1 - cos(h / 2)) on every side, h the largest angle between neighbouring samples: no
-    point of a frustum lies farther than that outside the sampled points' box.
+    Bounded from ``FRUSTUM_SAMPLES``^2 directions per image, spread over its whole extent (its corners
+    included), at near and far, and padded by far (1 - cos(h / 2)) on every side, h the largest angle
+    between diagonal neighbours among the samples: no point of a frustum lies farther than that outside
+    the sampled points' box.
     """
-    d_cam = pixel_directions(height, width, focal, dtype=torch.float64)  # [H, W, 3]
-    rows = torch.linspace(0, height - 1, FRUSTUM_SAMPLES).round().long()
-    cols = torch.linspace(0, width - 1, FRUSTUM_SAMPLES).round().long()
-    d = d_cam[rows][:, cols].reshape(-1, 3)
-    d = d / torch.linalg.vector_norm(d, dim=-1, keepdim=True)
     c2w = c2w.to(torch.float64)
-    world = torch.einsum("nij,kj->nki", c2w[:, :3, :3], d)  # [N, K, 3]
+    pixels = border_pixels(height, width, FRUSTUM_SAMPLES).reshape(FRUSTUM_SAMPLES, FRUSTUM_SAMPLES, 2)
+    d = pixel_rays(pixels, intrinsics.to(torch.float64).unsqueeze(2))  # [N, S, S, 3]
+    diagonal = torch.cat([(d[..., 1:, 1:, :] * d[..., :-1, :-1, :]).sum(-1).flatten(),
+                          (d[..., 1:, :-1, :] * d[..., :-1, 1:, :]).sum(-1).flatten()])
+    spacing = torch.arccos(diagonal.clamp(-1, 1)).max().item()
+    world = torch.einsum("nij,nkj->nki", c2w[:, :3, :3], d.reshape(len(c2w), -1, 3))  # [N, K, 3]
     points = torch.cat([c2w[:, None, :3, 3] + t * world for t in (near, far)], 1).reshape(-1, 3)
-    spacing = max(math.atan(width / focal / 2), math.atan(height / focal / 2))
-    spacing = 2 * spacing / (FRUSTUM_SAMPLES - 1) * math.sqrt(2)  # the diagonal between neighbours
     pad = far * (1 - math.cos(spacing / 2))
     return torch.stack([points.amin(0) - pad, points.amax(0) + pad]).float()

@@ -1,8 +1,9 @@
-"""Pinhole cameras and the rays through their pixels.
+"""Camera poses, and the rays through a camera's pixels.
 
 Convention (the NeRF / Blender / OpenGL one): a camera-to-world matrix ``c2w`` [4, 4] maps camera
 coordinates to world coordinates; in camera coordinates x points right, y up, and the camera looks
-down -z. Pixel (row i, column j) is sampled at its centre, (j + 0.5, i + 0.5) in image units.
+down -z. Pixel (row i, column j) is sampled at its centre, (j + 0.5, i + 0.5) in image units, and seen
+through the camera's lens (``nerfexp.geometry.lenses``: focal lengths, principal point, distortion).
 Ray directions are unit vectors, so a ray parameter ``t`` is a distance in world units.
 """
 
@@ -10,6 +11,8 @@ import torch
 from torch import Tensor
 
 from nerfexp.domains import POSITION_LIMIT
+from nerfexp.errors import DatasetError
+from nerfexp.geometry.lenses import Intrinsics, pixel_grid, pixel_rays
 
 
 def focal_from_fov(width: int, camera_angle_x: float) -> float:
@@ -17,21 +20,14 @@ def focal_from_fov(width: int, camera_angle_x: float) -> float:
     return 0.5 * width / torch.tan(torch.tensor(0.5 * camera_angle_x, dtype=torch.float64)).item()
 
 
-def pixel_directions(height: int, width: int, focal: float, dtype=torch.float32, device=None) -> Tensor:
-    """Unit ray directions in camera coordinates, one per pixel centre: [H, W, 3]."""
-    rows = torch.arange(height, dtype=dtype, device=device) + 0.5
-    cols = torch.arange(width, dtype=dtype, device=device) + 0.5
-    i, j = torch.meshgrid(rows, cols, indexing="ij")
-    d = torch.stack([(j - 0.5 * width) / focal, -(i - 0.5 * height) / focal, -torch.ones_like(i)], -1)
-    return d / torch.linalg.vector_norm(d, dim=-1, keepdim=True)
+def camera_rays(c2w: Tensor, height: int, width: int, intrinsics: Intrinsics) -> tuple[Tensor, Tensor]:
+    """World-space rays through every pixel centre of cameras ``c2w`` [..., 4, 4] with lenses ``intrinsics``
+    (batch shape broadcastable to ``c2w``'s, e.g. [] for one lens; ``nerfexp.geometry.lenses``).
 
-
-def camera_rays(c2w: Tensor, height: int, width: int, focal: float) -> tuple[Tensor, Tensor]:
-    """World-space rays through every pixel of cameras ``c2w`` [..., 4, 4].
-
-    Returns ``(origins, directions)``, each [..., H, W, 3]; directions have unit length.
+    Returns ``(origins, directions)``, each [..., H, W, 3] in ``c2w``'s dtype; directions have unit length.
     """
-    d_cam = pixel_directions(height, width, focal, dtype=c2w.dtype, device=c2w.device)
+    lens = intrinsics.to(c2w.dtype, c2w.device).unsqueeze(2)  # [..., 1, 1]: broadcast over the pixels
+    d_cam = pixel_rays(pixel_grid(height, width, dtype=c2w.dtype, device=c2w.device), lens)  # [..., H, W, 3]
     rotation = c2w[..., None, None, :3, :3]  # [..., 1, 1, 3, 3]
     directions = (rotation @ d_cam[..., None]).squeeze(-1)  # [..., H, W, 3]
     origins = c2w[..., None, None, :3, 3].expand_as(directions)
@@ -84,3 +80,20 @@ def pose_problem(c2w: Tensor, tolerance: float = RIGID_TOLERANCE) -> str | None:
     if not torch.equal(c2w[3], torch.tensor([0.0, 0.0, 0.0, 1.0], dtype=c2w.dtype)):
         return f"its last row is {c2w[3].tolist()}, not [0, 0, 0, 1]"
     return rotation_problem(c2w[:3, :3], tolerance)
+
+
+def normalize_centres(c2w: Tensor, points: Tensor, bound: float) -> tuple[Tensor, Tensor, Tensor, float]:
+    """Centre on the mean camera centre m and scale by s = bound / max_i |c_i - m|, so that every camera lies
+    within ``bound`` of the origin (a scene's orientation is kept).
+
+    c2w [N, 4, 4], points [P, 3] -> (c2w with centres s (c - m), s (points - m), m [3], s).
+    """
+    centres = c2w[:, :3, 3]
+    mean = centres.mean(0)
+    radius = torch.linalg.vector_norm(centres - mean, dim=-1).max().item()
+    if not radius > 0:
+        raise DatasetError("all cameras are at one position: the scene's scale is undefined")
+    scale = bound / radius
+    normalized = c2w.clone()
+    normalized[:, :3, 3] = (centres - mean) * scale
+    return normalized, (points - mean) * scale, mean, scale

@@ -10,32 +10,33 @@ from torch import Tensor
 from nerfexp.data.video import FPS_RANGE
 from nerfexp.errors import NerfexpError
 from nerfexp.geometry.cameras import pose_problem
+from nerfexp.geometry.lens_records import FOCAL_RANGE, LensRecordError, lens_record, read_lens_record
+from nerfexp.geometry.lenses import Intrinsics, inversion_problem
 from nerfexp.memory import frame_bytes, require_memory
 from nerfexp.reading import UnreadableFile, read_json
 
 DEFAULT_FPS = 30.0  # of a camera path whose file names none, and of a path made from training cameras
-# A focal length in pixels: float32 ray directions are (x - W/2) / focal, which within [2^-24, 2^24] stay finite
-# and resolved, from a field of view of almost 180 degrees to one far narrower than a pixel
-FOCAL_RANGE = (2.0 ** -24, 2.0 ** 24)
 
 
 @dataclass
 class CameraPath:
     """The cameras of a video: ``c2w`` [F, 4, 4] float64 (OpenGL, ``nerfexp.geometry.cameras``), one per
-    frame, seen by frames ``height`` x ``width`` pixels at ``focal`` (pixels), played at ``fps``; ``name``
-    says where they came from (``orbit``, ``spiral``, ``viewer``, ...)."""
+    frame, seen through one lens ``intrinsics`` (shape []: ``nerfexp.geometry.lenses``) by frames ``height``
+    x ``width`` pixels, played at ``fps``; ``name`` says where they came from (``orbit``, ``spiral``,
+    ``viewer``, ...)."""
 
     name: str
     c2w: Tensor
     height: int
     width: int
-    focal: float
+    intrinsics: Intrinsics
     fps: float
 
     def record(self) -> dict:
-        """The path as JSON data: keys path, fps, height, width, focal, c2w (a list of 4 x 4 lists)."""
+        """The path as JSON data: keys path, fps, height, width, the lens (``lens_record``: camera_model,
+        fl_x, fl_y, cx, cy and its coefficients) and c2w (a list of 4 x 4 lists)."""
         return {"path": self.name, "fps": self.fps, "height": self.height, "width": self.width,
-                "focal": self.focal, "c2w": self.c2w.tolist()}
+                **lens_record(self.intrinsics), "c2w": self.c2w.tolist()}
 
 
 def _number(value, integer: bool = False) -> bool:
@@ -62,8 +63,10 @@ def _c2w_problem(c2w) -> str | None:
 def read_camera_path(file: Path) -> CameraPath:
     """The cameras of ``file`` (``CameraPath.record``'s JSON: a render's ``cameras.json``, a path saved by
     ``nerfexp-view``), checked: a NerfexpError naming the file, the key and what was expected where it is
-    not JSON, lacks a key, has a size that is not positive and even (video encoders need even sizes), a focal
-    length outside ``FOCAL_RANGE``, an fps outside ``nerfexp.data.video.FPS_RANGE`` (what MP4 holds), or c2w
+    not JSON, lacks a key, has a size that is not positive and even (video encoders need even sizes), a lens
+    that ``read_lens_record`` refuses (or, in a file of an earlier nerfexp, a ``focal`` outside
+    ``FOCAL_RANGE``: a pinhole centred on the frame) or whose distortion cannot be inverted over the frame,
+    an fps outside ``nerfexp.data.video.FPS_RANGE`` (what MP4 holds), or c2w
     is not a non-empty list of rigid 4 x 4 transforms placing the cameras within 2^24 scene units of the
     origin (``nerfexp.geometry.cameras.pose_problem``). ``path`` and ``fps`` may be left out (``file``, 30)."""
     try:
@@ -71,10 +74,10 @@ def read_camera_path(file: Path) -> CameraPath:
     except UnreadableFile as error:
         raise NerfexpError(f"--cameras {file}: {error.reason}") from None
     expected = {"height": "a positive even number of pixels", "width": "a positive even number of pixels",
-                "focal": "a focal length in pixels in [2^-24, 2^24]",
                 "fps": f"a number of frames per second in [{FPS_RANGE[0]:g}, {FPS_RANGE[1]:g}]",
                 "c2w": "a non-empty list of 4 x 4 rigid camera-to-world matrices (OpenGL convention)"}
     ranges = {"focal": FOCAL_RANGE, "fps": FPS_RANGE}
+    expected_focal = "a focal length in pixels in [2^-24, 2^24]"
     if not isinstance(data, dict):
         raise NerfexpError(f"--cameras {file}: expected a JSON object with keys {', '.join(expected)}")
     data = {"path": Path(file).name, "fps": DEFAULT_FPS, **data}
@@ -92,7 +95,18 @@ def read_camera_path(file: Path) -> CameraPath:
             problem = None
         if problem:
             raise NerfexpError(f"--cameras {file}: key '{key}': expected {what}, {problem}")
-    require_memory(f"--cameras {file}", f"a frame of {data['height']} x {data['width']} pixels",
-                   frame_bytes(data["height"], data["width"]))
-    return CameraPath(str(data["path"]), torch.tensor(data["c2w"], dtype=torch.float64), data["height"],
-                      data["width"], float(data["focal"]), float(data["fps"]))
+    height, width = data["height"], data["width"]
+    if "focal" in data:  # a file of an earlier nerfexp: a pinhole centred on the frame
+        if not (_number(data["focal"]) and FOCAL_RANGE[0] <= data["focal"] <= FOCAL_RANGE[1]):
+            raise NerfexpError(f"--cameras {file}: key 'focal': expected {expected_focal}, got {data['focal']!r}")
+        lens = Intrinsics.pinhole(float(data["focal"]), height, width)
+    else:
+        try:
+            lens = read_lens_record(data)
+        except LensRecordError as error:
+            raise NerfexpError(f"--cameras {file}: key {error}") from None
+        if problem := inversion_problem(lens, height, width):
+            raise NerfexpError(f"--cameras {file}: the lens of {width} x {height} frames: {problem}")
+    require_memory(f"--cameras {file}", f"a frame of {height} x {width} pixels", frame_bytes(height, width))
+    return CameraPath(str(data["path"]), torch.tensor(data["c2w"], dtype=torch.float64), height, width, lens,
+                      float(data["fps"]))

@@ -38,6 +38,7 @@ from nerfexp.errors import NerfexpError
 from nerfexp.extras import require
 from nerfexp.geometry.camera_paths import mean_up
 from nerfexp.geometry.cameras import focal_from_fov
+from nerfexp.geometry.lenses import Intrinsics
 from nerfexp.geometry.viewer_cameras import flip_camera_axes, vertical_fov
 from nerfexp.products.camera_files import CameraPath
 from nerfexp.products.frames import KINDS, frame_bands, frame_images, rgb_pixels, scene_depth_range
@@ -193,8 +194,8 @@ def render_request(module: NeRFModule, scene: Scene, lock: threading.Lock, reque
     """8-bit pixels [height, width, 3] of the image ``request.kind`` of camera ``request.c2w`` seen with
     its vertical field of view at ``height`` x ``width`` (``frame_bands``, one band at a time under
     ``lock``), or None as soon as ``stale()`` is true between two bands."""
-    focal = focal_from_fov(height, request.fov)
-    bands, parts = frame_bands(module, scene, request.c2w, height, width, focal), []
+    lens = Intrinsics.pinhole(focal_from_fov(height, request.fov), height, width)  # the browser's camera: a pinhole
+    bands, parts = frame_bands(module, scene, request.c2w, height, width, lens), []
     while not stale():
         with lock:
             band = next(bands, None)
@@ -213,7 +214,8 @@ def saved_camera_path(keyframes: list[ViewRequest], max_width: int) -> CameraPat
     width = even(max_width)
     height = even(width * first.height / first.width)
     c2w = torch.stack([keyframe.c2w for keyframe in keyframes])
-    return CameraPath("viewer", c2w, height, width, focal_from_fov(height, first.fov), FPS)
+    lens = Intrinsics.pinhole(focal_from_fov(height, first.fov), height, width)
+    return CameraPath("viewer", c2w, height, width, lens, FPS)
 
 
 class Viewer:
@@ -245,8 +247,8 @@ class Viewer:
         scale = frustum_scale(train.c2w)
         for split, views, colour in (("train", train, TRAIN_COLOUR), ("test", test, TEST_COLOUR)):
             wxyz, position = viewer_pose(views.c2w)
-            fov = vertical_fov(views.height, views.focal)
             for index in range(len(views)):
+                fov = vertical_fov(views.height, views.intrinsics.params[index, 1].item())  # fy
                 self.server.scene.add_camera_frustum(
                     f"/cameras/{split}/{index}", fov=fov, aspect=views.width / views.height, scale=scale,
                     color=colour, thickness=1.5, thickness_units="screen", wxyz=wxyz[index].numpy(),
@@ -255,7 +257,7 @@ class Viewer:
         first = test.c2w[0].double()
         near, far = scene_depth_range(self.scene)
         camera = self.server.initial_camera
-        camera.fov = vertical_fov(test.height, test.focal)
+        camera.fov = vertical_fov(test.height, test.intrinsics.params[0, 1].item())  # fy
         camera.position = first[:3, 3].numpy()
         camera.look_at = (first[:3, 3] - 0.5 * (near + far) * first[:3, 2]).numpy()  # down -z, mid-depth
         camera.up = first[:3, 1].numpy()

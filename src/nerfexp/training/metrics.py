@@ -1,23 +1,35 @@
-"""Image quality as NeRF papers report it: on 8-bit images, SSIM with TensorFlow's conventions."""
+"""Image quality as NeRF papers report it: on 8-bit images, SSIM with TensorFlow's conventions; where a mask
+says which pixels count (a capture's masks, ``nerfexp.data.views.Views.mask``), over those pixels only."""
 
 import numpy as np
-import torch
 from skimage.metrics import structural_similarity
 from torch import Tensor
 
 from nerfexp.pixels import quantize
 
+SSIM_SIGMA = 1.5  # tf.image.ssim's Gaussian window: sigma 1.5, 11 taps (skimage: radius int(3.5 sigma + 0.5) = 5)
+SSIM_CROP = 5  # the border skimage leaves out of its mean: (11 - 1) / 2 pixels on each side
 
-def psnr(image: Tensor, target: Tensor) -> float:
-    """PSNR in dB of [H, W, 3] images in [0, 1], both quantized to 8 bits: -10 log10(MSE)."""
-    mse = torch.mean((quantize(image.double()) - quantize(target.double())) ** 2).item()
+
+def psnr(image: Tensor, target: Tensor, mask: Tensor | None = None) -> float:
+    """PSNR in dB of [H, W, 3] images in [0, 1], both quantized to 8 bits: -10 log10(MSE), the MSE over the
+    pixels ``mask`` [H, W] keeps (None: all)."""
+    squared = (quantize(image.double()) - quantize(target.double())) ** 2
+    mse = (squared.mean() if mask is None else squared[mask.to(squared.device)].mean()).item()
     return float("inf") if mse == 0 else -10 * np.log10(mse)
 
 
-def ssim(image: Tensor, target: Tensor) -> float:
+def ssim(image: Tensor, target: Tensor, mask: Tensor | None = None) -> float:
     """SSIM of [H, W, 3] images in [0, 1] after 8-bit quantization, as ``tf.image.ssim(max_val=1)``:
-    an 11-tap Gaussian window of sigma 1.5, K1 0.01, K2 0.03, population covariance."""
+    an 11-tap Gaussian window of sigma 1.5, K1 0.01, K2 0.03, population covariance. With ``mask`` [H, W]:
+    the mean of the SSIM map over the pixels the mask keeps, within the border skimage's own mean leaves
+    out (``SSIM_CROP``); an all-true mask gives skimage's score."""
     a = quantize(image.double()).cpu().numpy()
     b = quantize(target.double()).cpu().numpy()
-    return float(structural_similarity(a, b, data_range=1.0, channel_axis=-1, gaussian_weights=True,
-                                       sigma=1.5, use_sample_covariance=False))
+    score, full = structural_similarity(a, b, data_range=1.0, channel_axis=-1, gaussian_weights=True,
+                                        sigma=SSIM_SIGMA, use_sample_covariance=False, full=True)
+    if mask is None:
+        return float(score)
+    inner = (slice(SSIM_CROP, -SSIM_CROP), slice(SSIM_CROP, -SSIM_CROP))
+    kept = mask.cpu().numpy()[inner]
+    return float(full[inner][kept].mean()) if kept.any() else float("nan")

@@ -168,13 +168,18 @@ class NeRFModule(L.LightningModule):
                 for key in parts[0]}
 
     def _evaluate(self, batch: dict) -> dict:
-        """One whole image scored: its "index", "psnr", "ssim", "lpips" (NaN where not scored), the render
-        ("rgb", "depth", "opacity") and the "target". The means over images are logged by
-        ``nerfexp.training.recorders.RunRecorder``, which gathers the images of all processes in a distributed
-        run (a mean per process would weigh them wrongly)."""
+        """One whole image scored (over the pixels its "mask" keeps, where it has one:
+        ``nerfexp.training.metrics``; LPIPS with the render's masked pixels the target's): its "index",
+        "psnr", "ssim", "lpips" (NaN where not scored), the render ("rgb", "depth", "opacity") and the
+        "target". The means over images are logged by ``nerfexp.training.recorders.RunRecorder``, which
+        gathers the images of all processes in a distributed run (a mean per process would weigh them
+        wrongly)."""
         image = self.render_image(batch["origins"], batch["directions"], batch.get("viewdirs"))
-        scores = {"psnr": psnr(image["rgb"], batch["rgb"]), "ssim": ssim(image["rgb"], batch["rgb"]),
-                  "lpips": self._lpips(image["rgb"], batch["rgb"])}
+        mask = batch.get("mask")  # [H, W]: the pixels that count, where the views have masks
+        # LPIPS has no mask: the masked pixels of the render are the target's, so they differ nowhere
+        scored = image["rgb"] if mask is None else torch.where(mask[..., None], image["rgb"], batch["rgb"])
+        scores = {"psnr": psnr(image["rgb"], batch["rgb"], mask), "ssim": ssim(image["rgb"], batch["rgb"], mask),
+                  "lpips": self._lpips(scored, batch["rgb"])}
         return {"index": int(batch["index"]), "target": batch["rgb"], **image, **scores}
 
     def _lpips(self, image: Tensor, target: Tensor) -> float:

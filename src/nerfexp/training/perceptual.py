@@ -12,36 +12,53 @@ channels) every pixel's feature vector is divided by its length over the channel
 with w_l >= 0 the linear heads LPIPS 0.1 learnt (``HEADS``: the lpips package's ``weights/v0.1/alex.pth``,
 shipped here unchanged with its BSD-2-Clause notice, ``lpips_LICENSE.txt``).
 
-AlexNet's weights are torchvision's ImageNet ones (``ALEXNET_FILE``), which torchvision downloads into the
-torch hub cache on first use; nerfexp reads them from that cache or from a file named in the config
-(``weights_file``), as data (``torch.load(weights_only=True)``), and downloads nothing.
+AlexNet's weights are torchvision's ImageNet ones (``ALEXNET_FILE``), read as data
+(``torch.load(weights_only=True)``) from a file named in the config (``weights_file``), else from the torch hub
+cache, where torchvision keeps them. Where the cache lacks them, nerfexp downloads them there once, from
+torchvision's address (``ALEXNET_URL``) with their hash checked, as torchvision does (``fetch_alexnet``): when
+LPIPS is set up (under ``model.lpips=true`` when the settings are checked), never on import and never where
+the config names a file. Offline, LPIPS is not scored under ``model.lpips=auto`` (one line says why) and is an
+error under ``true``.
 """
 
+import http.client
+import logging
 import math
+import socket
 from pathlib import Path
+from urllib.error import HTTPError, URLError
+from urllib.parse import urlsplit
 
 import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
-from nerfexp.errors import ConfigError
+from nerfexp.errors import ConfigError, NerfexpError
 from nerfexp.pixels import quantize
 from nerfexp.rundir.trained import load_as_data
 
 HEADS = Path(__file__).with_name("lpips_alex_v0.1.pth")  # LPIPS 0.1's linear heads for AlexNet
 ALEXNET_FILE = "alexnet-owt-7be5be79.pth"  # torchvision's AlexNet ImageNet weights, as its hub cache names them
+ALEXNET_URL = f"https://download.pytorch.org/models/{ALEXNET_FILE}"  # where torchvision downloads them from
 SHIFT = (-0.030, -0.088, -0.188)  # LPIPS 0.1's per-channel shift and scale of [-1, 1] inputs
 SCALE = (0.458, 0.448, 0.450)
 TAPS = (1, 4, 7, 9, 11)  # the layers of ``alexnet_features`` whose outputs are compared: its five ReLUs
 CHANNELS = (64, 192, 384, 256, 256)  # their channels
 MIN_SIDE = 31  # the smallest image side that leaves the last ReLU one pixel (``alexnet_features``)
 EPS = 1e-10  # added to each feature vector's length before dividing, as LPIPS does
-SETTINGS = ("auto", True, False)  # model.lpips: scored where the weights are found; required; off
+SETTINGS = ("auto", True, False)  # model.lpips: scored where the weights are found or downloaded; required; off
 NOT_SCORED = math.nan  # an image's LPIPS where it is not scored (the recorders leave it out of their files)
+
+log = logging.getLogger(__name__)
 
 
 class ImageTooSmall(ConfigError):
     """An image below ``MIN_SIDE`` pixels on a side, which AlexNet's strides and pools reduce to nothing."""
+
+
+class DownloadFailed(NerfexpError):
+    """A weights file that could not be downloaded, or whose download failed its hash check; the message says
+    why in a few words (``download_failure``)."""
 
 
 def alexnet_features() -> nn.Sequential:
@@ -97,10 +114,59 @@ class LpipsNetwork(nn.Module):
         return distance
 
 
+def url_file_name(url: str) -> str:
+    """The file name ``url`` ends with, as torch hub names the file it downloads (``ALEXNET_FILE`` for
+    ``ALEXNET_URL``)."""
+    return urlsplit(url).path.rsplit("/", 1)[-1]
+
+
 def hub_weights_file() -> Path:
-    """Where torchvision keeps AlexNet's ImageNet weights once downloaded: the torch hub cache
-    (``$TORCH_HOME/hub``, by default ``~/.cache/torch/hub``), ``checkpoints/alexnet-owt-7be5be79.pth``."""
-    return Path(torch.hub.get_dir()) / "checkpoints" / ALEXNET_FILE
+    """Where torchvision keeps AlexNet's ImageNet weights once downloaded, and where ``fetch_alexnet`` puts them:
+    the torch hub cache (``$TORCH_HOME/hub``, by default ``~/.cache/torch/hub``),
+    ``checkpoints/alexnet-owt-7be5be79.pth`` (the name ``ALEXNET_URL`` ends with, read when called)."""
+    return Path(torch.hub.get_dir()) / "checkpoints" / url_file_name(ALEXNET_URL)
+
+
+def download_failure(error: Exception) -> str:
+    """Why a download failed, in a few words, from the error ``torch.hub.download_url_to_file`` raised: an HTTP
+    status, a failed name lookup (no network), a refused or broken connection, a failed hash check (which is
+    also what a body cut short gives: urllib stops reading at its end without an error), or the system's
+    words for a local failure (a full disk, a cache directory it may not write)."""
+    if isinstance(error, HTTPError):
+        return f"HTTP {error.code} {error.reason}"
+    if isinstance(error, URLError):
+        reason = error.reason
+        if isinstance(reason, socket.gaierror):
+            return f"name lookup failed: {reason.strerror}"
+        return (reason.strerror or str(reason)) if isinstance(reason, OSError) else str(reason)
+    if isinstance(error, RuntimeError):  # the only one download_url_to_file raises: its hash check
+        return "SHA-256 check failed: a truncated or altered download"
+    if isinstance(error, http.client.HTTPException):  # before OSError: RemoteDisconnected is both
+        return f"the connection broke off ({type(error).__name__})"
+    return (error.strerror if isinstance(error, OSError) else None) or str(error)
+
+
+def fetch_alexnet(cache_dir: Path, url: str = ALEXNET_URL) -> Path:
+    """The file at ``url`` downloaded into ``cache_dir`` (made where missing) under the name the URL ends
+    with, ``cache_dir / url_file_name(url)``, which it returns. Its SHA-256 must start with the hex digits the
+    name carries (``name-<hex>.ext``, torch hub's ``HASH_REGEX``: 7be5be79 in ``ALEXNET_FILE``), as torchvision
+    checks its downloads. ``torch.hub.download_url_to_file`` does it, with its progress bar: it writes a
+    temporary file in ``cache_dir`` (``<name>.<uuid>.partial``), deletes it on any failure, and moves it to the
+    name only once the hash matches, so the name never holds a partial or altered file. Downloads whatever
+    is at the name already again: callers fetch only a file that is missing. A ``DownloadFailed`` saying why
+    in a few words (``download_failure``) where it cannot; a ValueError for a name without a hash."""
+    name = url_file_name(url)
+    found = torch.hub.HASH_REGEX.search(name)
+    if found is None or not found.group(1):
+        raise ValueError(f"{url}: its file name carries no hash to check (name-<hex>.ext)")
+    path = Path(cache_dir) / name
+    try:  # no line before: offline, the caller's one line is all (the progress bar shows once bytes arrive)
+        path.parent.mkdir(parents=True, exist_ok=True)
+        torch.hub.download_url_to_file(url, str(path), hash_prefix=found.group(1), progress=True)
+    except (OSError, http.client.HTTPException, RuntimeError) as error:
+        raise DownloadFailed(download_failure(error)) from error
+    log.info("AlexNet's ImageNet weights for LPIPS downloaded, once, from %s to %s", url, path)
+    return path
 
 
 def weights_file(weights: str | Path | None) -> Path:
@@ -182,24 +248,30 @@ class LpipsScorer:
 
 def lpips_scorer(setting: bool | str, weights: str | Path | None) -> tuple[LpipsScorer | None, str]:
     """The scorer ``model.lpips`` (``setting``: auto, true or false) and ``model.lpips_weights`` (``weights``)
-    ask for, and a line saying why there is none where auto finds no weights (else ""). No weights at a
-    path the config names, or none at all under true, is a ConfigError (``check_weights_file``); a file that
-    is there but not AlexNet's weights is one under auto too."""
+    ask for, and a line saying why there is none where auto has no weights (else ""). Weights missing from
+    the hub cache are downloaded there first (``fetch_alexnet``, from ``ALEXNET_URL``); a file the config names
+    is never downloaded. No weights at a path the config names, or none to be had under true, is a
+    ConfigError (``check_weights_file``); a file that is there but not AlexNet's weights is one under auto
+    too."""
     if setting is False:
         return None, ""
-    path = weights_file(weights)
-    if not path.is_file() and setting == "auto" and weights is None:
-        return None, (f"LPIPS not scored: no AlexNet ImageNet weights at {path} (torchvision's {ALEXNET_FILE}: "
-                      "put the file there or set model.lpips_weights=FILE; model.lpips=false turns LPIPS off; "
-                      "docs/metrics.md)")
     check_weights_file(setting, weights)
+    path = weights_file(weights)
+    if not path.is_file():  # only auto reading the hub cache gets here without the file
+        try:
+            path = fetch_alexnet(path.parent, ALEXNET_URL)
+        except DownloadFailed as error:
+            return None, (f"LPIPS not scored: no AlexNet ImageNet weights at {path}, and downloading them failed "
+                          f"({error}): put {ALEXNET_URL} there or set model.lpips_weights=FILE; model.lpips=false "
+                          "turns LPIPS off (docs/metrics.md)")
     return LpipsScorer(lpips_network(path)), ""
 
 
 def check_weights_file(setting: bool | str, weights: str | Path | None) -> None:
     """A ConfigError where LPIPS must be scored from a file that is not there: the file ``model.lpips_weights``
-    names (``weights``), or under ``model.lpips=true`` the hub cache's; nothing to check under false, or
-    under auto reading the hub cache (which may lack it)."""
+    names (``weights``), or under ``model.lpips=true`` the hub cache's where downloading it there
+    (``fetch_alexnet``, once, before any work) fails. Nothing to check under false, or under auto reading the
+    hub cache (which may lack it: ``lpips_scorer`` downloads it when LPIPS is set up, or says why not)."""
     if setting is False or (setting == "auto" and weights is None):
         return
     path = weights_file(weights)
@@ -208,5 +280,9 @@ def check_weights_file(setting: bool | str, weights: str | Path | None) -> None:
     if weights is not None:
         raise ConfigError(f"model.lpips_weights={weights}: no such file; expected torchvision's AlexNet ImageNet "
                           f"weights ({ALEXNET_FILE}) there (docs/metrics.md)")
-    raise ConfigError(f"model.lpips=true: no AlexNet ImageNet weights at {path}: put torchvision's {ALEXNET_FILE} "
-                      "there or set model.lpips_weights=FILE (docs/metrics.md)")
+    try:
+        fetch_alexnet(path.parent, ALEXNET_URL)
+    except DownloadFailed as error:
+        raise ConfigError(f"model.lpips=true: no AlexNet ImageNet weights at {path}, and downloading them failed "
+                          f"({error}): put {ALEXNET_URL} there or set model.lpips_weights=FILE "
+                          "(docs/metrics.md)") from None

@@ -269,6 +269,9 @@ class RunRecorder(L.Callback):
             "machine": machine(), "choices": self.choices, "overrides": self.overrides, **self.labels,
             "config": self.run_config, "resumes": self.resumes,
         }
+        rule = trainer.datamodule.scene.split_rule() if trainer.datamodule is not None else None
+        if rule is not None:  # how the views were split, where a rule made the split
+            results["split"] = rule
         if trainer.ckpt_path is not None:  # the weights scored: the checkpoint the test loaded
             results["checkpoint"] = checkpoint_record(self.output_dir, Path(trainer.ckpt_path))
         write_json(self.output_dir / RESULTS, results)

@@ -1,0 +1,174 @@
+"""nerfstudio's format (``data=nerfstudio``): scenes written by nerfexp read back to the same rays, Instant-NGP's
+variant, downscaled folders, masks, splits, and one line naming the file, the frame and the key for every
+malformed field."""
+
+import json
+import math
+
+import pytest
+import torch
+
+from nerfexp.data.nerfstudio import TRANSFORMS, NerfstudioScene, write_nerfstudio
+from nerfexp.data.procedural import load_procedural, occlude, real_lens
+from nerfexp.data.rays import RandomRays, WholeImages
+from nerfexp.data.views import Views
+from nerfexp.errors import DatasetError
+from nerfexp.geometry.cameras import focal_from_fov
+from nerfexp.geometry.lenses import Intrinsics
+from nerfexp.pixels import png_bytes
+
+SIZE = 24
+
+
+@pytest.fixture(scope="module")
+def rendered():
+    """The built-in scene seen through a real lens (off-centre, fx != fy, OPENCV), with occluders and masks."""
+    lens = real_lens(SIZE, SIZE)
+    return {split: occlude(load_procedural(split, n, SIZE, SIZE, supersample=1, lens=lens), seed)
+            for seed, (split, n) in enumerate((("train", 6), ("val", 1), ("test", 2)))}
+
+
+def write(root, rendered) -> None:
+    write_nerfstudio(root, rendered.items())
+
+
+def edit_transforms(root, change) -> None:
+    path = root / TRANSFORMS
+    content = json.loads(path.read_text())
+    change(content)
+    path.write_text(json.dumps(content))
+
+
+def test_a_written_scene_reads_back_to_the_same_rays(tmp_path, rendered):
+    write(tmp_path, rendered)
+    scene = NerfstudioScene(root=str(tmp_path))
+    _, centre, scale = scene.capture() and scene._normalization
+    for split, views in rendered.items():
+        read = scene.views(split)
+        assert torch.equal(read.mask, views.mask)
+        assert torch.allclose(read.rgba, views.rgba, atol=0.5 / 255)  # 8-bit PNGs
+        assert torch.allclose(read.intrinsics.params, views.intrinsics.params, rtol=1e-15)
+        assert torch.equal(read.intrinsics.distortion, views.intrinsics.distortion)
+        background = torch.ones(3)
+        for k in range(len(views)):
+            ours, theirs = WholeImages(read, background)[k], WholeImages(views, background)[k]
+            assert (ours["directions"] - theirs["directions"]).abs().max() < 1e-6  # float32 rays
+            moved = ((theirs["origins"].double() - centre) * scale).float()  # the reader's normalization
+            assert (ours["origins"] - moved).abs().max() < 1e-5
+            assert torch.equal(ours["mask"], views.mask[k])
+    assert scene.split_rule().startswith("the file's train_filenames")
+
+
+def test_training_rays_never_come_from_masked_pixels(tmp_path, rendered):
+    views = rendered["train"]
+    stream = iter(RandomRays(views, torch.ones(3), batch_rays=4096, seed=0))
+    rgb = next(stream)["rgb"]
+    magenta = (rgb - torch.tensor([1.0, 0.0, 1.0])).abs().amax(-1) < 1e-6
+    assert not magenta.any()  # every occluder pixel is magenta and masked out; the scene has no magenta
+    unmasked = iter(RandomRays(Views(views.rgba, views.c2w, views.intrinsics), torch.ones(3), 4096, 0))
+    assert ((next(unmasked)["rgb"] - torch.tensor([1.0, 0.0, 1.0])).abs().amax(-1) < 1e-6).any()
+
+
+def test_instant_ngp_files_are_read_with_their_defaults(tmp_path):
+    # Instant-NGP's colmap2nerf: camera_angle_x instead of fl_x, no cx, cy, w, h or camera_model, images named
+    # without an extension, and its box: aabb_scale 2 at scale 0.5 and offset (0.5, 0.5, 0.5) is the cube of
+    # half side 2 / (2 x 0.5) = 2 around the origin of the file's coordinates
+    views = load_procedural("train", 4, SIZE, SIZE, supersample=1)
+    (tmp_path / "images").mkdir()
+    frames = []
+    for i, image in enumerate(views.rgba):
+        (tmp_path / "images" / f"{i}.png").write_bytes(png_bytes((image * 255).round().byte().numpy()))
+        frames.append({"file_path": f"./images/{i}", "transform_matrix": views.c2w[i].tolist(), "sharpness": 9})
+    (tmp_path / TRANSFORMS).write_text(json.dumps({"camera_angle_x": 0.69, "aabb_scale": 2, "scale": 0.5,
+                                                   "offset": [0.5, 0.5, 0.5], "frames": frames}))
+    scene = NerfstudioScene(root=str(tmp_path), holdout=2, n_val=1)
+    train = scene.views("train")  # frames 1 and 3: every 2nd frame (0, 2) is a test view
+    focal = focal_from_fov(SIZE, 0.69)
+    assert torch.equal(train.intrinsics.params, torch.tensor([[focal, focal, SIZE / 2, SIZE / 2]] * 2,
+                                                             dtype=torch.float64))
+    assert not train.intrinsics.is_distorted().any()
+    _, centre, scale = scene._normalization
+    assert torch.allclose(scene.bounding_box(), ((torch.tensor([[-2.0] * 3, [2.0] * 3], dtype=torch.float64)
+                                                  - centre) * scale).float())
+    assert scene.split_rule() == "every 2th frame in file_path order a test view (data.holdout)"
+    assert len(scene.views("test")) == 2 and len(scene.views("val")) == 1
+
+
+def test_a_downscaled_folder_is_read_where_it_exists_and_the_images_shrunk_where_not(tmp_path, rendered):
+    write(tmp_path, rendered)
+    full = NerfstudioScene(root=str(tmp_path)).views("test")
+    shrunk = NerfstudioScene(root=str(tmp_path), downscale=2).views("test")  # no images_2/: shrunk on reading
+    assert shrunk.rgba.shape[1:3] == (SIZE // 2, SIZE // 2)
+    assert torch.allclose(shrunk.intrinsics.params, full.intrinsics.params / 2)
+    assert shrunk.mask.sum() < full.mask.sum() / 4 + 1  # a pixel counts where all four under it counted
+    (tmp_path / "images_2").mkdir()
+    grey = torch.full((SIZE // 2, SIZE // 2, 4), 128, dtype=torch.uint8).numpy()
+    for name in ("test_0000.png", "test_0001.png"):
+        (tmp_path / "images_2" / name).write_bytes(png_bytes(grey))
+    from_folder = NerfstudioScene(root=str(tmp_path), downscale=2).views("test")
+    assert torch.all(from_folder.rgba[..., :3] == 128 / 255)  # ns-process-data's images_2, as they are
+    assert torch.allclose(from_folder.intrinsics.params, full.intrinsics.params / 2)
+
+
+MALFORMED = [
+    (lambda c: c.pop("fl_x"),
+     "frame 0 (images/train_0000.png): missing key 'fl_x' (or Instant-NGP's 'camera_angle_x')"),
+    (lambda c: c.update(k1="strong"), "frame 0 (images/train_0000.png): 'k1': expected a finite number"),
+    (lambda c: c.update(camera_model="FISHEYE624"), "'camera_model': expected one of PINHOLE, OPENCV"),
+    (lambda c: c["frames"][3].update(fl_y=-1.0), "frame 3 (images/train_0003.png): 'fl_y': expected a number of "
+                                                  "pixels"),
+    (lambda c: c["frames"][1].update(transform_matrix=[[2, 0, 0, 0], [0, 1, 0, 0], [0, 0, 1, 0], [0, 0, 0, 1]]),
+     "frame 1: 'transform_matrix' must be a rigid camera pose"),
+    (lambda c: c["frames"][0].update(file_path="/etc/passwd"), "frame 0: 'file_path' must be a path inside the "
+                                                               "scene's folder"),
+    (lambda c: c["frames"][0].update(mask_path="../masks/x.png"), "frame 0: 'mask_path' must be a path inside"),
+    (lambda c: c.update(test_filenames=["images/missing.png"]), "'test_filenames' names 'images/missing.png', "
+                                                                 "which no frame's 'file_path' is"),
+    (lambda c: c.update(applied_transform=[[1, 0, 0]]), "'applied_transform' must be a 3x4 (or 4x4) list"),
+    (lambda c: c.update(w=23.5), "'w' must be a whole number of pixels, got 23.5"),
+    (lambda c: c.update(aabb_scale=-1), "'aabb_scale' must be a positive number"),
+    (lambda c: c.update(k1=-5.0), "folds the image over itself"),
+]
+
+
+@pytest.mark.parametrize(("change", "says"), MALFORMED, ids=[says[:40] for _, says in MALFORMED])
+def test_a_malformed_field_is_one_line_naming_the_file_frame_and_key(tmp_path, rendered, change, says):
+    write(tmp_path, rendered)
+    edit_transforms(tmp_path, change)
+    with pytest.raises(DatasetError) as caught:
+        scene = NerfstudioScene(root=str(tmp_path))
+        for split in ("train", "val", "test"):
+            scene.views(split)
+    message = str(caught.value)
+    assert says in message and str(tmp_path / TRANSFORMS) in message and "\n" not in message
+
+
+def test_an_image_whose_size_is_not_the_files_and_a_mask_of_another_size_are_refused(tmp_path, rendered):
+    write(tmp_path, rendered)
+    edit_transforms(tmp_path, lambda c: c.update(w=30))
+    says = r"image size 24x24 does not match .*frame 7 \(images/test_0000.png\)'s w x h 30x24"
+    with pytest.raises(DatasetError, match=says):
+        NerfstudioScene(root=str(tmp_path)).views("test")
+    write(tmp_path, rendered)
+    small = torch.full((SIZE // 2, SIZE // 2), 255, dtype=torch.uint8).numpy()
+    (tmp_path / "masks" / "test_0000.png").write_bytes(png_bytes(small))
+    with pytest.raises(DatasetError, match="its mask is 12x12 pixels, its image 24x24"):
+        NerfstudioScene(root=str(tmp_path)).views("test")
+
+
+def test_per_frame_intrinsics_override_the_shared_ones(tmp_path, rendered):
+    write(tmp_path, rendered)
+    # the file holds 6 train, 1 val and 2 test frames, in that order: frame 8 is the second test view
+    edit_transforms(tmp_path, lambda c: c["frames"][8].update(fl_x=40.0, cx=11.0, camera_model="PINHOLE", k1=0,
+                                                              k2=0, p1=0, p2=0))
+    test = NerfstudioScene(root=str(tmp_path)).views("test")
+    lens = real_lens(SIZE, SIZE)
+    assert torch.allclose(test.intrinsics.params[0], lens.params)
+    assert test.intrinsics.params[1].tolist() == [40.0, lens.params[1].item(), 11.0, lens.params[3].item()]
+    assert test.intrinsics.is_distorted().tolist() == [True, False]
+    assert math.isclose(test.intrinsics.distortion[0, 0].item(), -0.12)
+
+
+def test_pinhole_views_stack_with_their_lenses(rendered):
+    lenses = Intrinsics.stack([real_lens(SIZE, SIZE), Intrinsics.pinhole(20.0, SIZE, SIZE)])
+    assert lenses.params.shape == (2, 4) and lenses.is_distorted().tolist() == [True, False]

@@ -1,0 +1,180 @@
+"""AlexNet's weights downloaded into the torch hub cache where they are missing
+(nerfexp.training.perceptual.fetch_alexnet, and lpips_scorer and check_weights_file, which call it), from a
+server on 127.0.0.1 (tests/training/weights_server.py): no test reaches the internet. The hash a file must
+have comes from its name, as torch hub's does (``name-<hex>.ext``), so each test names what it serves by the
+SHA-256 of its bytes. However a download fails, the cache is left without the file and without a temporary
+one."""
+
+import io
+import socket
+from pathlib import Path
+from urllib.error import HTTPError, URLError
+
+import pytest
+import torch
+
+from nerfexp.errors import ConfigError
+from nerfexp.training import perceptual
+from nerfexp.training.perceptual import (
+    ALEXNET_FILE,
+    ALEXNET_URL,
+    DownloadFailed,
+    LpipsScorer,
+    check_weights_file,
+    download_failure,
+    fetch_alexnet,
+    hub_weights_file,
+    lpips_network,
+    lpips_scorer,
+    url_file_name,
+)
+from tests.training.alexnet import alexnet_state
+from tests.training.weights_server import Cut, hashed_name, misnamed, refused_url, serving
+
+DATA = bytes(range(256)) * 64  # a small stand-in for a weights file: 16 kB
+
+
+def files_in(directory: Path) -> list[str]:
+    return sorted(path.name for path in directory.iterdir()) if directory.exists() else []
+
+
+def alexnet_bytes() -> bytes:
+    buffer = io.BytesIO()
+    torch.save(alexnet_state(), buffer)
+    return buffer.getvalue()
+
+
+def image_pair() -> tuple[torch.Tensor, torch.Tensor]:
+    generator = torch.Generator().manual_seed(0)
+    image = torch.rand(40, 48, 3, generator=generator)
+    return image, (image + 0.1 * torch.rand(40, 48, 3, generator=generator)).clamp(0, 1)
+
+
+def test_the_published_address_names_the_file_the_hub_cache_keeps():
+    assert url_file_name(ALEXNET_URL) == ALEXNET_FILE
+    assert ALEXNET_URL == f"https://download.pytorch.org/models/{ALEXNET_FILE}"  # torchvision's AlexNet_Weights
+    assert torch.hub.HASH_REGEX.search(ALEXNET_FILE).group(1) == "7be5be79"
+
+
+def test_a_file_is_downloaded_under_its_name_once_its_hash_matches(tmp_path):
+    name = hashed_name("weights", DATA)
+    cache = tmp_path / "hub" / "checkpoints"  # made by the download
+    with serving({name: DATA}) as server:
+        path = fetch_alexnet(cache, server.url(name))
+    assert path == cache / name and path.read_bytes() == DATA
+    assert files_in(cache) == [name] and server.requests == [name]  # no temporary file left
+
+
+@pytest.mark.parametrize("case, reason", [
+    ("wrong hash", r"SHA-256 check failed"),
+    ("body cut short", r"SHA-256 check failed: a truncated or altered download"),  # urllib stops at the cut
+    ("no such file", r"HTTP 404 Not Found"),
+    ("connection refused", r"Connection refused"),
+])
+def test_a_failed_download_leaves_the_cache_without_the_file_and_says_why(tmp_path, case, reason):
+    cache = tmp_path / "checkpoints"
+    name = misnamed("weights", DATA) if case == "wrong hash" else hashed_name("weights", DATA)
+    files = {"wrong hash": {name: DATA}, "body cut short": {name: Cut(DATA, len(DATA) // 3)},
+             "no such file": {}, "connection refused": {}}[case]
+    with serving(files) as server:
+        url = refused_url(name) if case == "connection refused" else server.url(name)
+        with pytest.raises(DownloadFailed, match=f"^{reason}") as error:
+            fetch_alexnet(cache, url)
+    assert "\n" not in str(error.value)
+    assert server.requests == ([] if case == "connection refused" else [name])
+    assert files_in(cache) == []  # neither the name nor a temporary file
+
+
+def test_a_name_without_a_hash_is_refused_before_any_request(tmp_path):
+    with serving({"weights.pth": DATA}) as server:
+        with pytest.raises(ValueError, match="carries no hash"):
+            fetch_alexnet(tmp_path, server.url("weights.pth"))
+        with pytest.raises(ValueError, match="carries no hash"):
+            fetch_alexnet(tmp_path, server.url("weights-.pth"))  # HASH_REGEX's empty match would check nothing
+    assert server.requests == [] and files_in(tmp_path) == []
+
+
+@pytest.mark.parametrize("error, why", [
+    (URLError(socket.gaierror(-2, "Name or service not known")), "name lookup failed: Name or service not known"),
+    (URLError(ConnectionRefusedError(111, "Connection refused")), "Connection refused"),
+    (URLError(OSError(101, "Network is unreachable")), "Network is unreachable"),
+    (HTTPError("http://x/a-1.pth", 403, "Forbidden", None, None), "HTTP 403 Forbidden"),
+    (RuntimeError('invalid hash value (expected "7be5be79", got "00")'),
+     "SHA-256 check failed: a truncated or altered download"),
+    (TimeoutError("timed out"), "timed out"),
+    (OSError(28, "No space left on device"), "No space left on device"),
+])
+def test_why_a_download_failed_is_said_in_a_few_words(error, why):
+    assert download_failure(error) == why
+
+
+@pytest.fixture
+def empty_hub(tmp_path, monkeypatch) -> Path:
+    """An empty torch hub cache in ``tmp_path``; its checkpoints folder."""
+    monkeypatch.setenv("TORCH_HOME", str(tmp_path / "torch"))
+    return tmp_path / "torch" / "hub" / "checkpoints"
+
+
+def test_auto_downloads_the_weights_once_and_scores_with_them(empty_hub, tmp_path, monkeypatch):
+    data = alexnet_bytes()
+    name = hashed_name("alexnet-owt", data)
+    (tmp_path / "own.pth").write_bytes(data)
+    with serving({name: data}) as server:
+        monkeypatch.setattr(perceptual, "ALEXNET_URL", server.url(name))
+        assert hub_weights_file() == empty_hub / name
+        scorer, line = lpips_scorer("auto", None)
+        assert isinstance(scorer, LpipsScorer) and line == ""
+        assert files_in(empty_hub) == [name] and (empty_hub / name).read_bytes() == data
+        for setting in ("auto", True):  # found in the cache: not downloaded again
+            again, _ = lpips_scorer(setting, None)
+            assert isinstance(again, LpipsScorer)
+    assert server.requests == [name]
+    image, target = image_pair()
+    assert scorer(image, target) == LpipsScorer(lpips_network(tmp_path / "own.pth"))(image, target) > 0
+
+
+def test_true_downloads_the_weights_when_checked_before_any_work(empty_hub, monkeypatch):
+    name = hashed_name("alexnet-owt", DATA)
+    with serving({name: DATA}) as server:
+        monkeypatch.setattr(perceptual, "ALEXNET_URL", server.url(name))
+        check_weights_file(True, None)
+        check_weights_file(True, None)
+    assert server.requests == [name] and files_in(empty_hub) == [name]
+
+
+@pytest.mark.parametrize("case, reason", [("wrong hash", "SHA-256 check failed"),
+                                          ("connection refused", "Connection refused")])
+def test_a_failed_download_is_one_line_under_auto_and_an_error_under_true(empty_hub, monkeypatch, case, reason):
+    data = alexnet_bytes()
+    name = misnamed("alexnet-owt", data) if case == "wrong hash" else hashed_name("alexnet-owt", data)
+    with serving({name: data}) as server:
+        url = refused_url(name) if case == "connection refused" else server.url(name)
+        monkeypatch.setattr(perceptual, "ALEXNET_URL", url)
+        none, line = lpips_scorer("auto", None)
+        with pytest.raises(ConfigError) as error:
+            lpips_scorer(True, None)
+    assert none is None and "\n" not in line and "\n" not in str(error.value)
+    assert line.startswith(f"LPIPS not scored: no AlexNet ImageNet weights at {empty_hub / name}, and downloading "
+                           f"them failed ({reason}")
+    assert f"put {url} there or set model.lpips_weights=FILE; model.lpips=false turns LPIPS off" in line
+    assert str(error.value).startswith(f"model.lpips=true: no AlexNet ImageNet weights at {empty_hub / name}, and "
+                                       f"downloading them failed ({reason}")
+    assert files_in(empty_hub) == []
+
+
+def test_nothing_is_downloaded_where_the_config_names_a_file_or_turns_lpips_off(empty_hub, tmp_path, monkeypatch):
+    data = alexnet_bytes()
+    name = hashed_name("alexnet-owt", data)
+    (tmp_path / "own.pth").write_bytes(data)
+    with serving({name: data}) as server:
+        monkeypatch.setattr(perceptual, "ALEXNET_URL", server.url(name))
+        with pytest.raises(ConfigError, match="^model.lpips_weights=/no/such.pth: no such file"):
+            lpips_scorer("auto", "/no/such.pth")
+        with pytest.raises(ConfigError, match="^model.lpips_weights=/no/such.pth: no such file"):
+            check_weights_file(True, "/no/such.pth")
+        for setting in ("auto", True):
+            named, _ = lpips_scorer(setting, str(tmp_path / "own.pth"))
+            assert isinstance(named, LpipsScorer)
+        assert lpips_scorer(False, None) == (None, "")
+        check_weights_file("auto", None)  # auto downloads when LPIPS is set up, not when the config is checked
+    assert server.requests == [] and files_in(empty_hub) == []
