@@ -159,6 +159,28 @@ def test_smoke_sweep_through_the_report(tmp_path):
 
 
 @pytest.mark.slow
+def test_the_readmes_sweep_runs_on_a_capture_in_nerfstudios_format_and_reports(tmp_path):
+    # the README's command on a scene with a real lens and masked occluders (nerfexp-scene writes it), tiny
+    scene = tmp_path / "capture"
+    written = run_nerfexp(str(scene), "--format", "nerfstudio", "--lens", "real", "--occluders", "--resolution", "24",
+                          "--n-train", "12", "--n-val", "1", "--n-test", "2", cwd=tmp_path, script="nerfexp-scene")
+    assert written.returncode == 0, written.stderr[-3000:]
+    tiny = [o for o in TINY if not o.startswith(("data.n_test", "scale.image_size"))]  # the built-in scene's keys
+    sweep = tmp_path / "sweep"
+    done = run_nerfexp("-m", "encoding=none,posenc", "hierarchical=true,false", "data=nerfstudio",
+                       f"data.root={scene}", "data.near=2", "data.far=6", *tiny, "scale.n_single=48",
+                       f"hydra.sweep.dir={sweep}", cwd=tmp_path)
+    assert done.returncode == 0, done.stderr[-3000:]
+    results = [read_json(sweep / str(k) / "results.json") for k in range(4)]
+    assert all(r["split"].startswith("the file's train_filenames") and len(r["test_views"]) == 2 for r in results)
+    report = run_nerfexp(str(sweep), cwd=tmp_path, script="nerfexp-report")
+    assert report.returncode == 0, report.stderr[-3000:]
+    with open(sweep / "report.csv") as file:
+        rows = list(csv.DictReader(file))
+    assert len(rows) == 4 and all(math.isfinite(float(row["test_psnr_mean"])) for row in rows)
+
+
+@pytest.mark.slow
 def test_a_failing_job_does_not_stop_the_sweep_and_is_reported(tmp_path):
     sweep = tmp_path / "sweep"
     done = run_nerfexp("-m", *TINY, "scale.lr=-1,5e-3", f"hydra.sweep.dir={sweep}", cwd=tmp_path)

@@ -101,10 +101,10 @@ class Intrinsics:
         """The lenses of the images ``old_size`` = (H, W) resampled to ``new_size`` (H', W') over the same
         extent (area averaging, a render's frame size): fx, cx scaled by W' / W, fy, cy by H' / H."""
         (height, width), (new_height, new_width) = old_size, new_size
-        scale = torch.tensor([new_width, new_height, new_width, new_height], dtype=self.params.dtype)
-        return Intrinsics(self.params * scale.to(self.params.device) / torch.tensor(
-            [width, height, width, height], dtype=self.params.dtype, device=self.params.device),
-            self.distortion, self.fisheye)
+        like = {"dtype": self.params.dtype, "device": self.params.device}
+        old = torch.tensor([width, height, width, height], **like)
+        new = torch.tensor([new_width, new_height, new_width, new_height], **like)
+        return Intrinsics(self.params * new / old, self.distortion, self.fisheye)  # (p W') / W: exact for centres
 
     def is_distorted(self) -> Tensor:
         """[...] bool: whether a lens is not an ideal pinhole (a fisheye, or any coefficient nonzero)."""
