@@ -2,7 +2,7 @@
 (``nerfexp-scene --format nerfstudio --lens real``: principal point off the centre, fx != fy, OPENCV
 distortion) trained three ways, against the same scene seen through the ideal pinhole.
 
-    python benchmarks/real_cameras.py [--resolution 64] [--steps 1500] [--seeds 0 1]
+    python benchmarks/real_cameras.py [--resolution 64] [--steps 1500] [--seeds 0 1] [--encodings default hashgrid]
 
 - ``pinhole``: the scene rendered through the Blender camera, read as such (the reference);
 - ``real``: the scene rendered through the real lens, read with its lens (``data=nerfstudio``);
@@ -27,7 +27,7 @@ from nerfexp.files import atomic_write
 from nerfexp.rundir.layout import machine
 
 RESULTS = Path(__file__).parents[1] / "docs" / "results"
-ENCODINGS = {"default": [], "hashgrid": ["encoding=hashgrid"]}
+ENCODINGS = {"default": [], "hashgrid": ["encoding=hashgrid"]}  # --encodings chooses among them
 
 
 def write_scenes(out: Path, resolution: int, bin_dir: Path) -> dict[str, tuple[Path, str]]:
@@ -53,11 +53,13 @@ def main() -> None:
     parser.add_argument("--resolution", type=int, default=64)
     parser.add_argument("--steps", type=int, default=1500)
     parser.add_argument("--seeds", type=int, nargs="+", default=[0, 1])
+    parser.add_argument("--encodings", nargs="+", choices=sorted(ENCODINGS), default=sorted(ENCODINGS))
     args = parser.parse_args()
     bin_dir = Path(sys.executable).parent
     scenes = write_scenes(args.out, args.resolution, bin_dir)
     runs = []
-    for encoding, overrides in ENCODINGS.items():
+    for encoding in args.encodings:
+        overrides = ENCODINGS[encoding]
         for reading, (root, transforms) in scenes.items():
             for seed in args.seeds:
                 run_dir = args.out / f"{encoding}_{reading}_{seed}"
@@ -74,7 +76,7 @@ def main() -> None:
                              "test_psnr": result["test_psnr"], "test_ssim": result["test_ssim"],
                              "train_time_s": result["train_time_s"]})
     means = {f"{e}/{r}": {key: statistics.mean(run[key] for run in runs if run["encoding"] == e and run["reading"] == r)
-                          for key in ("test_psnr", "test_ssim")} for e in ENCODINGS for r in scenes}
+                          for key in ("test_psnr", "test_ssim")} for e in args.encodings for r in scenes}
     record = {"command": "python " + " ".join(sys.argv), "machine": machine(), "cpu": cpu_model(),
               "resolution": args.resolution, "steps": args.steps, "seeds": args.seeds, "runs": runs, "means": means}
     atomic_write(RESULTS / "real_cameras.json", json.dumps(record, indent=2).encode())

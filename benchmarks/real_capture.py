@@ -6,7 +6,8 @@ PSNR / SSIM / LPIPS, and their renders beside the truth.
 Each model trains with ``data=nerfstudio data.root=DATA_ROOT scale=cpu`` (every 8th frame a test view where
 the file lists no splits), one process at a time (run it alone on the machine), into ``NAME_runs/``.
 Writes ``docs/results/NAME.md`` and ``.json`` (scores, the CPU model, the command) and
-``docs/results/NAME.png``: per model, its render of the first three test views above the truth. LPIPS is
+``docs/results/NAME.png``: per model, its render of the first three test views (with ``--truth``, above the
+capture's own images: only where its licence allows them to be shown). LPIPS is
 scored only where AlexNet's weights are on the machine (docs/metrics.md); the file says so where they were
 not. The capture's own images stay out of this repository: only the renders' picture is written.
 """
@@ -28,14 +29,16 @@ MODELS = {"default": [], "hashgrid": ["encoding=hashgrid"]}
 SHOWN = 3  # test views in the picture
 
 
-def picture(run_dirs: dict[str, Path], out: Path) -> None:
-    """Per model a row of its renders of the first ``SHOWN`` test views, and a last row of the truth."""
+def picture(run_dirs: dict[str, Path], out: Path, truth: bool) -> None:
+    """Per model a row of its renders of the first ``SHOWN`` test views, and with ``truth`` a last row of the
+    capture's own images."""
     rows = []
     for run_dir in run_dirs.values():
         rows.append([Image.open(path).convert("RGB") for path in sorted((run_dir / "test").glob("r_*.png"))
                      if path.stem.count("_") == 1][:SHOWN])
-    first = next(iter(run_dirs.values()))
-    rows.append([Image.open(first / "test" / f"r_{k}_target.png").convert("RGB") for k in range(len(rows[0]))])
+    if truth:
+        first = next(iter(run_dirs.values()))
+        rows.append([Image.open(first / "test" / f"r_{k}_target.png").convert("RGB") for k in range(len(rows[0]))])
     width, height = rows[0][0].size
     sheet = Image.new("RGB", (width * len(rows[0]), height * len(rows)), "white")
     for r, row in enumerate(rows):
@@ -51,6 +54,8 @@ def main() -> None:
     parser.add_argument("name")
     parser.add_argument("--steps", type=int, default=4000)
     parser.add_argument("--max-side", type=int, default=100)
+    parser.add_argument("--truth", action="store_true", help="add the capture's own test images to the picture "
+                        "(only where its licence allows them to be shown)")
     args = parser.parse_args()
     out = Path(f"{args.name}_runs")
     nerfexp = Path(sys.executable).with_name("nerfexp")
@@ -68,7 +73,7 @@ def main() -> None:
         result = json.loads((run_dir / "results.json").read_text())
         runs[model] = {key: result.get(key) for key in ("test_psnr", "test_ssim", "test_lpips", "train_time_s",
                                                         "steps", "time_per_step_s", "split", "test_views")}
-    picture(run_dirs, RESULTS / f"{args.name}.png")
+    picture(run_dirs, RESULTS / f"{args.name}.png", args.truth)
     record = {"command": "python " + " ".join(sys.argv), "machine": machine(), "cpu": cpu_model(),
               "root": str(args.root), "runs": runs}
     atomic_write(RESULTS / f"{args.name}.json", json.dumps(record, indent=2).encode())
@@ -81,7 +86,8 @@ def main() -> None:
     text = "\n".join([f"# {args.name}", "", f"`{record['command']}` on {where}.", "",
                       "| model | test PSNR (dB) | test SSIM | test LPIPS | training (s) |", "|---|---|---|---|---|",
                       *rows, "", f"Split: {runs['default']['split']}.", "",
-                      f"![renders (rows: {', '.join(MODELS)}) above the truth]({args.name}.png)", ""])
+                      f"![renders (rows: {', '.join(MODELS)}{', truth' if args.truth else ''})]({args.name}.png)",
+                      ""])
     atomic_write(RESULTS / f"{args.name}.md", text.encode())
     print(text)
 

@@ -27,8 +27,8 @@ def strong_lens() -> Intrinsics:
 
 
 def write_scene(root, lens: Intrinsics | None) -> None:
-    splits = (("train", 40), ("val", 1), ("test", 4))
-    write_nerfstudio(root, ((split, load_procedural(split, n, SIZE, SIZE, supersample=2, lens=lens))
+    splits = (("train", 30), ("val", 1), ("test", 4))
+    write_nerfstudio(root, ((split, load_procedural(split, n, SIZE, SIZE, supersample=1, lens=lens))
                             for split, n in splits))
 
 
