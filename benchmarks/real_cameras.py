@@ -21,6 +21,7 @@ import subprocess
 import sys
 from pathlib import Path
 
+from PIL import Image
 from precision import cpu_model  # benchmarks/precision.py: the CPU's model name
 
 from nerfexp.files import atomic_write
@@ -45,6 +46,19 @@ def write_scenes(out: Path, resolution: int, bin_dir: Path) -> dict[str, tuple[P
     (out / "real" / "transforms_ignored.json").write_text(json.dumps(ignored))
     return {"pinhole": (out / "pinhole", "transforms.json"), "real": (out / "real", "transforms.json"),
             "ignored": (out / "real", "transforms_ignored.json")}
+
+
+def picture(out: Path, encoding: str, seed: int, view: int = 3) -> None:
+    """Test view ``view`` as the three readings render it (pinhole, real, ignored) and the real scene's truth,
+    side by side, 3 times enlarged: ``docs/results/real_cameras.png``."""
+    runs = {reading: out / f"{encoding}_{reading}_{seed}" / "test" for reading in ("pinhole", "real", "ignored")}
+    paths = [run / f"r_{view}.png" for run in runs.values()] + [runs["real"] / f"r_{view}_target.png"]
+    images = [Image.open(path).convert("RGB") for path in paths]
+    width, height = images[0].size
+    sheet = Image.new("RGB", (width * len(images), height), "white")
+    for k, image in enumerate(images):
+        sheet.paste(image, (k * width, 0))
+    sheet.resize((sheet.width * 3, sheet.height * 3), Image.NEAREST).save(RESULTS / "real_cameras.png")
 
 
 def main() -> None:
@@ -80,6 +94,7 @@ def main() -> None:
     record = {"command": "python " + " ".join(sys.argv), "machine": machine(), "cpu": cpu_model(),
               "resolution": args.resolution, "steps": args.steps, "seeds": args.seeds, "runs": runs, "means": means}
     atomic_write(RESULTS / "real_cameras.json", json.dumps(record, indent=2).encode())
+    picture(args.out, args.encodings[0], args.seeds[0])
     rows = [f"| {key.replace('/', ' | ')} | {value['test_psnr']:.2f} | {value['test_ssim']:.4f} |"
             for key, value in means.items()]
     text = "\n".join([
@@ -89,6 +104,8 @@ def main() -> None:
         f"100 training and 20 test views, `scale=cpu` for {args.steps} steps, seeds {args.seeds}, means over seeds "
         "(each run in `real_cameras.json`).", "",
         "| model | reading | test PSNR (dB) | test SSIM |", "|---|---|---|---|", *rows, "",
+        f"![test view 3: pinhole, real, ignored ({args.encodings[0]}, seed {args.seeds[0]}), and the real lens's "
+        "truth](real_cameras.png)", "",
     ])
     atomic_write(RESULTS / "real_cameras.md", text.encode())
     print(text)
