@@ -340,6 +340,7 @@ class NerfstudioScene(Scene):
         root = Path(self.root)
         index = self.split_index(split).tolist()
         images, masks, lenses, first = [], [], [], None
+        invertible = set()  # the lenses (and image sizes) checked: most captures share one lens
         for i in tqdm(index, desc=f"loading {split}", unit="image", disable=None):
             frame = capture.frames[i]
             path, shrink = downscaled_file(root, frame.file_path, "images", self.downscale)
@@ -352,8 +353,11 @@ class NerfstudioScene(Scene):
                 raise DatasetError(f"{path}: image size {width}x{height} does not match {frame.where}'s w x h "
                                    f"{recorded[1]}x{recorded[0]}" + (f" shrunk by {stored}" if stored > 1 else ""))
             lens = read_lens_record(fields)
-            if problem := inversion_problem(lens, *recorded):
-                raise DatasetError(f"{frame.where}: {problem}")
+            key = (*lens.params.tolist(), *lens.distortion.tolist(), bool(lens.fisheye), *recorded)
+            if key not in invertible:
+                if problem := inversion_problem(lens, *recorded):
+                    raise DatasetError(f"{frame.where}: {problem}")
+                invertible.add(key)
             mask = None
             if frame.mask_path is not None:
                 mask_file, mask_shrink = downscaled_file(root, frame.mask_path, "masks", self.downscale)
