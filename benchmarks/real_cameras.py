@@ -21,8 +21,8 @@ import subprocess
 import sys
 from pathlib import Path
 
-from PIL import Image
 from precision import cpu_model  # benchmarks/precision.py: the CPU's model name
+from sheets import side_by_side  # benchmarks/sheets.py
 
 from nerfexp.files import atomic_write
 from nerfexp.rundir.layout import machine
@@ -53,12 +53,7 @@ def picture(out: Path, encoding: str, seed: int, view: int = 3) -> None:
     side by side, 3 times enlarged: ``docs/results/real_cameras.png``."""
     runs = {reading: out / f"{encoding}_{reading}_{seed}" / "test" for reading in ("pinhole", "real", "ignored")}
     paths = [run / f"r_{view}.png" for run in runs.values()] + [runs["real"] / f"r_{view}_target.png"]
-    images = [Image.open(path).convert("RGB") for path in paths]
-    width, height = images[0].size
-    sheet = Image.new("RGB", (width * len(images), height), "white")
-    for k, image in enumerate(images):
-        sheet.paste(image, (k * width, 0))
-    sheet.resize((sheet.width * 3, sheet.height * 3), Image.NEAREST).save(RESULTS / "real_cameras.png")
+    side_by_side(paths, RESULTS / "real_cameras.png")
 
 
 def main() -> None:

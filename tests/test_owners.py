@@ -20,9 +20,9 @@ from nerfexp.settings.checks import is_reference
 from nerfexp.settings.schema import rule_of
 from nerfexp.settings.unused import check_used, unused_reason
 
-SECTIONS = ("scale", "data", "encoding", "view_dependence", "acceleration", "hierarchical", "proposal")
+SECTIONS = ("scale", "data", "encoding", "view_dependence", "acceleration", "hierarchical", "proposal", "camera_opt")
 BUILT = ("model", "datamodule", "trainer")  # what the run builds from the config
-GROUPS = ("encoding", "view_dependence", "data", "scale", "acceleration", "field", "optimizer")
+GROUPS = ("encoding", "view_dependence", "data", "scale", "acceleration", "field", "optimizer", "camera_opt")
 ROOT = "data.root=/scene"  # the formats that read a folder need one to compose (nothing is read here)
 
 

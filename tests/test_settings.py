@@ -30,6 +30,7 @@ GROUPS = {  # every option of every group (conf/), and the sweeps' configs
     "encoding": ["hashgrid", "none", "posenc"], "view_dependence": ["mlp", "none", "ref", "sh"],
     "data": ["blender", "colmap", "llff", "procedural"], "scale": ["cpu", "paper"],
     "trainer": ["bf16", "ddp", "default", "slurm"], "acceleration": ["none", "occupancy"],
+    "camera_opt": ["off", "so3xr3"],
     "callbacks": ["default"], "logger": ["csv", "mlflow", "none", "tensorboard", "wandb"],
     "ablation": ["complete", "far_fewer_images", "fewer_frequencies", "fewer_images", "more_frequencies",
                  "no_hierarchical", "no_pe_vd_h", "no_posenc", "no_view_dependence"],
@@ -134,11 +135,28 @@ def composed(*overrides):
                                            "encoding.position.input_scale): expected a finite number > 0 and <= "),
     (["hierarchical=proposal", "proposal.distortion_weight=1e30"], "proposal.distortion_weight=1e+30: expected a "
                                                                    "finite number >= 0 and <= 2^24"),
+    (["contraction=mipnerf360", "contraction.function.norm=l1"], "contraction.function.norm=l1: expected one of "
+                                                                 "l2, linf"),
+    (["contraction=mipnerf360", "contraction.function.radius=0"], "contraction.function.radius=0: expected a "
+                                                                  "finite number > 0"),
+    (["contraction=mipnerf360", "contraction.function.centre=[0,1]"], "contraction.function.centre=[0, 1]: "
+                                                                      "expected a list of 3 finite numbers"),
 ])
 def test_a_value_out_of_its_domain_is_one_error_naming_the_key(hydra_configs, overrides, message):
     with pytest.raises(ConfigError) as error:
         check_settings(composed(*overrides))
     assert str(error.value).startswith(message), str(error.value)
+
+
+def test_a_contraction_of_ndc_rays_is_refused_in_one_line(hydra_configs):
+    cfg = compose("config", overrides=["contraction=mipnerf360", "data=llff", "data.root=/nowhere"])
+    with pytest.raises(ConfigError) as error:
+        check_settings(cfg)
+    assert str(error.value) == ("contraction=mipnerf360 and data.ndc=true: NDC rays already bound a "
+                                "forward-facing scene's depth; set data.ndc=false (with data.near and data.far) to "
+                                "contract world positions, or contraction=none")
+    check_settings(compose("config", overrides=["contraction=mipnerf360", "data=llff", "data.root=/nowhere",
+                                                "data.ndc=false", "data.near=0.1"]))
 
 
 def test_an_override_that_does_not_apply_is_named_with_the_reason(hydra_configs):
@@ -153,6 +171,11 @@ def test_an_override_that_does_not_apply_is_named_with_the_reason(hydra_configs)
     assert unused_settings(proposal, ["proposal.n_final=16", "proposal.network.width=32"]) == []
     assert [o for o, _ in unused_settings(proposal, ["scale.n_fine=64", "scale.n_single=8"])] \
         == ["scale.n_fine=64", "scale.n_single=8"]
+    # a contraction's grids work in its own box: the scene's box does nothing
+    contracted = composed("contraction=mipnerf360", "acceleration=occupancy")
+    assert unused_settings(contracted, ["data.aabb=[[0,0,0],[1,1,1]]", "data.far=100"]) == [
+        ("data.aabb=[[0,0,0],[1,1,1]]", "contraction=mipnerf360 (the grids work in the contraction's box, [-2, 2]^3)"),
+        ("data.far=100", "contraction=mipnerf360 (rays end contraction.function.far radii away)")]
     assert [reason for _, reason in unused_settings(composed(), ["proposal.n_final=16"])] == [
         "hierarchical=true (a coarse network of model.renderer.n_coarse samples and a fine one of n_coarse + n_fine; "
         "set scale.n_coarse and scale.n_fine)"]

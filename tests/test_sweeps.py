@@ -117,6 +117,22 @@ def test_successors_sweep_crosses_the_papers_sampling_and_view_head_with_their_s
                     for seed in (0, 1, 2)}
 
 
+def test_real_sweep_crosses_what_real_photographs_need_on_the_users_capture():
+    jobs = sweep_jobs("real", ("data.root=/data/capture",))
+    assert len(jobs) == 24
+    seen = set()
+    for job in jobs:
+        with initialize_config_module("nerfexp.conf", version_base=None):
+            cfg = compose("config", overrides=["+sweeps=real", *job])
+        check_settings(cfg)
+        renderer = cfg.model.renderer
+        seen.add((renderer.contraction is not None, renderer.appearance is not None,
+                  cfg.model.camera_opt is not None, cfg.seed))
+        assert cfg.trainer.max_steps == 2000 and cfg.data._target_.endswith("NerfstudioScene")
+        assert cfg.data.root == "/data/capture"
+    assert seen == set(itertools.product((False, True), (False, True), (False, True), (0, 1, 2)))
+
+
 def test_command_line_overrides_beat_the_sweeps_own_values():
     jobs = sweep_jobs("smoke", ("seed=5",))
     assert sorted(" ".join(job) for job in jobs) == ["ablation=complete seed=5", "ablation=no_pe_vd_h seed=5"]

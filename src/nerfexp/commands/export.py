@@ -26,7 +26,6 @@ import argparse
 from pathlib import Path
 
 import torch
-from hydra.utils import instantiate
 from omegaconf import DictConfig
 
 from nerfexp.commands.arguments import (
@@ -54,7 +53,7 @@ from nerfexp.products.mesh import (
     view_points,
 )
 from nerfexp.products.ply import face_rows, ply_bytes, vertex_rows
-from nerfexp.products.trained import TrainedRun, load_run
+from nerfexp.products.trained import TrainedRun, load_run, run_scene
 from nerfexp.rundir.layout import EXPORT_DIR
 
 MESH = "mesh.ply"
@@ -75,7 +74,7 @@ def trained_run(run: Path, overrides: list[str], chunk: int | None) -> tuple[Tra
     """The run at ``run`` read back (``load_run``), runs trained on NDC rays refused before their checkpoint is
     read (``refuse_ndc``), and its scene."""
     loaded = load_run(run, overrides, chunk, refuse=refuse_ndc)
-    return loaded, instantiate(loaded.cfg.data)
+    return loaded, run_scene(loaded.run_dir, loaded.cfg)
 
 
 def export_run(run: Path, overrides: list[str], resolution: int, threshold: float | None, chunk: int | None,

@@ -18,8 +18,6 @@ import argparse
 import json
 from pathlib import Path
 
-from hydra.utils import instantiate
-
 from nerfexp.commands.arguments import (
     add_chunk_argument,
     add_run_arguments,
@@ -37,7 +35,7 @@ from nerfexp.manifest import check_ours, folder_files, record_folder
 from nerfexp.memory import frame_bytes, path_bytes
 from nerfexp.products.camera_files import DEFAULT_FPS, CameraPath, read_camera_path
 from nerfexp.products.frames import PATHS, frame_size, render_path, training_path
-from nerfexp.products.trained import load_run
+from nerfexp.products.trained import load_run, run_scene
 from nerfexp.rundir.layout import RENDER_DIR
 
 CAMERAS = "cameras.json"  # a render's cameras, in the format --cameras reads (``camera_path_record``)
@@ -54,7 +52,7 @@ def render_run(run: Path, overrides: list[str], n_frames: int, fps: float | None
     run_dir, _, cfg, module, _ = load_run(run, overrides, chunk)
     out_dir = run_dir / RENDER_DIR
     check_render_folder(run_dir)
-    scene = instantiate(cfg.data)
+    scene = run_scene(run_dir, cfg)  # its training cameras as refined, where the run refined them
     if cameras is None:
         cameras = training_path(scene, cfg.data, path, n_frames, focus, DEFAULT_FPS)
     height, width, lens = frame_size(cameras.height, cameras.width, cameras.intrinsics, size)

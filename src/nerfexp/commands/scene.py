@@ -1,15 +1,19 @@
-"""``nerfexp-scene OUT_DIR [--scene {builtin,glossy}] [--format {blender,nerfstudio}] [--lens {pinhole,real}]
-[--occluders]``: an analytic scene written as a dataset, ground truth to test a format and a camera model on.
+"""``nerfexp-scene OUT_DIR [--scene {builtin,glossy,unbounded}] [--format {blender,nerfstudio}]
+[--lens {pinhole,real}] [--occluders]``: an analytic scene written as a dataset, ground truth to test a format
+and a camera model on.
 
 ``builtin`` is the built-in still life (``data/procedural.py``, ``data=procedural``); ``glossy`` a
 strongly view-dependent one (``data/glossy.py``): a mirror sphere, a glossy torus and a clear-coated
-checker base reflecting a procedural sky. Both use the same cameras.
+checker base reflecting a procedural sky; ``unbounded`` the still life inside a painted room far beyond the
+cameras (``data/unbounded.py``), ground truth for ``contraction=mipnerf360``. All use the same cameras.
 
 ``--format blender`` (the default) writes NeRF's Blender format (``transforms_{split}.json``, an ideal
 centred pinhole); ``--format nerfstudio`` nerfstudio's (``transforms.json``, ``data=nerfstudio``), seen
 through ``--lens pinhole`` (the Blender camera) or ``--lens real`` (``procedural.real_lens``: the principal
 point off the centre, fx != fy, OPENCV distortion), and with ``--occluders`` a transient square in every
-image that its mask leaves out (``procedural.occlude``).
+image that its mask leaves out (``procedural.occlude``). ``--appearance-changes train`` gives each training image
+its own exposure and white balance (``procedural.vary_appearance``), the validation and test images none; ``all``,
+every image.
 
 ``OUT_DIR`` is new, empty, or a scene this command wrote (its ``nerfexp-scene.json``, which records the
 settings, says so, and every file in it is one the folder's manifest shows this command wrote:
@@ -28,13 +32,24 @@ from nerfexp.commands.console import run_command
 from nerfexp.data.blender import write_blender
 from nerfexp.data.glossy import load_glossy
 from nerfexp.data.nerfstudio import write_nerfstudio
-from nerfexp.data.procedural import CAMERA_ANGLE_X, load_procedural, occlude, real_lens
+from nerfexp.data.procedural import (
+    APPEARANCE_CHANGES,
+    APPEARANCE_SEEDS,
+    CAMERA_ANGLE_X,
+    appearance_gains,
+    load_procedural,
+    occlude,
+    real_lens,
+    vary_appearance,
+)
+from nerfexp.data.unbounded import load_unbounded
 from nerfexp.errors import NerfexpError
 from nerfexp.files import atomic_directory, folder_entries, foreign_message
 from nerfexp.manifest import BOOKKEEPING, check_ours, record
 from nerfexp.memory import require_memory, scene_bytes
 
-LOADERS = {"builtin": load_procedural, "glossy": load_glossy}  # --scene: the function rendering a split
+# --scene: the function rendering a split
+LOADERS = {"builtin": load_procedural, "glossy": load_glossy, "unbounded": load_unbounded}
 SPLITS = ("train", "val", "test")
 FORMATS = ("blender", "nerfstudio")
 LENSES = ("pinhole", "real")
@@ -57,7 +72,8 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("out_dir", type=Path, help="folder to write transforms_*.json and the PNGs to")
     parser.add_argument("--scene", choices=sorted(LOADERS), default="builtin",
                         help="builtin: the built-in still life (data=procedural); glossy: a mirror sphere, a "
-                             "glossy torus and a clear-coated base reflecting a sky")
+                             "glossy torus and a clear-coated base reflecting a sky; unbounded: the still life "
+                             "inside a painted room ten times the cameras' distance away (every pixel opaque)")
     parser.add_argument("--resolution", type=positive(int), default=100, help="image width and height (default 100)")
     parser.add_argument("--n-train", type=positive(int), default=100, help="training views (default 100)")
     parser.add_argument("--n-val", type=positive(int), default=10, help="validation views (default 10)")
@@ -72,6 +88,9 @@ def build_parser() -> argparse.ArgumentParser:
                              "principal point off the centre, fx != fy and OPENCV lens distortion")
     parser.add_argument("--occluders", action="store_true",
                         help="nerfstudio only: a magenta square in every image, left out by the image's mask")
+    parser.add_argument("--appearance-changes", choices=APPEARANCE_CHANGES, default="none",
+                        help="train: each training image its own exposure and white balance (seeded), the others "
+                             "neutral; all: every image (default none); ground truth for appearance=embedding")
     return parser
 
 
@@ -95,6 +114,9 @@ def write_scene(args: argparse.Namespace) -> str:
     lens = real_lens(size, size) if args.lens == "real" else None
     with atomic_directory(args.out_dir, replace=True) as new:
         splits = ((split, load(split, n, size, size, args.supersample, lens=lens)) for split, n in counts.items())
+        if args.appearance_changes != "none":
+            splits = ((split, vary_appearance(views, appearance_gains(len(views), APPEARANCE_SEEDS[split]))
+                       if args.appearance_changes == "all" or split == "train" else views) for split, views in splits)
         if args.occluders:  # one seed per split
             splits = ((split, occlude(views, seed)) for seed, (split, views) in enumerate(splits))
         if args.format == "nerfstudio":
@@ -104,7 +126,8 @@ def write_scene(args: argparse.Namespace) -> str:
                 write_blender(new, split, views, CAMERA_ANGLE_X)
         settings = {"scene": args.scene, "resolution": args.resolution, "views": counts,
                     "supersample": args.supersample, "format": args.format, "lens": args.lens,
-                    "occluders": args.occluders, "nerfexp": version("nerfexp")}
+                    "occluders": args.occluders, "appearance_changes": args.appearance_changes,
+                    "nerfexp": version("nerfexp")}
         (new / MARKER).write_text(json.dumps(settings, indent=2) + "\n")
         record(new, folder_entries(new))  # paths relative to the folder: true once it is renamed into place
     views = ", ".join(f"{n} {split}" for split, n in counts.items())

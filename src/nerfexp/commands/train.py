@@ -66,6 +66,7 @@ def train(cfg: DictConfig) -> dict | None:
     from nerfexp.products.trained import check_weights
     from nerfexp.training.callbacks import KeepSigtermHandler
     from nerfexp.training.loggers import finish
+    from nerfexp.training.pose_records import RefinedPoses
     from nerfexp.training.precision import fill_precision
     from nerfexp.training.progress import progress_bars
     from nerfexp.training.recorders import RunRecorder, scores_text
@@ -96,11 +97,14 @@ def train(cfg: DictConfig) -> dict | None:
     datamodule = instantiate(cfg.datamodule)
     model = instantiate(cfg.model)
     if resumed is not None:  # a checkpoint that records no settings may hold another network size
+        model.on_load_checkpoint({"state_dict": resumed.weights})  # as Lightning will: what the data sizes, sized
         check_weights(resumed.weights, model, Path(cfg.resume))
     overrides = list(HydraConfig.get().overrides.task)
     recorded = without_unused(cfg, resolved, [override for override, _ in unused])
     recorder = RunRecorder(runtime.output_dir, choices, recorded, overrides, settings, resumes, run_labels(cfg))
     callbacks = [instantiate(c) for c in cfg.callbacks.values()] + [recorder] + progress_bars(cfg.trainer)
+    if cfg.model.get("camera_opt") is not None:  # camera_opt=so3xr3: the refined training cameras into the run
+        callbacks.append(RefinedPoses(runtime.output_dir))
     if in_launcher_job():  # SIGTERM handled by job_signals, not by Lightning (see KeepSigtermHandler)
         callbacks.append(KeepSigtermHandler())
     trainer = instantiate(cfg.trainer, logger=logger, callbacks=callbacks)

@@ -8,8 +8,6 @@ import time
 from pathlib import Path
 from typing import NoReturn
 
-from hydra.utils import instantiate
-
 from nerfexp.commands.arguments import (
     add_chunk_argument,
     add_run_arguments,
@@ -24,7 +22,7 @@ from nerfexp.extras import require
 from nerfexp.manifest import check_ours
 from nerfexp.memory import frame_bytes
 from nerfexp.products.frames import KINDS
-from nerfexp.products.trained import load_run
+from nerfexp.products.trained import load_run, run_scene
 from nerfexp.products.viewer import SAVE_ADVICE, Viewer, say
 from nerfexp.rundir.layout import CAMERA_PATH
 
@@ -53,7 +51,7 @@ def view_run(run: Path, overrides: list[str], host: str, port: int, chunk: int |
     check_ours(run_dir, [CAMERA_PATH.as_posix()], "nerfexp-view", SAVE_ADVICE)  # where a saved camera path goes
     if warning := remote_warning(host, run_dir):
         print(warning, file=sys.stderr, flush=True)
-    scene = instantiate(cfg.data)
+    scene = run_scene(run_dir, cfg)  # its training cameras as refined, where the run refined them
     max_width = max_width or scene.views("test").width
     with ending_signals():
         server = viser.ViserServer(host=host, port=port, label=f"nerfexp-view {run_dir.name}", verbose=False)

@@ -15,6 +15,7 @@ from torch import Tensor
 from torch.utils.data import DataLoader
 
 from nerfexp.data.base import Scene
+from nerfexp.data.pose_noise import check_pose_noise, perturbed_poses
 from nerfexp.data.rays import RandomRays, WholeImages, model_batch
 from nerfexp.data.views import Views
 from nerfexp.nerf.backgrounds import BACKGROUNDS
@@ -35,11 +36,15 @@ class RayDataModule(L.LightningDataModule):
     """Loads a scene's splits and serves them as rays: training batches of ``batch_rays`` rays in all
     (the global batch, split over the processes of a distributed run), whole images for evaluation
     (Lightning gives each process every world_size-th image, see
-    ``nerfexp.training.recorders.gather_evaluations``)."""
+    ``nerfexp.training.recorders.gather_evaluations``). ``pose_noise`` [degrees, fraction]: the training
+    views' poses perturbed by those known amounts (``nerfexp.data.pose_noise``), to measure camera refinement;
+    None: as the scene gives them."""
 
-    def __init__(self, scene: Scene, batch_rays: int, seed: int = 0):
+    def __init__(self, scene: Scene, batch_rays: int, seed: int = 0, pose_noise: list | None = None):
         super().__init__()
         self.scene, self.batch_rays, self.seed = scene, batch_rays, seed
+        self.pose_noise = check_pose_noise(pose_noise)  # (degrees, fraction of the cameras' radius) or None
+        self.true_train_poses: Tensor | None = None  # c2w [N, 4, 4] of the training views, where perturbed
         self.background = torch.tensor(BACKGROUNDS[scene.background])
         self.splits: dict[str, Views] = {}
         self._collate = functools.partial(model_batch, scene)  # each loader's items -> the model's batches
@@ -47,7 +52,20 @@ class RayDataModule(L.LightningDataModule):
     def _views(self, split: str) -> Views:
         if split not in self.splits:
             self.splits[split] = self.scene.views(split)
+            if split == "train" and self.pose_noise is not None:
+                self.splits[split] = self._perturbed(self.splits[split])
         return self.splits[split]
+
+    def _perturbed(self, views: Views) -> Views:
+        """``views`` with their poses perturbed by ``pose_noise`` (``nerfexp.data.pose_noise``, seeded with the
+        run's seed); the true poses kept as ``true_train_poses``."""
+        self.true_train_poses = views.c2w
+        c2w = perturbed_poses(views.c2w, *self.pose_noise, self.seed)
+        return Views(rgba=views.rgba, c2w=c2w, intrinsics=views.intrinsics, mask=views.mask)
+
+    def train_views(self) -> Views:
+        """The training views as training sees them (their poses perturbed where ``pose_noise`` says)."""
+        return self._views("train")
 
     def setup(self, stage: str) -> None:
         """Before training, every split is loaded (and checked, as each format's loader checks it), so that
@@ -74,6 +92,10 @@ class RayDataModule(L.LightningDataModule):
     def test_dataloader(self) -> DataLoader:
         return DataLoader(WholeImages(self._views("test"), self.background), batch_size=None,
                           collate_fn=self._collate)
+
+    def camera_centres(self) -> Tensor:
+        """The training cameras' centres [N, 3] in world units (a contraction's inner region is fit to them)."""
+        return self._views("train").c2w[:, :3, 3]
 
     def scene_box(self, near: float, far: float) -> Tensor:
         """The occupancy grid's box [2, 3] for this scene (``Scene.box``), from the training views where

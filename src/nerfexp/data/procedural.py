@@ -23,7 +23,7 @@ from tqdm import tqdm
 
 from nerfexp.data.base import Scene
 from nerfexp.data.views import Views
-from nerfexp.domains import COUNT, Rule
+from nerfexp.domains import COUNT, Rule, choice
 from nerfexp.geometry.cameras import camera_rays, focal_from_fov, look_at
 from nerfexp.geometry.lenses import Intrinsics, distortion_vector
 
@@ -57,6 +57,13 @@ TRAIN_ELEVATIONS = (math.radians(5.0), math.radians(80.0))
 ORBIT_ELEVATION = math.radians(30.0)
 ORBIT_OFFSETS = {"val": 1.0, "test": 2.0}  # radians; irrational multiples of 2 pi never coincide
 GOLDEN_ANGLE = math.pi * (3.0 - math.sqrt(5.0))
+# Per-image appearance changes (``vary_appearance``): an image's exposure 2^u, u uniform in +-EXPOSURE_STOPS stops,
+# and each channel's white balance 2^v, v uniform in +-WHITE_BALANCE_STOPS. APPEARANCE_CHANGES: none; train (the
+# training images', the others neutral); all (every image's, as photographs in the wild: NeRF-W's setting)
+APPEARANCE_CHANGES = ("none", "train", "all")
+EXPOSURE_STOPS = 1.0
+WHITE_BALANCE_STOPS = 0.5
+APPEARANCE_SEEDS = {"train": 0, "val": 1, "test": 2}  # each split's gains: the same images whatever the run's seed
 RAY_CHUNK = 2**16  # rays traced at once
 RAYS_PER_GROUP = 2**20  # sub-pixel rays per rendered group of views
 
@@ -309,6 +316,25 @@ def occlude(views: Views, seed: int, colour: tuple[float, float, float] = OCCLUD
     return Views(rgba=rgba, c2w=views.c2w, intrinsics=views.intrinsics, mask=mask)
 
 
+def appearance_gains(n_views: int, seed: int) -> Tensor:
+    """Per-image colour gains [N, 3] (float32), drawn from ``seed``: exposure 2^u times white balance 2^v_c, u
+    uniform in [-EXPOSURE_STOPS, EXPOSURE_STOPS] per image and v_c uniform in [-WHITE_BALANCE_STOPS,
+    WHITE_BALANCE_STOPS] per image and channel (in stops, so that brighter and darker are equally likely)."""
+    generator = torch.Generator().manual_seed(seed)
+    exposure = (2 * torch.rand(n_views, 1, generator=generator) - 1) * EXPOSURE_STOPS  # [N, 1] stops
+    balance = (2 * torch.rand(n_views, 3, generator=generator) - 1) * WHITE_BALANCE_STOPS  # [N, 3] stops
+    return torch.exp2(exposure + balance)
+
+
+def vary_appearance(views: Views, gains: Tensor) -> Views:
+    """``views`` as a camera with each image's exposure and white balance would see them: image n's colours times
+    ``gains[n]`` [3] (``appearance_gains``), clipped to [0, 1] as a sensor saturates; alpha and masks unchanged
+    (the background, composited later, stays the scene's)."""
+    rgb = (views.rgba[..., :3] * gains[:, None, None, :]).clamp(0.0, 1.0)  # [N, H, W, 3]
+    return Views(rgba=torch.cat([rgb, views.rgba[..., 3:]], -1), c2w=views.c2w, intrinsics=views.intrinsics,
+                 mask=views.mask)
+
+
 def load_procedural(split: str, n_views: int, height: int, width: int, supersample: int = 2,
                     tracer: Tracer = trace, lens: Intrinsics | None = None) -> Views:
     """``n_views`` rendered views of ``split`` of the scene ``tracer`` (see ``render_rgba``) through the
@@ -332,9 +358,13 @@ TRAIN_VIEWS = 100  # the built-in scene's training set: as many views as each Re
 
 @dataclass
 class ProceduralScene(Scene):
-    """The built-in scene as a dataset (``data=procedural``): ``views(split)`` renders that split."""
+    """The built-in scene as a dataset (``data=procedural``): ``views(split)`` renders that split. With
+    ``appearance_changes`` train, each training image has its own exposure and white balance (``vary_appearance``,
+    the gains of ``appearance_gains``, seeded per split: ``APPEARANCE_SEEDS``), the others none; with all, every
+    image has: ground truth for ``appearance=embedding``."""
 
-    DOMAINS: ClassVar[dict[str, Rule]] = {**Scene.DOMAINS, "image_size": COUNT, "n_test": COUNT, "supersample": COUNT}
+    DOMAINS: ClassVar[dict[str, Rule]] = {**Scene.DOMAINS, "image_size": COUNT, "n_test": COUNT, "supersample": COUNT,
+                                          "appearance_changes": choice(*APPEARANCE_CHANGES)}
 
     image_size: int = 64
     n_train: int | None = TRAIN_VIEWS  # None: the scene's whole training set, TRAIN_VIEWS views
@@ -346,11 +376,15 @@ class ProceduralScene(Scene):
     background: str = "white"
     aabb: list | None = None  # the occupancy grid's box; None: the objects' extent and a pixel (``bounding_box``)
     density_noise_std: float = 0.0  # the field's training noise on raw density (``Scene``)
+    appearance_changes: str = "none"  # train, all: those images' own exposure and white balance
 
     def views(self, split: str) -> Views:
         n_train = TRAIN_VIEWS if self.n_train is None else self.n_train
         n_views = {"train": n_train, "val": self.n_val, "test": self.n_test}[split]
-        return load_procedural(split, n_views, self.image_size, self.image_size, self.supersample)
+        views = load_procedural(split, n_views, self.image_size, self.image_size, self.supersample)
+        if self.appearance_changes == "all" or (split == "train" and self.appearance_changes == "train"):
+            views = vary_appearance(views, appearance_gains(n_views, APPEARANCE_SEEDS[split]))
+        return views
 
     def bounding_box(self) -> Tensor:
         """[2, 3]: the objects' box (``objects_box``) widened on every side by one pixel's footprint at

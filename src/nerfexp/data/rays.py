@@ -48,8 +48,9 @@ class RandomRays(IterableDataset):
     """An endless stream of batches of rays drawn uniformly from all training pixels (those the views' mask
     keeps, where they have one): this process's share of each global batch of ``batch_rays`` rays.
 
-    Each batch is {"origins", "directions", "rgb"}, each [B / world_size, 3], and "seed", an int from
-    which the training step draws its own random numbers (the stratified jitter). Rays are made from
+    Each batch is {"origins", "directions", "rgb"}, each [B / world_size, 3], "view" [B / world_size] (the
+    training view each ray comes from: per-image components index their codes and poses by it), and "seed",
+    an int from which the training step draws its own random numbers (the stratified jitter). Rays are made from
     pixel indices on the fly, from the camera-space directions of each distinct lens (``lens_directions``,
     one [H, W, 3] grid per lens: most captures share one lens).
 
@@ -83,7 +84,7 @@ class RandomRays(IterableDataset):
             rotation = self.c2w[n, :3, :3]  # [B, 3, 3]
             directions = (rotation @ self.d_cam[self.lens_of[n], i, j][..., None]).squeeze(-1)
             yield {"origins": self.c2w[n, :3, 3], "directions": directions, "rgb": self.rgb[n, i, j],
-                   "seed": step_seed}
+                   "view": n, "seed": step_seed}
 
 
 def lens_directions(views: Views) -> tuple[Tensor, Tensor]:

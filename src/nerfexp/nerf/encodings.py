@@ -9,7 +9,17 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
-from nerfexp.domains import BOOLEAN, COUNT, FLOAT32_TOP_OCTAVE, NONNEGATIVE_COUNT, Applies, Rule, real, whole
+from nerfexp.domains import (
+    BOOLEAN,
+    COUNT,
+    FLOAT32_TOP_OCTAVE,
+    FRACTION,
+    NONNEGATIVE_COUNT,
+    Applies,
+    Rule,
+    real,
+    whole,
+)
 from nerfexp.nerf.bounds import Bounded
 
 HASH_PRIMES = (1, 2654435761, 805459861)  # Instant-NGP's, one per axis; 1 keeps neighbours along x together
@@ -40,6 +50,10 @@ class Encoding(nn.Module):
     def parameter_groups(self) -> dict[str, dict]:
         return {}
 
+    def set_progress(self, progress: float) -> None:
+        """Told before each training step how far training is, ``progress`` = step / steps in [0, 1): for an
+        encoding that changes over training (BARF's coarse-to-fine window); by default nothing."""
+
 
 class IdentityEncoding(Encoding):
     """Raw coordinates, unchanged: the "No Pos. Encoding" ablation."""
@@ -68,6 +82,12 @@ class PositionalEncoding(Encoding):
     The textbook ``sin(2^k (pi x))`` rounds pi x first and multiplies that rounding by 2^k, an error that
     grows with k (docs/numerics.md, ``benchmarks/encoding_precision.py``).
 
+    ``coarse_to_fine`` f > 0: BARF's window (Lin et al. 2021), for camera refinement: frequency k's sines and
+    cosines weighted by w_k = (1 - cos(pi clamp(alpha - k, 0, 1))) / 2, alpha = L min(progress / f, 1) rising
+    over the first fraction f of training (``set_progress``), so that the low frequencies align the cameras
+    before the high ones fit detail; the raw input is never weighted. The window is a buffer, saved in
+    checkpoints. 0: no window, the paper's encoding, computed exactly as without it.
+
     >>> PositionalEncoding(n_freqs=1)(torch.tensor([[0.5, 0.0, 0.0]]))[0, 3:6]  # sin(pi x)
     tensor([1., 0., 0.])
     """
@@ -76,20 +96,44 @@ class PositionalEncoding(Encoding):
         "n_freqs": NONNEGATIVE_COUNT,  # and the float32 limit (the settings' check_frequencies)
         "input_scale": INPUT_SCALE,
         "include_input": BOOLEAN,
+        "coarse_to_fine": FRACTION,
     }
 
-    def __init__(self, n_freqs: int, in_dim: int = 3, include_input: bool = True, input_scale: float = 1.0):
+    def __init__(self, n_freqs: int, in_dim: int = 3, include_input: bool = True, input_scale: float = 1.0,
+                 coarse_to_fine: float = 0.0):
         super().__init__()
         self.n_freqs, self.in_dim, self.include_input = n_freqs, in_dim, include_input
         self.out_dim = in_dim * (int(include_input) + 2 * n_freqs)
         self.register_buffer("powers", input_scale * 2.0 ** torch.arange(n_freqs), persistent=False)
+        self.coarse_to_fine = coarse_to_fine
+        if coarse_to_fine > 0:
+            self.register_buffer("window", coarse_to_fine_window(n_freqs, 0.0))
 
     def forward(self, x: Tensor) -> Tensor:
         """x [..., D] -> [..., out_dim]."""
         scaled = (x[..., None, :] * self.powers[:, None].to(x.dtype)).flatten(-2)  # s 2^k x: [..., L * D]
         phase = torch.pi * torch.fmod(scaled, 2)  # same sine and cosine, |phase| < 2 pi
         parts = [x] if self.include_input else []
+        if self.coarse_to_fine > 0:
+            weights = self.window.to(x.dtype).repeat_interleave(x.shape[-1])  # [L * D], frequency-major
+            return torch.cat(parts + [torch.sin(phase) * weights, torch.cos(phase) * weights], dim=-1)
         return torch.cat(parts + [torch.sin(phase), torch.cos(phase)], dim=-1)
+
+    def set_progress(self, progress: float) -> None:
+        if self.coarse_to_fine > 0:
+            self.window.copy_(coarse_to_fine_window(self.n_freqs, min(progress / self.coarse_to_fine, 1.0)))
+
+
+def coarse_to_fine_window(n_freqs: int, fraction: float) -> Tensor:
+    """BARF's weights [L] of frequencies k = 0..L-1 once alpha = ``fraction`` x L:
+    w_k = (1 - cos(pi clamp(alpha - k, 0, 1))) / 2; 0 for every k at alpha = 0, 1 for every k at alpha = L.
+
+    >>> coarse_to_fine_window(4, 0.375)  # alpha = 1.5: k = 0 open, k = 1 half, the rest closed
+    tensor([1.0000, 0.5000, 0.0000, 0.0000])
+    """
+    alpha = fraction * n_freqs
+    ramp = (alpha - torch.arange(n_freqs, dtype=torch.float64)).clamp(0, 1)
+    return ((1 - torch.cos(torch.pi * ramp)) / 2).float()
 
 
 class _InterpolateRows(torch.autograd.Function):

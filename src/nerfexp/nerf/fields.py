@@ -149,6 +149,11 @@ class NeRFField(DensityField):
     activation, a regulariser against floaters (the paper: std 1 on real scenes, none on synthetic ones).
     Evaluation is deterministic.
 
+    With ``appearance_dim`` > 0 (per-image appearance, ``nerfexp.nerf.appearance``) the colour head takes an
+    appearance code beside the trunk's features: it is built for width + appearance_dim features and given
+    [h, code] (NeRF-W's colour branch); the density never sees the code. The renderer sets it, from its
+    appearance embedding's size.
+
     Args:
         position_encoding: maps [..., 3] -> [..., out_dim].
         view_head: builds the colour head from the trunk width (see ``ColourHead``).
@@ -159,20 +164,22 @@ class NeRFField(DensityField):
 
     def __init__(self, position_encoding: Encoding, view_head: Callable[[int], ColourHead], depth: int = 8,
                  width: int = 256, skips: tuple[int, ...] = (5,), density_activation: str = "relu",
-                 density_bias: float = 0.0, density_noise_std: float = 0.0):
+                 density_bias: float = 0.0, density_noise_std: float = 0.0, appearance_dim: int = 0):
         super().__init__(position_encoding, depth, width, skips, density_activation, density_bias)
         if not density_noise_std >= 0:
             raise ValueError(f"field.density_noise_std: expected a standard deviation >= 0, got {density_noise_std}")
         self.density_noise_std = density_noise_std
-        self.view_head = view_head(width)
+        self.appearance_dim = appearance_dim
+        self.view_head = view_head(width + appearance_dim)
 
     @property
     def uses_normals(self) -> bool:
         return self.view_head.uses_normals
 
-    def forward(self, positions: Tensor, directions: Tensor) -> FieldOutputs:
+    def forward(self, positions: Tensor, directions: Tensor, appearance: Tensor | None = None) -> FieldOutputs:
         """positions [..., S, 3] and unit directions [..., S or 1, 3] (one per ray broadcasts over
-        its samples) -> ``rgb`` [..., S, 3] in [0, 1], ``sigma`` [..., S] >= 0.
+        its samples) -> ``rgb`` [..., S, 3] in [0, 1], ``sigma`` [..., S] >= 0. ``appearance``: codes
+        [..., S or 1, appearance_dim] where the field takes them (``appearance_dim`` > 0), else None.
 
         A head that predicts normals (``ColourHead.uses_normals``: Ref-NeRF's, ``nerfexp.nerf.reflection``) also
         gets, while gradients are enabled (training), the density's gradient d raw / dx, and the field answers
@@ -189,6 +196,7 @@ class NeRFField(DensityField):
         if self.training and self.density_noise_std > 0:
             raw = raw + self.density_noise_std * torch.randn_like(raw)
         sigma = self.activation(raw)
+        h = self._with_appearance(h, appearance)
         if not self.uses_normals:
             return FieldOutputs(rgb=self.view_head(h, directions), sigma=sigma)
         rgb, normals = self.view_head(h, directions)
@@ -202,6 +210,16 @@ class NeRFField(DensityField):
     def penalty_names(self) -> tuple[str, ...]:
         """The names of the penalties ``forward`` answers per sample (none for the paper's heads)."""
         return self.view_head.penalty_names
+
+    def _with_appearance(self, h: Tensor, appearance: Tensor | None) -> Tensor:
+        """The colour head's input: the trunk's features h [..., S, F], joined by the codes [..., S or 1, D]
+        where the field takes them -> [..., S, F + D]; h itself where it does not."""
+        if (appearance is None) != (self.appearance_dim == 0):
+            raise ValueError(f"NeRFField with appearance_dim={self.appearance_dim}: "
+                             f"{'no appearance codes given' if appearance is None else 'given appearance codes'}")
+        if appearance is None:
+            return h
+        return torch.cat([h, appearance.to(h.dtype).expand(*h.shape[:-1], self.appearance_dim)], -1)
 
 
 class ViewMLPHead(ColourHead):

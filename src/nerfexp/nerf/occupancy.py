@@ -106,6 +106,9 @@ class OccupancyGrid(Bounded):
         self.resolution, self.threshold, self.decay = resolution, threshold, decay
         self.warmup_steps, self.update_every = warmup_steps, update_every
         self.early_stop_transmittance, self.segments = early_stop_transmittance, segments
+        # contracted positions -> world units per unit there (``SceneContraction.stretch``), set by the renderer
+        # of a contracted scene: the cells' thresholds then follow the world lengths they span; None: the box's
+        self.world_scale: Callable[[Tensor], Tensor] | None = None
         n_cells = resolution**3
         self.register_buffer("density", torch.zeros(n_cells))
         self.register_buffer("occupied", torch.ones(n_cells, dtype=torch.bool))
@@ -146,6 +149,19 @@ class OccupancyGrid(Bounded):
             self.density[cells] = sigma
         else:
             self.density[cells] = torch.maximum(self.density[cells] * self.decay, sigma)
-        diagonal = float(torch.linalg.vector_norm(self.cell_size))
-        limit = torch.clamp(self.density.mean(), max=density_threshold(self.threshold, diagonal))
+        limit = torch.clamp(self.density.mean(), max=self.cell_thresholds())
         self.occupied.copy_(self.density > limit)
+
+    def cell_thresholds(self) -> Tensor | float:
+        """The density above which a cell is occupied (``density_threshold`` of its diagonal): one number for
+        the box's cells, or, with a ``world_scale``, one per cell [R^3] of its diagonal in world units, taken at
+        its corner farthest from the origin (the most stretched: a contracted scene's outer cells span long
+        stretches of the world, so they are occupied at densities far below the inner cells'; those on the
+        contraction's shell, of infinite extent, at any density)."""
+        diagonal = torch.linalg.vector_norm(self.cell_size)
+        if self.world_scale is None:
+            return density_threshold(self.threshold, float(diagonal))
+        lower = self.aabb[0] + cell_corners(self.resolution, self.aabb.device) * self.cell_size  # [R^3, 3]
+        farthest = torch.where(lower.abs() > (lower + self.cell_size).abs(), lower, lower + self.cell_size)
+        world_diagonal = diagonal * self.world_scale(farthest)
+        return -math.log1p(-self.threshold) / world_diagonal  # density_threshold per cell; 0 where infinite

@@ -17,8 +17,8 @@ import torch
 from torch import Tensor, nn
 
 from nerfexp.domains import COUNT, LOSS_WEIGHT, LOSS_WEIGHT_LIMIT, real
-from nerfexp.nerf.samplers import Rays, Sampler
-from nerfexp.nerf.sampling import dilate_weights, resampling_bins, sample_pdf, stratified_samples
+from nerfexp.nerf.samplers import Rays, Sampler, first_samples, resample
+from nerfexp.nerf.sampling import disparity_fraction, resampling_bins
 
 if TYPE_CHECKING:
     from nerfexp.nerf.volume_renderer import VolumeRenderer
@@ -126,33 +126,35 @@ class ProposalSampler(Sampler):
         """{"coarse": the field's output}; in training (with gradients enabled) the output's ``regularizers``
         hold the proposal losses."""
         counts = [*self.n_samples, self.n_final]  # samples of each round, then the field's
-        t = stratified_samples(rays.near, rays.far, counts[0], deterministic)
+        t = first_samples(rays, counts[0], deterministic)
         histograms, evaluated = [], 0
         for net, n_next in zip(self.networks, counts[1:]):
             weights, evaluated_here = renderer.proposal_weights(net, rays, t)
-            bins = resampling_bins(t, rays.near, rays.far)
-            histograms.append((bins, weights))
+            histograms.append((resampling_bins(t, rays.near, rays.far), weights))
             evaluated = evaluated + evaluated_here
-            t = sample_pdf(bins, dilate_weights(weights), n_next, deterministic)
+            t = resample(rays, t, weights, n_next, deterministic)
         out = renderer.render_at(renderer.coarse, rays, t)
         out["evaluated"] = out["evaluated"] + evaluated
         if torch.is_grad_enabled():
             edges = torch.cat([t, rays.far[:, None]], -1)  # the field's intervals [t_i, t_{i+1}], the last to far
-            losses = self.losses(edges, out["weights"], histograms, rays.near, rays.far)
+            losses = self.losses(edges, out["weights"], histograms, rays)
             out["regularizers"] = {**out.get("regularizers", {}), **losses}
         return {"coarse": out}
 
-    def losses(self, edges: Tensor, weights: Tensor, histograms: list[tuple[Tensor, Tensor]], near: Tensor,
-               far: Tensor) -> dict[str, Tensor]:
+    def losses(self, edges: Tensor, weights: Tensor, histograms: list[tuple[Tensor, Tensor]],
+               rays: Rays) -> dict[str, Tensor]:
         """The weighted regularizers of a batch, means over its rays: ``interlevel`` (summed over rounds) and,
         with a positive ``distortion_weight``, ``distortion``.
 
         Args: the NeRF's ``edges`` [B, S+1] and ``weights`` [B, S]; ``histograms`` each round's (edges
-        [B, P+1], weights [B, P]); the rays' ``near``, ``far`` [B], which normalize the distortion's distances.
+        [B, P+1], weights [B, P]); the ``rays``, whose near and far normalize the distortion's distances (or,
+        with a ``split``, the fraction of ``disparity_spaced``: mip-NeRF 360 measures it so).
         """
         interlevel = sum(interlevel_loss(edges, weights, e, w).mean() for e, w in histograms)
         losses = {"interlevel": self.interlevel_weight * interlevel}
         if self.distortion_weight > 0:
-            normalized = (edges - near[:, None]) / (far - near)[:, None]
+            near, far = rays.near, rays.far
+            normalized = ((edges - near[:, None]) / (far - near)[:, None] if rays.split is None
+                          else disparity_fraction(edges, near, rays.split, far))
             losses["distortion"] = self.distortion_weight * distortion_loss(normalized, weights).mean()
         return losses

@@ -18,7 +18,14 @@ import torch
 from torch import Tensor, nn
 
 from nerfexp.domains import Applies, Rule
-from nerfexp.nerf.sampling import dilate_weights, resampling_bins, sample_pdf, stratified_samples
+from nerfexp.nerf.sampling import (
+    dilate_weights,
+    disparity_fraction,
+    disparity_spaced,
+    resampling_bins,
+    sample_pdf,
+    stratified_samples,
+)
 
 if TYPE_CHECKING:
     from nerfexp.nerf.volume_renderer import VolumeRenderer
@@ -32,6 +39,34 @@ class Rays(NamedTuple):
     viewdirs: Tensor  # [B, 3] unit: the view direction the colour networks see
     near: Tensor  # [B]
     far: Tensor  # [B]
+    # [B] or None: where samples stop being spaced evenly in t and are spaced evenly in disparity (a contracted,
+    # unbounded scene's rays leaving its inner region: ``disparity_spaced``); None: evenly in t up to far
+    split: Tensor | None = None
+    # [B, D] or None: each ray's appearance code, which the colour networks take (``nerfexp.nerf.appearance``)
+    appearance: Tensor | None = None
+
+
+def first_samples(rays: Rays, n_samples: int, deterministic: bool) -> Tensor:
+    """``n_samples`` stratified samples t [B, n_samples] of ``rays``: one in each of equal bins of [near, far],
+    or, where the rays have a ``split``, of the fraction s of ``disparity_spaced`` (evenly in t to the split,
+    evenly in disparity beyond)."""
+    if rays.split is None:
+        return stratified_samples(rays.near, rays.far, n_samples, deterministic)
+    s = stratified_samples(torch.zeros_like(rays.near), torch.ones_like(rays.far), n_samples, deterministic)
+    return disparity_spaced(s, rays.near, rays.split, rays.far)
+
+
+def resample(rays: Rays, t: Tensor, weights: Tensor, n_samples: int, deterministic: bool) -> Tensor:
+    """``n_samples`` samples [B, n_samples] of ``rays`` drawn from the weights [B, S] of the intervals of samples
+    t [B, S] (``resampling_bins``, dilated by one interval: ``dilate_weights``). Where the rays have a ``split``,
+    the weights are spread evenly over their intervals in the fraction s of ``disparity_spaced``, not in t
+    (mip-NeRF 360 resamples in s: a far interval in t is long, and its mass lies at the near end in
+    disparity)."""
+    bins, weights = resampling_bins(t, rays.near, rays.far), dilate_weights(weights)
+    if rays.split is None:
+        return sample_pdf(bins, weights, n_samples, deterministic)
+    s = sample_pdf(disparity_fraction(bins, rays.near, rays.split, rays.far), weights, n_samples, deterministic)
+    return disparity_spaced(s, rays.near, rays.split, rays.far)
 
 
 class Sampler(nn.Module):
@@ -75,10 +110,9 @@ class HierarchicalSampler(Sampler):
         return self.n_coarse + (self.n_coarse + self.n_fine)
 
     def render(self, renderer: "VolumeRenderer", rays: Rays, deterministic: bool) -> dict[str, dict[str, Tensor]]:
-        t_coarse = stratified_samples(rays.near, rays.far, self.n_coarse, deterministic)
+        t_coarse = first_samples(rays, self.n_coarse, deterministic)
         coarse = renderer.render_at(renderer.coarse, rays, t_coarse)
-        bins = resampling_bins(t_coarse, rays.near, rays.far)
-        t_fine = sample_pdf(bins, dilate_weights(coarse["weights"]), self.n_fine, deterministic)
+        t_fine = resample(rays, t_coarse, coarse["weights"], self.n_fine, deterministic)
         t_all = torch.sort(torch.cat([t_coarse, t_fine], -1), -1).values
         return {"coarse": coarse, "fine": renderer.render_at(renderer.fine, rays, t_all)}
 
@@ -96,5 +130,5 @@ class StratifiedSampler(Sampler):
         return self.n_samples
 
     def render(self, renderer: "VolumeRenderer", rays: Rays, deterministic: bool) -> dict[str, dict[str, Tensor]]:
-        t = stratified_samples(rays.near, rays.far, self.n_samples, deterministic)
+        t = first_samples(rays, self.n_samples, deterministic)
         return {"coarse": renderer.render_at(renderer.coarse, rays, t)}

@@ -24,6 +24,45 @@ def stratified_samples(near: Tensor, far: Tensor, n_samples: int, deterministic:
     return torch.lerp(near[..., None], far[..., None], fractions)
 
 
+def linear_share(near: Tensor, split: Tensor, far: Tensor) -> Tensor:
+    """The share of the unit interval [0, 1] of ``disparity_spaced`` that maps linearly onto [near, split]:
+    1/2 where near < split < far (mip-NeRF 360's and nerfacto's), 1 where split >= far (the ray never leaves
+    the inner region before far), 0 where split <= near (it starts outside). [...]"""
+    return torch.where(split >= far, 1.0, torch.where(split > near, 0.5, 0.0)).to(near.dtype)
+
+
+def disparity_spaced(s: Tensor, near: Tensor, split: Tensor, far: Tensor) -> Tensor:
+    """Distances t [..., S] for fractions s [..., S] in [0, 1] of rays (near, split, far [...]): spaced evenly in
+    t from near to split over the first ``linear_share`` h of s, then evenly in disparity 1 / t from split to far
+    (mip-NeRF 360's sampling of unbounded scenes; nerfacto's ``UniformLinDispPiecewiseSampler`` splits at t = 1).
+
+    With a = max(near, split) and u = (s - h) / (1 - h) the disparity part is t = a far / ((1 - u) far + u a),
+    written so that no disparity (1 / 0) is formed: u = 0 gives a, u = 1 gives far. Monotone; its inverse is
+    ``disparity_fraction``."""
+    near, split, far = near[..., None], split[..., None], far[..., None]
+    share = linear_share(near, split, far)
+    start = torch.maximum(near, split).minimum(far)
+    linear = torch.lerp(near, start, s / torch.where(share == 0, 1, share))
+    u = ((s - share) / torch.where(share == 1, 1, 1 - share)).clamp(0, 1)
+    disparity = start * far / ((1 - u) * far + u * start)
+    return torch.where(s <= share, linear, disparity)
+
+
+def disparity_fraction(t: Tensor, near: Tensor, split: Tensor, far: Tensor) -> Tensor:
+    """The inverse of ``disparity_spaced``: the fractions s [..., S] in [0, 1] of distances t [..., S] in
+    [near, far] of rays (near, split, far [...]). The disparity part u = far (t - a) / (t (far - a)) divides
+    by t >= a > 0 and far > a, where it is selected."""
+    near, split, far = near[..., None], split[..., None], far[..., None]
+    share = linear_share(near, split, far)
+    start = torch.maximum(near, split).minimum(far)
+    span = start - near
+    linear = share * (t - near) / torch.where(span == 0, 1, span)
+    outer = t > start
+    denominator = torch.where(outer, t * (far - start), 1)
+    u = torch.where(outer, far * (t - start) / denominator, 0)
+    return torch.where(outer, share + (1 - share) * u, linear).clamp(0, 1)
+
+
 def intervals(t: Tensor, far: Tensor) -> tuple[Tensor, Tensor]:
     """The interval each sample stands for, as in the paper: [t_i, t_{i+1}], the last ending at ``far``.
 

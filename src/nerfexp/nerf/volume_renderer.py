@@ -7,7 +7,9 @@ import torch
 from torch import Tensor, nn
 
 from nerfexp.domains import COUNT, FAR, NEAR, Applies, Rule, choice, optional
+from nerfexp.nerf.appearance import AppearanceEmbedding
 from nerfexp.nerf.backgrounds import BACKGROUNDS
+from nerfexp.nerf.contraction import SceneContraction
 from nerfexp.nerf.fields import FieldOutputs
 from nerfexp.nerf.occupancy import OccupancyGrid
 from nerfexp.nerf.proposal import ProposalSampler
@@ -61,11 +63,18 @@ def each_output(outputs: FieldOutputs, function: Callable[[Tensor], Tensor]) -> 
     return FieldOutputs(*(None if out is None else function(out) for out in outputs))
 
 
-def query_packed(field: Callable[[Tensor, Tensor | None], FieldOutputs], points: Tensor,
-                 viewdirs: Tensor | None, keep: Tensor) -> FieldOutputs:
+def ask(field: Callable[..., FieldOutputs], points: Tensor, directions: Tensor | None,
+        codes: Tensor | None) -> FieldOutputs:
+    """``field`` at ``points`` [N, 3] with ``directions`` [N, 3] and, where there are any, appearance ``codes``
+    [N, D] (``nerfexp.nerf.appearance``); a field is asked with codes only where the rays have them."""
+    return field(points, directions) if codes is None else field(points, directions, codes)
+
+
+def query_packed(field: Callable[..., FieldOutputs], points: Tensor,
+                 viewdirs: Tensor | None, keep: Tensor, codes: Tensor | None = None) -> FieldOutputs:
     """Evaluate ``field`` only at the samples ``keep`` [B, S] (bool) of ``points`` [B, S, 3], rays' unit
-    ``viewdirs`` [B, 3] (None for a density query, ``density_query``), as one flat batch of N = keep.sum()
-    points; the others get zeros (sigma = 0, rgb = 0).
+    ``viewdirs`` [B, 3] (None for a density query, ``density_query``) and appearance ``codes`` [B, D] (or None),
+    as one flat batch of N = keep.sum() points; the others get zeros (sigma = 0, rgb = 0).
 
     The batch is ``padded_size(N)`` long: its first kept points again fill the rest, and their answers are
     dropped (no gradient reaches them; a hash grid's sparse gradient holds the same rows).
@@ -77,7 +86,8 @@ def query_packed(field: Callable[[Tensor, Tensor | None], FieldOutputs], points:
     index = keep.nonzero(as_tuple=True)  # (ray [N], sample [N])
     n = len(index[0])
     rays, samples = (torch.cat([i, i[: padded_size(n) - n]]) for i in index)  # [P]: the kept, then again
-    outputs = field(points[rays, samples], None if viewdirs is None else viewdirs[rays])  # each [P, ...]
+    outputs = ask(field, points[rays, samples], None if viewdirs is None else viewdirs[rays],
+                  None if codes is None else codes[rays])  # each [P, ...]
     B, S = keep.shape  # rays, samples
     return each_output(outputs, lambda out: out.new_zeros(B, S, *out.shape[1:]).index_put(index, out[:n]))
 
@@ -113,9 +123,18 @@ class VolumeRenderer(nn.Module):
         field: builds a field (called once per network of the sampler's ``field_names``), e.g. a partial
             ``NeRFField``.
         hierarchical: True, False or "proposal".
-        near, far: ray distance bounds; background: a key of ``BACKGROUNDS``.
+        near, far: ray distance bounds (far: without a contraction, ``ray_far``); background: a key of
+            ``BACKGROUNDS``.
         grid: an ``OccupancyGrid``, or None to evaluate every sample.
         proposal: builds the ``ProposalSampler`` (called only when hierarchical is "proposal").
+        appearance: an ``AppearanceEmbedding`` (``appearance=embedding``: a code per training image, which the
+            colour fields take, ``nerfexp.nerf.appearance``), or None. With one, the fields are built with its
+            ``dim`` (``field(appearance_dim=dim)``), and ``forward`` takes each ray's code.
+        contraction: a ``SceneContraction`` for unbounded scenes (``contraction=mipnerf360``), or None. With one,
+            the networks and the grid see contracted positions (in its ``box``; the grid's cells are weighed
+            by the world lengths they span), and every sampler spaces its samples evenly in t up to where each
+            ray leaves the inner region and evenly in disparity beyond it (``Rays.split``). Densities are still
+            integrated over world distances, and rays end at the contraction's own far distance.
     """
 
     DOMAINS: ClassVar[dict[str, Rule]] = {
@@ -136,7 +155,8 @@ class VolumeRenderer(nn.Module):
 
     def __init__(self, field: Callable[[], nn.Module], hierarchical: bool | str, n_coarse: int, n_fine: int,
                  n_single: int, near: float, far: float, background: str = "white",
-                 grid: OccupancyGrid | None = None, proposal: Callable[[], ProposalSampler] | None = None):
+                 grid: OccupancyGrid | None = None, proposal: Callable[[], ProposalSampler] | None = None,
+                 contraction: SceneContraction | None = None, appearance: AppearanceEmbedding | None = None):
         super().__init__()
         if background not in BACKGROUNDS:
             raise ValueError(f"data.background: expected one of {sorted(BACKGROUNDS)}, got {background!r}")
@@ -150,12 +170,22 @@ class VolumeRenderer(nn.Module):
         self._sampler = (None if self.proposal is not None
                          else HierarchicalSampler(n_coarse, n_fine) if hierarchical else StratifiedSampler(n_single))
         self.near, self.far = near, far
-        self.coarse = field()
-        self.fine = field() if "fine" in self.sampler.field_names else None
+        self.appearance = appearance
+        sized = {} if appearance is None else {"appearance_dim": appearance.dim}  # fields take codes of its size
+        self.coarse = field(**sized)
+        self.fine = field(**sized) if "fine" in self.sampler.field_names else None
         self.register_buffer("background", torch.tensor(BACKGROUNDS[background]), persistent=False)
         self.grid = grid
+        self.contraction = contraction
+        if grid is not None and contraction is not None:
+            grid.world_scale = contraction.stretch
         self.stats: dict[str, Tensor | float] = {}
         self._trained = {"rays": 0, "evaluations": 0.0}  # training totals, for evaluations_per_ray
+
+    @property
+    def ray_far(self) -> float:
+        """Where rays end: ``far``, or with a contraction its own far distance (``far`` then does nothing)."""
+        return self.far if self.contraction is None else self.contraction.far_distance
 
     @property
     def sampler(self) -> Sampler:
@@ -180,28 +210,30 @@ class VolumeRenderer(nn.Module):
         """Each colour network's density (positions [N, 3] -> sigma [N]), for ``OccupancyGrid.update``."""
         return [net.density for net in (self.coarse, self.fine) if net is not None]
 
-    def _query(self, field: Callable[[Tensor, Tensor | None], FieldOutputs], points: Tensor,
-               viewdirs: Tensor | None, starts: Tensor, ends: Tensor) -> tuple[FieldOutputs, Tensor | float]:
+    def _query(self, field: Callable[..., FieldOutputs], points: Tensor,
+               viewdirs: Tensor | None, starts: Tensor, ends: Tensor,
+               codes: Tensor | None = None) -> tuple[FieldOutputs, Tensor | float]:
         """The field's outputs (each [B, S, ...]; ``sigma`` alone for a density query, whose ``viewdirs`` are
         None) at the points [B, S, 3], ``starts``, ``ends`` [B, S] their intervals in distance units, and the
         samples evaluated: all of them without a grid, else those the grid keeps, marched in segments for
-        early termination (see the class docstring)."""
+        early termination (see the class docstring). ``codes`` [B, D]: the rays' appearance codes, or None."""
         B, S, _ = points.shape  # rays, samples, xyz
         if self.grid is None:  # one flat batch [B S, 3]: 2-D matrix products, no copies of 3-D activations
             flat_dirs = None if viewdirs is None else viewdirs[:, None, :].expand(B, S, 3).reshape(B * S, 3)
-            outputs = field(points.reshape(B * S, 3), flat_dirs)
+            flat_codes = None if codes is None else codes[:, None, :].expand(B, S, -1).reshape(B * S, -1)
+            outputs = ask(field, points.reshape(B * S, 3), flat_dirs, flat_codes)
             return each_output(outputs, lambda out: out.reshape(B, S, *out.shape[1:])), float(B * S)
         keep = self.grid.occupied_at(points)
         eps = self.grid.early_stop_transmittance
         if eps == 0:
-            return query_packed(field, points, viewdirs, keep), keep.sum()
+            return query_packed(field, points, viewdirs, keep, codes), keep.sum()
         parts, evaluated = [], 0
         depth_before = starts.new_zeros(B)  # optical depth in front of the segment, no gradient
         n_segments = min(self.grid.segments, S)
         for k in range(n_segments):
             segment = slice(k * S // n_segments, (k + 1) * S // n_segments)
             alive = keep[:, segment] & (torch.exp(-depth_before) >= eps)[:, None]
-            outputs = query_packed(field, points[:, segment], viewdirs, alive)
+            outputs = query_packed(field, points[:, segment], viewdirs, alive, codes)
             depth_before = depth_before + optical_depths(outputs.sigma.detach().to(starts.dtype),
                                                          starts[:, segment], ends[:, segment]).sum(-1)
             parts.append(outputs)
@@ -209,12 +241,17 @@ class VolumeRenderer(nn.Module):
         joined = (None if column[0] is None else torch.cat(column, 1) for column in zip(*parts))
         return FieldOutputs(*joined), evaluated
 
-    @staticmethod
-    def _samples(rays: Rays, t: Tensor) -> tuple[Tensor, ...]:
-        """The sample points [B, S, 3] of rays o + t d at t [B, S], and the intervals they stand for
-        (``intervals``, the last ending at far [B]): in units of t, ``t_starts``, ``t_ends`` [B, S], and in
-        distance, ``starts``, ``ends`` [B, S] (an interval [t_i, t_{i+1}] is (t_{i+1} - t_i) |d| long)."""
-        points = rays.origins[:, None, :] + rays.directions[:, None, :] * t[..., None]
+    def field_positions(self, points: Tensor) -> Tensor:
+        """World positions [..., 3] as the networks and the grid take them: contracted where the renderer has a
+        contraction, else unchanged."""
+        return points if self.contraction is None else self.contraction(points)
+
+    def _samples(self, rays: Rays, t: Tensor) -> tuple[Tensor, ...]:
+        """The sample points [B, S, 3] of rays o + t d at t [B, S] (as the networks take them:
+        ``field_positions``), and the intervals they stand for (``intervals``, the last ending at far [B]): in
+        units of t, ``t_starts``, ``t_ends`` [B, S], and in distance, ``starts``, ``ends`` [B, S] (an interval
+        [t_i, t_{i+1}] is (t_{i+1} - t_i) |d| long)."""
+        points = self.field_positions(rays.origins[:, None, :] + rays.directions[:, None, :] * t[..., None])
         lengths = torch.linalg.vector_norm(rays.directions, dim=-1, keepdim=True)  # [B, 1]
         t_starts, t_ends = intervals(t, rays.far)
         return points, t_starts, t_ends, t_starts * lengths, t_ends * lengths
@@ -236,12 +273,12 @@ class VolumeRenderer(nn.Module):
         with the rendering weights and averaged over the rays into ``regularizers`` {name: value}.
         """
         points, t_starts, t_ends, starts, ends = self._samples(rays, t)
-        outputs, evaluated = self._query(field, points, rays.viewdirs, starts, ends)
+        outputs, evaluated = self._query(field, points, rays.viewdirs, starts, ends, rays.appearance)
         # Rendering runs in the rays' precision whatever the network's: under bf16 autocast the field
         # answers in bf16 (8 significant bits), too coarse for exp/cumsum of optical depths.
         rgbs, sigmas = outputs.rgb.to(t.dtype), outputs.sigma.to(t.dtype)
         weights, _ = render_weights(sigmas, starts, ends)
-        out = composite(weights, rgbs, t, self.background, self.far)
+        out = composite(weights, rgbs, t, self.background, self.ray_far)
         out.update(weights=weights, t_starts=t_starts, t_ends=t_ends, evaluated=evaluated)
         if outputs.penalties is not None:
             per_ray = (weights[..., None] * outputs.penalties.to(t.dtype)).sum(-2).mean(0)  # [P]
@@ -249,13 +286,15 @@ class VolumeRenderer(nn.Module):
         return out
 
     def forward(self, origins: Tensor, directions: Tensor, deterministic: bool,
-                viewdirs: Tensor | None = None) -> dict[str, dict[str, Tensor]]:
+                viewdirs: Tensor | None = None, codes: Tensor | None = None) -> dict[str, dict[str, Tensor]]:
         """Render rays o + t d, ``origins``, ``directions`` [B, 3], for t in [near, far].
 
         Directions need not be unit vectors (NDC rays' are not): densities are integrated over the
         length t |d| in the space the points o + t d live in (NDC space for NDC rays, as in the
         paper's code). The field's view direction is ``viewdirs`` [B, 3] (unit; for NDC rays the
-        world direction), by default the unit ``directions``.
+        world direction), by default the unit ``directions``. ``codes`` [B, D]: each ray's appearance code,
+        only where the renderer has an ``appearance`` embedding (None there: its ``test_code`` for every ray,
+        the appearance of an image it was not trained on).
 
         Returns {"coarse": out, "fine": out} (the sampler's ``field_names``: only "coarse" without hierarchy or
         with proposals), each out holding ``rgb`` [B, 3], ``depth`` [B] (in units of t), ``opacity`` [B],
@@ -267,8 +306,14 @@ class VolumeRenderer(nn.Module):
             lengths = torch.linalg.vector_norm(directions, dim=-1, keepdim=True)
             viewdirs = directions / lengths.clamp_min(torch.finfo(lengths.dtype).tiny)
         near = torch.full((B,), self.near, dtype=origins.dtype, device=origins.device)
-        far = torch.full_like(near, self.far)
-        outputs = self.sampler.render(self, Rays(origins, directions, viewdirs, near, far), deterministic)
+        far = torch.full_like(near, self.ray_far)
+        split = None if self.contraction is None else self.contraction.ray_split(origins, directions)
+        if codes is not None and self.appearance is None:
+            raise ValueError("VolumeRenderer: appearance codes given to a renderer without appearance=embedding")
+        if codes is None and self.appearance is not None:  # an image not trained on: the embedding's test code
+            codes = self.appearance.test_code().expand(B, -1)
+        rays = Rays(origins, directions, viewdirs, near, far, split, codes)
+        outputs = self.sampler.render(self, rays, deterministic)
         self._count(outputs, B)
         return outputs
 

@@ -111,7 +111,7 @@ def render_path(module: NeRFModule, scene: Scene, cameras: Tensor, height: int, 
     ``out_dir``: a video per kind (``KINDS``) and the PNG frames, streamed to disk as they are rendered; with a
     progress bar. A video ffmpeg did not write is a NerfexpError (imageio's writer leaves ffmpeg's failure to its
     messages on stderr)."""
-    near, far = module.renderer.near, module.renderer.far
+    near, far = module.renderer.near, module.renderer.ray_far
     with contextlib.ExitStack() as videos:
         writers = {kind: videos.enter_context(
             imageio.get_writer(out_dir / f"{kind}.mp4", format="FFMPEG", fps=fps, codec="libx264", quality=8,

@@ -27,15 +27,36 @@ if TYPE_CHECKING:  # annotations only: it imports Lightning, which a command sto
 THRESHOLD_QUANTILE = 0.25  # the default threshold: this quantile of the density at the test views' depths
 
 
+class WorldField(nn.Module):
+    """A field of a renderer with a contraction queried at world positions: ``density(x)`` and ``forward(x, d)``
+    of the field at the contracted x (``VolumeRenderer.field_positions``)."""
+
+    def __init__(self, field: nn.Module, renderer: VolumeRenderer):
+        super().__init__()
+        self.field, self.positions = field, renderer.field_positions
+
+    def density(self, positions: Tensor) -> Tensor:
+        return self.field.density(self.positions(positions))
+
+    def forward(self, positions: Tensor, directions: Tensor):
+        return self.field(self.positions(positions), directions)
+
+
 def final_field(renderer: VolumeRenderer) -> nn.Module:
-    """The network that final renders use: the fine one, or the only one without hierarchy."""
-    return renderer.fine if renderer.fine is not None else renderer.coarse
+    """The network that final renders use (the fine one, or the only one without hierarchy), taking world
+    positions (``WorldField`` where the renderer contracts them)."""
+    field = renderer.fine if renderer.fine is not None else renderer.coarse
+    return field if renderer.contraction is None else WorldField(field, renderer)
 
 
 def export_box(renderer: VolumeRenderer, scene: Scene) -> Tensor:
-    """The box [2, 3] (float64, on the host) to mesh: the one the renderer's bounded modules (hash grid
+    """The box [2, 3] (float64, on the host) to mesh: with a contraction, the cube around its inner region (the
+    unbounded world beyond it has no box); else the one the renderer's bounded modules (hash grid
     encoding, occupancy grid) work in, where they have one; else the scene's (``Scene.box``; the training
     views are loaded only where the scene has no box of its own)."""
+    if renderer.contraction is not None:
+        centre, radius = renderer.contraction.centre.double().cpu(), float(renderer.contraction.radius)
+        return torch.stack([centre - radius, centre + radius])
     bounded = [m for m in renderer.modules() if isinstance(m, Bounded) and m.has_bounds]
     if bounded:
         return bounded[0].aabb.detach().double().cpu()

@@ -5,16 +5,21 @@ model, ready to render). Its files are read as data below (``nerfexp.rundir.trai
 here, above the training layer whose classes they are."""
 
 from collections.abc import Callable
+from dataclasses import replace
 from pathlib import Path
 from typing import TYPE_CHECKING, NamedTuple
 
 import torch
 from hydra.utils import instantiate
 from omegaconf import DictConfig
+from torch import Tensor
 
+from nerfexp.data.base import Scene
+from nerfexp.data.views import Views
 from nerfexp.errors import NerfexpError
 from nerfexp.memory import network_bytes, require_memory
-from nerfexp.rundir.trained import find_run, read_checkpoint, run_config
+from nerfexp.rundir.layout import REFINED_POSES
+from nerfexp.rundir.trained import find_run, read_checkpoint, read_refined_poses, run_config
 from nerfexp.settings.checks import check_run_settings
 
 if TYPE_CHECKING:
@@ -29,6 +34,7 @@ def load_module(cfg: DictConfig, checkpoint: Path) -> "tuple[L.LightningModule, 
     fill_ray_bounds(cfg)  # a run's saved config holds null where the scene chose near and far
     module = instantiate(cfg.model)
     state = read_checkpoint(checkpoint)
+    module.on_load_checkpoint(state)  # as Lightning before loading weights: what is sized by the data (camera_opt)
     check_weights(state["state_dict"], module, checkpoint)
     module.load_state_dict(state["state_dict"])
     return module, state["global_step"]
@@ -80,3 +86,52 @@ def load_run(run: str | Path, overrides: list[str] = (), chunk: int | None = Non
         module.chunk = chunk
     module.to("cuda" if torch.cuda.is_available() else "cpu").eval()
     return TrainedRun(run_dir, checkpoint, cfg, module, step)
+
+
+class RefinedScene(Scene):
+    """A trained run's scene whose training cameras are those its camera refinement left (``train_c2w`` [N, 4,
+    4], from ``RUN_DIR/cameras/train_poses.json``): every other split and member is ``scene``'s. What is made
+    from the training cameras (a render's orbit or spiral, the viewer's frustums, a box from their frusta)
+    then follows the cameras the run learned the scene with."""
+
+    def __init__(self, scene: Scene, train_c2w: Tensor, source: Path):
+        self.scene = scene
+        self.train_c2w = train_c2w
+        self.source = source
+        self.background = scene.background
+        self.near = scene.near
+        self.far = scene.far
+        self.aabb = scene.aabb
+        self.density_noise_std = scene.density_noise_std
+
+    def views(self, split: str) -> Views:
+        views = self.scene.views(split)
+        if split != "train":
+            return views
+        if len(views) != len(self.train_c2w):
+            raise NerfexpError(f"{self.source} holds {len(self.train_c2w)} refined training cameras and the scene "
+                               f"has {len(views)} training views: not this scene's (another data.n_train?)")
+        return replace(views, c2w=self.train_c2w.to(views.c2w.dtype))
+
+    def split_rule(self) -> str | None:
+        return self.scene.split_rule()
+
+    def bounding_box(self) -> Tensor | None:
+        return self.scene.bounding_box()
+
+    def ray_bounds(self) -> tuple[float, float]:
+        return self.scene.ray_bounds()
+
+    def depth_bounds(self) -> Tensor | None:
+        return self.scene.depth_bounds()
+
+    def model_rays(self, origins: Tensor, directions: Tensor) -> tuple[Tensor, Tensor]:
+        return self.scene.model_rays(origins, directions)
+
+
+def run_scene(run_dir: Path, cfg: DictConfig) -> Scene:
+    """The scene of the run in ``run_dir`` (its config ``cfg``'s ``data``), with the training cameras its camera
+    refinement left where it refined them (``RefinedScene``), else as the data gives them."""
+    scene = instantiate(cfg.data)
+    refined = read_refined_poses(run_dir)
+    return scene if refined is None else RefinedScene(scene, refined, Path(run_dir) / REFINED_POSES)

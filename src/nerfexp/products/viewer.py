@@ -201,7 +201,7 @@ def render_request(module: NeRFModule, scene: Scene, lock: threading.Lock, reque
             band = next(bands, None)
         if band is None:
             frame = {key: torch.cat([part[key] for part in parts]) for key in parts[0]}
-            images = frame_images(frame, module.renderer.near, module.renderer.far)
+            images = frame_images(frame, module.renderer.near, module.renderer.ray_far)
             return rgb_pixels(images[request.kind])
         parts.append(band)
     return None

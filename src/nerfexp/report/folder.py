@@ -10,6 +10,7 @@ from nerfexp.files import atomic_directory
 from nerfexp.report.page import page_html
 from nerfexp.report.pictures import PLOTS, VIEWS_NOTE, check_views, view_tiles
 from nerfexp.report.plots import pareto_png, psnr_vs_time_png
+from nerfexp.report.protocols import compared_runs
 from nerfexp.report.runs import find_runs
 from nerfexp.report.tables import csv_text, markdown, table_rows
 from nerfexp.report.variants import Variant, group_variants, reference_variant
@@ -38,12 +39,12 @@ def write_report(directories: list[Path], out: Path, over: tuple[str, ...] = ("s
     compared with (see ``reference_variant``); ``views``: the test views on the page (``check_views``);
     ``out`` is checked first (``check_out``)."""
     check_out(out)
-    runs = find_runs(directories)
+    runs, protocols = compared_runs(find_runs(directories))  # the scores compared: of one protocol
     variants = group_variants([run for run in runs if run.overrides is not None], over)
     base = reference_variant(variants, reference)
     views = check_views(variants, views)
     rows = table_rows(variants, base)
-    report_md = markdown(variants, rows, runs, directories, base)
+    report_md = markdown(variants, rows, runs, directories, base, protocols)
     manifest.write(out, REPORT_MD, report_md.encode())
     manifest.write(out, REPORT_CSV, csv_text(rows).encode())
     manifest.write(out, PSNR_PLOT, psnr_vs_time_png(variants))

@@ -156,9 +156,10 @@ def precision_text(variants: list[Variant]) -> tuple[str, bool]:
 
 
 def markdown(variants: list[Variant], rows: list[dict], runs: list[Run], sources: list[Path],
-             reference: Variant | None = None) -> str:
+             reference: Variant | None = None, protocols: str = "") -> str:
     """report.md: the ``variants`` with their ``rows`` (``table_rows`` against ``reference``), the ranking,
-    the paper's order, and the ``runs`` under ``sources`` that did not finish."""
+    the paper's order, and the ``runs`` under ``sources`` that did not finish; ``protocols``: which test protocol's
+    scores these are, where it needs saying (``nerfexp.report.protocols.compared_runs``)."""
     planned, unplanned = [], []
     for source in sources:
         try:
@@ -188,7 +189,8 @@ def markdown(variants: list[Variant], rows: list[dict], runs: list[Run], sources
         "# nerfexp report", "",
         f"Runs: {len(runs)} ({', '.join(f'{n} {s}' for s, n in states.items())}) from "
         f"{', '.join(f'`{s}`' for s in sources)}. Means ± sample standard deviation over each variant's "
-        "finished runs. " + machines_text(runs) + (f" {precisions}" if precisions else ""), "",
+        "finished runs. " + machines_text(runs) + (f" {precisions}" if precisions else "")
+        + (f" {protocols}" if protocols else ""), "",
         reference_text(reference), "",
         "| " + " | ".join(header) + " |", "|" + "---|" * len(header),
     ]

@@ -29,6 +29,8 @@ EXPORT_DIR = "export"
 CAMERA_PATH = Path("view", "camera_path.json")  # nerfexp-view's saved camera path
 RUN_CONFIG = Path(".hydra", "config.yaml")  # the composed config, as Hydra saves it in every run directory
 LAST_CHECKPOINT = Path("checkpoints", "last.ckpt")
+# the training cameras as camera refinement (camera_opt) left them, with their errors where the truth is known
+REFINED_POSES = Path("cameras", "train_poses.json")
 # what nerfexp-report writes into its folder (a sweep's or a run's, by default): its pages, its plots, and the
 # folder of the page's pictures (the only place these names are spelled)
 REPORT_MD, REPORT_CSV, REPORT_HTML = "report.md", "report.csv", "report.html"
@@ -43,7 +45,7 @@ REPORT_FILES = (REPORT_MD, REPORT_CSV, REPORT_HTML, PSNR_PLOT, PARETO_PLOT)  # a
 RUN_LIBRARY_FILES = (RUN_CONFIG.parent.name, LAST_CHECKPOINT.parent.name, "debug", "tensorboard", "csv", "wandb",
                      "mlflow.db*", "mlartifacts", "images")
 # what a resumed run writes over in its directory: its own, by the manifest, or the resume is refused
-RUN_REWRITES = (STATUS, RESULTS, METRICS, RUN_CONFIG.parent.name, TEST_DIR)
+RUN_REWRITES = (STATUS, RESULTS, METRICS, RUN_CONFIG.parent.name, TEST_DIR, REFINED_POSES.parent.name)
 
 # Where the classes of a run's config lived before the package was split into layers (and the data group
 

@@ -192,6 +192,23 @@ def check_sparse_gradients(cfg: DictConfig) -> None:
                           "encoding.position.sparse_gradients=false")
 
 
+def check_contraction(cfg: DictConfig) -> None:
+    """A ConfigError where a contraction meets NDC rays (``data.ndc=true``): NDC already maps a forward-facing
+    scene's unbounded depth into [0, 1], and a contraction of NDC positions would squeeze nothing."""
+    if OmegaConf.select(cfg, "contraction.function") is not None and OmegaConf.select(cfg, "data.ndc", default=False):
+        raise ConfigError("contraction=mipnerf360 and data.ndc=true: NDC rays already bound a forward-facing scene's "
+                          "depth; set data.ndc=false (with data.near and data.far) to contract world positions, or "
+                          "contraction=none")
+
+
+def check_camera_opt(cfg: DictConfig) -> None:
+    """A ConfigError where camera refinement (``model.camera_opt``) meets NDC rays (``data.ndc=true``): its
+    corrections turn and move world rays, and the loader has made NDC rays of them before the module sees them."""
+    if OmegaConf.select(cfg, "model.camera_opt") is not None and OmegaConf.select(cfg, "data.ndc", default=False):
+        raise ConfigError("camera_opt=so3xr3: the corrections move world rays, and data.ndc=true trains on NDC rays; "
+                          "set data.ndc=false (with data.near and data.far) to refine an LLFF scene's cameras")
+
+
 def check_extras(cfg: DictConfig) -> None:
     """A MissingExtraError (a ConfigError) where the config asks for a part of nerfexp whose optional
     package is not installed (``nerfexp.extras``)."""
@@ -227,6 +244,8 @@ def check_settings(cfg: DictConfig, training: bool = True, scoring: bool = True)
     check_hash_levels(cfg)
     check_ray_bounds(cfg)
     check_sparse_gradients(cfg)
+    check_contraction(cfg)
+    check_camera_opt(cfg)
     check_memory(cfg, training)
     if scoring:
         check_lpips(cfg)

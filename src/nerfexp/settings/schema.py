@@ -39,6 +39,7 @@ from nerfexp.domains import (
     whole,
     whole_list,
 )
+from nerfexp.nerf.appearance import PROTOCOLS
 from nerfexp.nerf.encodings import HASH_MAX_LOG2_TABLE_SIZE, HASH_RESOLUTION_LIMIT
 from nerfexp.nerf.volume_renderer import HIERARCHIES
 from nerfexp.rundir.labels import NOTES, TAGS
@@ -96,6 +97,9 @@ ACCELERATORS = registered_choice(("auto", "gpu"), lightning_accelerators)
 STRATEGIES = registered_choice(("auto",), lightning_strategies)
 SKIPS = whole_list(0)
 HIERARCHY = choice(*HIERARCHIES)
+# [degrees, fraction of the cameras' radius] (nerfexp.data.pose_noise)
+POSE_NOISE = ("[degrees, fraction], two finite numbers >= 0",
+              lambda v: isinstance(v, list) and len(v) == 2 and all(is_real(x) and x >= 0 for x in v))
 
 # Every key of the composed config (fnmatch patterns, the first that matches rules), hydra.* aside.
 SCHEMA: dict[str, Rule] = {
@@ -132,6 +136,7 @@ SCHEMA: dict[str, Rule] = {
     "model.compile": BOOLEAN,
     "model.lpips": choice(*LPIPS_SETTINGS),
     "model.lpips_weights": optional(PATH, "the torch hub cache's"),  # and that the file is there (check_lpips)
+    "model.test_protocol": choice(*PROTOCOLS),
     "model.lr_final": LEARNING_RATE,
     "model.lr_warmup_steps": NONNEGATIVE_COUNT,
     "model.optimizer.lr": LEARNING_RATE,
@@ -144,6 +149,12 @@ SCHEMA: dict[str, Rule] = {
     "datamodule.batch_rays": COUNT,
     "datamodule.seed": whole(0, SEED_LIMIT - 1),
     "acceleration.grid": NULL,  # acceleration=none
+    "appearance.embedding": NULL,  # appearance=none
+    "appearance.fit": NULL,
+    "appearance.test_protocol": choice(*PROTOCOLS),
+    "camera_opt.correction": NULL,  # camera_opt=off
+    "datamodule.pose_noise": optional(POSE_NOISE, "the poses as the data gives them"),
+    "contraction.function": NULL,  # contraction=none
     # trainer
     "trainer.accelerator": ACCELERATORS,
     "trainer.strategy": STRATEGIES,
@@ -190,7 +201,8 @@ PASSED_ON = ("trainer.*", "callbacks.*", "logger.*", "model.optimizer.*")
 # Keys that stand for a whole section of the config through an interpolation (checked where it is set).
 REFERENCES = ("datamodule.scene", "model.renderer.field.position_encoding", "model.renderer.field.view_head",
               "view_dependence.direction_encoding", "model.renderer.grid", "model.renderer.proposal",
-              "proposal.network.position_encoding")
+              "model.renderer.contraction", "model.renderer.appearance", "model.appearance_fit",
+              "proposal.network.position_encoding", "model.camera_opt")
 
 
 def matching(patterns, key: str):

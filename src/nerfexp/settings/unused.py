@@ -29,14 +29,24 @@ def lpips_scored(cfg: DictConfig) -> str | None:
 
 
 def boxed(cfg: DictConfig) -> str | None:
+    if OmegaConf.select(cfg, "contraction.function") is not None:
+        return "contraction=mipnerf360 (the grids work in the contraction's box, [-2, 2]^3)"
     uses = OmegaConf.select(cfg, "acceleration.grid") is not None or "log2_table_size" in cfg.encoding.position
     return None if uses else "acceleration=none and encoding other than hashgrid (nothing reads the box)"
 
 
+def far_bounded(cfg: DictConfig) -> str | None:
+    if OmegaConf.select(cfg, "contraction.function") is not None:
+        return "contraction=mipnerf360 (rays end contraction.function.far radii away)"
+    return None
+
+
 # Rules that span components (key pattern -> why it is unused, or None): the box serves the grid or the hash grid,
-# the weights the LPIPS scorer of the module.
+# the far bound rays without a contraction (the scene reads it too, for its box), the weights the LPIPS scorer of
+# the module.
 CROSSING: dict[str, Callable[[DictConfig], str | None]] = {
     "data.aabb": boxed,
+    "data.far": far_bounded,
     "model.lpips_weights": lpips_scored,
 }
 

@@ -13,8 +13,10 @@ import torch.nn.functional as F
 from torch import Tensor, nn
 
 from nerfexp.errors import ConfigError
+from nerfexp.nerf.appearance import FULL_IMAGE, CodeFit, left_columns
 from nerfexp.nerf.bounds import Bounded
 from nerfexp.nerf.encodings import Encoding
+from nerfexp.nerf.poses import PoseCorrection
 from nerfexp.nerf.volume_renderer import VolumeRenderer, final_output
 from nerfexp.training.metrics import psnr, ssim
 from nerfexp.training.perceptual import NOT_SCORED, ImageTooSmall, LpipsScorer, lpips_scorer
@@ -56,8 +58,14 @@ class NeRFModule(L.LightningModule):
 
     def __init__(self, renderer: VolumeRenderer, optimizer: Callable[..., torch.optim.Optimizer],
                  lr_final: float, chunk: int = 8192, lr_warmup_steps: int = 0, compile: bool = False,
-                 lpips: bool | str = "auto", lpips_weights: str | None = None):
+                 lpips: bool | str = "auto", lpips_weights: str | None = None,
+                 camera_opt: Callable[[int], PoseCorrection] | None = None,
+                 appearance_fit: CodeFit | None = None, test_protocol: str = FULL_IMAGE):
         super().__init__()
+        self.appearance_fit = appearance_fit  # NeRF-W's fit of a test image's code (appearance=embedding), or None
+        self.test_protocol = test_protocol  # the protocol of the headline test scores (_test)
+        self.pose_correction_of = camera_opt  # n_views -> PoseCorrection, or None (camera_opt=off)
+        self.camera_opt: PoseCorrection | None = None  # built with the training views' number (build_camera_opt)
         self.renderer, self.optimizer, self.lr_final, self.chunk = renderer, optimizer, lr_final, chunk
         self.lr_warmup_steps = lr_warmup_steps
         self.lpips, self.lpips_weights = lpips, lpips_weights
@@ -80,9 +88,10 @@ class NeRFModule(L.LightningModule):
     def training_step(self, batch: dict[str, Tensor], batch_idx: int) -> Tensor:
         """One step on ``batch``; its stratified jitter is drawn from ``batch["seed"]`` where the batch
         has one (``RandomRays``), so that the step is a function of the batch and the weights alone."""
+        batch = self.step_batch(batch)
         with seeded_random(batch.get("seed"), self.device):
             outputs = self.renderer(batch["origins"], batch["directions"], deterministic=False,
-                                    viewdirs=batch.get("viewdirs"))
+                                    viewdirs=batch.get("viewdirs"), codes=self.training_codes(batch))
             if self.renderer.grid is not None:  # after rendering: the jitter above is that of a run without grid
                 self.renderer.grid.update(self.global_step, self.renderer.density_fns())
         losses = {name: F.mse_loss(out["rgb"], batch["rgb"]) for name, out in outputs.items()}
@@ -126,6 +135,7 @@ class NeRFModule(L.LightningModule):
     def setup(self, stage: str) -> None:
         """Build the LPIPS scorer (``nerfexp.training.perceptual.lpips_scorer``), once per process: before
         training or a test, so that missing weights under ``lpips=true`` stop the run before any work."""
+        self.size_appearance()
         if self._lpips_decided:
             return
         self.lpips_scorer, missing = lpips_scorer(self.lpips, self.lpips_weights)
@@ -134,9 +144,19 @@ class NeRFModule(L.LightningModule):
             log.info("%s", missing)
 
     def on_train_start(self) -> None:
+        """The scene's extent, given to the components that work inside it where the config gave none: a
+        contraction's inner region (around the training cameras), then the box of the occupancy grid and the hash
+        grid (the contraction's box where there is one, else the scene's)."""
+        contraction = self.renderer.contraction
+        if contraction is not None and not contraction.has_inner:
+            centre, radius = camera_ball(self.trainer.datamodule.camera_centres())
+            contraction.set_inner(centre, radius)
+            log.info("contraction: inner region of radius %.4g around %s", radius,
+                     [round(v, 4) for v in centre.tolist()])
         unbounded = [m for m in self.renderer.modules() if isinstance(m, Bounded) and not m.has_bounds]
         if unbounded:
-            box = self.trainer.datamodule.scene_box(self.renderer.near, self.renderer.far)
+            box = (contraction.box if contraction is not None
+                   else self.trainer.datamodule.scene_box(self.renderer.near, self.renderer.far))
             for module in unbounded:
                 module.set_bounds(box.to(module.aabb.device))
             names = sorted({type(m).__name__ for m in unbounded})
@@ -151,9 +171,11 @@ class NeRFModule(L.LightningModule):
             self.log("train/rays_per_s", len(batch["origins"]) / (time.perf_counter() - self._step_started))
 
     @torch.no_grad()
-    def render_image(self, origins: Tensor, directions: Tensor, viewdirs: Tensor | None = None) -> dict[str, Tensor]:
+    def render_image(self, origins: Tensor, directions: Tensor, viewdirs: Tensor | None = None,
+                     code: Tensor | None = None) -> dict[str, Tensor]:
         """Deterministic render of rays [H, W, 3] (``viewdirs`` [H, W, 3] optional, see ``VolumeRenderer``)
-        in chunks: ``rgb`` [H, W, 3], ``depth``, ``opacity`` [H, W]."""
+        in chunks: ``rgb`` [H, W, 3], ``depth``, ``opacity`` [H, W]. ``code`` [D]: the image's appearance code
+        (None: the renderer's test code, where it has an appearance embedding)."""
         H, W, _ = origins.shape
         flat_o, flat_d = origins.reshape(-1, 3), directions.reshape(-1, 3)
         flat_v = None if viewdirs is None else viewdirs.reshape(-1, 3)
@@ -161,7 +183,8 @@ class NeRFModule(L.LightningModule):
         for start in range(0, H * W, self.chunk):
             chunk = slice(start, start + self.chunk)
             outputs = self.renderer(flat_o[chunk], flat_d[chunk], deterministic=True,
-                                    viewdirs=None if flat_v is None else flat_v[chunk])
+                                    viewdirs=None if flat_v is None else flat_v[chunk],
+                                    codes=None if code is None else code.expand(len(flat_o[chunk]), -1))
             final = final_output(outputs)
             parts.append({key: final[key] for key in ("rgb", "depth", "opacity")})
         return {key: torch.cat([p[key] for p in parts]).reshape(H, W, *parts[0][key].shape[1:])
@@ -201,7 +224,73 @@ class NeRFModule(L.LightningModule):
         return self._evaluate(batch)
 
     def test_step(self, batch: dict, batch_idx: int) -> dict:
-        return self._evaluate(batch)
+        return self._test(self._evaluate(batch), batch)
+
+    # Per-image appearance (appearance=embedding, nerfexp.nerf.appearance): the codes, and the test protocols
+
+    def training_codes(self, batch: dict[str, Tensor]) -> Tensor | None:
+        """The appearance codes [B, D] of a training batch's rays, by their "view" [B]; None without codes."""
+        appearance = self.renderer.appearance
+        return None if appearance is None else appearance(batch["view"])
+
+    def size_appearance(self) -> None:
+        """One appearance code per training view of the data module's (``AppearanceEmbedding.set_views``), where
+        the codes have no rows yet (a checkpoint read back has its own); before the optimizer or a checkpoint's
+        restore (Lightning calls ``setup`` before both)."""
+        appearance = self.renderer.appearance
+        if appearance is not None and appearance.n_views == 0:
+            appearance.set_views(len(self.trainer.datamodule.train_views()))
+
+    def _test(self, scored: dict, batch: dict) -> dict:
+        """A test image's scores under both protocols (``nerfexp.nerf.appearance.PROTOCOLS``), added to
+        ``scored`` (``_evaluate``'s: the whole image, with the test code where there are codes):
+        "psnr_full_image", "ssim_full_image" (those of ``scored``) and "psnr_right_half", "ssim_right_half" (the
+        right half, ``left_columns``, rendered with the code fitted on the left half, ``_fitted_code``; without
+        codes, the right half of the same render). Under ``test_protocol`` nerfw_right_half, "psnr", "ssim" and
+        "lpips" are the right half's; the render kept ("rgb") is the whole image's either way."""
+        H, W, _ = batch["rgb"].shape  # rows, columns, channels
+        right = slice(left_columns(W), None)
+        mask = batch.get("mask")
+        kept = None if mask is None else mask[:, right]  # [H, W - W // 2]
+        target = batch["rgb"][:, right]
+        if self.renderer.appearance is None:
+            rendered = scored["rgb"][:, right]
+        else:
+            viewdirs = None if batch.get("viewdirs") is None else batch["viewdirs"][:, right]
+            rendered = self.render_image(batch["origins"][:, right], batch["directions"][:, right], viewdirs,
+                                         self._fitted_code(batch))["rgb"]
+        protocols = {"psnr_full_image": scored["psnr"], "ssim_full_image": scored["ssim"],
+                     "psnr_right_half": psnr(rendered, target, kept), "ssim_right_half": ssim(rendered, target, kept)}
+        if self.test_protocol == FULL_IMAGE:
+            return {**scored, **protocols}
+        shown = rendered if kept is None else torch.where(kept[..., None], rendered, target)
+        return {**scored, **protocols, "psnr": protocols["psnr_right_half"], "ssim": protocols["ssim_right_half"],
+                "lpips": self._lpips(shown, target)}
+
+    def _fitted_code(self, batch: dict) -> Tensor:
+        """NeRF-W's protocol: the test image's code [D] fitted on its left half (the pixels its mask keeps there)
+        from the renderer's test code, the networks frozen (``appearance_fit``: only the code is differentiated
+        and stepped), each step's pixels drawn with the image's "index" as seed. Gradients are enabled for it
+        alone, inside Lightning's inference mode."""
+        H, W, _ = batch["rgb"].shape  # rows, columns, channels
+        left = slice(0, left_columns(W))
+        mask = batch.get("mask")
+        start = self.renderer.appearance.test_code()
+        with torch.inference_mode(False), torch.enable_grad():
+            kept = (torch.ones(H, left_columns(W), dtype=torch.bool, device=batch["rgb"].device) if mask is None
+                    else mask[:, left].clone())
+            rays = {key: batch[key][:, left][kept].clone() for key in ("origins", "directions", "viewdirs", "rgb")
+                    if key in batch}  # each [M, 3]: the fitting pixels, as tensors autograd may use
+            if self.appearance_fit is None or not len(rays["rgb"]):
+                return start
+
+            def loss(pixels: Tensor, code: Tensor) -> Tensor:
+                pixels = pixels.to(rays["rgb"].device)
+                outputs = self.renderer(rays["origins"][pixels], rays["directions"][pixels], deterministic=True,
+                                        viewdirs=rays["viewdirs"][pixels] if "viewdirs" in rays else None,
+                                        codes=code.expand(len(pixels), -1))
+                return F.mse_loss(final_output(outputs)["rgb"].float(), rays["rgb"][pixels].float())
+            return self.appearance_fit(loss, start.clone(), len(rays["rgb"]), seed=int(batch["index"]))
 
     def parameter_groups(self) -> list[dict]:
         """The optimizer's parameter groups, ``named_parameter_groups`` in order."""
@@ -215,14 +304,13 @@ class NeRFModule(L.LightningModule):
         so that an optimizer's state is laid out as it always was and earlier checkpoints resume."""
         options: dict[str, dict] = {}
         group_of: dict[int, str] = {}  # id(parameter) -> the name of the group a component put it in
-        for module in self.renderer.modules():
-            if isinstance(module, Encoding):
-                for name, group in module.parameter_groups().items():
-                    own = {key: value for key, value in group.items() if key != "params"}
-                    if options.setdefault(name, own) != own:
-                        raise ValueError(f"parameter group {name!r}: {type(module).__name__} asks for {own}, "
-                                         f"another encoding for {options[name]}")
-                    group_of.update((id(p), name) for p in group["params"])
+        for module in self.grouped_modules():
+            for name, group in module.parameter_groups().items():
+                own = {key: value for key, value in group.items() if key != "params"}
+                if options.setdefault(name, own) != own:
+                    raise ValueError(f"parameter group {name!r}: {type(module).__name__} asks for {own}, "
+                                     f"another encoding for {options[name]}")
+                group_of.update((id(p), name) for p in group["params"])
         groups = {"networks": {"params": []}, **{name: {"params": [], **own} for name, own in options.items()}}
         for parameter in self.parameters():
             groups[group_of.get(id(parameter), "networks")]["params"].append(parameter)
@@ -241,8 +329,73 @@ class NeRFModule(L.LightningModule):
             ramp = min((step + 1) / warmup, 1.0) if warmup > 0 else 1.0
             return ramp * ratio ** min(step / max_steps, 1.0)
 
-        schedule = torch.optim.lr_scheduler.LambdaLR(optimizer, factor)
+        schedule = torch.optim.lr_scheduler.LambdaLR(optimizer, self.group_schedules(factor, max_steps))
         return {"optimizer": optimizer, "lr_scheduler": {"scheduler": schedule, "interval": "step"}}
+
+    # Components beside the renderer: the pose correction (camera_opt), the encodings' progress through training
+
+    def grouped_modules(self) -> list[nn.Module]:
+        """The components that name their own parameter groups (``parameter_groups()``): the renderer's encodings,
+        then the pose correction where the cameras are refined."""
+        encodings = [m for m in self.renderer.modules() if isinstance(m, Encoding)]
+        return encodings + ([] if self.camera_opt is None else [self.camera_opt])
+
+    def group_schedules(self, factor: Callable[[int], float],
+                        max_steps: int) -> Callable[[int], float] | list[Callable[[int], float]]:
+        """The learning-rate schedule (the factor on each group's rate at a step): ``factor``, the optimizer's, for
+        every group; where the cameras are refined, one per group (``named_parameter_groups``' order), the pose
+        correction's group following its own (``PoseCorrection.lr_factor``: no warm-up, BARF's)."""
+        correction = self.camera_opt
+        if correction is None:
+            return factor
+
+        def pose_factor(step: int) -> float:
+            return correction.lr_factor(step, max_steps)
+        return [pose_factor if name == correction.GROUP else factor for name in self.named_parameter_groups()]
+
+    def build_camera_opt(self, n_views: int) -> None:
+        """Build the pose correction (``camera_opt``, all zero) for ``n_views`` training views."""
+        self.camera_opt = self.pose_correction_of(n_views)
+
+    def configure_model(self) -> None:
+        """Where the cameras are refined, the pose correction is built with the number of training views (the data
+        module's) before Lightning restores a checkpoint or builds the optimizer."""
+        if self.pose_correction_of is not None and self.camera_opt is None:
+            self.build_camera_opt(len(self.trainer.datamodule.train_views()))
+
+    def on_load_checkpoint(self, checkpoint: dict) -> None:
+        """Where the cameras are refined and the correction is not built yet (a run read back to render:
+        ``nerfexp.products.trained.load_module`` calls this before loading the weights), it is built with as many
+        views as the checkpoint's correction holds."""
+        delta = checkpoint["state_dict"].get("camera_opt.delta")
+        if self.pose_correction_of is not None and self.camera_opt is None and delta is not None:
+            self.build_camera_opt(len(delta) + 1)
+        codes = checkpoint["state_dict"].get("renderer.appearance.codes")
+        if self.renderer.appearance is not None and codes is not None:  # as many appearance codes as it holds
+            self.renderer.appearance.set_views(len(codes))
+
+    def step_batch(self, batch: dict[str, Tensor]) -> dict[str, Tensor]:
+        """The training batch as this step renders it, and the encodings told how far training is (``Encoding.
+        set_progress``: BARF's coarse-to-fine window): where the cameras are refined, each ray turned and moved by
+        its view's ("view" [B]) correction, the world view directions ("viewdirs") turned with it."""
+        progress = self.global_step / self.trainer.max_steps
+        for module in self.renderer.modules():
+            if isinstance(module, Encoding):
+                module.set_progress(progress)
+        if self.camera_opt is None:
+            return batch
+        origins, directions, viewdirs = self.camera_opt(batch["origins"], batch["directions"], batch["view"],
+                                                        batch.get("viewdirs"))
+        return {**batch, "origins": origins, "directions": directions, "viewdirs": viewdirs}
+
+
+def camera_ball(centres: Tensor) -> tuple[Tensor, float]:
+    """The ball around camera ``centres`` [N, 3]: their centroid [3] (float64) and the distance of the farthest
+    from it (a single camera: 1, the unit the scene is in)."""
+    centres = centres.double()
+    centre = centres.mean(0)
+    radius = float(torch.linalg.vector_norm(centres - centre, dim=-1).max())
+    return centre, radius if radius > 0 else 1.0
 
 
 def regularizer_sums(outputs: dict[str, dict]) -> dict[str, Tensor]:

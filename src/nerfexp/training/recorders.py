@@ -39,7 +39,10 @@ log = logging.getLogger("nerfexp")
 IMAGES = ("rgb", "depth", "opacity", "target")  # what an evaluation step returns per image, besides its scores
 
 
-SCORES = ("psnr", "ssim", "lpips")  # each image's scores; lpips NaN where not scored (nerfexp.training.perceptual)
+# each image's scores; lpips NaN where not scored (nerfexp.training.perceptual); then each protocol's own, which only
+# a test scores (NaN in a validation: ``NeRFModule._test``, docs/metrics.md)
+PROTOCOL_SCORES = ("psnr_full_image", "ssim_full_image", "psnr_right_half", "ssim_right_half")
+SCORES = ("psnr", "ssim", "lpips", *PROTOCOL_SCORES)
 ALWAYS_SCORED = ("psnr", "ssim")
 
 
@@ -53,7 +56,7 @@ def gather_evaluations(trainer: L.Trainer, outputs: dict) -> list[dict]:
     if trainer.world_size == 1:
         return [outputs]
     images = outputs["rgb"]
-    numbers = torch.tensor([outputs["index"], *(outputs[name] for name in SCORES)], dtype=torch.float64,
+    numbers = torch.tensor([outputs["index"], *(outputs.get(name, math.nan) for name in SCORES)], dtype=torch.float64,
                            device=images.device)
     gathered = {key: trainer.strategy.all_gather(outputs[key]) for key in IMAGES}  # each [world size, ...]
     numbers = trainer.strategy.all_gather(numbers)  # [world size, 1 + len(SCORES)]
@@ -62,15 +65,16 @@ def gather_evaluations(trainer: L.Trainer, outputs: dict) -> list[dict]:
 
 
 def image_scores(item: dict) -> dict[str, float]:
-    """The ``SCORES`` of one evaluated image (``gather_evaluations``)."""
-    return {name: item[name] for name in SCORES}
+    """The ``SCORES`` of one evaluated image (``gather_evaluations``), NaN for those it was not scored by."""
+    return {name: item.get(name, math.nan) for name in SCORES}
 
 
 def scored(scores: dict[int, dict[str, float]]) -> tuple[str, ...]:
     """The scores that the images ``{index: {"psnr": ..., "ssim": ..., "lpips": ...}}`` have: PSNR and SSIM,
-    and LPIPS where every image has it (none is NaN: not scored, as without AlexNet's weights)."""
+    and each other of ``SCORES`` where every image has it (none is NaN or missing: not scored, as LPIPS without
+    AlexNet's weights, or the protocols' own scores in a validation)."""
     def every_image_has(name: str) -> bool:
-        return bool(scores) and not any(math.isnan(s[name]) for s in scores.values())
+        return bool(scores) and not any(math.isnan(s.get(name, math.nan)) for s in scores.values())
     return (*ALWAYS_SCORED, *(name for name in SCORES if name not in ALWAYS_SCORED and every_image_has(name)))
 
 
@@ -209,7 +213,7 @@ class RunRecorder(L.Callback):
 
     def _write_images(self, trainer, pl_module, item: dict, split: str) -> None:
         index, renderer = item["index"], pl_module.renderer
-        depth = depth_image(item["depth"], item["opacity"], renderer.near, renderer.far)
+        depth = depth_image(item["depth"], item["opacity"], renderer.near, renderer.ray_far)
         if split == "test":
             images = {"": item["rgb"], "_target": item["target"], "_depth": depth,
                       "_error": (item["rgb"] - item["target"]).abs()}
@@ -264,7 +268,7 @@ class RunRecorder(L.Callback):
             "time_per_step_s": self.elapsed_s / max(steps, 1),
             "rays_per_s": batch_rays * steps / self.elapsed_s if batch_rays and self.elapsed_s > 0 else None,
             "batch_rays": batch_rays, "processes": trainer.world_size, "precision": str(trainer.precision),
-            "n_params": sum(p.numel() for p in pl_module.parameters()),
+            "n_params": sum(p.numel() for p in pl_module.parameters()), "test_protocol": pl_module.test_protocol,
             "evaluations_per_ray": renderer.evaluations_per_ray,
             "machine": machine(), "choices": self.choices, "overrides": self.overrides, **self.labels,
             "config": self.run_config, "resumes": self.resumes,
@@ -293,6 +297,7 @@ class EvalRecorder(L.Callback):
     def on_test_epoch_end(self, trainer, pl_module):
         if not trainer.is_global_zero:
             return
-        results = {**scores_record(self._scores), "checkpoint": str(self.checkpoint.resolve()), "step": self.step,
+        results = {**scores_record(self._scores), "test_protocol": pl_module.test_protocol,
+                   "checkpoint": str(self.checkpoint.resolve()), "step": self.step,
                    "processes": trainer.world_size, "machine": machine()}
         write_json(self.output_dir / EVAL, results)
