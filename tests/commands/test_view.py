@@ -212,7 +212,7 @@ def test_a_run_holding_a_users_camera_path_is_refused_before_it_is_served(tiny_r
     def served(*args, **kwargs):
         raise AssertionError("the run was served")
 
-    monkeypatch.setattr(view, "instantiate", served)  # the scene is built after the check, before serving
+    monkeypatch.setattr(view, "run_scene", served)  # the scene is built after the check, before serving
     with pytest.raises(SystemExit) as exit:
         view.main([str(run_dir), "--port", "0"])
     assert exit.value.code == f"nerfexp-view: error: {run_dir / CAMERA_PATH} is not a file nerfexp-view wrote " + (
@@ -231,7 +231,7 @@ def test_serving_beyond_loopback_is_warned_of_in_one_line_before_the_run_is_serv
     def served(*args, **kwargs):
         raise AssertionError("the run was served")
 
-    monkeypatch.setattr(view, "instantiate", served)  # the scene is built after the warning, before serving
+    monkeypatch.setattr(view, "run_scene", served)  # the scene is built after the warning, before serving
     with pytest.raises(AssertionError, match="the run was served"):
         view.main([str(tiny_run), "--port", "0", "--host", host])
     lines = capsys.readouterr().err.splitlines()

@@ -72,8 +72,8 @@ def test_a_ray_stream_started_at_batch_k_continues_the_stream_from_its_start():
     stream = iter(RandomRays(views, torch.ones(3), batch_rays=16, seed=7))
     batches = [next(stream) for _ in range(5)]
     resumed = next(iter(RandomRays(views, torch.ones(3), batch_rays=16, seed=7, start=3)))
-    assert resumed.keys() == batches[3].keys() == {"origins", "directions", "rgb", "seed"}
-    assert all(torch.equal(resumed[k], batches[3][k]) for k in ("origins", "directions", "rgb"))
+    assert resumed.keys() == batches[3].keys() == {"origins", "directions", "rgb", "view", "seed"}
+    assert all(torch.equal(resumed[k], batches[3][k]) for k in ("origins", "directions", "rgb", "view"))
     assert resumed["seed"] == batches[3]["seed"]
     # and the stream does not repeat itself: other batches, other seeds
     assert len({b["seed"] for b in batches}) == 5 and not torch.equal(batches[3]["rgb"], batches[4]["rgb"])
