@@ -66,7 +66,7 @@ def test_camera_opt_on_ndc_rays_is_refused_in_one_line(tmp_path):
 #   seed 0: rotation 2.004 -> 1.400 deg (1.43x), centre 0.0685 -> 0.0632 (1.08x)
 #   seed 1: rotation 1.870 -> 1.206 deg (1.55x), centre 0.0672 -> 0.0622 (1.08x)
 # Required: rotation errors shrink by at least 1.25x; centre errors do not grow (at 24 pixels a centre moved across
-# the view is nearly a turn of the camera, and the two trade off). About 130 s on 2 shared cores.
+# the view is nearly a turn of the camera, and the two trade off). One seed runs here (the suite's time); both held.
 REFINE = ["scale.steps=1000", "scale.val_every=1000", "scale.batch_rays=256", "scale.depth=2", "scale.width=32",
           "scale.skips=[1]", "scale.view_hidden=16", "scale.n_coarse=16", "scale.n_fine=16", "scale.image_size=24",
           "scale.position_input_scale=0.125", "data.n_train=16", "data.n_val=1", "data.n_test=4",
@@ -76,10 +76,9 @@ ROTATION_SHRINK = 1.25
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("seed", [0, 1])
-def test_perturbed_training_poses_are_brought_toward_the_truth(tmp_path, seed):
+def test_perturbed_training_poses_are_brought_toward_the_truth(tmp_path):
     run_dir = tmp_path / "run"
-    result = run_nerfexp(*REFINE, f"seed={seed}", f"hydra.run.dir={run_dir}", cwd=tmp_path)
+    result = run_nerfexp(*REFINE, "seed=0", f"hydra.run.dir={run_dir}", cwd=tmp_path)
     assert result.returncode == 0, result.stderr
     errors = json.loads((run_dir / REFINED_POSES).read_text())["errors"]
     before, after = errors["before"], errors["after"]
