@@ -328,7 +328,8 @@ def test_any_override_or_argument_of_a_command_reading_a_run_back_is_one_line_or
     except NerfexpError as error:
         assert "\n" not in str(error), str(error)
         if isinstance(error, ConfigError) and "cannot apply" not in str(error):
-            assert any(key in str(error) for key, _ in changes) or "which sets" in str(error), str(error)
+            named = [key for key, _ in changes] + [flag for flag, _ in arguments]  # a key set or a flag given
+            assert any(name in str(error) for name in named) or "which sets" in str(error), str(error)
         return
     assert all(torch.isfinite(image).all() for image in frame.values())
 

@@ -38,7 +38,8 @@ def test_a_short_run_learns_the_scene_and_writes_every_output(tmp_path):
     assert 0 < results["test_ssim"] <= 1 and results["steps"] == 400 and results["n_params"] > 0
     assert results["choices"] == {"encoding": "posenc", "view_dependence": "mlp", "data": "procedural",
                                   "field": "nerf", "optimizer": "adam", "scale": "cpu", "trainer": "default",
-                                  "acceleration": "none", "callbacks": "default", "logger": "tensorboard",
+                                  "acceleration": "none", "contraction": "none", "appearance": "none",
+                                  "camera_opt": "off", "callbacks": "default", "logger": "tensorboard",
                                   "hierarchical": True, "seed": 0}
     # the test scored the checkpoint this run wrote, and says which, by path and content
     written = tmp_path / "checkpoints" / "last.ckpt"

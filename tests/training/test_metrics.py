@@ -60,3 +60,10 @@ def test_ssim_matches_a_written_out_tensorflow_convention_reference():
     b = np.clip(a + rng.normal(0, 0.1, a.shape), 0, 1)
     qa, qb = (quantize(torch.from_numpy(x)) for x in (a, b))
     assert ssim(qa, qb) == pytest.approx(_reference_ssim(qa.numpy(), qb.numpy()), abs=1e-9)
+
+
+def test_an_image_smaller_than_ssims_window_has_no_ssim_and_one_as_large_has():
+    # the right half of a 12-pixel-wide test image (NeRF-W's protocol) is 6 wide: under the 11-pixel window
+    assert math.isnan(ssim(torch.rand(12, 6, 3), torch.rand(12, 6, 3)))
+    image = torch.rand(11, 11, 3)
+    assert ssim(image, image) == pytest.approx(1.0)

@@ -9,6 +9,7 @@ from nerfexp.pixels import quantize
 
 SSIM_SIGMA = 1.5  # tf.image.ssim's Gaussian window: sigma 1.5, 11 taps (skimage: radius int(3.5 sigma + 0.5) = 5)
 SSIM_CROP = 5  # the border skimage leaves out of its mean: (11 - 1) / 2 pixels on each side
+SSIM_WINDOW = 2 * SSIM_CROP + 1  # the window's side: an image narrower or shorter than it has no SSIM
 
 
 def psnr(image: Tensor, target: Tensor, mask: Tensor | None = None) -> float:
@@ -23,7 +24,10 @@ def ssim(image: Tensor, target: Tensor, mask: Tensor | None = None) -> float:
     """SSIM of [H, W, 3] images in [0, 1] after 8-bit quantization, as ``tf.image.ssim(max_val=1)``:
     an 11-tap Gaussian window of sigma 1.5, K1 0.01, K2 0.03, population covariance. With ``mask`` [H, W]:
     the mean of the SSIM map over the pixels the mask keeps, within the border skimage's own mean leaves
-    out (``SSIM_CROP``); an all-true mask gives skimage's score."""
+    out (``SSIM_CROP``); an all-true mask gives skimage's score. An image smaller than the window
+    (``SSIM_WINDOW``) on a side has none: NaN (the right half of a 12-pixel test image, for NeRF-W's protocol)."""
+    if min(image.shape[:2]) < SSIM_WINDOW:
+        return float("nan")
     a = quantize(image.double()).cpu().numpy()
     b = quantize(target.double()).cpu().numpy()
     score, full = structural_similarity(a, b, data_range=1.0, channel_axis=-1, gaussian_weights=True,
