@@ -25,6 +25,7 @@ from pathlib import Path
 import lightning as L
 import numpy as np
 import torch
+from hydra import compose, initialize_config_module
 from hydra.core.global_hydra import GlobalHydra
 
 from nerfexp.geometry.cameras import look_at
@@ -39,6 +40,12 @@ TINY = [
     "scale.image_size=24", "data.n_train=12", "data.n_val=1", "data.n_test=2", "trainer.enable_progress_bar=false",
 ]
 TINY_SINGLE = "scale.n_single=48"  # hierarchical=false: as many evaluations per ray as 16 + (16 + 16)
+
+
+def tiny_config(*overrides: str):
+    """The real config, shrunk by ``TINY``, with ``overrides`` after it (composed without Hydra's runtime)."""
+    with initialize_config_module("nerfexp.conf", version_base=None):
+        return compose("config", overrides=[*TINY, *overrides])
 
 
 # HTTPS through a proxy where nothing listens (port 9, discard): a test's command downloads nothing, e.g. AlexNet's

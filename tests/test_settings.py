@@ -141,6 +141,8 @@ def composed(*overrides):
                                                                   "finite number > 0"),
     (["contraction=mipnerf360", "contraction.function.centre=[0,1]"], "contraction.function.centre=[0, 1]: "
                                                                       "expected a list of 3 finite numbers"),
+    (["contraction=mipnerf360", "contraction.function.far=1"], "contraction.function.far=1: expected a finite "
+                                                               "number > 1"),
 ])
 def test_a_value_out_of_its_domain_is_one_error_naming_the_key(hydra_configs, overrides, message):
     with pytest.raises(ConfigError) as error:

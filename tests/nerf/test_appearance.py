@@ -5,7 +5,6 @@ import functools
 
 import pytest
 import torch
-from hydra import compose, initialize_config_module
 from hydra.utils import instantiate
 from omegaconf import open_dict
 from torch import nn
@@ -14,7 +13,7 @@ from nerfexp.nerf.appearance import AppearanceEmbedding, CodeFit, left_columns
 from nerfexp.nerf.encodings import PositionalEncoding
 from nerfexp.nerf.fields import NeRFField, ViewMLPHead
 from nerfexp.nerf.volume_renderer import VolumeRenderer
-from tests.helpers import TINY
+from tests.helpers import tiny_config
 
 
 def test_codes_are_sized_by_the_views_and_a_step_reaches_only_the_batchs_views():
@@ -82,11 +81,6 @@ def test_the_fit_steps_the_code_alone_and_finds_it():
 @pytest.mark.parametrize("width, left", [(24, 12), (25, 12), (1, 0)])
 def test_the_left_half_is_fitted_and_the_right_half_with_an_odd_middle_column_scored(width, left):
     assert left_columns(width) == left
-
-
-def tiny_config(*overrides: str):
-    with initialize_config_module("nerfexp.conf", version_base=None):
-        return compose("config", overrides=[*TINY, *overrides])
 
 
 @pytest.mark.parametrize("variant", [[], ["acceleration=occupancy"], ["hierarchical=proposal"]])

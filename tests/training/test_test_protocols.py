@@ -13,7 +13,7 @@ from nerfexp.nerf.appearance import FULL_IMAGE, NERFW_RIGHT_HALF
 from nerfexp.nerf.fields import FieldOutputs
 from nerfexp.nerf.volume_renderer import VolumeRenderer
 from nerfexp.training.module import NeRFModule
-from tests.nerf.test_appearance import tiny_config
+from tests.helpers import tiny_config
 
 H, W = 24, 24  # rows, columns of the test images here
 
