@@ -14,6 +14,7 @@ import torch
 from torch import Tensor, nn
 
 from nerfexp.domains import NONNEGATIVE_COUNT, Rule, real
+from nerfexp.nerf.schedules import warmup_exponential_decay
 
 LEARNING_RATE = real(0, 1, above=True)
 
@@ -125,5 +126,4 @@ class PoseCorrection(nn.Module):
     def lr_factor(self, step: int, max_steps: int) -> float:
         """The group's learning rate at ``step`` over its ``lr``: min(1, (step + 1) / warmup_steps) (lr_final /
         lr)^(step / max_steps)."""
-        ramp = min((step + 1) / self.warmup_steps, 1.0) if self.warmup_steps > 0 else 1.0
-        return ramp * (self.lr_final / self.lr) ** min(step / max_steps, 1.0)
+        return warmup_exponential_decay(step, max_steps, self.lr_final / self.lr, self.warmup_steps)

@@ -17,6 +17,7 @@ from nerfexp.nerf.appearance import FULL_IMAGE, CodeFit, left_columns
 from nerfexp.nerf.bounds import Bounded
 from nerfexp.nerf.encodings import Encoding
 from nerfexp.nerf.poses import PoseCorrection
+from nerfexp.nerf.schedules import warmup_exponential_decay
 from nerfexp.nerf.volume_renderer import VolumeRenderer, final_output
 from nerfexp.training.metrics import psnr, ssim
 from nerfexp.training.perceptual import NOT_SCORED, ImageTooSmall, LpipsScorer, lpips_scorer
@@ -326,8 +327,7 @@ class NeRFModule(L.LightningModule):
         ratio, warmup = self.lr_final / base_lr, self.lr_warmup_steps
 
         def factor(step: int) -> float:
-            ramp = min((step + 1) / warmup, 1.0) if warmup > 0 else 1.0
-            return ramp * ratio ** min(step / max_steps, 1.0)
+            return warmup_exponential_decay(step, max_steps, ratio, warmup)
 
         schedule = torch.optim.lr_scheduler.LambdaLR(optimizer, self.group_schedules(factor, max_steps))
         return {"optimizer": optimizer, "lr_scheduler": {"scheduler": schedule, "interval": "step"}}
@@ -344,7 +344,8 @@ class NeRFModule(L.LightningModule):
                         max_steps: int) -> Callable[[int], float] | list[Callable[[int], float]]:
         """The learning-rate schedule (the factor on each group's rate at a step): ``factor``, the optimizer's, for
         every group; where the cameras are refined, one per group (``named_parameter_groups``' order), the pose
-        correction's group following its own (``PoseCorrection.lr_factor``: no warm-up, BARF's)."""
+        correction's group following its own (``PoseCorrection.lr_factor``: the same formula with its own rates and
+        warm-up)."""
         correction = self.camera_opt
         if correction is None:
             return factor
