@@ -7,6 +7,7 @@ import pytest
 import torch
 
 from nerfexp.data.procedural import EXPOSURE_STOPS, WHITE_BALANCE_STOPS, ProceduralScene, appearance_gains
+from nerfexp.rundir.layout import REFINED_POSES
 from tests.helpers import TINY, final_state, kill_at, read_json, run_nerfexp
 
 # A small model that learns the scene's shapes within 600 steps (one network of 32 samples per ray, 32 x 32 images),
@@ -53,10 +54,12 @@ def test_the_embedding_scores_higher_under_nerfws_protocol_on_images_of_varied_a
 
 
 @pytest.mark.slow
-def test_a_run_with_codes_killed_and_resumed_ends_as_the_uninterrupted_run(tmp_path):
-    # The codes are sized from the checkpoint before its weights are checked (NeRFModule.on_load_checkpoint),
-    # and from the data when training starts: the resumed run is bit-identical.
-    coded = [*TINY, "appearance=embedding", "appearance.fit.steps=2", "logger=none"]
+def test_a_run_with_codes_and_pose_corrections_killed_and_resumed_ends_as_the_uninterrupted_run(tmp_path):
+    # The codes and the pose corrections are sized from the checkpoint before its weights are checked
+    # (NeRFModule.on_load_checkpoint), and from the data when training starts; the corrections' parameter group and
+    # its schedule are restored with the optimizer: the resumed run is bit-identical, its refined cameras too.
+    coded = [*TINY, "appearance=embedding", "appearance.fit.steps=2", "camera_opt=so3xr3",
+             "datamodule.pose_noise=[2,0.02]", "test_cameras=refined", "test_cameras.fit.steps=2", "logger=none"]
     alone, killed = tmp_path / "alone", tmp_path / "killed"
     for run_dir, extra in ((alone, []), (killed, kill_at(30))):
         run_dir.mkdir()
@@ -67,4 +70,6 @@ def test_a_run_with_codes_killed_and_resumed_ends_as_the_uninterrupted_run(tmp_p
     state, expected = final_state(killed)["weights"], final_state(alone)["weights"]
     assert expected["renderer.appearance.codes"].shape == (12, 48)  # data.n_train=12 of TINY
     assert state.keys() == expected.keys() and all(torch.equal(state[k], expected[k]) for k in expected)
+    assert expected["camera_opt.delta"].shape == (11, 6) and expected["camera_opt.delta"].abs().sum() > 0
     assert read_json(killed / "results.json")["test_psnr"] == read_json(alone / "results.json")["test_psnr"]
+    assert read_json(killed / REFINED_POSES)["c2w"] == read_json(alone / REFINED_POSES)["c2w"]

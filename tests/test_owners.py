@@ -1,5 +1,6 @@
 """One owner per setting: every key a user sets under ``scale``, ``data``, ``encoding``, ``view_dependence``,
-``acceleration`` and the sampler (``hierarchical``, ``proposal``) reaches what nerfexp builds (the model, the
+``acceleration``, the sampler (``hierarchical``, ``proposal``) and the components for real photographs
+(``camera_opt``, ``appearance``, ``contraction``, ``test_cameras``) reaches what nerfexp builds (the model, the
 data module, the trainer) under every option of every other group, or is refused in one line naming it.
 
 Each key is overridden as the command line overrides it (after the groups are composed) with a value of its
@@ -20,9 +21,11 @@ from nerfexp.settings.checks import is_reference
 from nerfexp.settings.schema import rule_of
 from nerfexp.settings.unused import check_used, unused_reason
 
-SECTIONS = ("scale", "data", "encoding", "view_dependence", "acceleration", "hierarchical", "proposal", "camera_opt")
+SECTIONS = ("scale", "data", "encoding", "view_dependence", "acceleration", "hierarchical", "proposal", "camera_opt",
+            "appearance", "contraction", "test_cameras")
 BUILT = ("model", "datamodule", "trainer")  # what the run builds from the config
-GROUPS = ("encoding", "view_dependence", "data", "scale", "acceleration", "field", "optimizer", "camera_opt")
+GROUPS = ("encoding", "view_dependence", "data", "scale", "acceleration", "field", "optimizer", "camera_opt",
+          "appearance", "contraction", "test_cameras")
 ROOT = "data.root=/scene"  # the formats that read a folder need one to compose (nothing is read here)
 
 

@@ -130,6 +130,7 @@ def test_real_sweep_crosses_what_real_photographs_need_on_the_users_capture():
                   cfg.model.camera_opt is not None, cfg.seed))
         assert cfg.trainer.max_steps == 2000 and cfg.data._target_.endswith("NerfstudioScene")
         assert cfg.data.root == "/data/capture"
+        assert cfg.model.test_camera_fit is not None  # every variant's test cameras refined alike
     assert seen == set(itertools.product((False, True), (False, True), (False, True), (0, 1, 2)))
 
 

@@ -6,7 +6,14 @@ import math
 import pytest
 import torch
 
-from nerfexp.nerf.poses import PoseCorrection, corrected_poses, skew, so3_exp, taylor_threshold
+from nerfexp.nerf.poses import (
+    PoseCorrection,
+    camera_corrected_rays,
+    corrected_poses,
+    skew,
+    so3_exp,
+    taylor_threshold,
+)
 
 
 def reference_exp(w: torch.Tensor) -> torch.Tensor:
@@ -119,3 +126,25 @@ def test_the_pose_groups_schedule_decays_from_its_rate_to_its_final_rate():
 def test_a_correction_needs_a_view():
     with pytest.raises(ValueError, match="at least one view"):
         PoseCorrection(0, lr=1e-3, lr_final=1e-5)
+
+
+def test_one_cameras_rays_are_corrected_as_the_refined_camera_sees_them_in_float32_under_bf16_autocast():
+    """camera_corrected_rays (test_cameras=refined) against the refined camera (corrected_poses, float64): rays of
+    a camera [R | c] through directions R v are, corrected by (w, t), those of [exp(w) R | c + t] through the same
+    v; under bf16 autocast they are computed as without it (a bf16 turn would miss by tenths of a degree)."""
+    generator = torch.Generator().manual_seed(0)
+    delta = torch.tensor([0.02, -0.025, 0.015, 0.01, -0.03, 0.02])
+    c2w = torch.eye(4, dtype=torch.float64)
+    c2w[:3, :3] = so3_exp(torch.tensor([0.3, 0.2, -0.1], dtype=torch.float64))
+    c2w[:3, 3] = torch.tensor([0.5, -1.0, 4.0], dtype=torch.float64)
+    camera_dirs = torch.nn.functional.normalize(torch.randn(5, 7, 3, generator=generator, dtype=torch.float64), dim=-1)
+    origins, directions = c2w[:3, 3].expand(5, 7, 3).float(), (camera_dirs @ c2w[:3, :3].T).float()
+    refined = corrected_poses(c2w[None], delta[None].double())[0]
+    moved, turned, viewdirs = camera_corrected_rays(delta, origins, directions, directions)
+    assert torch.allclose(moved.double(), refined[:3, 3].expand(5, 7, 3), atol=1e-6)
+    assert torch.allclose(turned.double(), camera_dirs @ refined[:3, :3].T, atol=1e-6)
+    assert torch.equal(viewdirs, turned)
+    with torch.autocast("cpu", dtype=torch.bfloat16):
+        under_autocast = camera_corrected_rays(delta, origins, directions, directions)
+    assert all(torch.equal(a, b) for a, b in zip(under_autocast, (moved, turned, viewdirs), strict=True))
+    assert camera_corrected_rays(delta, origins, directions)[2] is None

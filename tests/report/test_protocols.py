@@ -56,3 +56,31 @@ def test_runs_without_right_half_scores_under_another_protocol_are_refused_in_on
     assert result.returncode != 0
     line = one_error_line(result, "nerfexp-report")
     assert "different protocols (full_image, nerfw_right_half)" in line and "old has no right-half scores" in line
+
+
+def camera_run(root: Path, name: str, seed: int, cameras: str | None) -> Path:
+    """A finished run of the default protocol whose test cameras were ``cameras`` (None: a nerfexp before the key)."""
+    run = make_run(root, name, [f"camera_opt={'so3xr3' if name.startswith('r') else 'off'}", f"seed={seed}"],
+                   psnr=25.0 + seed, ssim=0.8, lpips=0.1)
+    if cameras is not None:
+        results = json.loads((run / "results.json").read_text())
+        (run / "results.json").write_text(json.dumps({**results, "test_cameras": cameras}))
+    return run
+
+
+def test_runs_whose_test_cameras_were_refined_are_reported_as_such(tmp_path):
+    for seed in (0, 1):
+        camera_run(tmp_path, f"o{seed}", seed, "refined")
+        camera_run(tmp_path, f"r{seed}", seed, "refined")
+    write_report([tmp_path], tmp_path, reference="camera_opt=off")
+    assert "refined with the networks frozen before its image was scored" in (tmp_path / "report.md").read_text()
+
+
+@pytest.mark.parametrize("given", ["given", None])
+def test_runs_with_refined_and_given_test_cameras_are_refused_in_one_line(tmp_path, given):
+    camera_run(tmp_path, "o0", 0, given)
+    camera_run(tmp_path, "r0", 0, "refined")
+    result = run_nerfexp(str(tmp_path), cwd=tmp_path, script="nerfexp-report")
+    assert result.returncode != 0
+    line = one_error_line(result, "nerfexp-report")
+    assert "test cameras differ" in line and "o0 given" in line and "r0 refined" in line

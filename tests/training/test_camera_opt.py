@@ -17,8 +17,12 @@ NOISE = "datamodule.pose_noise=[2,0.02]"
 
 def test_a_refined_run_writes_its_cameras_and_the_commands_read_them_back(tmp_path):
     run_dir = tmp_path / "run"
-    result = run_nerfexp(*TINY, "camera_opt=so3xr3", NOISE, "logger=none", f"hydra.run.dir={run_dir}", cwd=tmp_path)
+    result = run_nerfexp(*TINY, "camera_opt=so3xr3", NOISE, "test_cameras=refined", "test_cameras.fit.steps=4",
+                         "logger=none", f"hydra.run.dir={run_dir}", cwd=tmp_path)
     assert result.returncode == 0, result.stderr
+    results = json.loads((run_dir / "results.json").read_text())
+    assert results["test_cameras"] == "refined"  # each test camera refined, and by how much
+    assert len(results["test_camera_fit_deg_per_view"]) == 2 and results["test_camera_fit_deg"] > 0
     record = json.loads((run_dir / REFINED_POSES).read_text())
     refined, initial = torch.tensor(record["c2w"]), torch.tensor(record["initial_c2w"])
     assert refined.shape == initial.shape == (12, 4, 4)  # data.n_train=12
@@ -43,6 +47,7 @@ def test_without_camera_opt_nothing_is_built_or_written(tmp_path):
     run_dir = tmp_path / "run"
     result = run_nerfexp(*TINY, "logger=none", f"hydra.run.dir={run_dir}", cwd=tmp_path)
     assert result.returncode == 0, result.stderr
+    assert json.loads((run_dir / "results.json").read_text())["test_cameras"] == "given"
     run = load_run(run_dir)
     assert run.module.camera_opt is None
     assert not (run_dir / REFINED_POSES.parent).exists()
@@ -51,13 +56,16 @@ def test_without_camera_opt_nothing_is_built_or_written(tmp_path):
     assert not isinstance(run_scene(run_dir, run.cfg), RefinedScene)
 
 
-def test_camera_opt_on_ndc_rays_is_refused_in_one_line(tmp_path):
-    result = run_nerfexp("camera_opt=so3xr3", "data=llff", "data.root=/nowhere", f"hydra.run.dir={tmp_path}/r",
-                         cwd=tmp_path)
+@pytest.mark.parametrize("override, line", [
+    ("camera_opt=so3xr3", "camera_opt=so3xr3: the corrections move world rays, and data.ndc=true trains on NDC rays; "
+                          "set data.ndc=false (with data.near and data.far) to refine an LLFF scene's cameras"),
+    ("test_cameras=refined", "test_cameras=refined: the fit turns and moves world rays, and data.ndc=true scores NDC "
+                             "rays; set data.ndc=false (with data.near and data.far), or test_cameras=given"),
+])
+def test_refining_cameras_on_ndc_rays_is_refused_in_one_line(tmp_path, override, line):
+    result = run_nerfexp(override, "data=llff", "data.root=/nowhere", f"hydra.run.dir={tmp_path}/r", cwd=tmp_path)
     assert result.returncode == 1
-    assert result.stderr.strip().splitlines()[-1] == (
-        "nerfexp: error: camera_opt=so3xr3: the corrections move world rays, and data.ndc=true trains on NDC rays; "
-        "set data.ndc=false (with data.near and data.far) to refine an LLFF scene's cameras")
+    assert result.stderr.strip().splitlines()[-1] == f"nerfexp: error: {line}"
 
 
 # Training poses perturbed by 2 degrees and 2% of the cameras' radius, refined with the scene for 1,000 steps of a

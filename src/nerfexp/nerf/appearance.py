@@ -14,6 +14,7 @@ import torch
 from torch import Tensor, nn
 
 from nerfexp.domains import COUNT, Rule, choice, real
+from nerfexp.nerf.frozen_fit import fit_frozen
 
 # How a test image is scored (``results.json``'s ``test_protocol``): the whole image with the model's code for
 # an unseen image (``AppearanceEmbedding.test_code``), or NeRF-W's: the image's own code fitted on its left half
@@ -101,17 +102,6 @@ class CodeFit:
 
     def __call__(self, loss: Callable[[Tensor, Tensor], Tensor], start: Tensor, n_pixels: int, seed: int) -> Tensor:
         """The code [D] fitted from ``start`` [D]: ``loss(pixels [R], code [D])`` is the scalar loss of the
-        fitting pixels ``pixels`` (indices < ``n_pixels``) rendered with ``code``. Only the code is differentiated
-        (``torch.autograd.grad`` with respect to it alone), so no other tensor's gradient or value changes."""
-        code = start.detach().clone().requires_grad_()
-        optimizer = torch.optim.Adam([code], lr=self.lr)
-        generator = torch.Generator().manual_seed(seed)
-        for _ in range(self.steps):
-            pixels = torch.randint(n_pixels, (self.rays,), generator=generator)
-            value = loss(pixels, code)
-            # where no pixel drawn saw the code (an occupancy grid skipped every sample), there is nothing to step
-            (grad,) = torch.autograd.grad(value, code, allow_unused=True) if value.requires_grad else (None,)
-            if grad is not None:
-                code.grad = grad
-                optimizer.step()
-        return code.detach()
+        fitting pixels ``pixels`` (indices < ``n_pixels``) rendered with ``code`` (``fit_frozen``: only the code
+        is differentiated, so no other tensor's gradient or value changes)."""
+        return fit_frozen(loss, start, n_pixels, seed, steps=self.steps, lr=self.lr, rays=self.rays)

@@ -8,12 +8,14 @@ so that the refined camera-to-world matrix is [exp(w) R_c | c + t] for a camera 
 translation are decoupled: a rotation does not move the centre, as it would about the world's origin.
 """
 
+from collections.abc import Callable
 from typing import ClassVar
 
 import torch
 from torch import Tensor, nn
 
-from nerfexp.domains import NONNEGATIVE_COUNT, Rule, real
+from nerfexp.domains import COUNT, NONNEGATIVE_COUNT, Rule, real
+from nerfexp.nerf.frozen_fit import fit_frozen
 from nerfexp.nerf.schedules import warmup_exponential_decay
 
 LEARNING_RATE = real(0, 1, above=True)
@@ -67,6 +69,25 @@ def corrected_poses(c2w: Tensor, delta: Tensor) -> Tensor:
     return refined
 
 
+def corrected_rays(rotation: Tensor, shift: Tensor, origins: Tensor, directions: Tensor,
+                   viewdirs: Tensor | None = None) -> tuple[Tensor, Tensor, Tensor | None]:
+    """Rays origins, directions, viewdirs [..., 3] of cameras turned by ``rotation`` [..., 3, 3] about their
+    centres and moved by ``shift`` [..., 3] (each broadcast against the rays: one per ray, or one for all):
+    (o + t, R d, R viewdir), in the correction's dtype; ``viewdirs`` None stays None."""
+    def turned(vectors: Tensor) -> Tensor:
+        return (rotation @ vectors.to(rotation.dtype)[..., None]).squeeze(-1)
+    return (origins.to(shift.dtype) + shift, turned(directions),
+            None if viewdirs is None else turned(viewdirs))
+
+
+def camera_corrected_rays(delta: Tensor, origins: Tensor, directions: Tensor,
+                          viewdirs: Tensor | None = None) -> tuple[Tensor, Tensor, Tensor | None]:
+    """The rays [..., 3] of one camera corrected by delta [6] (w, t), in delta's precision (float32) under mixed
+    precision too, as ``PoseCorrection.forward``: ``corrected_rays`` with R = exp(w)."""
+    with torch.autocast(delta.device.type, enabled=False):
+        return corrected_rays(so3_exp(delta[:3]), delta[3:], origins, directions, viewdirs)
+
+
 class PoseCorrection(nn.Module):
     """A correction (w, t) per training view, all zero at first (the given poses), applied to the rays of
     each view (``forward``); the first view's is pinned at zero, which fixes the gauge: the frame of the
@@ -108,12 +129,7 @@ class PoseCorrection(nn.Module):
         being corrected."""
         with torch.autocast(origins.device.type, enabled=False):
             delta = self.corrections()  # [N, 6]
-            rotations = so3_exp(delta[:, :3])[views]  # [B, 3, 3], one exp per view
-            turned = (rotations @ directions.to(delta.dtype)[..., None]).squeeze(-1)
-            moved = origins.to(delta.dtype) + delta[views, 3:]
-            turned_viewdirs = (None if viewdirs is None
-                               else (rotations @ viewdirs.to(delta.dtype)[..., None]).squeeze(-1))
-        return moved, turned, turned_viewdirs
+            return corrected_rays(so3_exp(delta[:, :3])[views], delta[views, 3:], origins, directions, viewdirs)
 
     @torch.no_grad()
     def refined(self, c2w: Tensor) -> Tensor:
@@ -127,3 +143,24 @@ class PoseCorrection(nn.Module):
         """The group's learning rate at ``step`` over its ``lr``: min(1, (step + 1) / warmup_steps) (lr_final /
         lr)^(step / max_steps)."""
         return warmup_exponential_decay(step, max_steps, self.lr_final / self.lr, self.warmup_steps)
+
+
+class PoseFit:
+    """A test camera refined with the networks frozen (``test_cameras=refined``, BARF's evaluation): a correction
+    (w, t) [6] of the image's rays (``corrected_rays``, the convention of ``PoseCorrection``), from zero,
+    fitted by ``steps`` steps of Adam at ``lr`` (radians and scene units alike), each on ``rays`` of the image's
+    fitting pixels drawn from a generator seeded with the image's index (``nerfexp.nerf.frozen_fit``)."""
+
+    DOMAINS: ClassVar[dict[str, Rule]] = {"steps": COUNT, "lr": LEARNING_RATE, "rays": COUNT}
+
+    def __init__(self, steps: int = 100, lr: float = 1e-3, rays: int = 1024):
+        self.steps = steps
+        self.lr = lr
+        self.rays = rays
+
+    def __call__(self, loss: Callable[[Tensor, Tensor], Tensor], n_pixels: int, seed: int,
+                 device: torch.device | None = None) -> Tensor:
+        """The correction [6] (float32) fitted from zero: ``loss(pixels [R], delta [6])`` is the scalar loss of
+        the fitting pixels ``pixels`` (indices < ``n_pixels``) rendered through the rays ``delta`` corrects."""
+        start = torch.zeros(6, device=device)
+        return fit_frozen(loss, start, n_pixels, seed, steps=self.steps, lr=self.lr, rays=self.rays)

@@ -202,11 +202,15 @@ def check_contraction(cfg: DictConfig) -> None:
 
 
 def check_camera_opt(cfg: DictConfig) -> None:
-    """A ConfigError where camera refinement (``model.camera_opt``) meets NDC rays (``data.ndc=true``): its
-    corrections turn and move world rays, and the loader has made NDC rays of them before the module sees them."""
+    """A ConfigError where camera refinement (``model.camera_opt``, or the test cameras' ``model.test_camera_fit``)
+    meets NDC rays (``data.ndc=true``): its corrections turn and move world rays, and the loader has made NDC rays
+    of them before the module sees them."""
     if OmegaConf.select(cfg, "model.camera_opt") is not None and OmegaConf.select(cfg, "data.ndc", default=False):
         raise ConfigError("camera_opt=so3xr3: the corrections move world rays, and data.ndc=true trains on NDC rays; "
                           "set data.ndc=false (with data.near and data.far) to refine an LLFF scene's cameras")
+    if OmegaConf.select(cfg, "model.test_camera_fit") is not None and OmegaConf.select(cfg, "data.ndc", default=False):
+        raise ConfigError("test_cameras=refined: the fit turns and moves world rays, and data.ndc=true scores NDC "
+                          "rays; set data.ndc=false (with data.near and data.far), or test_cameras=given")
 
 
 def check_extras(cfg: DictConfig) -> None:

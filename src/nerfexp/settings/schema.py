@@ -153,6 +153,7 @@ SCHEMA: dict[str, Rule] = {
     "appearance.fit": NULL,
     "appearance.test_protocol": choice(*PROTOCOLS),
     "camera_opt.correction": NULL,  # camera_opt=off
+    "test_cameras.fit": NULL,  # test_cameras=given
     "datamodule.pose_noise": optional(POSE_NOISE, "the poses as the data gives them"),
     "contraction.function": NULL,  # contraction=none
     # trainer
@@ -202,7 +203,7 @@ PASSED_ON = ("trainer.*", "callbacks.*", "logger.*", "model.optimizer.*")
 REFERENCES = ("datamodule.scene", "model.renderer.field.position_encoding", "model.renderer.field.view_head",
               "view_dependence.direction_encoding", "model.renderer.grid", "model.renderer.proposal",
               "model.renderer.contraction", "model.renderer.appearance", "model.appearance_fit",
-              "proposal.network.position_encoding", "model.camera_opt")
+              "proposal.network.position_encoding", "model.camera_opt", "model.test_camera_fit")
 
 
 def matching(patterns, key: str):

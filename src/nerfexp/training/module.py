@@ -2,6 +2,7 @@
 
 import contextlib
 import logging
+import math
 import os
 import shutil
 import time
@@ -13,10 +14,10 @@ import torch.nn.functional as F
 from torch import Tensor, nn
 
 from nerfexp.errors import ConfigError
-from nerfexp.nerf.appearance import FULL_IMAGE, CodeFit, left_columns
+from nerfexp.nerf.appearance import FULL_IMAGE, NERFW_RIGHT_HALF, CodeFit, left_columns
 from nerfexp.nerf.bounds import Bounded
 from nerfexp.nerf.encodings import Encoding
-from nerfexp.nerf.poses import PoseCorrection
+from nerfexp.nerf.poses import PoseCorrection, PoseFit, camera_corrected_rays
 from nerfexp.nerf.schedules import warmup_exponential_decay
 from nerfexp.nerf.volume_renderer import VolumeRenderer, final_output
 from nerfexp.training.metrics import psnr, ssim
@@ -61,8 +62,10 @@ class NeRFModule(L.LightningModule):
                  lr_final: float, chunk: int = 8192, lr_warmup_steps: int = 0, compile: bool = False,
                  lpips: bool | str = "auto", lpips_weights: str | None = None,
                  camera_opt: Callable[[int], PoseCorrection] | None = None,
-                 appearance_fit: CodeFit | None = None, test_protocol: str = FULL_IMAGE):
+                 appearance_fit: CodeFit | None = None, test_protocol: str = FULL_IMAGE,
+                 test_camera_fit: PoseFit | None = None):
         super().__init__()
+        self.test_camera_fit = test_camera_fit  # each test camera refined, the networks frozen, or None (given)
         self.appearance_fit = appearance_fit  # NeRF-W's fit of a test image's code (appearance=embedding), or None
         self.test_protocol = test_protocol  # the protocol of the headline test scores (_test)
         self.pose_correction_of = camera_opt  # n_views -> PoseCorrection, or None (camera_opt=off)
@@ -225,7 +228,8 @@ class NeRFModule(L.LightningModule):
         return self._evaluate(batch)
 
     def test_step(self, batch: dict, batch_idx: int) -> dict:
-        return self._test(self._evaluate(batch), batch)
+        batch, camera_fit = self.refined_test_camera(batch)
+        return {**self._test(self._evaluate(batch), batch), **camera_fit}
 
     # Per-image appearance (appearance=embedding, nerfexp.nerf.appearance): the codes, and the test protocols
 
@@ -273,15 +277,9 @@ class NeRFModule(L.LightningModule):
         from the renderer's test code, the networks frozen (``appearance_fit``: only the code is differentiated
         and stepped), each step's pixels drawn with the image's "index" as seed. Gradients are enabled for it
         alone, inside Lightning's inference mode."""
-        H, W, _ = batch["rgb"].shape  # rows, columns, channels
-        left = slice(0, left_columns(W))
-        mask = batch.get("mask")
         start = self.renderer.appearance.test_code()
         with torch.inference_mode(False), torch.enable_grad():
-            kept = (torch.ones(H, left_columns(W), dtype=torch.bool, device=batch["rgb"].device) if mask is None
-                    else mask[:, left].clone())
-            rays = {key: batch[key][:, left][kept].clone() for key in ("origins", "directions", "viewdirs", "rgb")
-                    if key in batch}  # each [M, 3]: the fitting pixels, as tensors autograd may use
+            rays = fitting_rays(batch, left_half=True)
             if self.appearance_fit is None or not len(rays["rgb"]):
                 return start
 
@@ -292,6 +290,48 @@ class NeRFModule(L.LightningModule):
                                         codes=code.expand(len(pixels), -1))
                 return F.mse_loss(final_output(outputs)["rgb"].float(), rays["rgb"][pixels].float())
             return self.appearance_fit(loss, start.clone(), len(rays["rgb"]), seed=int(batch["index"]))
+
+    # Test cameras (test_cameras=refined, nerfexp.nerf.poses.PoseFit): refined with the networks frozen
+
+    @property
+    def test_cameras(self) -> str:
+        """How the test images were seen (``results.json``'s ``test_cameras``): from the cameras as the data gives
+        them ("given"), or from each camera refined on the image's fitting pixels first ("refined")."""
+        return "given" if self.test_camera_fit is None else "refined"
+
+    def refined_test_camera(self, batch: dict) -> tuple[dict, dict[str, float]]:
+        """A test image's ``batch`` with its rays ("origins", "directions", "viewdirs" [H, W, 3]) those of its camera
+        refined by ``test_camera_fit`` (a correction (w, t), ``nerfexp.nerf.poses``), the networks frozen, on the
+        pixels the headline protocol does not score apart: the left half under NeRF-W's protocol (where the
+        appearance code is fitted afterwards, through the refined camera), else the whole image (BARF's); the
+        image seen with the renderer's test code. The correction's size: "camera_fit_deg" (the turn, degrees) and
+        "camera_fit_shift" (the move, scene units). Unchanged, with no sizes, where cameras are given."""
+        if self.test_camera_fit is None:
+            return batch, {}
+        appearance = self.renderer.appearance
+        code = None if appearance is None else appearance.test_code()
+        with torch.inference_mode(False), torch.enable_grad():
+            rays = fitting_rays(batch, left_half=self.test_protocol == NERFW_RIGHT_HALF)
+            if not len(rays["rgb"]):
+                return batch, {}
+
+            def loss(pixels: Tensor, delta: Tensor) -> Tensor:
+                pixels = pixels.to(rays["rgb"].device)
+                origins, directions, viewdirs = camera_corrected_rays(
+                    delta, rays["origins"][pixels], rays["directions"][pixels],
+                    rays["viewdirs"][pixels] if "viewdirs" in rays else None)
+                outputs = self.renderer(origins, directions, deterministic=True, viewdirs=viewdirs,
+                                        codes=None if code is None else code.expand(len(pixels), -1))
+                return F.mse_loss(final_output(outputs)["rgb"].float(), rays["rgb"][pixels].float())
+            delta = self.test_camera_fit(loss, len(rays["rgb"]), seed=int(batch["index"]), device=self.device)
+        origins, directions, viewdirs = camera_corrected_rays(delta, batch["origins"], batch["directions"],
+                                                              batch.get("viewdirs"))
+        refined = {**batch, "origins": origins.to(batch["origins"].dtype),
+                   "directions": directions.to(batch["directions"].dtype)}
+        if viewdirs is not None:
+            refined["viewdirs"] = viewdirs.to(batch["viewdirs"].dtype)
+        return refined, {"camera_fit_deg": math.degrees(float(torch.linalg.vector_norm(delta[:3]))),
+                         "camera_fit_shift": float(torch.linalg.vector_norm(delta[3:]))}
 
     def parameter_groups(self) -> list[dict]:
         """The optimizer's parameter groups, ``named_parameter_groups`` in order."""
@@ -388,6 +428,19 @@ class NeRFModule(L.LightningModule):
         origins, directions, viewdirs = self.camera_opt(batch["origins"], batch["directions"], batch["view"],
                                                         batch.get("viewdirs"))
         return {**batch, "origins": origins, "directions": directions, "viewdirs": viewdirs}
+
+
+def fitting_rays(batch: dict[str, Tensor], left_half: bool) -> dict[str, Tensor]:
+    """A test image's fitting pixels: its left half (``left_columns``) or the whole image, those its "mask" keeps
+    where it has one: "origins", "directions", "viewdirs" (where the batch has them), "rgb", each [M, 3], copies
+    autograd may use (called outside inference mode)."""
+    H, W, _ = batch["rgb"].shape  # rows, columns, channels
+    columns = slice(0, left_columns(W) if left_half else W)
+    mask = batch.get("mask")
+    kept = (torch.ones(H, columns.stop, dtype=torch.bool, device=batch["rgb"].device) if mask is None
+            else mask[:, columns].clone())
+    return {key: batch[key][:, columns][kept].clone() for key in ("origins", "directions", "viewdirs", "rgb")
+            if key in batch}
 
 
 def camera_ball(centres: Tensor) -> tuple[Tensor, float]:

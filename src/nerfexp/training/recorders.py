@@ -42,7 +42,8 @@ IMAGES = ("rgb", "depth", "opacity", "target")  # what an evaluation step return
 # each image's scores; lpips NaN where not scored (nerfexp.training.perceptual); then each protocol's own, which only
 # a test scores (NaN in a validation: ``NeRFModule._test``, docs/metrics.md)
 PROTOCOL_SCORES = ("psnr_full_image", "ssim_full_image", "psnr_right_half", "ssim_right_half")
-SCORES = ("psnr", "ssim", "lpips", *PROTOCOL_SCORES)
+CAMERA_FIT = ("camera_fit_deg", "camera_fit_shift")  # the test cameras' corrections (test_cameras=refined)
+SCORES = ("psnr", "ssim", "lpips", *PROTOCOL_SCORES, *CAMERA_FIT)
 ALWAYS_SCORED = ("psnr", "ssim")
 
 
@@ -269,7 +270,7 @@ class RunRecorder(L.Callback):
             "rays_per_s": batch_rays * steps / self.elapsed_s if batch_rays and self.elapsed_s > 0 else None,
             "batch_rays": batch_rays, "processes": trainer.world_size, "precision": str(trainer.precision),
             "n_params": sum(p.numel() for p in pl_module.parameters()), "test_protocol": pl_module.test_protocol,
-            "evaluations_per_ray": renderer.evaluations_per_ray,
+            "test_cameras": pl_module.test_cameras, "evaluations_per_ray": renderer.evaluations_per_ray,
             "machine": machine(), "choices": self.choices, "overrides": self.overrides, **self.labels,
             "config": self.run_config, "resumes": self.resumes,
         }
@@ -298,6 +299,7 @@ class EvalRecorder(L.Callback):
         if not trainer.is_global_zero:
             return
         results = {**scores_record(self._scores), "test_protocol": pl_module.test_protocol,
+                   "test_cameras": pl_module.test_cameras,
                    "checkpoint": str(self.checkpoint.resolve()), "step": self.step,
                    "processes": trainer.world_size, "machine": machine()}
         write_json(self.output_dir / EVAL, results)
