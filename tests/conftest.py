@@ -1,13 +1,33 @@
 """Shared fixtures: the real config, shrunk to run in seconds on a CPU (``tests.helpers.TINY``), and no test
-reaching the internet."""
+reaching the internet; the pytest-xdist workers (``-n auto``) and each one's share of the CPUs."""
 
+import os
 from pathlib import Path
 
 import pytest
+import torch
 
 from nerfexp.training import perceptual
 from tests.helpers import NO_INTERNET, TINY, run_nerfexp
 from tests.training.weights_server import refused_url
+
+MOST_WORKERS = 4  # pytest-xdist's -n auto: each worker a torch process of its own (memory, and DDP's extra ones)
+
+
+def pytest_xdist_auto_num_workers(config) -> int:
+    """``-n auto`` (pyproject.toml's addopts): one worker per CPU this process may use, at most ``MOST_WORKERS``."""
+    return max(1, min(len(os.sched_getaffinity(0)), MOST_WORKERS))
+
+
+def pytest_configure(config) -> None:
+    """In a pytest-xdist worker, torch (the worker's, and that of every command a test starts as a process,
+    through OMP_NUM_THREADS) uses its share of the CPUs: workers x threads = CPUs, not workers x CPUs threads
+    spinning against each other."""
+    workers = int(os.environ.get("PYTEST_XDIST_WORKER_COUNT", "0"))
+    if workers > 1:
+        threads = max(1, len(os.sched_getaffinity(0)) // workers)
+        os.environ["OMP_NUM_THREADS"] = str(threads)
+        torch.set_num_threads(threads)
 
 
 @pytest.fixture(autouse=True)
