@@ -231,7 +231,8 @@ def test_sparse_gradients_hold_each_row_read_once_with_the_dense_gradients_sum(n
     assert set(rows) == rows_read(sparse, points) and len(rows) < sparse.hashed[..., 0].numel()
     torch.testing.assert_close(grad.to_dense(), dense.hashed.grad)  # the dense gradient, up to summation order
     for a, b in zip(dense.dense, sparse.dense, strict=True):  # the dense levels keep dense gradients
-        assert not b.grad.is_sparse and torch.equal(a.grad, b.grad)
+        assert not b.grad.is_sparse  # (the fused kernel's, where it was built, sum in another order)
+        torch.testing.assert_close(a.grad, b.grad)
 
 
 def test_flat_entry_indices_widen_to_int64_where_int32_would_overflow():

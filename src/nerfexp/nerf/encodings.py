@@ -20,6 +20,7 @@ from nerfexp.domains import (
     real,
     whole,
 )
+from nerfexp.kernels import kernel
 from nerfexp.nerf.bounds import Bounded
 
 HASH_PRIMES = (1, 2654435761, 805459861)  # Instant-NGP's, one per axis; 1 keeps neighbours along x together
@@ -164,6 +165,25 @@ class _InterpolateRows(torch.autograd.Function):
         if ctx.sparse:
             return touched_row_sums(indices.reshape(-1), columns.flatten(1), ctx.table_shape), None, None, None
         return entry_sums(indices, columns, math.prod(ctx.table_shape)).view(ctx.table_shape), None, None, None
+
+
+class _FusedHashEncoding(torch.autograd.Function):
+    """``HashGridEncoding``'s features of unit positions [N, 3] by the fused kernel (``nerfexp.kernels``,
+    hash_encoding.cpp): forward [N, L F]; backward the dense gradients of the hashed table [L_h, T, F] and of each
+    dense volume [1, F, n+1, n+1, n+1] (none to the positions)."""
+
+    @staticmethod
+    def forward(ctx, unit: Tensor, fused, encoding: "HashGridEncoding", hashed: Tensor, *dense: Tensor) -> Tensor:
+        ctx.save_for_backward(unit, hashed, *dense)
+        ctx.fused, ctx.shape = fused, encoding.kernel_shape()
+        return fused.forward(unit, [volume[0] for volume in dense], hashed, *ctx.shape)
+
+    @staticmethod
+    def backward(ctx, grad: Tensor):
+        unit, hashed, *dense = ctx.saved_tensors
+        *dense_grads, hashed_grad = ctx.fused.backward(unit, grad.contiguous(), [volume[0] for volume in dense],
+                                                      hashed, *ctx.shape)
+        return None, None, None, hashed_grad, *(g[None] for g in dense_grads)
 
 
 def flat_indices(rows: Tensor, n_rows: int, n_features: int) -> Tensor:
@@ -322,6 +342,12 @@ class HashGridEncoding(Bounded, Encoding):
         first_rows = self.table_size * torch.arange(len(hashed), dtype=row_dtype)[:, None]
         self.register_buffer("level_offsets", first_rows, persistent=False)  # [L_h, 1]: each level's first row
 
+    def kernel_shape(self) -> tuple[list[int], list[int], int]:
+        """What the fused kernel needs besides the tables: the dense and the hashed levels' cells per side, and
+        the features per level."""
+        n_dense = len(self.dense)
+        return list(self.resolutions[:n_dense]), list(self.resolutions[n_dense:]), self.features_per_level
+
     def parameter_groups(self) -> dict[str, dict]:
         """The tables, dense and hashed, in a group of their own without weight decay: Instant-NGP decays the
         networks' weights only, since most steps leave most table entries untouched, and decay would wipe out the
@@ -343,12 +369,25 @@ class HashGridEncoding(Bounded, Encoding):
         points = x.reshape(-1, 3)
         unit = ((points - self.aabb[0]) / (self.aabb[1] - self.aabb[0])).clamp(0, 1)  # [N, 3]
         parts = [points] if self.include_input else []
+        fused = self._fused_kernel(unit)
+        if fused is not None:
+            parts.append(_FusedHashEncoding.apply(unit.contiguous(), fused, self, self.hashed, *self.dense))
+            return torch.cat(parts, -1).view(*x.shape[:-1], self.out_dim)
         grid = (2 * unit - 1).view(1, -1, 1, 1, 3).flip(-1)  # grid_sample reads (x, y, z) as (k, j, i)
         for volume in self.dense:  # [1, F, N+1, N+1, N+1], indexed [i, j, k]
             parts.append(F.grid_sample(volume, grid, mode="bilinear", align_corners=True).view(volume.shape[1], -1).T)
         if len(self.hashed):
             parts.append(self._hashed_features(unit).flatten(1))
         return torch.cat(parts, -1).view(*x.shape[:-1], self.out_dim)
+
+    def _fused_kernel(self, unit: Tensor):
+        """The fused CPU kernel (``nerfexp.kernels``, hash_encoding.cpp) where it computes this forward and its
+        backward: float32 on a CPU, the tables' gradients dense, positions not differentiated (normals from the
+        density take autograd's own path, differentiable twice); else None (the torch path, its reference)."""
+        if (unit.device.type != "cpu" or self.hashed.dtype != torch.float32 or self.sparse_gradients
+                or (torch.is_grad_enabled() and unit.requires_grad)):
+            return None
+        return kernel("hash_encoding")
 
     def _hashed_features(self, unit: Tensor) -> Tensor:
         """unit positions [N, 3] in [0, 1] -> interpolated features of the hashed levels [N, L_h, F].

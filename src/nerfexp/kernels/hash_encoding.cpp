@@ -1,0 +1,135 @@
+// The hash encoding's forward and backward (nerfexp.nerf.encodings.HashGridEncoding) as fused CPU loops: each
+// position's 8 corners per level found, weighted and summed in one pass (forward, parallel over positions), and
+// each level's table gradient accumulated in one pass over the positions (backward, parallel over levels: a
+// level's entries are its own, so no two threads add to one entry, without atomics or per-thread copies).
+//
+// Inputs: unit positions [N, 3] in [0, 1] (float32, contiguous); dense levels as [F, n+1, n+1, n+1] volumes
+// (vertex (i, j, k) of feature f at f (n+1)^3 + (i (n+1) + j) (n+1) + k), the hashed levels' table [Lh, T, F];
+// the levels' cells per side. Output features [N, (Ld + Lh) F], level-major, as the torch path's.
+#include <torch/extension.h>
+#include <ATen/Parallel.h>
+
+#include <cmath>
+#include <vector>
+
+namespace {
+
+const int64_t PRIME_X = 1, PRIME_Y = 2654435761LL, PRIME_Z = 805459861LL;  // HASH_PRIMES
+
+// One level's 8 corners of one position: their offsets into the level's storage and trilinear weights.
+struct Corners {
+  int64_t offset[8];
+  float weight[8];
+};
+
+// The cell of ``u`` at ``n`` cells per side (the last cell for u = 1), as the torch path computes it:
+// scaled = u n, lower = min(floor(scaled), n - 1), frac = scaled - lower.
+inline void corners_of(const float* u, int64_t n, bool hashed, int64_t table_size, int64_t stride,
+                       Corners& c) {
+  int64_t lower[3];
+  float frac[3];
+  for (int a = 0; a < 3; ++a) {
+    const float scaled = u[a] * static_cast<float>(n);
+    float floor = std::floor(scaled);
+    if (floor > static_cast<float>(n - 1)) floor = static_cast<float>(n - 1);
+    lower[a] = static_cast<int64_t>(floor);
+    frac[a] = scaled - floor;
+  }
+  for (int k = 0; k < 8; ++k) {
+    const int64_t bx = (k >> 2) & 1, by = (k >> 1) & 1, bz = k & 1;
+    const int64_t i = lower[0] + bx, j = lower[1] + by, l = lower[2] + bz;
+    const int64_t row = hashed ? (((i * PRIME_X) ^ (j * PRIME_Y) ^ (l * PRIME_Z)) & (table_size - 1))
+                               : (i * (n + 1) + j) * (n + 1) + l;
+    c.offset[k] = row * stride;
+    const float wx = bx ? frac[0] : 1 - frac[0], wy = by ? frac[1] : 1 - frac[1], wz = bz ? frac[2] : 1 - frac[2];
+    c.weight[k] = wx * wy * wz;
+  }
+}
+
+// A level's storage: its first value, the distance between two rows' values and between two features'.
+struct Level {
+  float* data;
+  int64_t n;
+  bool hashed;
+  int64_t row_stride;      // F for the hashed table, 1 for a dense volume
+  int64_t feature_stride;  // 1 for the hashed table, (n+1)^3 for a dense volume
+};
+
+std::vector<Level> levels_of(std::vector<torch::Tensor>& dense, torch::Tensor& hashed,
+                             const std::vector<int64_t>& dense_res, const std::vector<int64_t>& hashed_res) {
+  std::vector<Level> levels;
+  for (size_t d = 0; d < dense.size(); ++d) {
+    const int64_t n = dense_res[d];
+    levels.push_back({dense[d].data_ptr<float>(), n, false, 1, (n + 1) * (n + 1) * (n + 1)});
+  }
+  const int64_t T = hashed.size(1), F = hashed.size(2);
+  for (size_t h = 0; h < hashed_res.size(); ++h)
+    levels.push_back({hashed.data_ptr<float>() + static_cast<int64_t>(h) * T * F, hashed_res[h], true, F, 1});
+  return levels;
+}
+
+}  // namespace
+
+torch::Tensor hash_encoding_forward(torch::Tensor unit, std::vector<torch::Tensor> dense, torch::Tensor hashed,
+                                    std::vector<int64_t> dense_res, std::vector<int64_t> hashed_res,
+                                    int64_t features) {
+  const int64_t N = unit.size(0), T = hashed.size(1);
+  std::vector<Level> levels = levels_of(dense, hashed, dense_res, hashed_res);
+  const int64_t L = static_cast<int64_t>(levels.size()), F = features;
+  auto out = torch::empty({N, L * F}, unit.options());
+  const float* u = unit.data_ptr<float>();
+  float* o = out.data_ptr<float>();
+  at::parallel_for(0, N, 256, [&](int64_t begin, int64_t end) {
+    Corners c;
+    for (int64_t p = begin; p < end; ++p)
+      for (int64_t l = 0; l < L; ++l) {
+        const Level& level = levels[l];
+        corners_of(u + 3 * p, level.n, level.hashed, T, level.row_stride, c);
+        for (int64_t f = 0; f < F; ++f) {
+          const float* values = level.data + f * level.feature_stride;
+          float sum = 0;
+          for (int k = 0; k < 8; ++k) sum += c.weight[k] * values[c.offset[k]];
+          o[(p * L + l) * F + f] = sum;
+        }
+      }
+  });
+  return out;
+}
+
+// The gradients of the dense volumes and of the hashed table (new zero tensors, then summed into), from the
+// gradient of the features [N, L F].
+std::vector<torch::Tensor> hash_encoding_backward(torch::Tensor unit, torch::Tensor grad,
+                                                  std::vector<torch::Tensor> dense, torch::Tensor hashed,
+                                                  std::vector<int64_t> dense_res, std::vector<int64_t> hashed_res,
+                                                  int64_t features) {
+  const int64_t N = unit.size(0), T = hashed.size(1);
+  std::vector<torch::Tensor> grads;
+  for (auto& volume : dense) grads.push_back(torch::zeros_like(volume));
+  auto hashed_grad = torch::zeros_like(hashed);
+  std::vector<torch::Tensor> dense_grads(grads.begin(), grads.end());
+  std::vector<Level> levels = levels_of(dense_grads, hashed_grad, dense_res, hashed_res);
+  const int64_t L = static_cast<int64_t>(levels.size()), F = features;
+  const float* u = unit.data_ptr<float>();
+  const float* g = grad.data_ptr<float>();
+  at::parallel_for(0, L, 1, [&](int64_t begin, int64_t end) {
+    Corners c;
+    for (int64_t l = begin; l < end; ++l) {
+      const Level& level = levels[l];
+      for (int64_t p = 0; p < N; ++p) {
+        corners_of(u + 3 * p, level.n, level.hashed, T, level.row_stride, c);
+        for (int64_t f = 0; f < F; ++f) {
+          const float gradient = g[(p * L + l) * F + f];
+          float* values = level.data + f * level.feature_stride;
+          for (int k = 0; k < 8; ++k) values[c.offset[k]] += c.weight[k] * gradient;
+        }
+      }
+    }
+  });
+  grads.push_back(hashed_grad);
+  return grads;
+}
+
+PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
+  m.def("forward", &hash_encoding_forward, "the hash encoding's features of unit positions");
+  m.def("backward", &hash_encoding_backward, "the gradients of the dense volumes and the hashed table");
+}

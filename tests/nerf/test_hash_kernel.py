@@ -1,0 +1,136 @@
+"""The hash encoding's fused CPU kernel (src/nerfexp/kernels/hash_encoding.cpp) against independent truth and the
+torch path it replaces: features against the float64 reference written from the paper's definition, table
+gradients against the torch path's (NERFEXP_KERNELS=off) to float32 rounding, with hash collisions, positions on
+cell faces and the box's edges and outside it, empty and one-element batches, non-contiguous inputs and
+gradients, bf16 autocast around it; and the fallback where no compiler builds it."""
+
+import json
+import subprocess
+import sys
+
+import pytest
+import torch
+
+from nerfexp import kernels
+from tests.nerf.test_hashgrid import BOX, reference_features, small_encoding
+
+FUSED = kernels.kernel("hash_encoding")
+needs_kernel = pytest.mark.skipif(FUSED is None, reason="the hash encoding's kernel was not built (no C++ compiler)")
+
+
+def edge_points(enc, n_random: int = 300) -> torch.Tensor:
+    """Positions [M, 3] (float32) inside the box, on cell faces of every level (unit u with u N an integer),
+    at the box's corners and centre, on its faces, and outside it."""
+    generator = torch.Generator().manual_seed(3)
+    lo, hi = torch.tensor(BOX)
+    unit = [torch.rand(n_random, 3, generator=generator)]
+    for n in enc.resolutions:  # a vertex of each level, on three faces at once
+        unit.append(torch.randint(0, n + 1, (8, 3), generator=generator) / n)
+    unit.append(torch.tensor([[0.0, 0.0, 0.0], [1.0, 1.0, 1.0], [0.5, 0.5, 0.5], [1.0, 0.3, 0.0], [0.0, 1.0, 0.7],
+                              [1.5, 0.5, 0.5], [-0.2, 0.3, 1.0], [2.0, -1.0, 3.0]]))
+    return lo + torch.cat(unit) * (hi - lo)
+
+
+def features_and_grads(enc, points: torch.Tensor, probe: torch.Tensor) -> tuple[torch.Tensor, list[torch.Tensor]]:
+    for p in enc.parameters():
+        p.grad = None
+    out = enc(points)
+    out.backward(probe)
+    return out.detach(), [torch.zeros_like(p) if p.grad is None else p.grad.clone() for p in enc.parameters()]
+
+
+@needs_kernel
+@pytest.mark.parametrize("log2_table_size", [10, 4, 20])  # mixed; every level hashed (collisions); every level dense
+def test_the_kernel_matches_the_float64_reference_and_the_torch_paths_gradients(log2_table_size, monkeypatch):
+    enc = small_encoding(log2_table_size=log2_table_size)
+    points = edge_points(enc)
+    probe = torch.randn(len(points), enc.out_dim, generator=torch.Generator().manual_seed(4))
+    assert enc._fused_kernel(points) is FUSED  # float32 on a CPU, positions not differentiated: the kernel runs
+    fused, fused_grads = features_and_grads(enc, points, probe)
+    torch.testing.assert_close(fused.double(), reference_features(enc, points), atol=2e-6, rtol=0)
+    monkeypatch.setenv(kernels.SWITCH, "off")
+    assert enc._fused_kernel(points) is None
+    torch_path, torch_grads = features_and_grads(enc, points, probe)
+    torch.testing.assert_close(fused, torch_path, atol=2e-6, rtol=0)
+    for mine, theirs in zip(fused_grads, torch_grads, strict=True):
+        torch.testing.assert_close(mine, theirs, atol=1e-5, rtol=1e-5)  # sums in another order
+
+
+@needs_kernel
+def test_colliding_vertices_share_their_entry_and_its_gradient_sums_theirs():
+    # Every level hashed into 2 rows: almost every corner collides; an entry's gradient is the sum of the weights
+    # times the incoming gradient of every corner read from it, over every point.
+    enc = small_encoding(log2_table_size=1, features_per_level=1)
+    points = edge_points(enc)
+    out, grads = features_and_grads(enc, points, torch.ones(len(points), enc.out_dim))
+    # with an incoming gradient of 1, each level's entries sum the points' trilinear weights: 1 per point
+    assert torch.allclose(grads[-1].sum((1, 2)), torch.full((enc.hashed.shape[0],), float(len(points))))
+    torch.testing.assert_close(out.double(), reference_features(enc, points), atol=2e-6, rtol=0)
+
+
+@needs_kernel
+@pytest.mark.parametrize("n", [0, 1])
+def test_empty_and_one_element_batches(n):
+    enc = small_encoding()
+    points = edge_points(enc)[:n]
+    out, grads = features_and_grads(enc, points, torch.ones(n, enc.out_dim))
+    assert out.shape == (n, enc.out_dim)
+    if n:
+        torch.testing.assert_close(out.double(), reference_features(enc, points), atol=2e-6, rtol=0)
+    assert all((g.abs().sum() > 0) == (n > 0) for g in grads)
+
+
+@needs_kernel
+def test_non_contiguous_positions_and_gradients_give_the_contiguous_ones_results():
+    enc = small_encoding()
+    points = edge_points(enc)
+    probe = torch.randn(len(points), enc.out_dim, generator=torch.Generator().manual_seed(5))
+    strided_points = torch.stack([points, -points], 1)[:, 0]  # [M, 3], every other row of a larger tensor
+    strided_probe = probe.T.contiguous().T  # [M, L F], column-major
+    assert not strided_points.is_contiguous() and not strided_probe.is_contiguous()
+    out, grads = features_and_grads(enc, points, probe)
+    strided_out, strided_grads = features_and_grads(enc, strided_points, strided_probe)
+    assert torch.equal(out, strided_out) and all(torch.equal(a, b) for a, b in zip(grads, strided_grads, strict=True))
+
+
+@needs_kernel
+def test_under_bf16_autocast_the_kernel_reads_float32_positions_and_writes_float32_features():
+    enc = small_encoding()
+    points = edge_points(enc)
+    with torch.autocast("cpu", dtype=torch.bfloat16):
+        out = enc(points)
+    assert out.dtype == torch.float32 and torch.equal(out, enc(points))
+
+
+def test_positions_that_need_a_gradient_take_the_torch_path():
+    enc = small_encoding()
+    points = edge_points(enc).requires_grad_()
+    assert enc._fused_kernel(points) is None  # autograd's own gather: differentiable in positions, and twice
+    assert enc._fused_kernel(points.detach()) is FUSED or FUSED is None
+
+
+HIDDEN_COMPILER = """
+import json, logging, sys, torch
+logging.basicConfig(level=logging.INFO, stream=sys.stderr, format="%(name)s: %(message)s")
+from tests.nerf.test_hashgrid import small_encoding
+enc = small_encoding()
+points = torch.rand(50, 3)
+print(json.dumps({"kernel": enc._fused_kernel(points) is not None, "features": enc(points).tolist()}))
+"""
+
+
+def test_without_a_compiler_the_torch_path_runs_after_one_line(tmp_path, monkeypatch):
+    # a machine without a C++ compiler: the build fails at first use; the encoding runs the torch path
+    env = {"CXX": str(tmp_path / "no-compiler"), "CC": str(tmp_path / "no-compiler"),
+           "TORCH_EXTENSIONS_DIR": str(tmp_path / "cache"), "PATH": "/usr/bin:/bin"}
+    result = subprocess.run([sys.executable, "-c", HIDDEN_COMPILER], capture_output=True, text=True, timeout=300,
+                            env={**subprocess.os.environ, **env})
+    assert result.returncode == 0, result.stderr[-3000:]
+    said = [line for line in result.stderr.splitlines() if line.startswith("nerfexp.kernels:")]
+    assert len(said) == 1 and "kernel hash_encoding not built" in said[0] and "torch path runs instead" in said[0]
+    record = json.loads(result.stdout)
+    assert record["kernel"] is False
+    monkeypatch.setenv(kernels.SWITCH, "off")
+    torch.manual_seed(0)
+    enc = small_encoding()
+    assert torch.allclose(torch.tensor(record["features"]), enc(torch.rand(50, 3)))
