@@ -39,7 +39,8 @@ def test_a_short_run_learns_the_scene_and_writes_every_output(tmp_path):
     assert results["choices"] == {"encoding": "posenc", "view_dependence": "mlp", "data": "procedural",
                                   "field": "nerf", "optimizer": "adam", "scale": "cpu", "trainer": "default",
                                   "acceleration": "none", "contraction": "none", "appearance": "none",
-                                  "camera_opt": "off", "callbacks": "default", "logger": "tensorboard",
+                                  "camera_opt": "off", "test_cameras": "given", "callbacks": "default",
+                                  "logger": "tensorboard",
                                   "hierarchical": True, "seed": 0}
     # the test scored the checkpoint this run wrote, and says which, by path and content
     written = tmp_path / "checkpoints" / "last.ckpt"
