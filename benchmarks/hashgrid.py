@@ -10,8 +10,10 @@ after a warm-up, for each formulation:
   per-sample weights (one fused gather and weighted sum);
 - ``one_gather``: all levels' corners in one ``index_select``, weights applied by one batched product;
   autograd's backward of ``index_select`` is a scatter-add;
-- ``nerfexp``: ``HashGridEncoding``: dense levels by ``F.grid_sample``, the hashed ones corner-first
-  ([8, L, N]) by one autograd node whose backward sums rows by one ``index_add_``
+- ``nerfexp``: ``HashGridEncoding`` as it runs: its fused C++ kernel where it was built (``nerfexp.kernels``,
+  docs/acceleration.md);
+- ``nerfexp_torch_path``: the same with ``NERFEXP_KERNELS=off``: dense levels by ``F.grid_sample``, the hashed ones
+  corner-first ([8, L, N]) by one autograd node whose backward sums rows by one ``bincount``
   (``nerfexp.nerf.encodings.interpolate_rows``).
 The reference: ``PositionalEncoding(10)`` followed by the 4 x 128 MLP of ``scale=cpu`` (the encoding
 and the network it feeds, since the positional encoding alone costs nothing). The hash grid's own MLP
@@ -33,6 +35,7 @@ import torch.nn.functional as F
 from torch import nn
 
 from nerfexp.files import atomic_write
+from nerfexp.kernels import SWITCH
 from nerfexp.nerf import encodings
 from nerfexp.nerf.encodings import HASH_PRIMES, HashGridEncoding, PositionalEncoding, interpolate_rows
 
@@ -101,11 +104,13 @@ def scatter_ms(enc: HashGridEncoding, points: torch.Tensor, repeats: int) -> dic
         return interpolate_rows(table, corners, weights, sparse)
 
     encodings.interpolate_rows = capture
+    os.environ[SWITCH] = "off"  # the torch path's gathers (the fused kernel has none to capture)
     try:
         with torch.no_grad():
             enc(points)
     finally:
         encodings.interpolate_rows = interpolate_rows
+        os.environ.pop(SWITCH)
     n_entries = enc.hashed.numel()
     entries = encodings.flat_indices(captured["corners"], n_entries // enc.features_per_level,
                                      enc.features_per_level).view(-1)
@@ -155,7 +160,10 @@ def main() -> None:
         error = (formulation(table, enc, points, starts) - expected).abs().max().item()
         assert error < 1e-5, (name, error)  # the same encoding, up to rounding
         timings[name] = median_ms(lambda f=formulation: step(f(table, enc, points, starts), mlp_hash), args.repeats)
-    timings["nerfexp"] = median_ms(lambda: step(enc(points), mlp_hash), args.repeats)
+    timings["nerfexp"] = median_ms(lambda: step(enc(points), mlp_hash), args.repeats)  # its fused kernel, if built
+    os.environ[SWITCH] = "off"
+    timings["nerfexp_torch_path"] = median_ms(lambda: step(enc(points), mlp_hash), args.repeats)
+    os.environ.pop(SWITCH)
     scatter = scatter_ms(enc, points, args.repeats)
     timings["posenc_mlp_4x128"] = median_ms(lambda: step(posenc(points), mlp_posenc), args.repeats)
     reference = timings["posenc_mlp_4x128"]

@@ -138,18 +138,16 @@ def numba_kernels():
 
     @numba.njit(inline="always")
     def corner(u, n, start, hashed, mask, k):
-        lo, fr = np.empty(3, np.int64), np.empty(3, np.float32)
-        for a in range(3):
-            s = np.float32(u[a] * n)
-            f = np.float32(np.floor(s))
-            if f > n - 1:
-                f = np.float32(n - 1)
-            lo[a], fr[a] = np.int64(f), s - f
-        i, j, m = lo[0] + ((k >> 2) & 1), lo[1] + ((k >> 1) & 1), lo[2] + (k & 1)
+        """Corner k's row and weight (scalars only: an array made here would be allocated per corner)."""
+        sx, sy, sz = np.float32(u[0] * n), np.float32(u[1] * n), np.float32(u[2] * n)
+        fx, fy, fz = min(np.floor(sx), n - 1), min(np.floor(sy), n - 1), min(np.floor(sz), n - 1)
+        bx, by, bz = (k >> 2) & 1, (k >> 1) & 1, k & 1
+        i, j, m = np.int64(fx) + bx, np.int64(fy) + by, np.int64(fz) + bz
         row = (((i * p1) ^ (j * p2) ^ (m * p3)) & mask) if hashed else ((i * (n + 1) + j) * (n + 1) + m)
-        w = ((fr[0] if (k >> 2) & 1 else 1 - fr[0]) * (fr[1] if (k >> 1) & 1 else 1 - fr[1])
-             * (fr[2] if k & 1 else 1 - fr[2]))
-        return start + row, w
+        wx = np.float32(sx - fx) if bx else np.float32(1 - (sx - fx))
+        wy = np.float32(sy - fy) if by else np.float32(1 - (sy - fy))
+        wz = np.float32(sz - fz) if bz else np.float32(1 - (sz - fz))
+        return start + row, wx * wy * wz
 
     @numba.njit(parallel=True, fastmath=False)
     def forward(unit, table, res, starts, hashed, table_size):
@@ -157,13 +155,12 @@ def numba_kernels():
         out = np.empty((n_points, levels * features), np.float32)
         for p in numba.prange(n_points):
             for level in range(levels):
-                acc = np.zeros(features, np.float32)
+                for f in range(features):
+                    out[p, level * features + f] = 0
                 for k in range(8):
                     row, w = corner(unit[p], res[level], starts[level], hashed[level], table_size - 1, k)
                     for f in range(features):
-                        acc[f] += w * table[row, f]
-                for f in range(features):
-                    out[p, level * features + f] = acc[f]
+                        out[p, level * features + f] += w * table[row, f]
         return out
 
     @numba.njit(parallel=True, fastmath=False)

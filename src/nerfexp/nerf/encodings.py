@@ -383,9 +383,10 @@ class HashGridEncoding(Bounded, Encoding):
     def _fused_kernel(self, unit: Tensor):
         """The fused CPU kernel (``nerfexp.kernels``, hash_encoding.cpp) where it computes this forward and its
         backward: float32 on a CPU, the tables' gradients dense, positions not differentiated (normals from the
-        density take autograd's own path, differentiable twice); else None (the torch path, its reference)."""
+        density take autograd's own path, differentiable twice), not traced by ``torch.compile`` (which compiles
+        the torch path's operators itself, ``model.compile=true``); else None (the torch path, its reference)."""
         if (unit.device.type != "cpu" or self.hashed.dtype != torch.float32 or self.sparse_gradients
-                or (torch.is_grad_enabled() and unit.requires_grad)):
+                or (torch.is_grad_enabled() and unit.requires_grad) or torch.compiler.is_compiling()):
             return None
         return kernel("hash_encoding")
 
