@@ -173,9 +173,9 @@ class _FusedHashEncoding(torch.autograd.Function):
     dense volume [1, F, n+1, n+1, n+1] (none to the positions)."""
 
     @staticmethod
-    def forward(ctx, unit: Tensor, fused, encoding: "HashGridEncoding", hashed: Tensor, *dense: Tensor) -> Tensor:
+    def forward(ctx, unit: Tensor, fused, shape: tuple, hashed: Tensor, *dense: Tensor) -> Tensor:
         ctx.save_for_backward(unit, hashed, *dense)
-        ctx.fused, ctx.shape = fused, encoding.kernel_shape()
+        ctx.fused, ctx.shape = fused, shape  # shape: HashGridEncoding.kernel_shape()
         return fused.forward(unit, [volume[0] for volume in dense], hashed, *ctx.shape)
 
     @staticmethod
@@ -371,7 +371,8 @@ class HashGridEncoding(Bounded, Encoding):
         parts = [points] if self.include_input else []
         fused = self._fused_kernel(unit)
         if fused is not None:
-            parts.append(_FusedHashEncoding.apply(unit.contiguous(), fused, self, self.hashed, *self.dense))
+            parts.append(_FusedHashEncoding.apply(unit.contiguous(), fused, self.kernel_shape(), self.hashed,
+                                                  *self.dense))
             return torch.cat(parts, -1).view(*x.shape[:-1], self.out_dim)
         grid = (2 * unit - 1).view(1, -1, 1, 1, 3).flip(-1)  # grid_sample reads (x, y, z) as (k, j, i)
         for volume in self.dense:  # [1, F, N+1, N+1, N+1], indexed [i, j, k]

@@ -1,0 +1,120 @@
+"""How a test image is scored (the methods ``NeRFModule`` takes from ``ScoringProtocols``): under both test protocols
+of per-image appearance (``nerfexp.nerf.appearance.PROTOCOLS``: the whole image, or NeRF-W's right half with the
+image's code fitted on its left half), from its camera as given or refined with the networks frozen first
+(``test_cameras=refined``, ``nerfexp.nerf.poses.PoseFit``)."""
+
+import math
+
+import torch
+import torch.nn.functional as F
+from torch import Tensor
+
+from nerfexp.nerf.appearance import FULL_IMAGE, NERFW_RIGHT_HALF, left_columns
+from nerfexp.nerf.poses import camera_corrected_rays
+from nerfexp.nerf.volume_renderer import final_output
+from nerfexp.training.metrics import psnr, ssim
+
+
+class ScoringProtocols:
+    """The test-time scoring of ``NeRFModule`` (a mixin: it reads the module's ``renderer``, ``test_protocol``,
+    ``appearance_fit``, ``test_camera_fit``, ``render_image`` and ``_lpips``)."""
+
+    def _test(self, scored: dict, batch: dict) -> dict:
+        """A test image's scores under both protocols (``nerfexp.nerf.appearance.PROTOCOLS``), added to
+        ``scored`` (``_evaluate``'s: the whole image, with the test code where there are codes):
+        "psnr_full_image", "ssim_full_image" (those of ``scored``) and "psnr_right_half", "ssim_right_half" (the
+        right half, ``left_columns``, rendered with the code fitted on the left half, ``_fitted_code``; without
+        codes, the right half of the same render). Under ``test_protocol`` nerfw_right_half, "psnr", "ssim" and
+        "lpips" are the right half's; the render kept ("rgb") is the whole image's either way."""
+        H, W, _ = batch["rgb"].shape  # rows, columns, channels
+        right = slice(left_columns(W), None)
+        mask = batch.get("mask")
+        kept = None if mask is None else mask[:, right]  # [H, W - W // 2]
+        target = batch["rgb"][:, right]
+        if self.renderer.appearance is None:
+            rendered = scored["rgb"][:, right]
+        else:
+            viewdirs = None if batch.get("viewdirs") is None else batch["viewdirs"][:, right]
+            rendered = self.render_image(batch["origins"][:, right], batch["directions"][:, right], viewdirs,
+                                         self._fitted_code(batch))["rgb"]
+        protocols = {"psnr_full_image": scored["psnr"], "ssim_full_image": scored["ssim"],
+                     "psnr_right_half": psnr(rendered, target, kept), "ssim_right_half": ssim(rendered, target, kept)}
+        if self.test_protocol == FULL_IMAGE:
+            return {**scored, **protocols}
+        shown = rendered if kept is None else torch.where(kept[..., None], rendered, target)
+        return {**scored, **protocols, "psnr": protocols["psnr_right_half"], "ssim": protocols["ssim_right_half"],
+                "lpips": self._lpips(shown, target)}
+
+    def _fitted_code(self, batch: dict) -> Tensor:
+        """NeRF-W's protocol: the test image's code [D] fitted on its left half (the pixels its mask keeps there)
+        from the renderer's test code, the networks frozen (``appearance_fit``: only the code is differentiated
+        and stepped), each step's pixels drawn with the image's "index" as seed. Gradients are enabled for it
+        alone, inside Lightning's inference mode."""
+        start = self.renderer.appearance.test_code()
+        with torch.inference_mode(False), torch.enable_grad():
+            rays = fitting_rays(batch, left_half=True)
+            if self.appearance_fit is None or not len(rays["rgb"]):
+                return start
+
+            def loss(pixels: Tensor, code: Tensor) -> Tensor:
+                pixels = pixels.to(rays["rgb"].device)
+                outputs = self.renderer(rays["origins"][pixels], rays["directions"][pixels], deterministic=True,
+                                        viewdirs=rays["viewdirs"][pixels] if "viewdirs" in rays else None,
+                                        codes=code.expand(len(pixels), -1))
+                return F.mse_loss(final_output(outputs)["rgb"].float(), rays["rgb"][pixels].float())
+            return self.appearance_fit(loss, start.clone(), len(rays["rgb"]), seed=int(batch["index"]))
+
+    # Test cameras (test_cameras=refined, nerfexp.nerf.poses.PoseFit): refined with the networks frozen
+
+    @property
+    def test_cameras(self) -> str:
+        """How the test images were seen (``results.json``'s ``test_cameras``): from the cameras as the data gives
+        them ("given"), or from each camera refined on the image's fitting pixels first ("refined")."""
+        return "given" if self.test_camera_fit is None else "refined"
+
+    def refined_test_camera(self, batch: dict) -> tuple[dict, dict[str, float]]:
+        """A test image's ``batch`` with its rays ("origins", "directions", "viewdirs" [H, W, 3]) those of its camera
+        refined by ``test_camera_fit`` (a correction (w, t), ``nerfexp.nerf.poses``), the networks frozen, on the
+        pixels the headline protocol does not score apart: the left half under NeRF-W's protocol (where the
+        appearance code is fitted afterwards, through the refined camera), else the whole image (BARF's); the
+        image seen with the renderer's test code. The correction's size: "camera_fit_deg" (the turn, degrees) and
+        "camera_fit_shift" (the move, scene units). Unchanged, with no sizes, where cameras are given."""
+        if self.test_camera_fit is None:
+            return batch, {}
+        appearance = self.renderer.appearance
+        code = None if appearance is None else appearance.test_code()
+        with torch.inference_mode(False), torch.enable_grad():
+            rays = fitting_rays(batch, left_half=self.test_protocol == NERFW_RIGHT_HALF)
+            if not len(rays["rgb"]):
+                return batch, {}
+
+            def loss(pixels: Tensor, delta: Tensor) -> Tensor:
+                pixels = pixels.to(rays["rgb"].device)
+                origins, directions, viewdirs = camera_corrected_rays(
+                    delta, rays["origins"][pixels], rays["directions"][pixels],
+                    rays["viewdirs"][pixels] if "viewdirs" in rays else None)
+                outputs = self.renderer(origins, directions, deterministic=True, viewdirs=viewdirs,
+                                        codes=None if code is None else code.expand(len(pixels), -1))
+                return F.mse_loss(final_output(outputs)["rgb"].float(), rays["rgb"][pixels].float())
+            delta = self.test_camera_fit(loss, len(rays["rgb"]), seed=int(batch["index"]), device=self.device)
+        origins, directions, viewdirs = camera_corrected_rays(delta, batch["origins"], batch["directions"],
+                                                              batch.get("viewdirs"))
+        refined = {**batch, "origins": origins.to(batch["origins"].dtype),
+                   "directions": directions.to(batch["directions"].dtype)}
+        if viewdirs is not None:
+            refined["viewdirs"] = viewdirs.to(batch["viewdirs"].dtype)
+        return refined, {"camera_fit_deg": math.degrees(float(torch.linalg.vector_norm(delta[:3]))),
+                         "camera_fit_shift": float(torch.linalg.vector_norm(delta[3:]))}
+
+
+def fitting_rays(batch: dict[str, Tensor], left_half: bool) -> dict[str, Tensor]:
+    """A test image's fitting pixels: its left half (``left_columns``) or the whole image, those its "mask" keeps
+    where it has one: "origins", "directions", "viewdirs" (where the batch has them), "rgb", each [M, 3], copies
+    autograd may use (called outside inference mode)."""
+    H, W, _ = batch["rgb"].shape  # rows, columns, channels
+    columns = slice(0, left_columns(W) if left_half else W)
+    mask = batch.get("mask")
+    kept = (torch.ones(H, columns.stop, dtype=torch.bool, device=batch["rgb"].device) if mask is None
+            else mask[:, columns].clone())
+    return {key: batch[key][:, columns][kept].clone() for key in ("origins", "directions", "viewdirs", "rgb")
+            if key in batch}
