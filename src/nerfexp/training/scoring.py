@@ -57,12 +57,22 @@ class ScoringProtocols:
                 return start
 
             def loss(pixels: Tensor, code: Tensor) -> Tensor:
-                pixels = pixels.to(rays["rgb"].device)
-                outputs = self.renderer(rays["origins"][pixels], rays["directions"][pixels], deterministic=True,
-                                        viewdirs=rays["viewdirs"][pixels] if "viewdirs" in rays else None,
-                                        codes=code.expand(len(pixels), -1))
-                return F.mse_loss(final_output(outputs)["rgb"].float(), rays["rgb"][pixels].float())
+                return self._fitting_loss(rays, pixels, code)
             return self.appearance_fit(loss, start.clone(), len(rays["rgb"]), seed=int(batch["index"]))
+
+    def _fitting_loss(self, rays: dict[str, Tensor], pixels: Tensor, code: Tensor | None,
+                      delta: Tensor | None = None) -> Tensor:
+        """The MSE of the fitting pixels ``pixels`` [R] of ``rays`` (``fitting_rays``) rendered with appearance
+        ``code`` [D] (None: no codes), through their camera corrected by ``delta`` [6] where given: the loss both
+        test-time fits minimize, the networks frozen."""
+        pixels = pixels.to(rays["rgb"].device)
+        origins, directions = rays["origins"][pixels], rays["directions"][pixels]
+        viewdirs = rays["viewdirs"][pixels] if "viewdirs" in rays else None
+        if delta is not None:
+            origins, directions, viewdirs = camera_corrected_rays(delta, origins, directions, viewdirs)
+        outputs = self.renderer(origins, directions, deterministic=True, viewdirs=viewdirs,
+                                codes=None if code is None else code.expand(len(pixels), -1))
+        return F.mse_loss(final_output(outputs)["rgb"].float(), rays["rgb"][pixels].float())
 
     # Test cameras (test_cameras=refined, nerfexp.nerf.poses.PoseFit): refined with the networks frozen
 
@@ -89,13 +99,7 @@ class ScoringProtocols:
                 return batch, {}
 
             def loss(pixels: Tensor, delta: Tensor) -> Tensor:
-                pixels = pixels.to(rays["rgb"].device)
-                origins, directions, viewdirs = camera_corrected_rays(
-                    delta, rays["origins"][pixels], rays["directions"][pixels],
-                    rays["viewdirs"][pixels] if "viewdirs" in rays else None)
-                outputs = self.renderer(origins, directions, deterministic=True, viewdirs=viewdirs,
-                                        codes=None if code is None else code.expand(len(pixels), -1))
-                return F.mse_loss(final_output(outputs)["rgb"].float(), rays["rgb"][pixels].float())
+                return self._fitting_loss(rays, pixels, code, delta)
             delta = self.test_camera_fit(loss, len(rays["rgb"]), seed=int(batch["index"]), device=self.device)
         origins, directions, viewdirs = camera_corrected_rays(delta, batch["origins"], batch["directions"],
                                                               batch.get("viewdirs"))
