@@ -50,6 +50,7 @@ from torch.profiler import ProfilerActivity, profile
 
 from nerfexp.files import atomic_write
 from nerfexp.nerf.bounds import Bounded
+from nerfexp.rundir import layout
 from nerfexp.training.module import NeRFModule
 
 RESULTS = Path(__file__).parent / "results"
@@ -303,10 +304,10 @@ def grown_ops(make: Callable[[], Workload], device: torch.device, top: int = 6) 
 
 
 def cpu_model() -> str:
-    for line in Path("/proc/cpuinfo").read_text().splitlines() if Path("/proc/cpuinfo").exists() else []:
-        if line.startswith("model name"):
-            return line.split(":", 1)[1].strip()
-    return platform.processor() or platform.machine()
+    """The CPU's model name and its timing units (``nerfexp.rundir.layout.cpu_model``)."""
+    if not Path("/proc/cpuinfo").exists():
+        return platform.processor() or platform.machine()
+    return layout.cpu_model(Path("/proc/cpuinfo").read_text())
 
 
 def cpu_flags() -> dict[str, bool]:

@@ -77,6 +77,19 @@ def test_hashgrid_has_instant_ngps_field_and_optimizer_and_no_decay_on_its_table
     assert (enc.table_size, enc.resolutions[-1]) == (2**19, 2048)
 
 
+def test_the_fast_preset_is_the_hash_grid_with_the_occupancy_grid_in_float32_and_the_command_line_wins():
+    cfg, model = build("experiment=fast")
+    assert isinstance(model.renderer.coarse.position_encoding, HashGridEncoding)
+    assert model.renderer.grid is not None and model.renderer.fine is not None  # coarse + fine, as the complete model
+    assert len(model.renderer.coarse.trunk) == 1  # the hash grid's own field (field=ngp)
+    assert cfg.trainer.precision == "32-true" and cfg.scale.steps == cfg.trainer.max_steps == 3000
+    _, default = build()
+    assert isinstance(default.renderer.coarse.position_encoding, PositionalEncoding) and default.renderer.grid is None
+    cfg, model = build("experiment=fast", "encoding=posenc", "scale.steps=50", "trainer.precision=auto")
+    assert isinstance(model.renderer.coarse.position_encoding, PositionalEncoding)  # any setting after it wins
+    assert model.renderer.grid is not None and (cfg.scale.steps, cfg.trainer.precision) == (50, "auto")
+
+
 def test_paper_scale_is_the_papers_network():
     cfg, model = build("scale=paper")
     r = model.renderer

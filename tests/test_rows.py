@@ -109,3 +109,12 @@ def test_the_command_line_refuses_it_before_the_run_directory_is_made(tmp_path):
     assert one_error_line(result).startswith("nerfexp: error: encoding=hashgrid and ablation=no_posenc: the row trains "
                                              "encoding=none, view_dependence=mlp, hierarchical=true")
     assert not (tmp_path / "run").exists()
+
+
+def test_a_row_with_a_preset_that_changes_its_axes_is_refused_in_one_line():
+    # experiment=fast chooses the hash grid after the row chose the positional encoding: the row's label would
+    # name another variant
+    cfg = composed("ablation=complete", "experiment=fast")
+    with pytest.raises(ConfigError) as refused:
+        check_row(cfg, cfg.hydra.runtime.choices, list(cfg.hydra.overrides.task))
+    assert str(refused.value).startswith("ablation=complete with encoding=hashgrid: the row trains encoding=posenc")

@@ -134,3 +134,27 @@ def test_without_a_compiler_the_torch_path_runs_after_one_line(tmp_path, monkeyp
     torch.manual_seed(0)
     enc = small_encoding()
     assert torch.allclose(torch.tensor(record["features"]), enc(torch.rand(50, 3)))
+
+
+@needs_kernel
+def test_with_sparse_gradients_the_kernel_gives_the_torch_paths_rows_read(monkeypatch):
+    # sparse_gradients: the hashed table's gradient holds the rows the batch read, each once and in order, as
+    # the torch path's; the dense levels' gradients stay dense
+    enc = small_encoding(sparse_gradients=True)  # hashed levels of 1,024 rows, 50 points read 400 corners each
+    points = edge_points(enc)[:50]
+    probe = torch.randn(len(points), enc.out_dim, generator=torch.Generator().manual_seed(6))
+    grads = []
+    for switch in ("on", "off"):
+        monkeypatch.setenv(kernels.SWITCH, switch)
+        assert (enc._fused_kernel(points) is FUSED) == (switch == "on")
+        grads.append(features_and_grads(enc, points, probe)[1])
+    (fused, *fused_dense), (reference, *torch_dense) = grads  # the hashed table first, then the dense volumes
+    assert fused.is_sparse and reference.is_sparse
+    rows = fused._indices()[0] * enc.table_size + fused._indices()[1]
+    assert (rows[1:] > rows[:-1]).all()  # each row once, in order (autograd's accumulation drops the flag only)
+    reference = reference.coalesce()
+    assert 0 < fused._nnz() < enc.hashed[..., 0].numel()  # some rows read, not all
+    assert torch.equal(fused._indices(), reference.indices())
+    torch.testing.assert_close(fused._values(), reference.values(), atol=1e-5, rtol=1e-5)
+    for mine, theirs in zip(fused_dense, torch_dense, strict=True):
+        torch.testing.assert_close(mine, theirs, atol=1e-5, rtol=1e-5)

@@ -13,6 +13,7 @@ from pathlib import Path
 
 import pytest
 import tomllib
+import torch
 from hydra.utils import get_class, instantiate
 from omegaconf import OmegaConf
 
@@ -24,6 +25,8 @@ from nerfexp.rundir.layout import (
     LAST_CHECKPOINT,
     RUN_CONFIG,
     append_metrics,
+    cpu_model,
+    machine,
     process_alive,
     process_start,
     read_metrics,
@@ -344,3 +347,18 @@ def test_a_resumed_run_writes_over_only_its_own_files(tmp_path):
             "changed since): move it elsewhere, or continue it in another directory "
             f"(resume={run_dir / LAST_CHECKPOINT} hydra.run.dir=...)")):
         admit_run(run_dir, str(run_dir / LAST_CHECKPOINT))
+
+
+def test_the_machine_record_names_the_cpu_model_and_its_timing_units():
+    """A run's machine line says which CPU measured its times (sessions get different CPUs) and the units
+    that change them; a cpuinfo without flags or a model still gives a word."""
+    amd = "processor : 0\nmodel name : AMD EPYC 9R14 96-Core\nflags : fpu sse avx2 avx512f avx512_bf16\n" \
+          "processor : 1\nmodel name : other\nflags : fpu\n"
+    assert cpu_model(amd) == "AMD EPYC 9R14 96-Core [avx2 avx512f avx512_bf16]"  # the first CPU's
+    assert cpu_model("model name : Intel(R) Xeon(R) Processor\nflags : fpu sse2\n") == "Intel(R) Xeon(R) Processor"
+    assert cpu_model("") == "CPU"
+    if not Path("/proc/cpuinfo").exists() or torch.cuda.is_available():
+        return
+    device = machine()["device"]
+    assert device.startswith(cpu_model(Path("/proc/cpuinfo").read_text()))
+    assert f"({os.cpu_count()} cores" in device

@@ -1,5 +1,6 @@
 """LazyAdam against independent truth: torch.optim.Adam on dense gradients (bit for bit), a float64 reference
-of the lazy rule written one row at a time, and dense Adam where every row is touched every step."""
+of the lazy rule written one row at a time, and dense Adam where every row is touched every step; its fused CPU
+kernel (lazy_adam.cpp, float32) against the same reference and the torch path, to float32 rounding."""
 
 import math
 
@@ -8,10 +9,13 @@ import torch
 from hydra import compose, initialize_config_module
 from hydra.utils import get_class
 
+from nerfexp import kernels
 from nerfexp.errors import ConfigError
-from nerfexp.training.optimizers import LazyAdam, flat_rows, summed_rows
+from nerfexp.training.optimizers import LazyAdam, flat_rows, fused_kernel, summed_rows
 
 SETTINGS = dict(lr=0.05, betas=(0.8, 0.95), eps=1e-6)
+FUSED = kernels.kernel("lazy_adam")
+needs_kernel = pytest.mark.skipif(FUSED is None, reason="the lazy Adam kernel was not built (no C++ compiler)")
 
 
 def sparse(indices: list[list[int]], values: torch.Tensor, shape) -> torch.Tensor:
@@ -86,37 +90,44 @@ def _all_rows(shape) -> list[tuple[int, ...]]:
             .tolist()]
 
 
-def test_the_lazy_update_matches_a_float64_reference_row_by_row():
+@pytest.mark.parametrize("dtype", [torch.float64, pytest.param(torch.float32, marks=needs_kernel)])
+def test_the_lazy_update_matches_a_float64_reference_row_by_row(dtype):
     # a [2, 4, 3] table (2 sparse dims: level and row, 3 features); steps touch few rows, some twice in one
-    # gradient, one step none at all (no gradient: the step count stays)
+    # gradient, one step none at all (no gradient: the step count stays). float64: the torch path, to 1e-12;
+    # float32: the fused kernel, to float32 rounding
     shape = (2, 4, 3)
     start = torch.randn(shape, dtype=torch.float64, generator=torch.Generator().manual_seed(0))
+    tolerance = 1e-12 if dtype == torch.float64 else 2e-6
     generator = torch.Generator().manual_seed(1)
     touched = [[(0, 1), (1, 3), (0, 1)], [(1, 0)], None, [(0, 1), (1, 0), (1, 2), (1, 2), (1, 2)], [(0, 3)]]
     gradients = [None if rows is None else [(row, torch.randn(3, generator=generator, dtype=torch.float64).tolist())
                                             for row in rows] for rows in touched]
     expected, moments = reference_lazy_adam(start, gradients, **SETTINGS)
 
-    param = torch.nn.Parameter(start.clone())
+    param = torch.nn.Parameter(start.to(dtype))
+    assert fused_kernel(param, param.detach()) is (FUSED if dtype == torch.float32 else None)
     optimizer = LazyAdam([param], **SETTINGS)
     for gradient in gradients:
         param.grad = None if gradient is None else sparse(
             [[row[0] for row, _ in gradient], [row[1] for row, _ in gradient]],
-            torch.tensor([values for _, values in gradient], dtype=torch.float64), shape)
+            torch.tensor([values for _, values in gradient], dtype=dtype), shape)
         optimizer.step()
     state = optimizer.state[param]
     assert state["step"] == 4
-    torch.testing.assert_close(param.detach(), expected, rtol=1e-12, atol=1e-12)
+    torch.testing.assert_close(param.detach().double(), expected, rtol=tolerance, atol=tolerance)
     never = [row for row in _all_rows(shape[:2]) if row not in moments]
     assert never == [(0, 0), (0, 2), (1, 1)]
     for row in never:  # never touched: not moved, moments still zero
-        assert torch.equal(param[row].detach(), start[row]) and not state["exp_avg"][row].any()
+        assert torch.equal(param[row].detach(), start[row].to(dtype)) and not state["exp_avg"][row].any()
     for row, (m, v) in moments.items():
-        torch.testing.assert_close(state["exp_avg"][row], torch.tensor(m, dtype=torch.float64), rtol=1e-12, atol=0)
-        torch.testing.assert_close(state["exp_avg_sq"][row], torch.tensor(v, dtype=torch.float64), rtol=1e-12, atol=0)
+        torch.testing.assert_close(state["exp_avg"][row].double(), torch.tensor(m, dtype=torch.float64),
+                                   rtol=tolerance, atol=0)
+        torch.testing.assert_close(state["exp_avg_sq"][row].double(), torch.tensor(v, dtype=torch.float64),
+                                   rtol=tolerance, atol=0)
 
 
-def test_a_row_left_alone_keeps_its_value_and_moments_where_dense_adam_moves_it():
+def test_a_row_left_alone_keeps_its_value_and_moments_where_dense_adam_moves_it(monkeypatch):
+    monkeypatch.setenv(kernels.SWITCH, "off")  # the torch path, Adam's own operations: bit for bit
     param = torch.nn.Parameter(torch.zeros(3, 2))
     dense = torch.nn.Parameter(torch.zeros(3, 2))
     lazy_optimizer, dense_optimizer = LazyAdam([param], **SETTINGS), torch.optim.Adam([dense], **SETTINGS)
@@ -133,7 +144,12 @@ def test_a_row_left_alone_keeps_its_value_and_moments_where_dense_adam_moves_it(
     assert torch.equal(param[1].detach(), torch.zeros(2))
 
 
-def test_lazy_equals_dense_adam_when_every_row_is_touched_every_step():
+@pytest.mark.parametrize("fused", [False, pytest.param(True, marks=needs_kernel)])
+def test_lazy_equals_dense_adam_when_every_row_is_touched_every_step(fused, monkeypatch):
+    # the torch path bit for bit (Adam's own operations); the fused kernel to float32 rounding
+    monkeypatch.setenv(kernels.SWITCH, "on" if fused else "off")
+    same = (lambda a, b: torch.testing.assert_close(a, b, rtol=1e-5, atol=1e-7)) if fused else \
+        (lambda a, b: torch.testing.assert_close(a, b, rtol=0, atol=0))
     shape = (3, 8, 2)
     start = torch.randn(shape, generator=torch.Generator().manual_seed(0))
     lazy, dense = torch.nn.Parameter(start.clone()), torch.nn.Parameter(start.clone())
@@ -146,9 +162,11 @@ def test_lazy_equals_dense_adam_when_every_row_is_touched_every_step():
                                            check_invariants=True)
         lazy.grad, dense.grad = gradient, gradient.to_dense()
         lazy_optimizer.step(), dense_optimizer.step()
-    assert torch.equal(lazy.detach(), dense.detach())
-    assert all(torch.equal(lazy_optimizer.state[lazy][k], dense_optimizer.state[dense][k])
-               for k in ("step", "exp_avg", "exp_avg_sq"))
+    assert (fused_kernel(lazy, lazy.detach()) is not None) == fused
+    same(lazy.detach(), dense.detach())
+    for key in ("step", "exp_avg", "exp_avg_sq"):
+        same(lazy_optimizer.state[lazy][key], dense_optimizer.state[dense][key])
+    assert not torch.equal(lazy.detach(), start)
 
 
 def test_fused_lazy_adam_updates_sparse_rows_as_unfused_and_dense_parameters_as_fused_adam():
@@ -239,3 +257,29 @@ def test_the_configs_choose_their_optimizer_and_gradients(overrides, optimizer, 
         cfg = compose("config", overrides=overrides)
     assert cfg.model.optimizer._target_ == optimizer and cfg.encoding.position.get("sparse_gradients") is sparse
     assert issubclass(get_class(optimizer), torch.optim.Adam)
+
+
+@needs_kernel
+def test_the_fused_lazy_update_follows_the_torch_path_over_many_steps(monkeypatch):
+    # a hash table's shape: rows read many times per step, most rows untouched in each; ten steps, each row's
+    # value and moments from the kernel within float32 rounding of the torch path's, untouched rows bit for bit
+    shape = (4, 256, 2)
+    start = torch.randn(shape, generator=torch.Generator().manual_seed(0))
+    results = []
+    for switch in ("on", "off"):
+        monkeypatch.setenv(kernels.SWITCH, switch)
+        param = torch.nn.Parameter(start.clone())
+        optimizer = LazyAdam([param], lr=1e-2, betas=(0.9, 0.99), eps=1e-15)
+        generator = torch.Generator().manual_seed(1)
+        for _ in range(10):
+            rows = torch.stack([torch.randint(0, 4, (300,), generator=generator),
+                                torch.randint(0, 64, (300,), generator=generator)])  # rows 64.. never read
+            param.grad = sparse(rows.tolist(), torch.randn(300, 2, generator=generator), shape)
+            optimizer.step()
+        results.append((param.detach(), optimizer.state[param]))
+    (fused, fused_state), (reference, reference_state) = results
+    torch.testing.assert_close(fused, reference, rtol=1e-5, atol=1e-7)
+    for key in ("exp_avg", "exp_avg_sq"):
+        torch.testing.assert_close(fused_state[key], reference_state[key], rtol=1e-5, atol=1e-7)  # gradients ~ 1
+    assert torch.equal(fused[:, 64:], start[:, 64:]) and not fused_state["exp_avg"][:, 64:].any()
+    assert not torch.equal(fused[:, :64], start[:, :64])

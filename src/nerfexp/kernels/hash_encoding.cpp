@@ -96,25 +96,18 @@ torch::Tensor hash_encoding_forward(torch::Tensor unit, std::vector<torch::Tenso
   return out;
 }
 
-// The gradients of the dense volumes and of the hashed table (new zero tensors, then summed into), from the
-// gradient of the features [N, L F].
-std::vector<torch::Tensor> hash_encoding_backward(torch::Tensor unit, torch::Tensor grad,
-                                                  std::vector<torch::Tensor> dense, torch::Tensor hashed,
-                                                  std::vector<int64_t> dense_res, std::vector<int64_t> hashed_res,
-                                                  int64_t features) {
-  const int64_t N = unit.size(0), T = hashed.size(1);
-  std::vector<torch::Tensor> grads;
-  for (auto& volume : dense) grads.push_back(torch::zeros_like(volume));
-  auto hashed_grad = torch::zeros_like(hashed);
-  std::vector<torch::Tensor> dense_grads(grads.begin(), grads.end());
-  std::vector<Level> levels = levels_of(dense_grads, hashed_grad, dense_res, hashed_res);
-  const int64_t L = static_cast<int64_t>(levels.size()), F = features;
-  const float* u = unit.data_ptr<float>();
-  const float* g = grad.data_ptr<float>();
+namespace {
+
+// Sums each level's gradient from the features' gradient ``g`` [N, L F] into ``levels`` (zeroed storage of the
+// gradients' layout), parallel over levels; with ``touched`` [Lh, T] (or null), marks each hashed row summed into.
+void accumulate(const float* u, const float* g, int64_t N, int64_t T, int64_t F, const std::vector<Level>& levels,
+                int64_t n_dense, uint8_t* touched) {
+  const int64_t L = static_cast<int64_t>(levels.size());
   at::parallel_for(0, L, 1, [&](int64_t begin, int64_t end) {
     Corners c;
     for (int64_t l = begin; l < end; ++l) {
       const Level& level = levels[l];
+      uint8_t* marks = (touched != nullptr && level.hashed) ? touched + (l - n_dense) * T : nullptr;
       for (int64_t p = 0; p < N; ++p) {
         corners_of(u + 3 * p, level.n, level.hashed, T, level.row_stride, c);
         for (int64_t f = 0; f < F; ++f) {
@@ -122,14 +115,84 @@ std::vector<torch::Tensor> hash_encoding_backward(torch::Tensor unit, torch::Ten
           float* values = level.data + f * level.feature_stride;
           for (int k = 0; k < 8; ++k) values[c.offset[k]] += c.weight[k] * gradient;
         }
+        if (marks != nullptr)
+          for (int k = 0; k < 8; ++k) marks[c.offset[k] / F] = 1;
       }
     }
   });
+}
+
+}  // namespace
+
+// The gradients of the dense volumes and of the hashed table (new zero tensors, then summed into), from the
+// gradient of the features [N, L F].
+std::vector<torch::Tensor> hash_encoding_backward(torch::Tensor unit, torch::Tensor grad,
+                                                  std::vector<torch::Tensor> dense, torch::Tensor hashed,
+                                                  std::vector<int64_t> dense_res, std::vector<int64_t> hashed_res,
+                                                  int64_t features) {
+  std::vector<torch::Tensor> grads;
+  for (auto& volume : dense) grads.push_back(torch::zeros_like(volume));
+  auto hashed_grad = torch::zeros_like(hashed);
+  std::vector<torch::Tensor> dense_grads(grads.begin(), grads.end());
+  const std::vector<Level> levels = levels_of(dense_grads, hashed_grad, dense_res, hashed_res);
+  accumulate(unit.data_ptr<float>(), grad.data_ptr<float>(), unit.size(0), hashed.size(1), features, levels,
+             static_cast<int64_t>(dense.size()), nullptr);
   grads.push_back(hashed_grad);
+  return grads;
+}
+
+// As ``hash_encoding_backward``, but the hashed table's gradient as the rows the positions read, each once:
+// their indices [2, U] (level, row; ascending, level first) and summed values [U, F], the parts of a coalesced
+// sparse COO tensor of the table's shape. Returns the dense volumes' gradients, then indices, then values.
+std::vector<torch::Tensor> hash_encoding_backward_rows(torch::Tensor unit, torch::Tensor grad,
+                                                       std::vector<torch::Tensor> dense, torch::Tensor hashed,
+                                                       std::vector<int64_t> dense_res,
+                                                       std::vector<int64_t> hashed_res, int64_t features) {
+  const int64_t Lh = hashed.size(0), T = hashed.size(1), F = features;
+  std::vector<torch::Tensor> grads;
+  for (auto& volume : dense) grads.push_back(torch::zeros_like(volume));
+  auto sums = torch::zeros_like(hashed);  // [Lh, T, F]
+  auto touched = torch::zeros({Lh, T}, hashed.options().dtype(torch::kUInt8));
+  std::vector<torch::Tensor> dense_grads(grads.begin(), grads.end());
+  const std::vector<Level> levels = levels_of(dense_grads, sums, dense_res, hashed_res);
+  uint8_t* marks = touched.data_ptr<uint8_t>();
+  accumulate(unit.data_ptr<float>(), grad.data_ptr<float>(), unit.size(0), T, F, levels,
+             static_cast<int64_t>(dense.size()), marks);
+  std::vector<int64_t> first(Lh + 1, 0);  // each level's first slot in the output
+  at::parallel_for(0, Lh, 1, [&](int64_t begin, int64_t end) {
+    for (int64_t h = begin; h < end; ++h) {
+      int64_t count = 0;
+      for (int64_t r = 0; r < T; ++r) count += marks[h * T + r];
+      first[h + 1] = count;
+    }
+  });
+  for (int64_t h = 0; h < Lh; ++h) first[h + 1] += first[h];
+  auto indices = torch::empty({2, first[Lh]}, hashed.options().dtype(torch::kInt64));
+  auto values = torch::empty({first[Lh], F}, hashed.options());
+  int64_t* level_index = indices.data_ptr<int64_t>();
+  int64_t* row_index = level_index + first[Lh];
+  float* out = values.data_ptr<float>();
+  const float* summed = sums.data_ptr<float>();
+  at::parallel_for(0, Lh, 1, [&](int64_t begin, int64_t end) {
+    for (int64_t h = begin; h < end; ++h) {
+      int64_t slot = first[h];
+      for (int64_t r = 0; r < T; ++r) {
+        if (!marks[h * T + r]) continue;
+        level_index[slot] = h;
+        row_index[slot] = r;
+        for (int64_t f = 0; f < F; ++f) out[slot * F + f] = summed[(h * T + r) * F + f];
+        ++slot;
+      }
+    }
+  });
+  grads.push_back(indices);
+  grads.push_back(values);
   return grads;
 }
 
 PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
   m.def("forward", &hash_encoding_forward, "the hash encoding's features of unit positions");
   m.def("backward", &hash_encoding_backward, "the gradients of the dense volumes and the hashed table");
+  m.def("backward_rows", &hash_encoding_backward_rows,
+        "the dense volumes' gradients, and the hashed table's as the rows read: indices [2, U] and values [U, F]");
 }

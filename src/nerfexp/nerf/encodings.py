@@ -169,21 +169,28 @@ class _InterpolateRows(torch.autograd.Function):
 
 class _FusedHashEncoding(torch.autograd.Function):
     """``HashGridEncoding``'s features of unit positions [N, 3] by the fused kernel (``nerfexp.kernels``,
-    hash_encoding.cpp): forward [N, L F]; backward the dense gradients of the hashed table [L_h, T, F] and of each
-    dense volume [1, F, n+1, n+1, n+1] (none to the positions)."""
+    hash_encoding.cpp): forward [N, L F]; backward the gradients of each dense volume [1, F, n+1, n+1, n+1] (dense)
+    and of the hashed table [L_h, T, F]: dense, or with ``sparse`` the coalesced sparse COO tensor of the rows read
+    (as ``touched_row_sums`` makes it); none to the positions."""
 
     @staticmethod
-    def forward(ctx, unit: Tensor, fused, shape: tuple, hashed: Tensor, *dense: Tensor) -> Tensor:
+    def forward(ctx, unit: Tensor, fused, shape: tuple, sparse: bool, hashed: Tensor, *dense: Tensor) -> Tensor:
         ctx.save_for_backward(unit, hashed, *dense)
-        ctx.fused, ctx.shape = fused, shape  # shape: HashGridEncoding.kernel_shape()
+        ctx.fused, ctx.shape, ctx.sparse = fused, shape, sparse  # shape: HashGridEncoding.kernel_shape()
         return fused.forward(unit, [volume[0] for volume in dense], hashed, *ctx.shape)
 
     @staticmethod
     def backward(ctx, grad: Tensor):
         unit, hashed, *dense = ctx.saved_tensors
-        *dense_grads, hashed_grad = ctx.fused.backward(unit, grad.contiguous(), [volume[0] for volume in dense],
-                                                      hashed, *ctx.shape)
-        return None, None, None, hashed_grad, *(g[None] for g in dense_grads)
+        volumes = [volume[0] for volume in dense]
+        if ctx.sparse:
+            *dense_grads, indices, values = ctx.fused.backward_rows(unit, grad.contiguous(), volumes, hashed,
+                                                                    *ctx.shape)
+            hashed_grad = torch.sparse_coo_tensor(indices, values, hashed.shape, is_coalesced=True,
+                                                  check_invariants=False)
+        else:
+            *dense_grads, hashed_grad = ctx.fused.backward(unit, grad.contiguous(), volumes, hashed, *ctx.shape)
+        return None, None, None, None, hashed_grad, *(g[None] for g in dense_grads)
 
 
 def flat_indices(rows: Tensor, n_rows: int, n_features: int) -> Tensor:
@@ -371,8 +378,8 @@ class HashGridEncoding(Bounded, Encoding):
         parts = [points] if self.include_input else []
         fused = self._fused_kernel(unit)
         if fused is not None:
-            parts.append(_FusedHashEncoding.apply(unit.contiguous(), fused, self.kernel_shape(), self.hashed,
-                                                  *self.dense))
+            parts.append(_FusedHashEncoding.apply(unit.contiguous(), fused, self.kernel_shape(), self.sparse_gradients,
+                                                  self.hashed, *self.dense))
             return torch.cat(parts, -1).view(*x.shape[:-1], self.out_dim)
         grid = (2 * unit - 1).view(1, -1, 1, 1, 3).flip(-1)  # grid_sample reads (x, y, z) as (k, j, i)
         for volume in self.dense:  # [1, F, N+1, N+1, N+1], indexed [i, j, k]
@@ -383,10 +390,11 @@ class HashGridEncoding(Bounded, Encoding):
 
     def _fused_kernel(self, unit: Tensor):
         """The fused CPU kernel (``nerfexp.kernels``, hash_encoding.cpp) where it computes this forward and its
-        backward: float32 on a CPU, the tables' gradients dense, positions not differentiated (normals from the
-        density take autograd's own path, differentiable twice), not traced by ``torch.compile`` (which compiles
-        the torch path's operators itself, ``model.compile=true``); else None (the torch path, its reference)."""
-        if (unit.device.type != "cpu" or self.hashed.dtype != torch.float32 or self.sparse_gradients
+        backward: float32 on a CPU (the hashed table's gradient dense, or its rows read with ``sparse_gradients``),
+        positions not differentiated (normals from the density take autograd's own path, differentiable twice), not
+        traced by ``torch.compile`` (which compiles the torch path's operators itself, ``model.compile=true``);
+        else None (the torch path, its reference)."""
+        if (unit.device.type != "cpu" or self.hashed.dtype != torch.float32
                 or (torch.is_grad_enabled() and unit.requires_grad) or torch.compiler.is_compiling()):
             return None
         return kernel("hash_encoding")

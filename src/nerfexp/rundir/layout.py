@@ -218,12 +218,36 @@ def planned_jobs(directory: Path) -> int | None:
     return jobs
 
 
+CPU_UNITS = ("avx2", "avx512f", "avx512_bf16", "amx_bf16")  # /proc/cpuinfo flags that change a CPU's timings
+
+
+def cpu_model(cpuinfo: str) -> str:
+    """The first CPU's model name and which of ``CPU_UNITS`` it has, from a Linux ``/proc/cpuinfo`` text:
+    e.g. "Intel(R) Xeon(R) Processor [avx2 avx512f avx512_bf16 amx_bf16]"; "CPU" where the text names none.
+
+    >>> cpu_model("model name : AMD EPYC 9R14\\nflags : fpu avx2 avx512f\\n")
+    'AMD EPYC 9R14 [avx2 avx512f]'
+    """
+    fields = {}
+    for line in cpuinfo.splitlines():
+        key, _, value = line.partition(":")
+        fields.setdefault(key.strip(), value.strip())
+    flags = set(fields.get("flags", "").split())
+    units = " ".join(unit for unit in CPU_UNITS if unit in flags)
+    return f"{fields.get('model name', 'CPU')} [{units}]" if units else fields.get("model name", "CPU")
+
+
 def machine() -> dict:
-    """Where a run's times were measured: host name and compute device."""
+    """Where a run's times were measured: host name and compute device (a CPU's model and units, whose
+    timings differ from machine to machine)."""
     if torch.cuda.is_available():
         device = f"{torch.cuda.get_device_name()} (CUDA {torch.version.cuda})"
     else:
-        device = f"CPU ({os.cpu_count()} cores, {torch.get_num_threads()} torch threads)"
+        try:
+            model = cpu_model(Path("/proc/cpuinfo").read_text())
+        except OSError:
+            model = "CPU"
+        device = f"{model} ({os.cpu_count()} cores, {torch.get_num_threads()} torch threads)"
     return {"host": socket.gethostname(), "device": device}
 
 

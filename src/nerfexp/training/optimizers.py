@@ -6,10 +6,13 @@ Naming: a sparse gradient is a COO tensor of its parameter's shape [*S, *D], hyb
 (F); a "row" is one index into S, and ``values()`` [U, *D] hold the U rows it touches.
 """
 
+import math
+
 import torch
 from torch import Tensor
 
 from nerfexp.errors import ConfigError
+from nerfexp.kernels import kernel
 
 
 def flat_rows(indices: Tensor, sizes: torch.Size) -> Tensor:
@@ -37,6 +40,15 @@ def summed_rows(grad: Tensor) -> tuple[Tensor, Tensor]:
     return flat_rows(grad.indices(), sizes), grad.values()
 
 
+def fused_kernel(param: Tensor, values: Tensor):
+    """The fused lazy update (``nerfexp.kernels``, lazy_adam.cpp) where it computes ``lazy_adam_update``: a
+    contiguous float32 parameter and gradient on a CPU; else None, the torch path (the reference)."""
+    if param.device.type != "cpu" or param.dtype != torch.float32 or values.dtype != torch.float32 \
+            or not param.is_contiguous():
+        return None
+    return kernel("lazy_adam")
+
+
 def lazy_adam_update(param: Tensor, grad: Tensor, exp_avg: Tensor, exp_avg_sq: Tensor, step: float, lr: float,
                      beta1: float, beta2: float, eps: float) -> None:
     """Adam's update of the rows the sparse ``grad`` holds, in place; every other row of ``param``,
@@ -47,10 +59,17 @@ def lazy_adam_update(param: Tensor, grad: Tensor, exp_avg: Tensor, exp_avg_sq: T
         p <- p - lr / (1 - beta1^t) * m / (sqrt(v) / sqrt(1 - beta2^t) + eps)
 
     written with torch.optim.Adam's own operations (``lerp_``, ``addcmul_``, ``addcdiv_``), so that a
-    gradient that touches every row updates the parameter as Adam does. param, exp_avg, exp_avg_sq
-    [*S, *D] (contiguous), grad sparse COO [*S, *D]."""
+    gradient that touches every row updates the parameter as Adam does. On a CPU in float32 the fused kernel
+    (``fused_kernel``) runs the same arithmetic in one pass over the rows; this torch path is its reference.
+    param, exp_avg, exp_avg_sq [*S, *D] (contiguous), grad sparse COO [*S, *D]."""
     rows, values = summed_rows(grad)  # [U], [U, *D]
     dense_shape = param.shape[grad.sparse_dim():]
+    fused = fused_kernel(param, values)
+    if fused is not None:  # the same update in one pass over the rows (lazy_adam.cpp)
+        width = math.prod(dense_shape)
+        fused.rows(param.view(-1, width), exp_avg.view(-1, width), exp_avg_sq.view(-1, width), rows.long(),
+                   values.reshape(-1, width).contiguous(), step, lr, beta1, beta2, eps)
+        return
 
     def flat(tensor: Tensor) -> Tensor:
         return tensor.view(-1, *dense_shape)  # [rows, *D]

@@ -1,0 +1,43 @@
+// Adam's update of the rows a sparse gradient holds (nerfexp.training.optimizers.lazy_adam_update), in one pass
+// over those rows, parallel over them: each touched row's moments and values read once and written once, every
+// other row of the parameter left as it is. The arithmetic is torch.optim.Adam's, operation for operation (as
+// lazy_adam_update writes it with lerp_, mul_, addcmul_, sqrt, div, add_ and addcdiv_), in float32, equal to it
+// within float32 rounding (ATen's vectorized loops may fuse a multiply and an add where this one rounds twice).
+//
+// Inputs: the parameter, its first and second moments, each [R, D] (contiguous float32, R rows of D values);
+// rows [U] (int64, distinct) and their summed gradients values [U, D]; the step's scalars.
+#include <torch/extension.h>
+#include <ATen/Parallel.h>
+
+#include <cmath>
+
+void lazy_adam_rows(torch::Tensor param, torch::Tensor exp_avg, torch::Tensor exp_avg_sq, torch::Tensor rows,
+                    torch::Tensor values, double step, double lr, double beta1, double beta2, double eps) {
+  const int64_t U = rows.size(0), D = values.size(1);
+  float* p = param.data_ptr<float>();
+  float* m = exp_avg.data_ptr<float>();
+  float* v = exp_avg_sq.data_ptr<float>();
+  const int64_t* r = rows.data_ptr<int64_t>();
+  const float* g = values.data_ptr<float>();
+  // the scalars as torch's float32 kernels take them: Python floats converted to the tensors' type
+  const float w1 = static_cast<float>(1 - beta1), b2 = static_cast<float>(beta2), w2 = static_cast<float>(1 - beta2);
+  const float root_correction2 = static_cast<float>(std::sqrt(1 - std::pow(beta2, step)));
+  const float step_size = static_cast<float>(-lr / (1 - std::pow(beta1, step))), epsilon = static_cast<float>(eps);
+  at::parallel_for(0, U, 1024, [&](int64_t begin, int64_t end) {
+    for (int64_t i = begin; i < end; ++i)
+      for (int64_t d = 0; d < D; ++d) {
+        const int64_t at = r[i] * D + d;
+        const float gradient = g[i * D + d];
+        const float first = m[at] + w1 * (gradient - m[at]);  // lerp_(gradient, 1 - beta1), one of its two forms
+        const float second = v[at] * b2 + w2 * gradient * gradient;  // mul_(beta2).addcmul_(g, g, 1 - beta2)
+        const float denom = std::sqrt(second) / root_correction2 + epsilon;
+        m[at] = first;
+        v[at] = second;
+        p[at] = p[at] + step_size * first / denom;  // addcdiv_(first, denom, value=-lr / bias_correction1)
+      }
+  });
+}
+
+PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
+  m.def("rows", &lazy_adam_rows, "Adam's update of the given rows of a parameter and its moments, in place");
+}
