@@ -50,7 +50,7 @@ def train(overrides: list[str]):
 
 
 @torch.no_grad()
-def inspect(model, datamodule, n_rays: int) -> dict:
+def grid_state(model, datamodule, n_rays: int) -> dict:
     """The grid's state and what the fine network's samples on ``n_rays`` test rays absorb."""
     model.eval()
     renderer, grid = model.renderer, model.renderer.grid
@@ -69,7 +69,7 @@ def inspect(model, datamodule, n_rays: int) -> dict:
     density = model.renderer.fine.density(points[keep]).float()
     wasted = weights < WASTED
     quantiles = torch.quantile(density[wasted], torch.tensor([0.5, 0.9, 0.99])) if wasted.any() else torch.zeros(3)
-    index, inside = cell_indices(points, grid.aabb, grid.resolution)
+    _, inside = cell_indices(points, grid.aabb, grid.resolution)
     return {"occupied_share": float(occupied.float().mean()), "sigma_t": sigma_t, "mean_estimate": mean,
             "limit": "mean" if mean < sigma_t else "sigma_t",
             "cells_above_sigma_t": int((grid.density > sigma_t).sum()),
@@ -115,7 +115,7 @@ def main() -> None:
     rows = {}
     for name, encoding in ENCODINGS.items():
         model, datamodule = train([*overrides, *encoding])
-        rows[name] = inspect(model, datamodule, args.rays)
+        rows[name] = grid_state(model, datamodule, args.rays)
         print(name, rows[name], flush=True)
     record = {"command": "python " + " ".join(sys.argv), "steps": args.steps, "rays": args.rays,
               "overrides": [o for o in overrides if not o.startswith("data.root")], "machine": machine(),
