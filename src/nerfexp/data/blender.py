@@ -22,7 +22,7 @@ from tqdm import tqdm
 
 from nerfexp.data.base import Scene
 from nerfexp.data.images import downscale_rgba, fit_factor, has_alpha, read_image
-from nerfexp.data.views import Views
+from nerfexp.data.views import Source, Views, check_shared_file
 from nerfexp.domains import COUNT, Rule
 from nerfexp.errors import DatasetError
 from nerfexp.files import atomic_write
@@ -137,10 +137,14 @@ def load_blender(root, split: str, downscale: int = 1, max_views: int | None = N
         )
     transforms = root / TRANSFORMS.format(split=split)
     camera_angle_x, frames = read_transforms(transforms)
+    numbers = range(len(frames))[::stride][:max_views]  # the frames kept, by their place in the file
     frames = frames[::stride][:max_views]
+    sources = [Source(f"{transforms}: frame {k} ({file_path})", image_path(root, file_path))
+               for k, (file_path, _) in zip(numbers, frames)]
+    check_shared_file(sources, str(transforms))
     images, first = [], None
-    for file_path, _ in tqdm(frames, desc=f"loading {split}", unit="image", disable=None):
-        path = image_path(root, file_path)
+    for source, (file_path, _) in zip(sources, tqdm(frames, desc=f"loading {split}", unit="image", disable=None)):
+        path = source.path
         image = read_image(path, f"file_path {file_path!r} in {transforms}")
         alpha = has_alpha(path)
         if first is None:
@@ -162,7 +166,7 @@ def load_blender(root, split: str, downscale: int = 1, max_views: int | None = N
     if h * W != H * w:  # rows and columns shrunk by different factors (the factor does not divide a side)
         lenses.params[:, 1] *= (h * W) / (H * w)  # fy follows the height
     c2w = torch.stack([matrix for _, matrix in frames]).float()
-    return Views(rgba=rgba, c2w=c2w, intrinsics=lenses)
+    return Views(rgba=rgba, c2w=c2w, intrinsics=lenses, sources=tuple(sources))
 
 
 @dataclass

@@ -57,7 +57,7 @@ from nerfexp.data.colmap_sfm import (
 )
 from nerfexp.data.images import downscale_rgba, fit_factor, read_image
 from nerfexp.data.video import FPS_RANGE, video_frames
-from nerfexp.data.views import Views, holdout_split
+from nerfexp.data.views import Source, Views, check_shared_file, holdout_split
 from nerfexp.domains import (
     BOOLEAN,
     COUNT,
@@ -214,6 +214,8 @@ def read_views(data: ColmapData, index: Tensor, downscale: int = 1, max_side: in
     ``max_side`` is set, by the smallest further integer factor that brings the longer side to at most
     ``max_side``; the lenses follow the images' size (``Intrinsics.resized``)."""
     shrink = downscale * fit_factor(max(data.width, data.height) // downscale, max_side)
+    sources = tuple(Source(str(data.image_dir / data.names[i]), data.image_dir / data.names[i]) for i in index.tolist())
+    check_shared_file(sources, str(data.image_dir))
     images = []
     for i in tqdm(index.tolist(), desc="loading colmap", unit="image", disable=None):
         path = data.image_dir / data.names[i]
@@ -225,7 +227,7 @@ def read_views(data: ColmapData, index: Tensor, downscale: int = 1, max_side: in
         images.append(downscale_rgba(rgba, shrink) if shrink > 1 else rgba)
     rgba = torch.cat(images) if images else torch.zeros(0, data.height // shrink, data.width // shrink, 4)
     intrinsics = data.intrinsics[index].resized((data.height, data.width), tuple(rgba.shape[1:3]))
-    return Views(rgba=rgba, c2w=data.c2w[index].float(), intrinsics=intrinsics)
+    return Views(rgba=rgba, c2w=data.c2w[index].float(), intrinsics=intrinsics, sources=sources)
 
 
 @dataclass

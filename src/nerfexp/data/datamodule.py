@@ -6,6 +6,7 @@ them into the model's rays (NDC for forward-facing LLFF scenes) and adds the wor
 """
 
 import functools
+from dataclasses import replace
 
 import lightning as L
 import torch
@@ -17,8 +18,11 @@ from torch.utils.data import DataLoader
 from nerfexp.data.base import Scene
 from nerfexp.data.pose_noise import check_pose_noise, perturbed_poses
 from nerfexp.data.rays import RandomRays, WholeImages, model_batch
-from nerfexp.data.views import Views
+from nerfexp.data.views import Views, check_distinct_views
 from nerfexp.nerf.backgrounds import BACKGROUNDS
+
+SPLITS = ("train", "val", "test")
+SCORED = {"fit": ("val", "test"), "test": ("test",)}  # the splits that training and a test alone score
 
 
 def fill_ray_bounds(cfg: DictConfig) -> None:
@@ -60,8 +64,7 @@ class RayDataModule(L.LightningDataModule):
         """``views`` with their poses perturbed by ``pose_noise`` (``nerfexp.data.pose_noise``, seeded with the
         run's seed); the true poses kept as ``true_train_poses``."""
         self.true_train_poses = views.c2w
-        c2w = perturbed_poses(views.c2w, *self.pose_noise, self.seed)
-        return Views(rgba=views.rgba, c2w=c2w, intrinsics=views.intrinsics, mask=views.mask)
+        return replace(views, c2w=perturbed_poses(views.c2w, *self.pose_noise, self.seed))
 
     def train_views(self) -> Views:
         """The training views as training sees them (their poses perturbed where ``pose_noise`` says)."""
@@ -70,10 +73,19 @@ class RayDataModule(L.LightningDataModule):
     def setup(self, stage: str) -> None:
         """Before training, every split is loaded (and checked, as each format's loader checks it), so that
         bad data anywhere (a NaN pose in the test split, a missing image) stops a run before its first
-        step rather than after it."""
+        step rather than after it; then the splits are checked to share no view that they may not
+        (``check_distinct_views``: no training view among the validation or test views, no view twice in a
+        split), the training views with the poses the scene gave."""
         if stage == "fit":
-            for split in ("train", "val", "test"):
-                self._views(split)
+            given = {split: self._views(split) for split in SPLITS}
+            if self.true_train_poses is not None:
+                given["train"] = replace(given["train"], c2w=self.true_train_poses)
+            check_distinct_views(given)
+
+    def scored_views(self, stage: str) -> dict[str, Views]:
+        """The views that ``stage`` ("fit": training, then its test; "test": a test alone) scores, by split
+        (``SCORED``)."""
+        return {split: self._views(split) for split in SCORED[stage]}
 
     def train_dataloader(self) -> DataLoader:
         trainer = self.trainer

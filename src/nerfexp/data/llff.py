@@ -33,7 +33,7 @@ from tqdm import tqdm
 
 from nerfexp.data.base import Scene
 from nerfexp.data.images import downscale_rgba, fit_factor, read_image
-from nerfexp.data.views import IMAGE_SUFFIXES, Views, holdout_split
+from nerfexp.data.views import IMAGE_SUFFIXES, Source, Views, check_shared_file, holdout_split
 from nerfexp.domains import BOOLEAN, COUNT, INTEGER_LIMIT, Rule, whole
 from nerfexp.errors import ConfigError, DatasetError
 from nerfexp.files import atomic_write
@@ -199,10 +199,14 @@ def load_llff(root, factor: int = 1, holdout: int = 8, n_val: int = 2, max_side:
     shrunk = root / f"images_{factor}"
     folder, shrink = (shrunk, 1) if factor > 1 and shrunk.is_dir() else (root / "images", factor)
     height, width, focal = poses[0, :, 4].tolist()
-    rgba = read_images(image_files(folder, len(poses), poses_path), poses_path, (height, width), shrink, max_side)
+    files = image_files(folder, len(poses), poses_path)
+    sources = tuple(Source(f"{path} (row {i} of {poses_path})", path) for i, path in enumerate(files))
+    check_shared_file(sources, str(folder))
+    rgba = read_images(files, poses_path, (height, width), shrink, max_side)
     c2w, bounds, scale = normalize_poses(llff_to_c2w(poses), bounds)
     recorded = Intrinsics.pinhole(focal, height, width, (len(poses),))  # LLFF's one centred pinhole, as recorded
-    views = Views(rgba=rgba, c2w=c2w.float(), intrinsics=recorded.resized((height, width), rgba.shape[1:3]))
+    views = Views(rgba=rgba, c2w=c2w.float(), intrinsics=recorded.resized((height, width), rgba.shape[1:3]),
+                  sources=sources)
     return LLFFData(views=views, bounds=bounds, scale=scale, splits=holdout_split(len(poses), holdout, n_val, n_train))
 
 

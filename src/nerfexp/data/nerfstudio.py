@@ -26,7 +26,10 @@ Reading (``NerfstudioScene``):
 - masks: 8-bit images, 0 where a pixel does not count (in neither the loss nor the scores);
 - splits: the file's ``train_filenames`` / ``val_filenames`` / ``test_filenames`` where it lists them
   (``val`` the first ``n_val`` test views where it lists none), else every ``holdout``-th frame a test view
-  (``holdout_split``, as for LLFF and COLMAP scenes); which rule made the split is ``split_rule()``;
+  (``holdout_split``, as for LLFF and COLMAP scenes); which rule made the split is ``split_rule()``; the lists'
+  entries are matched to frames by ``spelling`` (``images//a.png`` is ``images/a.png``), a frame listed twice or
+  in ``train_filenames`` and another list is refused (validation may list test frames), and so are two frames
+  whose images are one file under any spelling or link (``check_shared_file``), before any image is read;
 - poses: camera centres moved and scaled to lie within ``bound`` of the origin (``normalize_centres``, as
   for COLMAP scenes); ``near`` and ``far`` given, or ``NEAR_FRACTION`` x ``bound`` and ``FAR_FACTOR`` x
   ``bound`` (every camera lies within ``bound``, so a ray crosses the cameras' ball within 2 ``bound``).
@@ -48,7 +51,7 @@ from tqdm import tqdm
 from nerfexp.data.base import Scene
 from nerfexp.data.blender import checked_frames, is_number, pose_matrix
 from nerfexp.data.images import downscale_rgba, fit_factor, read_image
-from nerfexp.data.views import Views, holdout_split, shrink_mask
+from nerfexp.data.views import SPLIT_NAMES, Source, Views, check_shared_file, holdout_split, shrink_mask
 from nerfexp.domains import COUNT, FAR, INTEGER_LIMIT, TEXT, Rule, whole
 from nerfexp.errors import DatasetError
 from nerfexp.files import atomic_write
@@ -174,24 +177,18 @@ def read_capture(path: Path) -> Capture:
                             f"{where} ({file_path})"))
         frame_lens_fields(parsed[-1], defaults, None)  # checked now; the image's size is known later
     parsed.sort(key=lambda frame: frame.file_path)
-    names = [frame.file_path for frame in parsed]
-    if len(set(names)) < len(names):
-        twice = next(name for name in names if names.count(name) > 1)
-        raise DatasetError(f"{path}: two frames name the file_path {twice!r}")
+    frame_of: dict[str, Frame] = {}  # each frame by its file's spelling (``spelling``)
+    for frame in parsed:
+        if (other := frame_of.setdefault(spelling(frame.file_path), frame)) is not frame:
+            raise DatasetError(f"{other.where} and {frame.where} name one file: one view counted twice; list each "
+                               "image once")
     splits = None
     if any(key in content for key in SPLIT_KEYS.values()):
-        splits = {}
-        for split, key in SPLIT_KEYS.items():
-            listed = content.get(key, [])
-            if not isinstance(listed, list) or not all(isinstance(name, str) for name in listed):
-                raise DatasetError(f"{path}: '{key}' must be a list of file paths, got {str(listed)[:80]}")
-            unknown = [name for name in listed if name not in names]
-            if unknown:
-                raise DatasetError(f"{path}: '{key}' names {unknown[0]!r}, which no frame's 'file_path' is")
-            splits[split] = listed
+        splits = {split: listed_frames(path, content, key, frame_of) for split, key in SPLIT_KEYS.items()}
         if not splits["train"] or not splits["test"]:
             raise DatasetError(f"{path}: 'train_filenames' and 'test_filenames' must both list frames where the "
                                "file lists its splits")
+        check_disjoint_lists(path, splits)
     applied = content.get("applied_transform")
     if applied is not None:
         rows = isinstance(applied, list) and len(applied) in (3, 4) and all(
@@ -201,6 +198,43 @@ def read_capture(path: Path) -> Capture:
                                f"{str(applied)[:80]}")
         applied = torch.tensor(applied, dtype=torch.float64)
     return Capture(path, parsed, defaults, splits, applied, ngp_box(content, str(path)))
+
+
+def spelling(name: str) -> str:
+    """One spelling of the relative file path ``name`` for all that name one file below the scene's folder:
+    ``images//a.png``, ``images/./a.png`` and ``./images/a.png`` are ``images/a.png`` (as nerfstudio matches its
+    split lists, by ``pathlib`` paths). ``scene_file`` reads the same file for each."""
+    return str(PurePosixPath(name))
+
+
+def listed_frames(path: Path, content: dict, key: str, frame_of: dict[str, Frame]) -> list[str]:
+    """The ``file_path`` of each frame that ``content[key]`` (a split's list, e.g. 'test_filenames') names, in its
+    order, matched by ``spelling``; a DatasetError naming the file and the key where the list is not a list of
+    file paths, names a file no frame has, or names one frame twice."""
+    listed = content.get(key, [])
+    if not isinstance(listed, list) or not all(isinstance(name, str) for name in listed):
+        raise DatasetError(f"{path}: '{key}' must be a list of file paths, got {str(listed)[:80]}")
+    found: dict[str, str] = {}  # spelling -> the entry that named it first
+    for name in listed:
+        frame = frame_of.get(spelling(name))
+        if frame is None:
+            raise DatasetError(f"{path}: '{key}' names {name!r}, which no frame's 'file_path' is")
+        if spelling(name) in found:
+            raise DatasetError(f"{path}: '{key}' names {frame.where} twice ({found[spelling(name)]!r} and "
+                               f"{name!r}): one view counted twice; list each image once")
+        found[spelling(name)] = name
+    return [frame_of[spelling(name)].file_path for name in listed]
+
+
+def check_disjoint_lists(path: Path, splits: dict[str, list[str]]) -> None:
+    """A DatasetError naming the file, both lists and the frame where a training frame is listed among the
+    validation or test frames (validation may list test frames: ``nerfexp.data.views.MAY_SHARE``)."""
+    training = set(splits["train"])
+    for split in ("val", "test"):
+        if shared := [name for name in splits[split] if name in training]:
+            raise DatasetError(f"{path}: '{SPLIT_KEYS[split]}' and 'train_filenames' both list the frame "
+                               f"{shared[0]!r}: a score on views training saw is not a {SPLIT_NAMES[split]} score; "
+                               "list each frame in one of them")
 
 
 def frame_lens_fields(frame: Frame, defaults: dict, image_size: tuple[int, int] | None) -> dict:
@@ -294,6 +328,8 @@ class NerfstudioScene(Scene):
                 raise DatasetError(f"{path} does not exist: data.root must be a folder holding {self.transforms} "
                                    f"(nerfstudio's format; data.transforms names another file in it)")
             capture = read_capture(path)
+            check_shared_file([Source(frame.where, downscaled_file(root, frame.file_path, "images", self.downscale)[0])
+                               for frame in capture.frames], str(path))
             c2w = torch.stack([frame.c2w for frame in capture.frames])
             normalized, _, centre, scale = normalize_centres(c2w, torch.zeros(0, 3, dtype=c2w.dtype), self.bound)
             self._capture, self._normalization = capture, (normalized, centre, scale)
@@ -339,7 +375,7 @@ class NerfstudioScene(Scene):
         normalized, _, _ = self._normalization
         root = Path(self.root)
         index = self.split_index(split).tolist()
-        images, masks, lenses, first = [], [], [], None
+        images, masks, lenses, sources, first = [], [], [], [], None
         invertible = set()  # the lenses (and image sizes) checked: most captures share one lens
         for i in tqdm(index, desc=f"loading {split}", unit="image", disable=None):
             frame = capture.frames[i]
@@ -377,10 +413,11 @@ class NerfstudioScene(Scene):
             images.append(image)
             masks.append(mask)
             lenses.append(lens.resized(recorded, tuple(image.shape[1:3])))
+            sources.append(Source(frame.where, path))
         if any(mask is not None for mask in masks):
             masks = [torch.ones(image.shape[1:3], dtype=torch.bool)[None] if mask is None else mask
                      for image, mask in zip(images, masks)]
         views = Views(rgba=torch.cat(images), c2w=normalized[index].float(), intrinsics=Intrinsics.stack(lenses),
-                      mask=torch.cat(masks) if masks and masks[0] is not None else None)
+                      mask=torch.cat(masks) if masks and masks[0] is not None else None, sources=tuple(sources))
         factor = fit_factor(max(views.height, views.width), self.max_side)
         return views if factor == 1 else views.resized(downscale_rgba(views.rgba, factor))

@@ -1,6 +1,15 @@
-"""A set of posed images: what every dataset format is loaded into."""
+"""A set of posed images: what every dataset format is loaded into, and when two of them are the same view.
 
-from dataclasses import dataclass
+A test score is a score on views training never saw: ``check_distinct_views`` refuses a training view among the
+validation or test views, and a view twice in one split, whatever the readers' spellings of its file. Validation
+views may be test views (``holdout_split`` takes the first test views): validation only shows progress, and no
+score is chosen by it.
+"""
+
+import os
+from collections.abc import Sequence
+from dataclasses import dataclass, replace
+from pathlib import Path
 
 import torch
 import torch.nn.functional as F
@@ -10,6 +19,17 @@ from nerfexp.errors import DatasetError
 from nerfexp.geometry.lenses import Intrinsics
 
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".tif", ".tiff", ".bmp")  # what a folder of photographs may hold
+SPLIT_NAMES = {"train": "training", "val": "validation", "test": "test"}
+MAY_SHARE = frozenset({"val", "test"})  # the splits that may hold one view: validation shows test views
+
+
+@dataclass(frozen=True)
+class Source:
+    """Where a view was read from: ``name``, how the dataset names it (its file, frame or row, for messages), and
+    ``path``, the image file read."""
+
+    name: str
+    path: Path
 
 
 @dataclass
@@ -21,12 +41,14 @@ class Views:
     intrinsics: [N] each view's lens, float64: focal lengths, principal point and distortion in the images'
         pixels (``nerfexp.geometry.lenses``).
     mask: [N, H, W] bool, the pixels that count (in the loss and the scores), or None: all of them.
+    sources: [N] each view's ``Source`` where the views were read from files, or None (rendered views).
     """
 
     rgba: Tensor
     c2w: Tensor
     intrinsics: Intrinsics
     mask: Tensor | None = None
+    sources: tuple[Source, ...] | None = None
 
     @property
     def height(self) -> int:
@@ -41,8 +63,14 @@ class Views:
 
     def subset(self, index: Tensor) -> "Views":
         """The views ``index`` [K] (indices or a mask), in that order."""
+        kept = torch.arange(len(self))[index].tolist()  # [K] the views' places
+        sources = None if self.sources is None else tuple(self.sources[i] for i in kept)
         return Views(rgba=self.rgba[index], c2w=self.c2w[index], intrinsics=self.intrinsics[index],
-                     mask=None if self.mask is None else self.mask[index])
+                     mask=None if self.mask is None else self.mask[index], sources=sources)
+
+    def name(self, i: int) -> str:
+        """How view ``i`` is named in messages: its source's name, or its place in the split."""
+        return str(i) if self.sources is None else self.sources[i].name
 
     def resized(self, rgba: Tensor) -> "Views":
         """These views with their images replaced by ``rgba`` [N, H', W', 4], the same images resampled over
@@ -50,8 +78,8 @@ class Views:
         mask counts where every pixel under it counted (``shrink_mask``)."""
         size = tuple(rgba.shape[1:3])
         intrinsics = self.intrinsics.resized((self.height, self.width), size)
-        return Views(rgba=rgba, c2w=self.c2w, intrinsics=intrinsics,
-                     mask=None if self.mask is None else shrink_mask(self.mask, size))
+        return replace(self, rgba=rgba, intrinsics=intrinsics,
+                       mask=None if self.mask is None else shrink_mask(self.mask, size))
 
     def rgb_on(self, background: Tensor) -> Tensor:
         """Colours composited over ``background`` [3]: [N, H, W, 3]."""
@@ -77,3 +105,72 @@ def holdout_split(n: int, holdout: int, n_val: int, n_train: int | None = None) 
         raise DatasetError(f"data.n_train={n_train}: only {len(train)} of the {n} images are training images "
                            f"(every {holdout}th is held out for testing)")
     return {"train": train[:n_train], "val": test[:n_val], "test": test}
+
+
+def file_identity(path: Path) -> tuple[int, int] | None:
+    """The file ``path`` resolves to, as (device, inode): one for every spelling of it (``a//b``, ``a/./b``), every
+    symbolic link to it and every hard link; None where it cannot be looked up (missing: its reader says so)."""
+    try:
+        status = os.stat(path)
+    except OSError:
+        return None
+    return status.st_dev, status.st_ino
+
+
+def check_shared_file(sources: Sequence[Source], where: str) -> None:
+    """A DatasetError naming both where two of ``sources``, the views of one split (``where``: the file or folder
+    that lists them), resolve to one file (``file_identity``): that image would count as two views. Looks at file
+    names only, so a reader calls it before it reads any image."""
+    seen: dict[tuple[int, int], Source] = {}
+    for source in sources:
+        identity = file_identity(source.path)
+        if identity in seen:
+            raise DatasetError(f"{where}: {source.name} and {seen[identity].name} name one file ({source.path}): "
+                               "one view counted twice; list each image once")
+        if identity is not None:
+            seen[identity] = source
+
+
+def same_view(a: Views, i: int, b: Views, j: int) -> str | None:
+    """Why view ``i`` of ``a`` and view ``j`` of ``b`` are the same view, or None where they are not: their sources
+    resolve to one file (``file_identity``), or their pixels and their poses are equal."""
+    if a.sources is not None and b.sources is not None:
+        identity = file_identity(a.sources[i].path)
+        if identity is not None and identity == file_identity(b.sources[j].path):
+            return f"they name one file ({b.sources[j].path})"
+    if torch.equal(a.c2w[i], b.c2w[j]) and torch.equal(a.rgba[i], b.rgba[j]):
+        return "they have the same pixels and the same pose"
+    return None
+
+
+def view_keys(views: Views, i: int) -> list[tuple]:
+    """The keys under which view ``i`` may meet the same view elsewhere (``same_view``): its file's identity,
+    where it was read from one, and its pose (equal pixels need an equal pose)."""
+    keys = [("pose", *views.c2w[i].flatten().tolist())]
+    if views.sources is not None and (identity := file_identity(views.sources[i].path)) is not None:
+        keys.append(("file", *identity))
+    return keys
+
+
+def check_distinct_views(splits: dict[str, Views]) -> None:
+    """A DatasetError naming both views where a training view is among the validation or test views, or a split
+    holds one view twice (``same_view``: one file under any spelling or link, or the same pixels and pose): a test
+    score must be a score on views training never saw, and a view counted twice weighs double. Validation and
+    test views may be the same (``MAY_SHARE``). Views are grouped by ``view_keys``, so pixels are compared only
+    between views of one pose."""
+    met: dict[tuple, list[tuple[str, int]]] = {}
+    for split, views in splits.items():
+        for i in range(len(views)):
+            keys = view_keys(views, i)
+            candidates = dict.fromkeys(entry for key in keys for entry in met.get(key, []))
+            for other, k in candidates:
+                if other != split and {other, split} <= MAY_SHARE:
+                    continue
+                if (reason := same_view(splits[other], k, views, i)) is not None:
+                    scored = split if other == "train" else other
+                    advice = ("a split holds each view once" if other == split else
+                              f"a score on views training saw is no {SPLIT_NAMES[scored]} score; keep it in one split")
+                    raise DatasetError(f"the {SPLIT_NAMES[split]} view {views.name(i)} and the {SPLIT_NAMES[other]} "
+                                       f"view {splits[other].name(k)} are one view ({reason}): {advice}")
+            for key in keys:
+                met.setdefault(key, []).append((split, i))

@@ -2,6 +2,7 @@
 says which pixels count (a capture's masks, ``nerfexp.data.views.Views.mask``), over those pixels only."""
 
 import numpy as np
+import torch
 from skimage.metrics import structural_similarity
 from torch import Tensor
 
@@ -37,3 +38,21 @@ def ssim(image: Tensor, target: Tensor, mask: Tensor | None = None) -> float:
     inner = (slice(SSIM_CROP, -SSIM_CROP), slice(SSIM_CROP, -SSIM_CROP))
     kept = mask.cpu().numpy()[inner]
     return float(full[inner][kept].mean()) if kept.any() else float("nan")
+
+
+def unscorable(height: int, width: int, mask: Tensor | None) -> tuple[int, str] | None:
+    """The first of N images ``height`` x ``width`` that ``psnr`` or ``ssim`` leaves without a score (NaN), and
+    why, or None where every image has both: images smaller than SSIM's window (``SSIM_WINDOW``) on a side; an
+    image whose ``mask`` [N, H, W] (None: every pixel counts) keeps no pixel; one that keeps none farther than
+    ``SSIM_CROP`` pixels from its edges, where SSIM's map is averaged."""
+    if min(height, width) < SSIM_WINDOW:
+        return 0, f"is {width}x{height} pixels, smaller than SSIM's {SSIM_WINDOW}x{SSIM_WINDOW} window"
+    if mask is None:
+        return None
+    inner = mask[:, SSIM_CROP:-SSIM_CROP, SSIM_CROP:-SSIM_CROP]
+    for kept, why in ((mask, "keeps no pixel (its mask)"),
+                      (inner, f"keeps no pixel more than {SSIM_CROP} pixels from its edges, where SSIM is scored")):
+        empty = ~kept.flatten(1).any(1)  # [N]
+        if empty.any():
+            return int(torch.nonzero(empty)[0]), why
+    return None

@@ -21,7 +21,7 @@ from nerfexp.nerf.schedules import warmup_exponential_decay
 from nerfexp.nerf.volume_renderer import VolumeRenderer, final_output
 from nerfexp.training.metrics import psnr, ssim
 from nerfexp.training.perceptual import NOT_SCORED, ImageTooSmall, LpipsScorer, lpips_scorer
-from nerfexp.training.scoring import ScoringProtocols
+from nerfexp.training.scoring import ScoringProtocols, check_scored
 
 log = logging.getLogger(__name__)
 
@@ -124,10 +124,24 @@ class NeRFModule(ScoringProtocols, L.LightningModule):
         every = self.trainer.log_every_n_steps
         return every > 0 and (self._batch_number % every == 0 or self.trainer.should_stop)
 
+    def check_scored_views(self, stage: str) -> None:
+        """Every view that ``stage`` ("fit", "test") scores has pixels to score under the test protocol
+        (``check_scored``, on the data module's ``scored_views``), where the trainer has a data module: a split
+        with nothing to score stops the run before its first step or image, never scored NaN."""
+        datamodule = self.trainer.datamodule
+        if datamodule is not None:
+            for split, views in datamodule.scored_views(stage).items():
+                check_scored(views, split, self.test_protocol)
+
+    def on_test_start(self) -> None:
+        self.check_scored_views("test")
+
     def on_fit_start(self) -> None:
-        """With several processes (DDP), the encodings' gradients (the hash tables') are made dense: DDP
-        all-reduces the gradients it expects dense (sparse ones only of nn.Embedding) and stops at a sparse one,
-        and NCCL has no sparse all-reduce. LazyAdam then updates the tables as torch.optim.Adam does."""
+        """The views scored checked first (``check_scored_views``). With several processes (DDP), the encodings'
+        gradients (the hash tables') are made dense: DDP all-reduces the gradients it expects dense (sparse ones
+        only of nn.Embedding) and stops at a sparse one, and NCCL has no sparse all-reduce. LazyAdam then updates
+        the tables as torch.optim.Adam does."""
+        self.check_scored_views("fit")
         sparse = [m for m in self.renderer.modules() if isinstance(m, Encoding) and m.sparse_gradients]
         if self.trainer.world_size > 1 and sparse:
             for module in sparse:

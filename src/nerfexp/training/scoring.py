@@ -9,10 +9,12 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
+from nerfexp.data.views import SPLIT_NAMES, Views
+from nerfexp.errors import DatasetError
 from nerfexp.nerf.appearance import FULL_IMAGE, NERFW_RIGHT_HALF, left_columns
 from nerfexp.nerf.poses import camera_corrected_rays
 from nerfexp.nerf.volume_renderer import final_output
-from nerfexp.training.metrics import psnr, ssim
+from nerfexp.training.metrics import psnr, ssim, unscorable
 
 
 class ScoringProtocols:
@@ -122,3 +124,19 @@ def fitting_rays(batch: dict[str, Tensor], left_half: bool) -> dict[str, Tensor]
             else mask[:, columns].clone())
     return {key: batch[key][:, columns][kept].clone() for key in ("origins", "directions", "viewdirs", "rgb")
             if key in batch}
+
+
+def check_scored(views: Views, split: str, protocol: str) -> None:
+    """A DatasetError naming the split and the view where a view of ``split`` would have no headline PSNR or SSIM
+    (``unscorable``) under the test protocol ``protocol``: a test view's right half under NeRF-W's, else the whole
+    image (a validation is always scored on the whole image). Called before any step, so that a split with nothing
+    left to score is refused in one line, never scored NaN."""
+    start = left_columns(views.width) if split == "test" and protocol == NERFW_RIGHT_HALF else 0
+    mask = None if views.mask is None else views.mask[:, :, start:]
+    problem = unscorable(views.height, views.width - start, mask)
+    if problem is not None:
+        i, why = problem
+        region = (f"its right half (columns {start} to {views.width - 1}, test_protocol={protocol})" if start
+                  else "the image")
+        raise DatasetError(f"the {SPLIT_NAMES[split]} view {views.name(i)}: {region} {why}, so it would be scored "
+                           "NaN: every view scored must leave pixels to score")
