@@ -9,7 +9,8 @@ import pytest
 import torch
 from PIL import Image
 
-from nerfexp.data.blender import load_blender, write_blender
+from nerfexp.data.blender import BlenderScene, load_blender, write_blender
+from nerfexp.data.datamodule import RayDataModule
 from nerfexp.data.views import Views
 from nerfexp.errors import DatasetError
 from nerfexp.geometry.lenses import Intrinsics
@@ -117,6 +118,55 @@ def test_file_path_with_extension_and_without_dot_slash(scene):
     # frame 0 alone: with frame 3 (./train/r_3) the split would name r_3.png twice, which is refused
     assert torch.equal(load_blender(root, "train", max_views=1).c2w[0], views.c2w[0])  # pose from frame 0, image of r_3
     torch.testing.assert_close(load_blender(root, "train", max_views=1).rgba[0], views.rgba[3], atol=0.5 / 255, rtol=0)
+
+
+@pytest.mark.parametrize("spelling", ["./train/r_2", "train//r_2.png", "./train/./r_2.png"])
+def test_one_image_twice_in_a_split_is_refused_before_it_is_read(scene, spelling):
+    root, _ = scene
+    edit_transforms(root, lambda c: c["frames"][4].update(file_path=spelling))
+    (root / "train" / "r_0.png").unlink()  # refused by the names: no image read (r_0 would be missing)
+    with pytest.raises(DatasetError) as caught:
+        load_blender(root, "train")
+    transforms = root / "transforms_train.json"
+    assert str(caught.value) == (f"{transforms}: frame 2 (./train/r_2) and {transforms}: frame 4 ({spelling}) name "
+                                 f"one file ({root / 'train' / 'r_2.png'}): one view counted twice; list each image "
+                                 "once")
+
+
+@pytest.mark.parametrize("spelling", ["./train/r_1", "train//r_1.png", "link"])
+def test_a_test_frame_naming_a_training_image_is_refused_before_training(scene, spelling):
+    root, views = scene
+    write_blender(root, "val", make_views(n=1, seed=1), ANGLE)
+    write_blender(root, "test", make_views(n=2, seed=2), ANGLE)
+    if spelling == "link":
+        (root / "test" / "r_1.png").unlink()
+        (root / "test" / "r_1.png").symlink_to(root / "train" / "r_1.png")
+        spelling = "./test/r_1"
+    path = root / "transforms_test.json"
+    content = json.loads(path.read_text())
+    content["frames"][1]["file_path"] = spelling
+    path.write_text(json.dumps(content))
+    data = RayDataModule(BlenderScene(root=str(root)), batch_rays=64)
+    with pytest.raises(DatasetError) as caught:
+        data.setup("fit")
+    assert str(caught.value).startswith(f"the test view {path}: frame 1 ({spelling}) and the training view "
+                                        f"{root / 'transforms_train.json'}: frame 1 (./train/r_1) are one view (they "
+                                        "name one file")
+    content["frames"][1]["file_path"] = "./test/r_0"  # a test view twice: the training views are not among them
+    path.write_text(json.dumps(content))
+    with pytest.raises(DatasetError, match=r"frame 0 \(./test/r_0\) and .* frame 1 \(./test/r_0\) name one file"):
+        RayDataModule(BlenderScene(root=str(root)), batch_rays=64).setup("fit")
+
+
+def test_honest_splits_load(scene):
+    root, views = scene
+    write_blender(root, "val", make_views(n=1, seed=1), ANGLE)
+    write_blender(root, "test", make_views(n=2, seed=2), ANGLE)
+    data = RayDataModule(BlenderScene(root=str(root)), batch_rays=64)
+    data.setup("fit")
+    assert torch.equal(data.train_views().c2w, views.c2w)
+    assert [source.path for source in data.scored_views("fit")["test"].sources] == [
+        root / "test" / f"r_{i}.png" for i in range(2)]
 
 
 def write_png(path, height, width):

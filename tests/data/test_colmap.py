@@ -16,7 +16,7 @@ from PIL import Image
 from nerfexp.data import procedural
 from nerfexp.data.colmap import ColmapScene, colmap_to_c2w
 from nerfexp.data.colmap_sfm import read_model
-from nerfexp.data.datamodule import fill_ray_bounds
+from nerfexp.data.datamodule import RayDataModule, fill_ray_bounds
 from nerfexp.errors import DatasetError
 from nerfexp.geometry.cameras import camera_rays, focal_from_fov, look_at
 from nerfexp.geometry.lenses import Intrinsics, pixel_rays
@@ -183,6 +183,33 @@ def test_reads_a_model_written_as_text_or_binary(tmp_path, form):
     assert views.rgba.shape == (2, HEIGHT, WIDTH, 4) and (views.rgba[1, ..., :3] == 20 / 255).all()
     assert (views.rgba[..., 3] == 1).all()
     assert sorted(p.name for p in tmp_path.iterdir()) == ["images", "sparse"]  # a pinhole model: nothing written
+
+
+def test_a_test_image_linked_to_a_training_image_is_refused_before_training(tmp_path):
+    model = tmp_path / "sparse" / "0"
+    model.mkdir(parents=True)
+    hand_made_model().write_text(model)
+    write_images(tmp_path, [f"view_{i}.png" for i in range(1, 5)])
+    # holdout 2: views 1 and 3 test, 2 and 4 train; view 3 made a link to view 2 (other pose, COLMAP's name)
+    (tmp_path / "images" / "view_3.png").unlink()
+    (tmp_path / "images" / "view_3.png").symlink_to("view_2.png")
+    data = RayDataModule(ColmapScene(root=str(tmp_path), holdout=2, n_val=1), batch_rays=64)
+    with pytest.raises(DatasetError) as caught:
+        data.setup("fit")
+    images = tmp_path / "images"
+    assert str(caught.value) == (f"the test view {images / 'view_3.png'} and the training view {images / 'view_2.png'} "
+                                 f"are one view (they name one file ({images / 'view_3.png'})): a score on views "
+                                 "training saw is no test score; keep it in one split")
+
+
+def test_one_image_twice_in_a_split_is_refused_before_it_is_read(tmp_path):
+    model = tmp_path / "sparse" / "0"
+    model.mkdir(parents=True)
+    hand_made_model().write_text(model)
+    write_images(tmp_path, [f"view_{i}.png" for i in range(1, 4)])
+    (tmp_path / "images" / "view_4.png").symlink_to("view_2.png")  # views 2 and 4: both training views
+    with pytest.raises(DatasetError, match=r"view_2.png and .*view_4.png name one file .*: one view counted twice"):
+        ColmapScene(root=str(tmp_path), holdout=2, n_val=1).views("train")
 
 
 def test_the_conventions_by_hand_on_a_colmap_3_text_model(tmp_path):

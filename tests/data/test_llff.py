@@ -126,6 +126,20 @@ def test_a_written_scene_loads_back_with_its_poses_bounds_and_split(scene):
     assert load_llff(root, factor=1, holdout=5).splits["test"].tolist() == [0, 5, 10, 15]
 
 
+def test_an_image_linked_to_another_is_refused_before_any_image_is_read(scene, tmp_path):
+    root, images, c2w, bounds = scene
+    write_llff(tmp_path, images[..., :3], c2w, FOCAL, bounds)
+    # row 8 is a test view (every 8th): made a link to row 1's image, a training view
+    (tmp_path / "images" / "008.png").unlink()
+    (tmp_path / "images" / "008.png").symlink_to("001.png")
+    with pytest.raises(DatasetError) as caught:
+        load_llff(tmp_path, factor=1)
+    folder, poses = tmp_path / "images", tmp_path / "poses_bounds.npy"
+    assert str(caught.value) == (f"{folder / '001.png'} (row 1 of {poses}) and {folder / '008.png'} (row 8 of "
+                                 f"{poses}) name one file ({folder / '001.png'}): one view counted twice; list each "
+                                 "image once")
+
+
 def test_a_factor_shrinks_images_and_focal(scene):
     root, *_ = scene
     full, half = load_llff(root, factor=1).views, load_llff(root, factor=2).views

@@ -4,10 +4,13 @@ malformed field."""
 
 import json
 import math
+import os
+import shutil
 
 import pytest
 import torch
 
+from nerfexp.data.datamodule import RayDataModule
 from nerfexp.data.nerfstudio import TRANSFORMS, NerfstudioScene, write_nerfstudio
 from nerfexp.data.procedural import load_procedural, occlude, real_lens
 from nerfexp.data.rays import RandomRays, WholeImages
@@ -172,3 +175,122 @@ def test_per_frame_intrinsics_override_the_shared_ones(tmp_path, rendered):
 def test_pinhole_views_stack_with_their_lenses(rendered):
     lenses = Intrinsics.stack([real_lens(SIZE, SIZE), Intrinsics.pinhole(20.0, SIZE, SIZE)])
     assert lenses.params.shape == (2, 4) and lenses.is_distorted().tolist() == [True, False]
+
+
+# One view, one frame: split lists that share a training frame, frames that name one file under other spellings or
+# links, and a copy of a training image at its pose are refused, in one line naming both entries
+
+
+def frame_like(content: dict, i: int, file_path: str) -> dict:
+    """A copy of frame ``i`` of ``content`` naming ``file_path``: the same pose and lens."""
+    return {**content["frames"][i], "file_path": file_path}
+
+
+def remove_images(root) -> None:
+    """The scene's images gone: a refusal after this was made before any image was read."""
+    for path in (root / "images").iterdir():
+        path.unlink()
+
+
+def test_a_training_frame_in_the_test_list_is_refused_before_any_image_is_read(tmp_path, rendered):
+    write(tmp_path, rendered)
+    edit_transforms(tmp_path, lambda c: c.update(test_filenames=c["test_filenames"] + ["images/train_0002.png"]))
+    remove_images(tmp_path)
+    with pytest.raises(DatasetError) as caught:
+        NerfstudioScene(root=str(tmp_path)).capture()
+    assert str(caught.value) == (f"{tmp_path / TRANSFORMS}: 'test_filenames' and 'train_filenames' both list the "
+                                 "frame 'images/train_0002.png': a score on views training saw is no test score; "
+                                 "list each frame in one of them")
+
+
+@pytest.mark.parametrize("listed", ["images//train_0001.png", "images/./train_0001.png", "./images/train_0001.png"])
+@pytest.mark.parametrize("split", ["val", "test"])
+def test_a_training_frame_listed_in_another_spelling_is_the_same_frame(tmp_path, rendered, listed, split):
+    write(tmp_path, rendered)
+    edit_transforms(tmp_path, lambda c: c.update({f"{split}_filenames": [listed]}))
+    with pytest.raises(DatasetError, match=f"both list the frame 'images/train_0001.png'"):
+        NerfstudioScene(root=str(tmp_path)).capture()
+
+
+def test_validation_may_list_test_frames(tmp_path, rendered):
+    write(tmp_path, rendered)
+    edit_transforms(tmp_path, lambda c: c.update(val_filenames=["./images/test_0001.png"]))
+    scene = NerfstudioScene(root=str(tmp_path))
+    assert torch.equal(scene.views("val").rgba, scene.views("test").rgba[1:])
+
+
+@pytest.mark.parametrize("spelling", ["images//train_0000.png", "images/./train_0000.png", "images/train_0000"])
+def test_two_frames_naming_one_file_are_refused_before_any_image_is_read(tmp_path, rendered, spelling):
+    # "images/train_0000" has no extension: read as images/train_0000.png (Blender's way)
+    write(tmp_path, rendered)
+    edit_transforms(tmp_path, lambda c: c["frames"].append(frame_like(c, 7, spelling)))
+    if spelling.endswith(".png"):
+        remove_images(tmp_path)  # refused by the names alone
+    with pytest.raises(DatasetError) as caught:
+        NerfstudioScene(root=str(tmp_path)).capture()
+    message = str(caught.value)
+    assert "frame 0 (images/train_0000.png)" in message and f"frame 9 ({spelling})" in message, message
+    assert "one view counted twice" in message and "\n" not in message
+
+
+def test_ten_thousand_spellings_of_two_images_are_refused_at_once(tmp_path, rendered):
+    # the issue's case, scaled: many frames naming two images in as many spellings are two views, not many
+    write(tmp_path, rendered)
+
+    def spell(content):
+        # spelling k: the bits of k as "./" (1) and "/" (0), all distinct
+        content["frames"] += [frame_like(content, 7, "images/" + "".join("./" if bit == "1" else "/"
+                                                                          for bit in f"{k:b}") + f"train_000{k % 2}.png")
+                              for k in range(1, 10_000)]
+        content.pop("train_filenames"), content.pop("val_filenames"), content.pop("test_filenames")
+    edit_transforms(tmp_path, spell)
+    remove_images(tmp_path)
+    with pytest.raises(DatasetError, match=r"name one file: one view counted twice"):
+        NerfstudioScene(root=str(tmp_path)).capture()
+
+
+@pytest.mark.parametrize("link", [os.symlink, os.link], ids=["symbolic", "hard"])
+def test_a_link_to_a_training_image_is_refused_before_any_image_is_read(tmp_path, rendered, link):
+    write(tmp_path, rendered)
+    link("train_0003.png" if link is os.symlink else tmp_path / "images" / "train_0003.png",
+         tmp_path / "images" / "linked.png")
+
+    def add(content):
+        content["frames"].append(frame_like(content, 0, "images/linked.png"))
+        content["test_filenames"].append("images/linked.png")
+    edit_transforms(tmp_path, add)
+    with pytest.raises(DatasetError) as caught:
+        NerfstudioScene(root=str(tmp_path)).capture()
+    assert str(caught.value) == (f"{tmp_path / TRANSFORMS}: frame 9 (images/linked.png) and {tmp_path / TRANSFORMS}: "
+                                 f"frame 3 (images/train_0003.png) name one file ({tmp_path / 'images/linked.png'}): "
+                                 "one view counted twice; list each image once")
+
+
+def test_a_copy_of_a_training_image_at_its_pose_is_refused_before_training(tmp_path, rendered):
+    write(tmp_path, rendered)
+    shutil.copy(tmp_path / "images" / "train_0004.png", tmp_path / "images" / "copy.png")
+    shutil.copy(tmp_path / "masks" / "train_0004.png", tmp_path / "masks" / "copy.png")
+
+    def add(content):
+        train = content["frames"][4]
+        assert train["file_path"] == "images/train_0004.png"
+        content["frames"].append({**train, "file_path": "images/copy.png", "mask_path": "masks/copy.png"})
+        content["test_filenames"].append("images/copy.png")
+    edit_transforms(tmp_path, add)
+    data = RayDataModule(NerfstudioScene(root=str(tmp_path)), batch_rays=64)
+    with pytest.raises(DatasetError) as caught:
+        data.setup("fit")
+    assert str(caught.value) == (
+        f"the test view {tmp_path / TRANSFORMS}: frame 9 (images/copy.png) and the training view "
+        f"{tmp_path / TRANSFORMS}: frame 4 (images/train_0004.png) are one view (they have the same pixels and the "
+        "same pose): a score on views training saw is no test score; keep it in one split")
+
+
+def test_honest_splits_load_and_every_view_names_its_frame(tmp_path, rendered):
+    write(tmp_path, rendered)
+    data = RayDataModule(NerfstudioScene(root=str(tmp_path)), batch_rays=64)
+    data.setup("fit")
+    scored = data.scored_views("fit")
+    assert set(scored) == {"val", "test"} and len(scored["test"]) == 2
+    assert [source.name for source in scored["test"].sources] == [
+        f"{tmp_path / TRANSFORMS}: frame {i} (images/test_000{k}.png)" for i, k in ((7, 0), (8, 1))]

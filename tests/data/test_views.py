@@ -83,9 +83,9 @@ def test_one_file_under_any_spelling_or_link_is_one_view(tmp_path, spelling):
         spelling = "images/hard.png"
     sources = [Source("frame 0", tmp_path / "images/0.png"), Source("frame 1", tmp_path / "images/1.png"),
                Source(f"frame 2 ({spelling})", tmp_path / spelling)]
-    with pytest.raises(DatasetError, match=re.escape(f"list.json: frame 2 ({spelling}) and frame 0 name one file")):
-        check_shared_file(sources, "list.json")
-    check_shared_file(sources[:2], "list.json")  # two files: two views
+    with pytest.raises(DatasetError, match=re.escape(f"frame 0 and frame 2 ({spelling}) name one file")):
+        check_shared_file(sources)
+    check_shared_file(sources[:2])  # two files: two views
     # across splits, read from the files: another pose and other pixels (a render's noise) do not hide it
     train = Views(POOL.rgba[:2], POOL.c2w[:2], POOL.intrinsics[:2], sources=tuple(sources[:2]))
     test = Views(POOL.rgba[3:4], POOL.c2w[3:4], POOL.intrinsics[3:4], sources=(sources[2],))
@@ -96,7 +96,7 @@ def test_one_file_under_any_spelling_or_link_is_one_view(tmp_path, spelling):
 
 def test_a_missing_file_is_left_to_its_reader(tmp_path):
     missing = [Source("frame 0", tmp_path / "gone.png"), Source("frame 1", tmp_path / "also_gone.png")]
-    check_shared_file(missing, "list.json")  # read_image names the missing file when it is read
+    check_shared_file(missing)  # read_image names the missing file when it is read
 
 
 def test_subsets_and_resizing_keep_each_views_source(tmp_path):

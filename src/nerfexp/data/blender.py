@@ -141,7 +141,7 @@ def load_blender(root, split: str, downscale: int = 1, max_views: int | None = N
     frames = frames[::stride][:max_views]
     sources = [Source(f"{transforms}: frame {k} ({file_path})", image_path(root, file_path))
                for k, (file_path, _) in zip(numbers, frames)]
-    check_shared_file(sources, str(transforms))
+    check_shared_file(sources)
     images, first = [], None
     for source, (file_path, _) in zip(sources, tqdm(frames, desc=f"loading {split}", unit="image", disable=None)):
         path = source.path

@@ -215,7 +215,7 @@ def read_views(data: ColmapData, index: Tensor, downscale: int = 1, max_side: in
     ``max_side``; the lenses follow the images' size (``Intrinsics.resized``)."""
     shrink = downscale * fit_factor(max(data.width, data.height) // downscale, max_side)
     sources = tuple(Source(str(data.image_dir / data.names[i]), data.image_dir / data.names[i]) for i in index.tolist())
-    check_shared_file(sources, str(data.image_dir))
+    check_shared_file(sources)
     images = []
     for i in tqdm(index.tolist(), desc="loading colmap", unit="image", disable=None):
         path = data.image_dir / data.names[i]

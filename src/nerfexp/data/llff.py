@@ -201,7 +201,7 @@ def load_llff(root, factor: int = 1, holdout: int = 8, n_val: int = 2, max_side:
     height, width, focal = poses[0, :, 4].tolist()
     files = image_files(folder, len(poses), poses_path)
     sources = tuple(Source(f"{path} (row {i} of {poses_path})", path) for i, path in enumerate(files))
-    check_shared_file(sources, str(folder))
+    check_shared_file(sources)
     rgba = read_images(files, poses_path, (height, width), shrink, max_side)
     c2w, bounds, scale = normalize_poses(llff_to_c2w(poses), bounds)
     recorded = Intrinsics.pinhole(focal, height, width, (len(poses),))  # LLFF's one centred pinhole, as recorded

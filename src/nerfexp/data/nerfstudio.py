@@ -233,7 +233,7 @@ def check_disjoint_lists(path: Path, splits: dict[str, list[str]]) -> None:
     for split in ("val", "test"):
         if shared := [name for name in splits[split] if name in training]:
             raise DatasetError(f"{path}: '{SPLIT_KEYS[split]}' and 'train_filenames' both list the frame "
-                               f"{shared[0]!r}: a score on views training saw is not a {SPLIT_NAMES[split]} score; "
+                               f"{shared[0]!r}: a score on views training saw is no {SPLIT_NAMES[split]} score; "
                                "list each frame in one of them")
 
 
@@ -329,7 +329,7 @@ class NerfstudioScene(Scene):
                                    f"(nerfstudio's format; data.transforms names another file in it)")
             capture = read_capture(path)
             check_shared_file([Source(frame.where, downscaled_file(root, frame.file_path, "images", self.downscale)[0])
-                               for frame in capture.frames], str(path))
+                               for frame in capture.frames])
             c2w = torch.stack([frame.c2w for frame in capture.frames])
             normalized, _, centre, scale = normalize_centres(c2w, torch.zeros(0, 3, dtype=c2w.dtype), self.bound)
             self._capture, self._normalization = capture, (normalized, centre, scale)

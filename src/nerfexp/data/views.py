@@ -117,15 +117,15 @@ def file_identity(path: Path) -> tuple[int, int] | None:
     return status.st_dev, status.st_ino
 
 
-def check_shared_file(sources: Sequence[Source], where: str) -> None:
-    """A DatasetError naming both where two of ``sources``, the views of one split (``where``: the file or folder
-    that lists them), resolve to one file (``file_identity``): that image would count as two views. Looks at file
-    names only, so a reader calls it before it reads any image."""
+def check_shared_file(sources: Sequence[Source]) -> None:
+    """A DatasetError naming both where two of ``sources`` (of one split, or of every view a file lists) resolve
+    to one file (``file_identity``): that image would count as two views. Looks at the files' names and links
+    only, so a reader calls it before it reads any image."""
     seen: dict[tuple[int, int], Source] = {}
     for source in sources:
         identity = file_identity(source.path)
         if identity in seen:
-            raise DatasetError(f"{where}: {source.name} and {seen[identity].name} name one file ({source.path}): "
+            raise DatasetError(f"{seen[identity].name} and {source.name} name one file ({seen[identity].path}): "
                                "one view counted twice; list each image once")
         if identity is not None:
             seen[identity] = source
