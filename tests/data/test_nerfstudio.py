@@ -237,11 +237,11 @@ def test_ten_thousand_spellings_of_two_images_are_refused_at_once(tmp_path, rend
     # the case, scaled: many frames naming two images in as many spellings are two views, not many
     write(tmp_path, rendered)
 
+    def spelled(k: int) -> str:  # the bits of k as "./" (1) and "/" (0): a spelling of its own for each k
+        return "images/" + "".join("./" if bit == "1" else "/" for bit in f"{k:b}") + f"train_000{k % 2}.png"
+
     def spell(content):
-        # spelling k: the bits of k as "./" (1) and "/" (0), all distinct
-        content["frames"] += [frame_like(content, 7, "images/" + "".join("./" if bit == "1" else "/"
-                                                                          for bit in f"{k:b}") + f"train_000{k % 2}.png")
-                              for k in range(1, 10_000)]
+        content["frames"] += [frame_like(content, 7, spelled(k)) for k in range(1, 10_000)]
         content.pop("train_filenames"), content.pop("val_filenames"), content.pop("test_filenames")
     edit_transforms(tmp_path, spell)
     remove_images(tmp_path)
