@@ -109,6 +109,21 @@ def test_a_bad_pose_in_the_test_split_stops_the_run_before_its_first_step(tmp_pa
     assert not (tmp_path / "run" / "metrics.jsonl").exists() and not (tmp_path / "run" / "checkpoints").exists()
 
 
+def test_a_test_split_naming_a_training_image_stops_the_run_before_its_first_step(tmp_path, tiny):
+    # the same image under another spelling: its "test" score would be a score on a view training saw
+    scene, overrides = blender_scene(tmp_path, tiny)
+    transforms = scene / "transforms_test.json"
+    content = json.loads(transforms.read_text())
+    content["frames"][0]["file_path"] = "train//r_4.png"  # frame 0: scored at every scale.test_stride
+    transforms.write_text(json.dumps(content))
+    result = run_nerfexp(*overrides, f"hydra.run.dir={tmp_path / 'run'}", cwd=tmp_path)
+    assert one_error_line(result) == (
+        f"nerfexp: error: the test view {transforms}: frame 0 (train//r_4.png) and the training view "
+        f"{scene / 'transforms_train.json'}: frame 4 (./train/r_4) are one view (they name one file "
+        f"({scene / 'train' / 'r_4.png'})): a score on views training saw is no test score; keep it in one split")
+    assert not (tmp_path / "run" / "metrics.jsonl").exists() and not (tmp_path / "run" / "checkpoints").exists()
+
+
 @pytest.mark.parametrize("mode", ["run", "sweep"])
 def test_a_run_or_sweep_directory_that_cannot_be_written_is_one_line(tmp_path, tiny, mode):
     blocker = tmp_path / "a_file"

@@ -3,9 +3,11 @@ import math
 import numpy as np
 import pytest
 import torch
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from nerfexp.pixels import quantize
-from nerfexp.training.metrics import psnr, ssim
+from nerfexp.training.metrics import SSIM_CROP, SSIM_WINDOW, psnr, ssim, unscorable
 
 
 def test_psnr_of_a_known_error():
@@ -67,3 +69,30 @@ def test_an_image_smaller_than_ssims_window_has_no_ssim_and_one_as_large_has():
     assert math.isnan(ssim(torch.rand(12, 6, 3), torch.rand(12, 6, 3)))
     image = torch.rand(11, 11, 3)
     assert ssim(image, image) == pytest.approx(1.0)
+
+
+@settings(max_examples=80, deadline=None)
+@given(height=st.integers(1, 24), width=st.integers(1, 24), n=st.integers(1, 3), seed=st.integers(0, 2 ** 31),
+       kept=st.sampled_from([None, 0.0, 0.01, 0.1, 1.0]))
+def test_unscorable_says_exactly_which_images_psnr_or_ssim_leave_without_a_score(height, width, n, seed, kept):
+    # independent truth: the scores themselves, NaN where they have none
+    g = torch.Generator().manual_seed(seed)
+    images, targets = torch.rand(2, n, height, width, 3, generator=g)
+    mask = None if kept is None else torch.rand(n, height, width, generator=g) < kept  # [N, H, W]
+    nan = [math.isnan(psnr(images[i], targets[i], None if mask is None else mask[i]))
+           or math.isnan(ssim(images[i], targets[i], None if mask is None else mask[i])) for i in range(n)]
+    problem = unscorable(height, width, mask)
+    assert (problem is None) == (not any(nan))
+    if problem is not None:
+        assert problem[0] == nan.index(True)
+
+
+def test_unscorable_names_why():
+    assert unscorable(10, 40, None) == (0, "is 40x10 pixels, smaller than SSIM's 11x11 window")
+    mask = torch.ones(3, 12, 12, dtype=torch.bool)
+    mask[1] = False
+    assert unscorable(12, 12, mask) == (1, "keeps no pixel (its mask)")
+    mask[1] = True
+    mask[2, SSIM_CROP:-SSIM_CROP, SSIM_CROP:-SSIM_CROP] = False  # only the border, which SSIM leaves out
+    assert unscorable(12, 12, mask) == (2, "keeps no pixel more than 5 pixels from its edges, where SSIM is scored")
+    assert unscorable(SSIM_WINDOW, SSIM_WINDOW, mask[:1, :SSIM_WINDOW, :SSIM_WINDOW]) is None
