@@ -8,7 +8,16 @@ import types
 import pytest
 import torch
 
-from nerfexp.training.recorders import IMAGES, gather_evaluations, image_means, scores_record, scores_text
+from nerfexp.errors import NonFiniteError
+from nerfexp.training.metrics import psnr, ssim
+from nerfexp.training.recorders import (
+    IMAGES,
+    gather_evaluations,
+    image_means,
+    image_scores,
+    scores_record,
+    scores_text,
+)
 
 NAN = math.nan
 
@@ -46,3 +55,21 @@ def test_the_scores_travel_between_processes_as_float64_nan_included():
         for item in gathered:
             assert (item["index"], item["psnr"], item["ssim"]) == (7, 31.234567890123, 0.91)
             assert item["lpips"] == lpips or (math.isnan(lpips) and math.isnan(item["lpips"]))
+
+
+def test_an_image_scored_nan_stops_the_run_before_any_mean_is_recorded():
+    # LPIPS and the protocols' own scores may be missing (left out of the record); PSNR and SSIM never
+    item = {"index": 4, "psnr": 21.5, "ssim": 0.75, "lpips": NAN, "psnr_right_half": NAN}
+    scores = image_scores(item, "test", 60)
+    assert (scores["psnr"], scores["ssim"]) == (21.5, 0.75) and math.isnan(scores["lpips"])
+    for nan, says in ((["psnr"], "psnr"), (["psnr", "ssim"], "psnr and ssim"), (["ssim"], "ssim")):
+        with pytest.raises(NonFiniteError) as caught:
+            image_scores({**item, **dict.fromkeys(nan, NAN)}, "val", 30)
+        assert str(caught.value) == (f"step 30: the validation view 4 scored {says} NaN (its render holds NaN "
+                                     "pixels): no score is recorded")
+
+
+def test_a_render_of_nan_is_scored_nan():
+    # what image_scores stops: the scores of a NaN render (weights that are not finite) are NaN, not a number
+    image, target = torch.full((16, 16, 3), NAN), torch.rand(16, 16, 3)
+    assert math.isnan(psnr(image, target)) and math.isnan(ssim(image, target))

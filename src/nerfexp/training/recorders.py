@@ -17,6 +17,8 @@ import numpy as np
 import torch
 
 from nerfexp import manifest
+from nerfexp.data.views import SPLIT_NAMES
+from nerfexp.errors import NonFiniteError
 from nerfexp.files import atomic_write
 from nerfexp.pixels import depth_image, png_bytes, to_uint8
 from nerfexp.rundir.labels import NO_LABELS
@@ -65,9 +67,17 @@ def gather_evaluations(trainer: L.Trainer, outputs: dict) -> list[dict]:
              **{key: gathered[key][r] for key in IMAGES}} for r in range(trainer.world_size)]
 
 
-def image_scores(item: dict) -> dict[str, float]:
-    """The ``SCORES`` of one evaluated image (``gather_evaluations``), NaN for those it was not scored by."""
-    return {name: item.get(name, math.nan) for name in SCORES}
+def image_scores(item: dict, split: str, step: int) -> dict[str, float]:
+    """The ``SCORES`` of one evaluated image (``gather_evaluations``) of ``split`` at ``step``, NaN for those it
+    was not scored by; a NonFiniteError where its PSNR or SSIM (``ALWAYS_SCORED``) is NaN, so that no mean over
+    it is recorded. Every view scored was checked to have pixels to score before the first step
+    (``nerfexp.training.scoring.check_scored``), so such a score comes from the render: weights or an appearance
+    code that render NaN. Every process raises it alike: the items are every process's."""
+    scores = {name: item.get(name, math.nan) for name in SCORES}
+    if missing := [name for name in ALWAYS_SCORED if math.isnan(scores[name])]:
+        raise NonFiniteError(f"step {step}: the {SPLIT_NAMES[split]} view {item['index']} scored "
+                             f"{' and '.join(missing)} NaN (its render holds NaN pixels): no score is recorded")
+    return scores
 
 
 def scored(scores: dict[int, dict[str, float]]) -> tuple[str, ...]:
@@ -208,7 +218,7 @@ class RunRecorder(L.Callback):
             index = item["index"]
             if index in self._scores:  # a repeat of the distributed sampler's padding
                 continue
-            self._scores[index] = image_scores(item)
+            self._scores[index] = image_scores(item, split, self.steps)
             if trainer.is_global_zero:
                 self._write_images(trainer, pl_module, item, split)
 
@@ -293,7 +303,7 @@ class EvalRecorder(L.Callback):
 
     def on_test_batch_end(self, trainer, pl_module, outputs, batch, batch_idx, dataloader_idx=0):
         for item in gather_evaluations(trainer, outputs):
-            self._scores.setdefault(item["index"], image_scores(item))
+            self._scores.setdefault(item["index"], image_scores(item, "test", self.step))
 
     def on_test_epoch_end(self, trainer, pl_module):
         if not trainer.is_global_zero:
