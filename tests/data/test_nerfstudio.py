@@ -9,9 +9,11 @@ import shutil
 
 import pytest
 import torch
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from nerfexp.data.datamodule import RayDataModule
-from nerfexp.data.nerfstudio import TRANSFORMS, NerfstudioScene, write_nerfstudio
+from nerfexp.data.nerfstudio import TRANSFORMS, NerfstudioScene, scene_file, spelling, write_nerfstudio
 from nerfexp.data.procedural import load_procedural, occlude, real_lens
 from nerfexp.data.rays import RandomRays, WholeImages
 from nerfexp.data.views import Views
@@ -294,3 +296,16 @@ def test_honest_splits_load_and_every_view_names_its_frame(tmp_path, rendered):
     assert set(scored) == {"val", "test"} and len(scored["test"]) == 2
     assert [source.name for source in scored["test"].sources] == [
         f"{tmp_path / TRANSFORMS}: frame {i} (images/test_000{k}.png)" for i, k in ((7, 0), (8, 1))]
+
+
+@settings(max_examples=100, deadline=None)
+@given(st.sampled_from(["./", ""]), st.lists(st.sampled_from(["./", "/", ""]), min_size=2, max_size=2))
+def test_every_spelling_of_a_frames_file_is_matched_to_it(tmp_path_factory, lead, extra):
+    # independent truth: the file system, which reads each spelling as the same file (a leading "/" is absolute:
+    # refused by relative_file)
+    root = tmp_path_factory.mktemp("spellings")
+    (root / "images" / "a").mkdir(parents=True)
+    (root / "images" / "a" / "x.png").write_bytes(b"")
+    spelled = f"{lead}images/{extra[0]}a/{extra[1]}x.png"
+    assert os.path.samefile(scene_file(root, spelled), root / "images/a/x.png")
+    assert spelling(spelled) == "images/a/x.png"
