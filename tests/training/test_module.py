@@ -288,12 +288,13 @@ def whole_image(size: int) -> dict:
             "rgb": torch.rand(size, size, 3), "index": torch.tensor(0)}
 
 
-def test_lpips_is_scored_once_built_and_kept_out_of_the_model(tmp_path, caplog):
+def test_lpips_is_scored_once_built_and_kept_out_of_the_model(tmp_path, caplog, monkeypatch):
     from nerfexp.training.perceptual import LpipsScorer, lpips_network
-    from tests.training.alexnet import alexnet_state
+    from tests.training.alexnet import alexnet_state, stand_in
 
     torch.manual_seed(0)
     torch.save(alexnet_state(), tmp_path / "alexnet.pth")
+    stand_in(monkeypatch, tmp_path / "alexnet.pth")  # as the published weights
     plain = module(lambda: OpaqueField(0.5))
     m = module(lambda: OpaqueField(0.5))
     m.lpips_weights = str(tmp_path / "alexnet.pth")
