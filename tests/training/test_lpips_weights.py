@@ -169,3 +169,12 @@ def test_a_path_that_is_not_a_weights_file_is_one_line(tmp_path, make):
     make(path)
     with pytest.raises(ConfigError, match=f"^model.lpips_weights={path}: no such file; expected torchvision's"):
         check_weights_file("auto", str(path), custom=True)
+
+
+def test_a_file_larger_than_any_weights_file_is_refused_unread(tmp_path, monkeypatch):
+    path = saved(tmp_path / "large.pth")
+    monkeypatch.setattr(perceptual, "WEIGHTS_BYTES", 1000)
+    for check in (check_weights_file, lpips_scorer):
+        with pytest.raises(ConfigError) as error:
+            check(True, str(path), custom=True)
+        assert str(error.value) == f"{path}: larger than the 1,000 bytes nerfexp reads of such a file"

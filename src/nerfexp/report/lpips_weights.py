@@ -34,7 +34,8 @@ def vouched_lpips(runs: list[Run]) -> tuple[list[Run], str]:
     if not unvouched:
         return runs, ""
     kept = [replace(run, results=without_lpips(run.results)) if left_out(run) else run for run in runs]
-    return kept, (f"The LPIPS of {len(unvouched)} run(s) is left out ({', '.join(f'`{run.path}`' for run in unvouched)}): "
+    named = ", ".join(f"`{run.path}`" for run in unvouched)
+    return kept, (f"The LPIPS of {len(unvouched)} run(s) is left out ({named}): "
                   "their results.json does not show torchvision's published AlexNet weights by their SHA-256 "
                   "(lpips_weights_sha256; a run of an earlier nerfexp, or other weights), so nerfexp cannot vouch "
                   "that it is LPIPS (docs/metrics.md).")

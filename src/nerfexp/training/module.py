@@ -20,7 +20,7 @@ from nerfexp.nerf.poses import PoseCorrection, PoseFit
 from nerfexp.nerf.schedules import warmup_exponential_decay
 from nerfexp.nerf.volume_renderer import VolumeRenderer, final_output
 from nerfexp.training.metrics import psnr, ssim
-from nerfexp.training.perceptual import METRICS, NOT_SCORED, ImageTooSmall, LpipsScorer, lpips_scorer
+from nerfexp.training.perceptual import LPIPS_NAMES, NOT_SCORED, ImageTooSmall, LpipsScorer, lpips_scorer
 from nerfexp.training.scoring import ScoringProtocols
 
 log = logging.getLogger(__name__)
@@ -217,7 +217,7 @@ class NeRFModule(ScoringProtocols, L.LightningModule):
         "lpips" with the published weights, "lpips_custom" with others), NaN under the other name; NaN under both
         where it is not scored: no scorer, or (under ``lpips=auto``) images smaller than AlexNet takes, which is said
         once and ends the scoring."""
-        scores = dict.fromkeys(METRICS, NOT_SCORED)
+        scores = dict.fromkeys(LPIPS_NAMES, NOT_SCORED)
         if self.lpips_scorer is None:
             return scores
         try:
@@ -234,7 +234,7 @@ class NeRFModule(ScoringProtocols, L.LightningModule):
         """What ``results.json`` and ``eval.json`` say of the weights that scored the LPIPS in their ``scores``
         (``nerfexp.training.recorders.scores_record``): ``lpips_weights_sha256``, the SHA-256 of the AlexNet
         weights file, where ``test_lpips`` or ``test_lpips_custom`` is there; else nothing."""
-        if self.lpips_scorer is None or not any(f"test_{name}" in scores for name in METRICS):
+        if self.lpips_scorer is None or not any(f"test_{name}" in scores for name in LPIPS_NAMES):
             return {}
         return {"lpips_weights_sha256": self.lpips_scorer.weights_sha256}
 

@@ -32,6 +32,7 @@ import logging
 import math
 import os
 import socket
+import uuid
 from collections.abc import Iterator
 from contextlib import contextmanager
 from pathlib import Path
@@ -66,7 +67,7 @@ EPS = 1e-10  # added to each feature vector's length before dividing, as LPIPS d
 SETTINGS = ("auto", True, False)  # model.lpips: scored where the weights are found or downloaded; required; off
 NOT_SCORED = math.nan  # an image's LPIPS where it is not scored (the recorders leave it out of their files)
 PUBLISHED, CUSTOM = "lpips", "lpips_custom"  # the scores' names: with the published weights; with the user's own
-METRICS = (PUBLISHED, CUSTOM)
+LPIPS_NAMES = (PUBLISHED, CUSTOM)  # every name an LPIPS score is recorded under
 
 log = logging.getLogger(__name__)
 
@@ -171,7 +172,8 @@ def download_failure(error: Exception) -> str:
 def socket_timeout(seconds: float) -> Iterator[None]:
     """Within the block, a connection that does not connect, or stops sending, for ``seconds`` fails with a
     TimeoutError: the process's default socket timeout, which ``torch.hub.download_url_to_file`` (whose
-    ``urlopen`` takes none of its own) waits for, set for the block and put back after it."""
+    ``urlopen`` takes none of its own) waits for, set for the block and put back after it (process-wide while it
+    holds: a socket another thread opens meanwhile gets it too; nerfexp opens none then)."""
     before = socket.getdefaulttimeout()
     socket.setdefaulttimeout(seconds)
     try:
@@ -187,7 +189,8 @@ def fetch_alexnet(cache_dir: Path, url: str | None = None, expected: str | None 
     ``HASH_REGEX``: 7be5be79 in ``ALEXNET_FILE``) must begin it, as torchvision checks its downloads.
     ``torch.hub.download_url_to_file`` downloads it, with its progress bar, waiting at most ``TIMEOUT_S`` for the
     server to connect or send more (``socket_timeout``), into ``<name>.<uuid>.partial`` in ``cache_dir`` (deleted
-    on any failure), then to ``<name>.unchecked``, which takes the name only once its whole SHA-256 matches: the
+    on any failure), then to ``<name>.<uuid>.unchecked`` (this call's own: the processes of a distributed run may
+    download at once), which takes the name only once its whole SHA-256 matches, and is deleted otherwise: the
     name never holds a partial or altered file. Downloads whatever is at the name already again: callers fetch
     only a file that is missing. A ``DownloadFailed`` saying why in a few words (``download_failure``) where it
     cannot; a ValueError for a name without a hash, or one whose hash ``expected`` does not begin with."""
@@ -200,12 +203,12 @@ def fetch_alexnet(cache_dir: Path, url: str | None = None, expected: str | None 
     if not expected.startswith(found.group(1)):
         raise ValueError(f"{url}: its file name's hash {found.group(1)} does not begin the SHA-256 {expected}")
     path = Path(cache_dir) / name
-    unchecked = path.with_name(f"{name}.unchecked")
+    unchecked = path.with_name(f"{name}.{uuid.uuid4().hex}.unchecked")
     try:  # no line before: offline, the caller's one line is all (the progress bar shows once bytes arrive)
         path.parent.mkdir(parents=True, exist_ok=True)
         with socket_timeout(TIMEOUT_S):
             torch.hub.download_url_to_file(url, str(unchecked), hash_prefix=found.group(1), progress=True)
-        digest = hashlib.sha256(unchecked.read_bytes()).hexdigest()  # torch's own download, of the size it said
+        digest = hashlib.sha256(unchecked.read_bytes()).hexdigest()
         if digest != expected:
             raise DownloadFailed(f"SHA-256 check failed: {digest}, expected {expected}")
         os.replace(unchecked, path)

@@ -32,7 +32,7 @@ from nerfexp.rundir.layout import (
     write_json,
 )
 from nerfexp.training.loggers import log_hyperparams, log_image, log_labels
-from nerfexp.training.perceptual import CUSTOM, METRICS, PUBLISHED
+from nerfexp.training.perceptual import CUSTOM, LPIPS_NAMES, PUBLISHED
 from nerfexp.training.resume import RESUMES, SETTINGS
 
 log = logging.getLogger("nerfexp")
@@ -45,7 +45,7 @@ IMAGES = ("rgb", "depth", "opacity", "target")  # what an evaluation step return
 # ``NeRFModule._test``, docs/metrics.md)
 PROTOCOL_SCORES = ("psnr_full_image", "ssim_full_image", "psnr_right_half", "ssim_right_half")
 CAMERA_FIT = ("camera_fit_deg", "camera_fit_shift")  # the test cameras' corrections (test_cameras=refined)
-SCORES = ("psnr", "ssim", *METRICS, *PROTOCOL_SCORES, *CAMERA_FIT)
+SCORES = ("psnr", "ssim", *LPIPS_NAMES, *PROTOCOL_SCORES, *CAMERA_FIT)
 ALWAYS_SCORED = ("psnr", "ssim")
 
 
