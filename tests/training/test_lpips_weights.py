@@ -178,3 +178,15 @@ def test_a_file_larger_than_any_weights_file_is_refused_unread(tmp_path, monkeyp
         with pytest.raises(ConfigError) as error:
             check(True, str(path), custom=True)
         assert str(error.value) == f"{path}: larger than the 1,000 bytes nerfexp reads of such a file"
+
+
+def test_own_weights_not_of_alexnets_keys_and_shapes_are_refused_before_any_work(tmp_path):
+    state = alexnet_state()
+    state["features.3.weight"] = torch.zeros(192, 64, 3, 3)
+    path = tmp_path / "own.pth"
+    torch.save(state, path)
+    with pytest.raises(ConfigError) as error:
+        check_weights_file("auto", str(path), custom=True)
+    assert str(error.value) == (f"{path}: not torchvision's AlexNet ImageNet weights ({ALEXNET_FILE}): "
+                                "features.3.weight is of shape [192, 64, 3, 3], expected a tensor of shape "
+                                "[192, 64, 5, 5]")

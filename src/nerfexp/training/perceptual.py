@@ -362,7 +362,8 @@ def check_weights_file(setting: bool | str, weights: str | Path | None, custom: 
     """A ConfigError where LPIPS must be scored from a file that is not there, or is not the one nerfexp can
     vouch for: ``model.lpips_custom`` (``custom``) without a file named; the file ``model.lpips_weights`` names
     (``weights``) missing; a file, named or in the hub cache, whose SHA-256 is not ``ALEXNET_SHA256`` (``mismatch``),
-    unless ``custom`` says it is the user's own on purpose; or under ``model.lpips=true`` no file in the hub cache
+    unless ``custom`` says it is the user's own on purpose (then one not of AlexNet's keys and shapes,
+    ``backbone_state``); or under ``model.lpips=true`` no file in the hub cache
     and downloading it there (``fetch_alexnet``, once, before any work) failing. Nothing to check under false, or
     under auto where the hub cache lacks the file (``lpips_scorer`` downloads it when LPIPS is set up, or says why
     not)."""
@@ -374,9 +375,11 @@ def check_weights_file(setting: bool | str, weights: str | Path | None, custom: 
                           "(docs/metrics.md)")
     path = weights_file(weights)
     if path.is_file():
-        _, found = weights_bytes(path)
+        data, found = weights_bytes(path)
         if not custom and found != ALEXNET_SHA256:
             raise ConfigError(mismatch(path, found))
+        if custom:  # any digest, so its keys and shapes are checked now (the published digest vouches for them)
+            backbone_state(path, data)
         return
     if weights is not None:
         raise ConfigError(f"model.lpips_weights={weights}: no such file; expected torchvision's AlexNet ImageNet "
