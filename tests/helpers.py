@@ -29,6 +29,7 @@ from hydra import compose, initialize_config_module
 from hydra.core.global_hydra import GlobalHydra
 
 from nerfexp.geometry.cameras import look_at
+from nerfexp.training.perceptual import ALEXNET_SHA256
 
 REPO = Path(__file__).parents[1]  # on the console scripts' PYTHONPATH: they can load callbacks from here
 
@@ -368,7 +369,8 @@ def make_run(root: Path, name: str, overrides: list[str], state: str = "finished
              precision: str = "32-true", lpips: float | None = None) -> Path:
     """A run directory ``root/name`` as nerfexp leaves it, with known numbers: its status, its validation
     ``curve`` (wall seconds, PSNR), and where ``state`` is finished its test scores and results.json (with
-    ``lpips`` its test LPIPS too, as a run that scored it; without, none, as one that did not)."""
+    ``lpips`` its test LPIPS too, as a run that scored it with the published weights, whose SHA-256 it records;
+    without, none, as one that did not)."""
     run = root / name
     run.mkdir(parents=True)
     status = {"state": state, "overrides": overrides, "host": host or socket.gethostname(),
@@ -386,7 +388,7 @@ def make_run(root: Path, name: str, overrides: list[str], state: str = "finished
                    "batch_rays": 256, "n_params": 1000, "evaluations_per_ray": 96,
                    "machine": {"host": host or "lab-pc", "device": "CPU (2 cores, 2 torch threads)"},
                    "choices": choices or {}, "overrides": overrides, "precision": precision,
-                   **({} if lpips is None else {"test_lpips": lpips})}
+                   **({} if lpips is None else {"test_lpips": lpips, "lpips_weights_sha256": ALEXNET_SHA256})}
         (run / "results.json").write_text(json.dumps(results))
     (run / "metrics.jsonl").write_text("".join(json.dumps(line) + "\n" for line in lines))
     return run

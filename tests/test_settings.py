@@ -202,6 +202,22 @@ def test_lpips_settings_are_checked_before_any_work_and_may_change_on_resume(hyd
     assert may_differ("model.lpips") and may_differ("model.lpips_weights")  # what is scored, not what is trained
 
 
+def test_own_lpips_weights_need_a_file_are_unused_without_lpips_and_may_change_on_resume(hydra_configs, tmp_path,
+                                                                                       monkeypatch):
+    from nerfexp.training.resume import may_differ
+
+    monkeypatch.setenv("TORCH_HOME", str(tmp_path))  # an empty torch hub cache
+    with pytest.raises(ConfigError, match="^model.lpips_custom=true says the AlexNet weights model.lpips_weights "
+                                          "names are your own, and it names none"):
+        check_settings(composed("model.lpips_custom=true"))
+    with pytest.raises(ConfigError, match="^model.lpips_custom=maybe: expected true or false$"):
+        check_settings(composed("model.lpips_custom=maybe"))
+    check_settings(composed("model.lpips=false", "model.lpips_custom=true"))  # nothing read
+    assert unused_settings(composed("model.lpips=false"), ["model.lpips=false", "model.lpips_custom=true"]) == [
+        ("model.lpips_custom=true", "model.lpips=false (LPIPS is not scored)")]
+    assert may_differ("model.lpips_custom")
+
+
 VALUES = st.one_of(  # across and beyond the domains: wrong types, negatives, zero, nan, huge, strings
     st.integers(-3, 5), st.integers(2 ** 31, 2 ** 64), st.floats(allow_nan=True, allow_infinity=True),
     st.booleans(), st.sampled_from(["abc", "", "null", "stop", "skip", "white", "32-true", "auto"]),

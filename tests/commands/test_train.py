@@ -186,12 +186,15 @@ def test_default_run_directories_of_runs_started_at_once_differ(tmp_path):
 
 
 @pytest.mark.slow
-def test_lpips_is_recorded_in_every_file_where_alexnets_weights_are_given(tmp_path, tiny):
+def test_lpips_is_recorded_in_every_file_where_alexnets_weights_are_given(tmp_path, tiny, monkeypatch):
+    from nerfexp.training import perceptual
     from nerfexp.training.perceptual import LpipsScorer, lpips_network
-    from tests.training.alexnet import alexnet_state
+    from tests.training.alexnet import alexnet_state, stand_in
+    from tests.training.weights_server import hashed_name, refused_url
 
     weights, run = tmp_path / "alexnet.pth", tmp_path / "run"
     torch.save(alexnet_state(), weights)  # made here: no test reads the ImageNet weights
+    published = stand_in(monkeypatch, weights)  # standing in for them
     result = run_nerfexp(*tiny, "scale.image_size=32", "model.lpips=true", f"model.lpips_weights={weights}",
                          f"hydra.run.dir={run}", cwd=tmp_path)
     assert result.returncode == 0, result.stderr[-3000:]
@@ -207,12 +210,43 @@ def test_lpips_is_recorded_in_every_file_where_alexnets_weights_are_given(tmp_pa
         assert scorer(render, target) == pytest.approx(score, rel=1e-4)
     log = (run / "nerfexp.log").read_text()
     assert f"LPIPS {records[1]['lpips']:.4f} after" in log and f"LPIPS {results['test_lpips']:.4f} after 60" in log
-    # nerfexp-eval scores the checkpoint with the run's config: the same LPIPS
+    assert results["lpips_weights_sha256"] == published
+    # nerfexp-eval scores the checkpoint with the run's config, the LPIPS weights the evaluating user's: none of
+    # the run's (an empty hub cache, offline) ...
+    monkeypatch.setenv("TORCH_HOME", str(tmp_path / "torch"))
+    monkeypatch.setattr(perceptual, "ALEXNET_URL", refused_url(hashed_name("alexnet-owt", weights.read_bytes())))
     evaluated = run_nerfexp(str(run), cwd=tmp_path, script="nerfexp-eval")
+    assert evaluated.returncode == 0, evaluated.stderr[-3000:]
+    assert not [key for key in read_json(run / "eval.json") if "lpips" in key]
+    # ... and the same file named by the evaluating user: the same LPIPS
+    evaluated = run_nerfexp(str(run), f"model.lpips_weights={weights}", cwd=tmp_path, script="nerfexp-eval")
     assert evaluated.returncode == 0, evaluated.stderr[-3000:]
     scores = read_json(run / "eval.json")
     assert scores["test_lpips_per_view"] == results["test_lpips_per_view"]
+    assert scores["lpips_weights_sha256"] == published
     assert f"LPIPS {scores['test_lpips']:.4f} of " in evaluated.stdout
+
+
+@pytest.mark.slow
+def test_own_weights_are_recorded_as_lpips_custom_with_their_digest(tmp_path, tiny):
+    from tests.training.alexnet import alexnet_state
+
+    weights, run = tmp_path / "mine.pth", tmp_path / "run"
+    torch.save(alexnet_state(seed=4), weights)
+    refused = run_nerfexp(*tiny, "scale.image_size=32", f"model.lpips_weights={weights}", f"hydra.run.dir={run}",
+                          cwd=tmp_path)
+    assert refused.returncode == 1 and not run.exists()  # not the published weights: refused before any work
+    assert f"{weights}: not torchvision's AlexNet ImageNet weights" in refused.stderr
+    result = run_nerfexp(*tiny, "scale.image_size=32", f"model.lpips_weights={weights}", "model.lpips_custom=true",
+                         f"hydra.run.dir={run}", cwd=tmp_path)
+    assert result.returncode == 0, result.stderr[-3000:]
+    results = read_json(run / "results.json")
+    assert not [key for key in results if key.startswith("test_lpips") and "custom" not in key]
+    assert results["test_lpips_custom"] == pytest.approx(np.mean(results["test_lpips_custom_per_view"]))
+    assert results["lpips_weights_sha256"] == hashlib.sha256(weights.read_bytes()).hexdigest()
+    records = [json.loads(line) for line in (run / "metrics.jsonl").read_text().splitlines()]
+    assert all("lpips" not in r and r["lpips_custom"] > 0 for r in records)
+    assert "LPIPS with your own weights (not comparable)" in (run / "nerfexp.log").read_text()
 
 
 def test_a_run_without_lpips_records_none_and_says_why_in_one_line(tiny_run):

@@ -14,6 +14,7 @@ from PIL import Image
 from nerfexp.commands.report import main
 from nerfexp.report.folder import write_report
 from nerfexp.report.pictures import ERROR_WHITE, default_views
+from nerfexp.training.perceptual import ALEXNET_SHA256
 from tests.browser import screenshot
 from tests.helpers import make_run
 
@@ -74,7 +75,8 @@ def test_the_page_in_a_real_browser_shows_every_picture_at_its_size(pictured, tm
 def test_a_view_is_captioned_with_its_lpips_where_the_run_scored_it(pictured):
     results_file = pictured / "0" / "results.json"
     results = json.loads(results_file.read_text())
-    results.update(test_lpips=0.2, test_lpips_per_view=[0.125 + i / 100 for i in range(N_VIEWS)])
+    results.update(test_lpips=0.2, test_lpips_per_view=[0.125 + i / 100 for i in range(N_VIEWS)],
+                   lpips_weights_sha256=ALEXNET_SHA256)  # as a run scored with the published weights records
     results_file.write_text(json.dumps(results))
     write_report([pictured], pictured, views=[0, 7])
     html = (pictured / "report.html").read_text()

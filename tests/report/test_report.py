@@ -189,6 +189,35 @@ def test_lpips_beside_psnr_and_ssim_where_runs_scored_it_lower_being_better(tmp_
     assert "LPIPS is AlexNet's (v0.1" in report and "the paper's LPIPS is VGG's" in report
 
 
+@pytest.mark.parametrize("recorded", [{}, {"lpips_weights_sha256": "0" * 64}])
+def test_lpips_nerfexp_cannot_vouch_for_is_left_out_and_said(tmp_path, recorded):
+    # run a_1 scored "LPIPS" without the published weights' digest (an earlier nerfexp's run, or other weights): its
+    # number is left out of the table and the comparison, and report.md names the run
+    for seed in range(2):
+        make_run(tmp_path, f"a_{seed}", ["ablation=a", f"seed={seed}"], lpips=0.2 + seed / 10)
+    results_file = tmp_path / "a_1" / "results.json"
+    results = json.loads(results_file.read_text())
+    del results["lpips_weights_sha256"]
+    results_file.write_text(json.dumps({**results, **recorded}))
+    write_report([tmp_path], tmp_path)
+    (row,) = read_csv(tmp_path / "report.csv")
+    assert float(row["test_lpips_mean"]) == pytest.approx(0.2) and math.isnan(float(row["test_lpips_std"]))
+    report = (tmp_path / "report.md").read_text()
+    assert (f"The LPIPS of 1 run(s) is left out (`{tmp_path / 'a_1'}`): their results.json does not show "
+            "torchvision's published AlexNet weights by their SHA-256") in report
+
+
+def test_lpips_of_own_weights_is_never_tabled_as_lpips(tmp_path):
+    for seed in range(2):
+        run = make_run(tmp_path, f"own_{seed}", ["ablation=own", f"seed={seed}"])
+        results = json.loads((run / "results.json").read_text())
+        results.update(test_lpips_custom=0.05, test_lpips_custom_per_view=[0.05], lpips_weights_sha256="1" * 64)
+        (run / "results.json").write_text(json.dumps(results))
+    write_report([tmp_path], tmp_path)
+    assert "LPIPS" not in (tmp_path / "report.md").read_text()
+    assert all(math.isnan(float(row["test_lpips_mean"])) for row in read_csv(tmp_path / "report.csv"))
+
+
 def test_without_lpips_the_report_has_no_lpips_column(ablation):
     write_report([ablation], ablation)
     assert "LPIPS" not in (ablation / "report.md").read_text()

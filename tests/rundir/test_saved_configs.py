@@ -422,3 +422,24 @@ def test_the_readers_environment_never_reaches_what_is_built_or_written(tiny_run
     assert run_dir / "eval.json" in written and secret not in capsys.readouterr().out
     assert not [path for path in written if path.is_file() and secret.encode() in path.read_bytes()]
     assert not [path for path in tmp_path.rglob("*") if secret in str(path)]
+
+
+def test_a_saved_config_never_chooses_the_lpips_weights_its_reader_scores_with(tmp_path, saved_text):
+    # the author's run names its own weights file, says it is the published one (lpips_custom false) or its own:
+    # either way the reader's evaluation reads nerfexp's defaults, and what the reader sets on the command line
+    for custom in (False, True):
+        (tmp_path / str(custom)).mkdir()
+        run_dir = saved_run(tmp_path / str(custom), saved_text, model__lpips=True, model__lpips_custom=custom,
+                            model__lpips_weights=str(tmp_path / "author.pth"))
+        cfg = run_config(run_dir)
+        assert (cfg.model.lpips, cfg.model.lpips_weights, cfg.model.lpips_custom) == ("auto", None, False)
+        mine = run_config(run_dir, ["model.lpips_weights=/mine.pth", "model.lpips_custom=true"])
+        assert (mine.model.lpips, mine.model.lpips_weights, mine.model.lpips_custom) == ("auto", "/mine.pth", True)
+
+
+def test_a_run_saved_before_lpips_custom_reads_back_with_it(tmp_path, saved_text):
+    config = yaml.safe_load(saved_text)
+    del config["model"]["lpips_custom"]  # an earlier nerfexp's run
+    run_dir = saved_run(tmp_path, yaml.safe_dump(config))
+    assert run_config(run_dir).model.lpips_custom is False
+    assert run_config(run_dir, ["model.lpips_custom=true"]).model.lpips_custom is True

@@ -1,7 +1,10 @@
 """AlexNet weights for the LPIPS tests, made here (no test needs, or downloads, the ImageNet ones): torchvision's
-layout of ``AlexNet.features`` and a state dict of random weights in it."""
+layout of ``AlexNet.features``, a state dict of random weights in it, and a file of them standing in for the
+published one (``stand_in``)."""
 
+import hashlib
 import math
+from pathlib import Path
 
 import torch
 from torch import nn
@@ -35,3 +38,14 @@ def alexnet_state(seed: int = 0) -> dict[str, torch.Tensor]:
             state[f"features.{name}"] = torch.randn(value.shape, generator=generator) * 0.1
     state["classifier.6.bias"] = torch.zeros(1000)
     return state
+
+
+def stand_in(monkeypatch, path: Path) -> str:
+    """Make the weights file ``path`` stand in for torchvision's published one for the rest of a test: nerfexp's
+    pinned digest (``nerfexp.training.perceptual.ALEXNET_SHA256``) set to the file's SHA-256, which it returns.
+    Only a file of that digest scores ``lpips``; the ImageNet file itself is on no test machine."""
+    from nerfexp.training import perceptual
+
+    digest = hashlib.sha256(Path(path).read_bytes()).hexdigest()
+    monkeypatch.setattr(perceptual, "ALEXNET_SHA256", digest)
+    return digest

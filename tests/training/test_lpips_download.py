@@ -1,12 +1,14 @@
 """AlexNet's weights downloaded into the torch hub cache where they are missing
 (nerfexp.training.perceptual.fetch_alexnet, and lpips_scorer and check_weights_file, which call it), from a
-server on 127.0.0.1 (tests/training/weights_server.py): no test reaches the internet. The hash a file must
-have comes from its name, as torch hub's does (``name-<hex>.ext``), so each test names what it serves by the
-SHA-256 of its bytes. However a download fails, the cache is left without the file and without a temporary
-one."""
+server on 127.0.0.1 (tests/training/weights_server.py): no test reaches the internet. A file's name carries the
+first hex digits of its SHA-256, as torch hub's does (``name-<hex>.ext``), and the whole digest is nerfexp's
+(``ALEXNET_SHA256``), so each test names what it serves by the SHA-256 of its bytes and gives that digest. However a
+download fails, the cache is left without the file and without a temporary one."""
 
+import hashlib
 import io
 import socket
+import time
 from pathlib import Path
 from urllib.error import HTTPError, URLError
 
@@ -29,7 +31,10 @@ from nerfexp.training.perceptual import (
     url_file_name,
 )
 from tests.training.alexnet import alexnet_state
-from tests.training.weights_server import Cut, hashed_name, misnamed, refused_url, serving
+from tests.training.weights_server import Cut, hashed_name, misnamed, refused_url, serving, silent
+
+def digest(data: bytes) -> str:
+    return hashlib.sha256(data).hexdigest()
 
 DATA = bytes(range(256)) * 64  # a small stand-in for a weights file: 16 kB
 
@@ -60,7 +65,7 @@ def test_a_file_is_downloaded_under_its_name_once_its_hash_matches(tmp_path):
     name = hashed_name("weights", DATA)
     cache = tmp_path / "hub" / "checkpoints"  # made by the download
     with serving({name: DATA}) as server:
-        path = fetch_alexnet(cache, server.url(name))
+        path = fetch_alexnet(cache, server.url(name), digest(DATA))
     assert path == cache / name and path.read_bytes() == DATA
     assert files_in(cache) == [name] and server.requests == [name]  # no temporary file left
 
@@ -73,13 +78,13 @@ def test_a_file_is_downloaded_under_its_name_once_its_hash_matches(tmp_path):
 ])
 def test_a_failed_download_leaves_the_cache_without_the_file_and_says_why(tmp_path, case, reason):
     cache = tmp_path / "checkpoints"
-    name = misnamed("weights", DATA) if case == "wrong hash" else hashed_name("weights", DATA)
-    files = {"wrong hash": {name: DATA}, "body cut short": {name: Cut(DATA, len(DATA) // 3)},
+    name = hashed_name("weights", DATA)
+    files = {"wrong hash": {name: DATA[::-1]}, "body cut short": {name: Cut(DATA, len(DATA) // 3)},
              "no such file": {}, "connection refused": {}}[case]
     with serving(files) as server:
         url = refused_url(name) if case == "connection refused" else server.url(name)
         with pytest.raises(DownloadFailed, match=f"^{reason}") as error:
-            fetch_alexnet(cache, url)
+            fetch_alexnet(cache, url, digest(DATA))
     assert "\n" not in str(error.value)
     assert server.requests == ([] if case == "connection refused" else [name])
     assert files_in(cache) == []  # neither the name nor a temporary file
@@ -92,6 +97,48 @@ def test_a_name_without_a_hash_is_refused_before_any_request(tmp_path):
         with pytest.raises(ValueError, match="carries no hash"):
             fetch_alexnet(tmp_path, server.url("weights-.pth"))  # HASH_REGEX's empty match would check nothing
     assert server.requests == [] and files_in(tmp_path) == []
+
+
+def test_a_file_whose_whole_digest_differs_past_the_names_digits_never_takes_the_name(tmp_path):
+    # the 8 hex digits of a name are 32 bits, which a forger can match: the whole SHA-256 decides
+    cache, name = tmp_path / "checkpoints", hashed_name("weights", DATA)
+    expected = digest(DATA)[:8] + "0" * 56  # the name's digits, another digest
+    with serving({name: DATA}) as server:
+        with pytest.raises(DownloadFailed) as error:
+            fetch_alexnet(cache, server.url(name), expected)
+    assert str(error.value) == f"SHA-256 check failed: {digest(DATA)}, expected {expected}"
+    assert server.requests == [name] and files_in(cache) == []  # neither the name nor a temporary file
+
+
+def test_a_name_whose_digits_do_not_begin_the_digest_is_refused_before_any_request(tmp_path):
+    name = misnamed("weights", DATA)
+    with serving({name: DATA}) as server:
+        with pytest.raises(ValueError, match=f"its file name's hash {name[8:16]} does not begin the SHA-256"):
+            fetch_alexnet(tmp_path, server.url(name), digest(DATA))
+    assert server.requests == [] and files_in(tmp_path) == []
+
+
+def test_a_server_that_never_answers_is_given_up_on_after_the_timeout(tmp_path, monkeypatch):
+    monkeypatch.setattr(perceptual, "TIMEOUT_S", 0.5)
+    name = hashed_name("weights", DATA)
+    before = socket.getdefaulttimeout()
+    with silent() as folder:
+        started = time.monotonic()
+        with pytest.raises(DownloadFailed, match="^timed out$"):
+            fetch_alexnet(tmp_path / "checkpoints", f"{folder}/{name}", digest(DATA))
+        waited = time.monotonic() - started
+    assert 0.5 <= waited < 10  # the timeout's, not the system's minutes
+    assert socket.getdefaulttimeout() == before and files_in(tmp_path / "checkpoints") == []
+
+
+@pytest.mark.parametrize("seconds", [0.25, 3.0])
+def test_the_timeout_holds_only_within_its_block_and_is_put_back_after_an_error(seconds):
+    before = socket.getdefaulttimeout()
+    with pytest.raises(KeyError):
+        with perceptual.socket_timeout(seconds):
+            assert socket.getdefaulttimeout() == seconds
+            raise KeyError("any failure")
+    assert socket.getdefaulttimeout() == before
 
 
 @pytest.mark.parametrize("error, why", [
@@ -115,12 +162,18 @@ def empty_hub(tmp_path, monkeypatch) -> Path:
     return tmp_path / "torch" / "hub" / "checkpoints"
 
 
+def publish(monkeypatch, url: str, data: bytes) -> None:
+    """Make ``data`` at ``url`` stand in for torchvision's published weights: nerfexp's address and digest."""
+    monkeypatch.setattr(perceptual, "ALEXNET_URL", url)
+    monkeypatch.setattr(perceptual, "ALEXNET_SHA256", digest(data))
+
+
 def test_auto_downloads_the_weights_once_and_scores_with_them(empty_hub, tmp_path, monkeypatch):
     data = alexnet_bytes()
     name = hashed_name("alexnet-owt", data)
     (tmp_path / "own.pth").write_bytes(data)
     with serving({name: data}) as server:
-        monkeypatch.setattr(perceptual, "ALEXNET_URL", server.url(name))
+        publish(monkeypatch, server.url(name), data)
         assert hub_weights_file() == empty_hub / name
         scorer, line = lpips_scorer("auto", None)
         assert isinstance(scorer, LpipsScorer) and line == ""
@@ -136,7 +189,7 @@ def test_auto_downloads_the_weights_once_and_scores_with_them(empty_hub, tmp_pat
 def test_true_downloads_the_weights_when_checked_before_any_work(empty_hub, monkeypatch):
     name = hashed_name("alexnet-owt", DATA)
     with serving({name: DATA}) as server:
-        monkeypatch.setattr(perceptual, "ALEXNET_URL", server.url(name))
+        publish(monkeypatch, server.url(name), DATA)
         check_weights_file(True, None)
         check_weights_file(True, None)
     assert server.requests == [name] and files_in(empty_hub) == [name]
@@ -146,10 +199,10 @@ def test_true_downloads_the_weights_when_checked_before_any_work(empty_hub, monk
                                           ("connection refused", "Connection refused")])
 def test_a_failed_download_is_one_line_under_auto_and_an_error_under_true(empty_hub, monkeypatch, case, reason):
     data = alexnet_bytes()
-    name = misnamed("alexnet-owt", data) if case == "wrong hash" else hashed_name("alexnet-owt", data)
-    with serving({name: data}) as server:
+    name = hashed_name("alexnet-owt", data)
+    with serving({name: data[::-1] if case == "wrong hash" else data}) as server:
         url = refused_url(name) if case == "connection refused" else server.url(name)
-        monkeypatch.setattr(perceptual, "ALEXNET_URL", url)
+        publish(monkeypatch, url, data)
         none, line = lpips_scorer("auto", None)
         with pytest.raises(ConfigError) as error:
             lpips_scorer(True, None)
@@ -167,7 +220,7 @@ def test_nothing_is_downloaded_where_the_config_names_a_file_or_turns_lpips_off(
     name = hashed_name("alexnet-owt", data)
     (tmp_path / "own.pth").write_bytes(data)
     with serving({name: data}) as server:
-        monkeypatch.setattr(perceptual, "ALEXNET_URL", server.url(name))
+        publish(monkeypatch, server.url(name), data)
         with pytest.raises(ConfigError, match="^model.lpips_weights=/no/such.pth: no such file"):
             lpips_scorer("auto", "/no/such.pth")
         with pytest.raises(ConfigError, match="^model.lpips_weights=/no/such.pth: no such file"):

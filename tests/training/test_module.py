@@ -1,4 +1,5 @@
 import csv
+import hashlib
 import functools
 import math
 from pathlib import Path
@@ -288,12 +289,13 @@ def whole_image(size: int) -> dict:
             "rgb": torch.rand(size, size, 3), "index": torch.tensor(0)}
 
 
-def test_lpips_is_scored_once_built_and_kept_out_of_the_model(tmp_path, caplog):
+def test_lpips_is_scored_once_built_and_kept_out_of_the_model(tmp_path, caplog, monkeypatch):
     from nerfexp.training.perceptual import LpipsScorer, lpips_network
-    from tests.training.alexnet import alexnet_state
+    from tests.training.alexnet import alexnet_state, stand_in
 
     torch.manual_seed(0)
     torch.save(alexnet_state(), tmp_path / "alexnet.pth")
+    stand_in(monkeypatch, tmp_path / "alexnet.pth")  # as the published weights
     plain = module(lambda: OpaqueField(0.5))
     m = module(lambda: OpaqueField(0.5))
     m.lpips_weights = str(tmp_path / "alexnet.pth")
@@ -349,3 +351,26 @@ def test_training_values_are_logged_on_the_steps_the_logger_writes_and_only_ther
     for name in ("train/loss", "train/rays_per_s"):  # in training_step and in on_train_batch_end
         assert [int(row["step"]) for row in rows if row.get(name)] == [2, 5], name
         assert [batch for logged, batch in calls if logged == name] == [3, 6], name
+
+
+def test_own_weights_are_scored_and_recorded_as_lpips_custom_never_as_lpips(tmp_path):
+    from nerfexp.training.perceptual import LpipsScorer, lpips_network
+    from nerfexp.training.recorders import scores_record, scores_text
+    from tests.training.alexnet import alexnet_state
+
+    weights = tmp_path / "mine.pth"
+    torch.save(alexnet_state(seed=3), weights)
+    m = module(lambda: OpaqueField(0.5))
+    m.lpips, m.lpips_weights, m.lpips_custom = True, str(weights), True
+    m.setup("test")
+    images = whole_image(32)
+    scored = m._evaluate(images)
+    expected = LpipsScorer(lpips_network(weights))(scored["rgb"], images["rgb"])
+    assert scored["lpips_custom"] == expected > 0 and math.isnan(scored["lpips"])
+    record = scores_record({0: scored})
+    assert record["test_lpips_custom"] == expected and "test_lpips" not in record
+    digest = hashlib.sha256(weights.read_bytes()).hexdigest()
+    assert m.lpips_record(record) == {"lpips_weights_sha256": digest}
+    assert m.lpips_record(scores_record({0: {"psnr": 20.0, "ssim": 0.5}})) == {}  # no LPIPS, no weights named
+    text = scores_text({**record, "test_psnr": 20.0, "test_ssim": 0.5})
+    assert text == f"test PSNR 20.00 dB, SSIM 0.5000, LPIPS with your own weights (not comparable) {expected:.4f}"

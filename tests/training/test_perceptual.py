@@ -31,7 +31,7 @@ from nerfexp.training.perceptual import (
     lpips_network,
     lpips_scorer,
 )
-from tests.training.alexnet import alexnet_state, torchvision_alexnet_features
+from tests.training.alexnet import alexnet_state, stand_in, torchvision_alexnet_features
 from tests.training.weights_server import refused_url
 
 
@@ -237,6 +237,7 @@ def test_without_weights_auto_says_where_it_looked_in_one_line_and_true_refuses(
 
     cache.parent.mkdir(parents=True, exist_ok=True)  # the hub cache filled, as torchvision fills it
     cache.write_bytes(weights.read_bytes())
+    stand_in(monkeypatch, weights)  # the test's weights are the published ones here
     for setting in ("auto", True):
         found, line = lpips_scorer(setting, None)
         assert isinstance(found, LpipsScorer) and line == ""

@@ -1,6 +1,7 @@
 """A web server on 127.0.0.1 for the LPIPS download tests, so that no test reaches the internet: it serves
 the files it is given by name (``serving``), a body cut short (``Cut``), 404 for any other name, and
-records the names asked for; ``refused_url`` is an address where nothing listens."""
+records the names asked for; ``refused_url`` is an address where nothing listens, ``silent`` one where nothing
+answers."""
 
 import hashlib
 import socket
@@ -83,3 +84,13 @@ def refused_url(name: str) -> str:
         probe.bind(("127.0.0.1", 0))
         port = probe.getsockname()[1]
     return f"http://127.0.0.1:{port}/models/{name}"
+
+
+@contextmanager
+def silent() -> Iterator[str]:
+    """A port of 127.0.0.1 that takes connections (the kernel completes them) and never answers, as a server that
+    hangs: the address of its folder ``http://127.0.0.1:PORT/models``, until the block ends."""
+    with socket.socket() as listener:
+        listener.bind(("127.0.0.1", 0))
+        listener.listen(8)
+        yield f"http://127.0.0.1:{listener.getsockname()[1]}/models"

@@ -7,6 +7,7 @@ from pathlib import Path
 
 from nerfexp import manifest
 from nerfexp.files import atomic_directory
+from nerfexp.report.lpips_weights import vouched_lpips
 from nerfexp.report.page import page_html
 from nerfexp.report.pictures import PLOTS, VIEWS_NOTE, check_views, view_tiles
 from nerfexp.report.plots import pareto_png, psnr_vs_time_png
@@ -40,11 +41,12 @@ def write_report(directories: list[Path], out: Path, over: tuple[str, ...] = ("s
     ``out`` is checked first (``check_out``)."""
     check_out(out)
     runs, protocols = compared_runs(find_runs(directories))  # the scores compared: of one protocol
+    runs, weights = vouched_lpips(runs)  # LPIPS only of the published weights
     variants = group_variants([run for run in runs if run.overrides is not None], over)
     base = reference_variant(variants, reference)
     views = check_views(variants, views)
     rows = table_rows(variants, base)
-    report_md = markdown(variants, rows, runs, directories, base, protocols)
+    report_md = markdown(variants, rows, runs, directories, base, " ".join(filter(None, (protocols, weights))))
     manifest.write(out, REPORT_MD, report_md.encode())
     manifest.write(out, REPORT_CSV, csv_text(rows).encode())
     manifest.write(out, PSNR_PLOT, psnr_vs_time_png(variants))

@@ -9,6 +9,7 @@ differ (no pixels are scored alike there).
 from dataclasses import replace
 
 from nerfexp.nerf.appearance import FULL_IMAGE, NERFW_RIGHT_HALF
+from nerfexp.report.lpips_weights import without_lpips
 from nerfexp.report.runs import Run
 
 GIVEN, REFINED = "given", "refined"  # results.json's test_cameras (conf/test_cameras/)
@@ -79,4 +80,4 @@ def compared_protocols(runs: list[Run], finished: list[Run]) -> tuple[list[Run],
 def right_halves(results: dict) -> dict:
     """A run's ``results`` whose test PSNR and SSIM are its right half's, without LPIPS."""
     halves = {key: results[half] for key, half in RIGHT_HALF_KEYS.items()}
-    return {**{key: value for key, value in results.items() if not key.startswith("test_lpips")}, **halves}
+    return {**without_lpips(results), **halves}

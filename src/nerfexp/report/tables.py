@@ -158,8 +158,9 @@ def precision_text(variants: list[Variant]) -> tuple[str, bool]:
 def markdown(variants: list[Variant], rows: list[dict], runs: list[Run], sources: list[Path],
              reference: Variant | None = None, protocols: str = "") -> str:
     """report.md: the ``variants`` with their ``rows`` (``table_rows`` against ``reference``), the ranking,
-    the paper's order, and the ``runs`` under ``sources`` that did not finish; ``protocols``: which test protocol's
-    scores these are, where it needs saying (``nerfexp.report.protocols.compared_runs``)."""
+    the paper's order, and the ``runs`` under ``sources`` that did not finish; ``protocols``: which scores these
+    are, where it needs saying (the test protocol's, ``nerfexp.report.protocols.compared_runs``; whose LPIPS is left
+    out, ``nerfexp.report.lpips_weights.vouched_lpips``)."""
     planned, unplanned = [], []
     for source in sources:
         try:

@@ -9,6 +9,10 @@ importable function (``torch.load`` of a pickle with ``weights_only: false``, sa
 - The keys that only training builds are removed, unread (``TRAINING_ONLY``: the callbacks, the logger and
   the trainer's ``default_root_dir``, where a run wrote its files: the only keys of nerfexp's configs that
   call a resolver, ``${hydra:runtime.output_dir}``). The commands that read a run back build none of them.
+- The keys that choose what the reader's own evaluation reads (``READERS_OWN``: the LPIPS weights file, whether
+  it is the user's own) get nerfexp's defaults (``conf/config.yaml``'s), never the saved values: a run directory
+  from elsewhere never chooses the weights that score LPIPS on the reader's machine; the reader's ``KEY=VALUE``
+  overrides set them.
 - Every interpolation left, nested ones included, must be a plain reference to another key (``${scale.width}``,
   ``${..near}``, ``${a.${b}}``). Any resolver (``oc.create``, which makes a node that Hydra then builds,
   ``oc.decode``, ``oc.env``, which would read the reader's environment, ``oc.select``, ``oc.dict.keys``,
@@ -34,8 +38,10 @@ that read a run back) is your own code, as in any Hydra application, and is not 
 """
 
 from collections.abc import Iterator
+from importlib.resources import files
 from pathlib import Path
 
+import yaml
 from hydra.utils import get_class
 from omegaconf import DictConfig, OmegaConf
 from omegaconf.grammar.gen.OmegaConfGrammarLexer import OmegaConfGrammarLexer
@@ -51,6 +57,7 @@ FAMILIES = (("nerfexp.", "builtins.object"), ("torch.optim.", "torch.optim.Optim
             ("lightning.pytorch.loggers.", "lightning.pytorch.loggers.Logger"),
             ("lightning.pytorch.callbacks.", "lightning.pytorch.callbacks.Callback"))
 TRAINING_ONLY = ("callbacks", "logger", "trainer.default_root_dir")  # what only training builds (dotted keys)
+READERS_OWN = ("model.lpips", "model.lpips_weights", "model.lpips_custom")  # what the reader's evaluation reads
 
 
 def targets(node, path: str = "") -> Iterator[tuple[str, object]]:
@@ -140,21 +147,45 @@ def check_resolved(resolved: dict, source: Path) -> None:
                               "resolve again: a run directory from elsewhere is read as data, never resolved twice")
 
 
-def without(plain: dict, dotted: str) -> None:
-    """Remove the key ``dotted`` (e.g. ``trainer.default_root_dir``) from the plain containers ``plain``, in
-    place, where it is there; nothing is resolved."""
+def holder(plain: dict, dotted: str) -> tuple[dict | None, str]:
+    """The container in the plain containers ``plain`` that holds the key ``dotted`` (e.g.
+    ``trainer.default_root_dir``), and the key's last part; None where a parent is not there."""
     *parents, leaf = dotted.split(".")
     for key in parents:
         plain = plain.get(key) if isinstance(plain, dict) else None
-    if isinstance(plain, dict):
-        plain.pop(leaf, None)
+    return (plain if isinstance(plain, dict) else None), leaf
+
+
+def without(plain: dict, dotted: str) -> None:
+    """Remove the key ``dotted`` (e.g. ``trainer.default_root_dir``) from the plain containers ``plain``, in
+    place, where it is there; nothing is resolved."""
+    container, leaf = holder(plain, dotted)
+    if container is not None:
+        container.pop(leaf, None)
+
+
+def readers_own() -> dict[str, object]:
+    """nerfexp's defaults of the ``READERS_OWN`` keys, from its own ``conf/config.yaml``: ``{dotted key: value}``."""
+    defaults = OmegaConf.create(yaml.safe_load((files("nerfexp.conf") / "config.yaml").read_text()))
+    return {dotted: OmegaConf.select(defaults, dotted) for dotted in READERS_OWN}
+
+
+def put(plain: dict, dotted: str, value: object) -> None:
+    """Set the key ``dotted`` (e.g. ``model.lpips``) of the plain containers ``plain`` to ``value``, in place,
+    where its parent is there (a config without ``model`` is refused where it is built)."""
+    container, leaf = holder(plain, dotted)
+    if container is not None:
+        container[leaf] = value
 
 
 def as_data(cfg: DictConfig, source: Path) -> DictConfig:
     """The saved config ``cfg`` (read from ``source``, nothing resolved yet) as the commands that read a run
-    back may use it: without ``TRAINING_ONLY``'s keys, checked (``check_saved_config``)."""
+    back may use it: without ``TRAINING_ONLY``'s keys, the ``READERS_OWN`` keys at nerfexp's defaults
+    (``readers_own``), checked (``check_saved_config``)."""
     plain = OmegaConf.to_container(cfg, resolve=False)
     for dotted in TRAINING_ONLY:
         without(plain, dotted)
+    for dotted, value in readers_own().items():
+        put(plain, dotted, value)
     check_saved_config(plain, source)
     return OmegaConf.create(plain)

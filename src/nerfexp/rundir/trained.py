@@ -3,6 +3,7 @@
 are read as if made by this one (``MOVED_TARGETS``). What is built from them, the model, is a layer above
 training (``nerfexp.products.trained``)."""
 
+import io
 import pickle
 import warnings
 import zipfile
@@ -103,12 +104,13 @@ def run_config(run_dir: Path, overrides: list[str] = ()) -> DictConfig:
     return cfg
 
 
-def not_a_checkpoint(path: Path, error: Exception) -> str:
-    """What file ``path``, which ``torch.load`` could not read as data (``error``), is, in a few words: never
-    torch's own message, whose advice to load it with ``weights_only=False`` would run any code it holds."""
-    if path.stat().st_size == 0:
+def not_a_checkpoint(source: Path | io.BytesIO, error: Exception) -> str:
+    """What file ``source`` (a path, or a file's bytes already read), which ``torch.load`` could not read as data
+    (``error``), is, in a few words: never torch's own message, whose advice to load it with
+    ``weights_only=False`` would run any code it holds."""
+    if (source.getbuffer().nbytes if isinstance(source, io.BytesIO) else source.stat().st_size) == 0:
         return "an empty file"
-    if not zipfile.is_zipfile(path):
+    if not zipfile.is_zipfile(source):
         return "not a whole zip archive as torch.save writes: cut short, or another kind of file"
     if isinstance(error, pickle.UnpicklingError):
         return "it holds objects other than tensors, numbers, strings and containers of them"
@@ -116,18 +118,21 @@ def not_a_checkpoint(path: Path, error: Exception) -> str:
 
 
 def load_as_data(path: Path, what: str, kind: str = "checkpoints",
-                 error_type: type[NerfexpError] = NerfexpError) -> object:
+                 error_type: type[NerfexpError] = NerfexpError, data: bytes | None = None) -> object:
     """What ``torch.save`` wrote to ``path``, read as data (``weights_only``: tensors and plain containers; a
     pickle that would run code is refused), on the CPU; an ``error_type`` naming the file, ``what`` it
-    should be (e.g. "a checkpoint") and what it is, where it cannot be read so (``kind``: such files)."""
+    should be (e.g. "a checkpoint") and what it is, where it cannot be read so (``kind``: such files).
+    ``data``: the file's bytes where the caller has read them already (to check their SHA-256), read in place
+    of the file, so that what was checked is what is loaded."""
+    source = path if data is None else io.BytesIO(data)
     try:
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")  # torch's notes on pickle protocols: the error below says what matters
-            return torch.load(path, map_location="cpu", weights_only=True)
+            return torch.load(source, map_location="cpu", weights_only=True)
     except OSError as error:
         raise error_type(f"{path}: cannot read {what} ({error.strerror})") from None
     except Exception as error:  # torch raises any type (IndexError, KeyError, ...) on bytes it cannot parse
-        raise error_type(f"{path}: not {what} ({not_a_checkpoint(path, error)}); nerfexp reads {kind} as data "
+        raise error_type(f"{path}: not {what} ({not_a_checkpoint(source, error)}); nerfexp reads {kind} as data "
                          "only, never running code in them") from None
 
 

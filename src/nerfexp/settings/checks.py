@@ -223,11 +223,13 @@ def check_extras(cfg: DictConfig) -> None:
 
 
 def check_lpips(cfg: DictConfig) -> None:
-    """A ConfigError where LPIPS must be scored from a weights file that is not there: the one
-    ``model.lpips_weights`` names, or under ``model.lpips=true`` the torch hub cache's
-    (``nerfexp.training.perceptual.check_weights_file``); the file is read when the model is set up."""
+    """A ConfigError where LPIPS must be scored from a weights file that is not there, or not torchvision's
+    published one without ``model.lpips_custom`` saying it is the user's own: the one ``model.lpips_weights``
+    names, or the torch hub cache's (``nerfexp.training.perceptual.check_weights_file``); the file is read, and
+    its SHA-256 taken again, when the model is set up."""
     check_weights_file(OmegaConf.select(cfg, "model.lpips", default=False),
-                       OmegaConf.select(cfg, "model.lpips_weights", default=None))
+                       OmegaConf.select(cfg, "model.lpips_weights", default=None),
+                       OmegaConf.select(cfg, "model.lpips_custom", default=False))
 
 
 def check_settings(cfg: DictConfig, training: bool = True, scoring: bool = True) -> None:

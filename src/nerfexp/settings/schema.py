@@ -136,6 +136,7 @@ SCHEMA: dict[str, Rule] = {
     "model.compile": BOOLEAN,
     "model.lpips": choice(*LPIPS_SETTINGS),
     "model.lpips_weights": optional(PATH, "the torch hub cache's"),  # and that the file is there (check_lpips)
+    "model.lpips_custom": BOOLEAN,  # and that lpips_weights names a file (check_lpips)
     "model.test_protocol": choice(*PROTOCOLS),
     "model.lr_final": LEARNING_RATE,
     "model.lr_warmup_steps": NONNEGATIVE_COUNT,

@@ -48,6 +48,7 @@ CROSSING: dict[str, Callable[[DictConfig], str | None]] = {
     "data.aabb": boxed,
     "data.far": far_bounded,
     "model.lpips_weights": lpips_scored,
+    "model.lpips_custom": lpips_scored,
 }
 
 

@@ -20,7 +20,7 @@ from nerfexp.nerf.poses import PoseCorrection, PoseFit
 from nerfexp.nerf.schedules import warmup_exponential_decay
 from nerfexp.nerf.volume_renderer import VolumeRenderer, final_output
 from nerfexp.training.metrics import psnr, ssim
-from nerfexp.training.perceptual import NOT_SCORED, ImageTooSmall, LpipsScorer, lpips_scorer
+from nerfexp.training.perceptual import LPIPS_NAMES, NOT_SCORED, ImageTooSmall, LpipsScorer, lpips_scorer
 from nerfexp.training.scoring import ScoringProtocols, check_scored
 
 log = logging.getLogger(__name__)
@@ -37,7 +37,9 @@ class NeRFModule(ScoringProtocols, L.LightningModule):
     and scores the fine network's image (the only one without hierarchy): PSNR, SSIM and LPIPS
     (``nerfexp.training.perceptual``). ``lpips``: auto scores LPIPS where AlexNet's weights are found
     (``lpips_weights``, else the torch hub cache) and images are large enough, and says once why not where
-    they are not; true requires it (a ConfigError otherwise); false leaves it out. Its network is built
+    they are not; true requires it (a ConfigError otherwise); false leaves it out. Only torchvision's published
+    weights score ``lpips``; ``lpips_custom``: the file ``lpips_weights`` names is the user's own on purpose,
+    scored as ``lpips_custom`` (``lpips_record`` gives the weights' SHA-256 for the records). Its network is built
     once, at ``setup``, by the commands that evaluate (not by those that only render).
 
     ``diagnostics`` holds what the latest training batch showed of each network, detached (no graph,
@@ -60,7 +62,7 @@ class NeRFModule(ScoringProtocols, L.LightningModule):
 
     def __init__(self, renderer: VolumeRenderer, optimizer: Callable[..., torch.optim.Optimizer],
                  lr_final: float, chunk: int = 8192, lr_warmup_steps: int = 0, compile: bool = False,
-                 lpips: bool | str = "auto", lpips_weights: str | None = None,
+                 lpips: bool | str = "auto", lpips_weights: str | None = None, lpips_custom: bool = False,
                  camera_opt: Callable[[int], PoseCorrection] | None = None,
                  appearance_fit: CodeFit | None = None, test_protocol: str = FULL_IMAGE,
                  test_camera_fit: PoseFit | None = None):
@@ -73,6 +75,7 @@ class NeRFModule(ScoringProtocols, L.LightningModule):
         self.renderer, self.optimizer, self.lr_final, self.chunk = renderer, optimizer, lr_final, chunk
         self.lr_warmup_steps = lr_warmup_steps
         self.lpips, self.lpips_weights = lpips, lpips_weights
+        self.lpips_custom = lpips_custom
         self.lpips_scorer: LpipsScorer | None = None  # built by setup
         self._lpips_decided = False
         self.diagnostics: dict[str, dict[str, Tensor]] = {}
@@ -156,7 +159,7 @@ class NeRFModule(ScoringProtocols, L.LightningModule):
         self.size_appearance()
         if self._lpips_decided:
             return
-        self.lpips_scorer, missing = lpips_scorer(self.lpips, self.lpips_weights)
+        self.lpips_scorer, missing = lpips_scorer(self.lpips, self.lpips_weights, self.lpips_custom)
         self._lpips_decided = True
         if missing and self.global_rank == 0:
             log.info("%s", missing)
@@ -211,7 +214,7 @@ class NeRFModule(ScoringProtocols, L.LightningModule):
     def _evaluate(self, batch: dict) -> dict:
         """One whole image scored (over the pixels its "mask" keeps, where it has one:
         ``nerfexp.training.metrics``; LPIPS with the render's masked pixels the target's): its "index",
-        "psnr", "ssim", "lpips" (NaN where not scored), the render ("rgb", "depth", "opacity") and the
+        "psnr", "ssim", "lpips" and "lpips_custom" (``_lpips``), the render ("rgb", "depth", "opacity") and the
         "target". The means over images are logged by ``nerfexp.training.recorders.RunRecorder``, which
         gathers the images of all processes in a distributed run (a mean per process would weigh them
         wrongly)."""
@@ -220,23 +223,34 @@ class NeRFModule(ScoringProtocols, L.LightningModule):
         # LPIPS has no mask: the masked pixels of the render are the target's, so they differ nowhere
         scored = image["rgb"] if mask is None else torch.where(mask[..., None], image["rgb"], batch["rgb"])
         scores = {"psnr": psnr(image["rgb"], batch["rgb"], mask), "ssim": ssim(image["rgb"], batch["rgb"], mask),
-                  "lpips": self._lpips(scored, batch["rgb"])}
+                  **self._lpips(scored, batch["rgb"])}
         return {"index": int(batch["index"]), "target": batch["rgb"], **image, **scores}
 
-    def _lpips(self, image: Tensor, target: Tensor) -> float:
-        """LPIPS of ``image`` against ``target`` ([H, W, 3] each), or NaN where it is not scored: no scorer,
-        or (under ``lpips=auto``) images smaller than AlexNet takes, which is said once and ends the scoring."""
+    def _lpips(self, image: Tensor, target: Tensor) -> dict[str, float]:
+        """LPIPS of ``image`` against ``target`` ([H, W, 3] each) under its scorer's name (``LpipsScorer.metric``:
+        "lpips" with the published weights, "lpips_custom" with others), NaN under the other name; NaN under both
+        where it is not scored: no scorer, or (under ``lpips=auto``) images smaller than AlexNet takes, which is said
+        once and ends the scoring."""
+        scores = dict.fromkeys(LPIPS_NAMES, NOT_SCORED)
         if self.lpips_scorer is None:
-            return NOT_SCORED
+            return scores
         try:
-            return self.lpips_scorer(image, target)
+            return {**scores, self.lpips_scorer.metric: self.lpips_scorer(image, target)}
         except ImageTooSmall as error:
             if self.lpips is True:
                 raise ImageTooSmall(f"model.lpips=true: {error}") from None
             if self.global_rank == 0:
                 log.info("LPIPS not scored: %s", error)
             self.lpips_scorer = None
-            return NOT_SCORED
+            return scores
+
+    def lpips_record(self, scores: dict) -> dict:
+        """What ``results.json`` and ``eval.json`` say of the weights that scored the LPIPS in their ``scores``
+        (``nerfexp.training.recorders.scores_record``): ``lpips_weights_sha256``, the SHA-256 of the AlexNet
+        weights file, where ``test_lpips`` or ``test_lpips_custom`` is there; else nothing."""
+        if self.lpips_scorer is None or not any(f"test_{name}" in scores for name in LPIPS_NAMES):
+            return {}
+        return {"lpips_weights_sha256": self.lpips_scorer.weights_sha256}
 
     def validation_step(self, batch: dict, batch_idx: int) -> dict:
         return self._evaluate(batch)

@@ -14,17 +14,27 @@ shipped here unchanged with its BSD-2-Clause notice, ``lpips_LICENSE.txt``).
 
 AlexNet's weights are torchvision's ImageNet ones (``ALEXNET_FILE``), read as data
 (``torch.load(weights_only=True)``) from a file named in the config (``weights_file``), else from the torch hub
-cache, where torchvision keeps them. Where the cache lacks them, nerfexp downloads them there once, from
-torchvision's address (``ALEXNET_URL``) with their hash checked, as torchvision does (``fetch_alexnet``): when
-LPIPS is set up (under ``model.lpips=true`` when the settings are checked), never on import and never where
-the config names a file. Offline, LPIPS is not scored under ``model.lpips=auto`` (one line says why) and is an
-error under ``true``.
+cache, where torchvision keeps them, and scored as ``lpips`` only where the file's SHA-256 is theirs
+(``ALEXNET_SHA256``), wherever it comes from: the digest is taken of the very bytes that are loaded
+(``lpips_network``). A file of other values is refused in one line (``mismatch``), unless the config says the
+weights are the user's own on purpose (``model.lpips_custom=true``): its scores are then ``lpips_custom`` (``CUSTOM``),
+recorded with the file's SHA-256 and never compared with LPIPS. Where the cache lacks the weights, nerfexp
+downloads them there once, from torchvision's address (``ALEXNET_URL``), checked as the file is (``fetch_alexnet``:
+the name's hash prefix, as torchvision checks, and the whole SHA-256 before the file takes its name), waiting at
+most ``TIMEOUT_S`` for the server to answer: when LPIPS is set up (under ``model.lpips=true`` when the settings
+are checked), never on import and never where the config names a file. Offline, LPIPS is not scored under
+``model.lpips=auto`` (one line says why) and is an error under ``true``.
 """
 
+import hashlib
 import http.client
 import logging
 import math
+import os
 import socket
+import uuid
+from collections.abc import Iterator
+from contextlib import contextmanager
 from pathlib import Path
 from urllib.error import HTTPError, URLError
 from urllib.parse import urlsplit
@@ -35,11 +45,19 @@ from torch import Tensor, nn
 
 from nerfexp.errors import ConfigError, NerfexpError
 from nerfexp.pixels import quantize
+from nerfexp.reading import UnreadableFile, read_bytes
 from nerfexp.rundir.trained import load_as_data
 
 HEADS = Path(__file__).with_name("lpips_alex_v0.1.pth")  # LPIPS 0.1's linear heads for AlexNet
 ALEXNET_FILE = "alexnet-owt-7be5be79.pth"  # torchvision's AlexNet ImageNet weights, as its hub cache names them
 ALEXNET_URL = f"https://download.pytorch.org/models/{ALEXNET_FILE}"  # where torchvision downloads them from
+# Their whole SHA-256. torchvision publishes only its first 8 hex digits, in the file's name; the whole digest is the
+# one Hugging Face shows for copies of the file (huggingface.co/blanchon/image-gs-models-utils and
+# huggingface.co/CSWRY/VOSR, torch/checkpoints/alexnet-owt-7be5be79.pth, 244 MB), which starts with those 8 digits
+ALEXNET_SHA256 = "7be5be791159472b1fbf3c69796f7cb30dca7ad8466c2df70058c37116cdee02"
+HEADS_SHA256 = "df73285e35b22355a2df87cdb6b70b343713b667eddbda73e1977e0c860835c0"  # lpips 0.1.4's weights/v0.1/alex.pth
+WEIGHTS_BYTES = 1 << 30  # the largest weights file read: torchvision's AlexNet file is 233 MiB (float32)
+TIMEOUT_S = 15  # seconds a download waits for the server to connect or send more (pip's default --timeout)
 SHIFT = (-0.030, -0.088, -0.188)  # LPIPS 0.1's per-channel shift and scale of [-1, 1] inputs
 SCALE = (0.458, 0.448, 0.450)
 TAPS = (1, 4, 7, 9, 11)  # the layers of ``alexnet_features`` whose outputs are compared: its five ReLUs
@@ -48,6 +66,8 @@ MIN_SIDE = 31  # the smallest image side that leaves the last ReLU one pixel (``
 EPS = 1e-10  # added to each feature vector's length before dividing, as LPIPS does
 SETTINGS = ("auto", True, False)  # model.lpips: scored where the weights are found or downloaded; required; off
 NOT_SCORED = math.nan  # an image's LPIPS where it is not scored (the recorders leave it out of their files)
+PUBLISHED, CUSTOM = "lpips", "lpips_custom"  # the scores' names: with the published weights; with the user's own
+LPIPS_NAMES = (PUBLISHED, CUSTOM)  # every name an LPIPS score is recorded under
 
 log = logging.getLogger(__name__)
 
@@ -86,10 +106,12 @@ def unit_features(features: Tensor) -> Tensor:
 class LpipsNetwork(nn.Module):
     """LPIPS 0.1 on AlexNet (the module's docstring): ``forward(x, y)`` of images [N, 3, H, W] in [-1, 1]
     is their distances [N]. Its weights are fixed: ``features`` (``alexnet_features``, from torchvision's
-    state dict) and the heads ``head_{l}`` [1, C_l, 1, 1], buffers. Built empty; ``lpips_network`` loads it."""
+    state dict) and the heads ``head_{l}`` [1, C_l, 1, 1], buffers. Built empty; ``lpips_network`` loads it
+    and sets ``weights_sha256``, the SHA-256 of the AlexNet weights file it loaded."""
 
     def __init__(self):
         super().__init__()
+        self.weights_sha256: str | None = None  # set where the weights are loaded (lpips_network)
         self.features = alexnet_features().requires_grad_(False)
         self.register_buffer("shift", torch.tensor(SHIFT).view(1, 3, 1, 1))
         self.register_buffer("scale", torch.tensor(SCALE).view(1, 3, 1, 1))
@@ -146,25 +168,54 @@ def download_failure(error: Exception) -> str:
     return (error.strerror if isinstance(error, OSError) else None) or str(error)
 
 
-def fetch_alexnet(cache_dir: Path, url: str = ALEXNET_URL) -> Path:
-    """The file at ``url`` downloaded into ``cache_dir`` (made where missing) under the name the URL ends
-    with, ``cache_dir / url_file_name(url)``, which it returns. Its SHA-256 must start with the hex digits the
-    name carries (``name-<hex>.ext``, torch hub's ``HASH_REGEX``: 7be5be79 in ``ALEXNET_FILE``), as torchvision
-    checks its downloads. ``torch.hub.download_url_to_file`` does it, with its progress bar: it writes a
-    temporary file in ``cache_dir`` (``<name>.<uuid>.partial``), deletes it on any failure, and moves it to the
-    name only once the hash matches, so the name never holds a partial or altered file. Downloads whatever
-    is at the name already again: callers fetch only a file that is missing. A ``DownloadFailed`` saying why
-    in a few words (``download_failure``) where it cannot; a ValueError for a name without a hash."""
+@contextmanager
+def socket_timeout(seconds: float) -> Iterator[None]:
+    """Within the block, a connection that does not connect, or stops sending, for ``seconds`` fails with a
+    TimeoutError: the process's default socket timeout, which ``torch.hub.download_url_to_file`` (whose
+    ``urlopen`` takes none of its own) waits for, set for the block and put back after it (process-wide while it
+    holds: a socket another thread opens meanwhile gets it too; nerfexp opens none then)."""
+    before = socket.getdefaulttimeout()
+    socket.setdefaulttimeout(seconds)
+    try:
+        yield
+    finally:
+        socket.setdefaulttimeout(before)
+
+
+def fetch_alexnet(cache_dir: Path, url: str | None = None, expected: str | None = None) -> Path:
+    """The file at ``url`` (None: ``ALEXNET_URL``) downloaded into ``cache_dir`` (made where missing) under the
+    name the URL ends with, ``cache_dir / url_file_name(url)``, which it returns, once its SHA-256 is ``expected``
+    (None: ``ALEXNET_SHA256``; both read when called). The name's hex digits (``name-<hex>.ext``, torch hub's
+    ``HASH_REGEX``: 7be5be79 in ``ALEXNET_FILE``) must begin it, as torchvision checks its downloads.
+    ``torch.hub.download_url_to_file`` downloads it, with its progress bar, waiting at most ``TIMEOUT_S`` for the
+    server to connect or send more (``socket_timeout``), into ``<name>.<uuid>.partial`` in ``cache_dir`` (deleted
+    on any failure), then to ``<name>.<uuid>.unchecked`` (this call's own: the processes of a distributed run may
+    download at once), which takes the name only once its whole SHA-256 matches, and is deleted otherwise: the
+    name never holds a partial or altered file. Downloads whatever is at the name already again: callers fetch
+    only a file that is missing. A ``DownloadFailed`` saying why in a few words (``download_failure``) where it
+    cannot; a ValueError for a name without a hash, or one whose hash ``expected`` does not begin with."""
+    url = ALEXNET_URL if url is None else url
+    expected = ALEXNET_SHA256 if expected is None else expected
     name = url_file_name(url)
     found = torch.hub.HASH_REGEX.search(name)
     if found is None or not found.group(1):
         raise ValueError(f"{url}: its file name carries no hash to check (name-<hex>.ext)")
+    if not expected.startswith(found.group(1)):
+        raise ValueError(f"{url}: its file name's hash {found.group(1)} does not begin the SHA-256 {expected}")
     path = Path(cache_dir) / name
+    unchecked = path.with_name(f"{name}.{uuid.uuid4().hex}.unchecked")
     try:  # no line before: offline, the caller's one line is all (the progress bar shows once bytes arrive)
         path.parent.mkdir(parents=True, exist_ok=True)
-        torch.hub.download_url_to_file(url, str(path), hash_prefix=found.group(1), progress=True)
+        with socket_timeout(TIMEOUT_S):
+            torch.hub.download_url_to_file(url, str(unchecked), hash_prefix=found.group(1), progress=True)
+        digest = hashlib.sha256(unchecked.read_bytes()).hexdigest()
+        if digest != expected:
+            raise DownloadFailed(f"SHA-256 check failed: {digest}, expected {expected}")
+        os.replace(unchecked, path)
     except (OSError, http.client.HTTPException, RuntimeError) as error:
         raise DownloadFailed(download_failure(error)) from error
+    finally:
+        unchecked.unlink(missing_ok=True)
     log.info("AlexNet's ImageNet weights for LPIPS downloaded, once, from %s to %s", url, path)
     return path
 
@@ -174,21 +225,42 @@ def weights_file(weights: str | Path | None) -> Path:
     return Path(weights).expanduser() if weights is not None else hub_weights_file()
 
 
-def read_state(path: Path, what: str) -> dict:
-    """The state dict in ``path`` read as data (``nerfexp.rundir.trained.load_as_data``); a ConfigError naming
-    the file and ``what`` was expected otherwise."""
-    state = load_as_data(path, what, "weight files", ConfigError)
+def weights_bytes(path: Path) -> tuple[bytes, str]:
+    """The bytes of the weights file ``path`` (``nerfexp.reading.read_bytes``: a regular file of at most
+    ``WEIGHTS_BYTES``) and their SHA-256 (hexadecimal); a ConfigError naming the file where it cannot be read so."""
+    try:
+        data = read_bytes(path, WEIGHTS_BYTES)
+    except UnreadableFile as error:
+        raise ConfigError(str(error)) from None
+    return data, hashlib.sha256(data).hexdigest()
+
+
+def mismatch(path: Path, found: str) -> str:
+    """Why the AlexNet weights file ``path``, whose SHA-256 is ``found``, is not read, in one line: the expected and
+    found digests, and what to do (the hub cache's: delete it, so that the published file is downloaded there)."""
+    remedy = ("delete it, and nerfexp downloads the published file there" if Path(path) == hub_weights_file() else
+              "to score with weights of your own on purpose, add model.lpips_custom=true (recorded as lpips_custom "
+              "with the file's SHA-256, never compared with LPIPS)")
+    return (f"{path}: not torchvision's AlexNet ImageNet weights ({ALEXNET_FILE}): its SHA-256 is {found}, expected "
+            f"{ALEXNET_SHA256}: {remedy} (docs/metrics.md)")
+
+
+def read_state(path: Path, what: str, data: bytes | None = None) -> dict:
+    """The state dict in ``path`` read as data (``nerfexp.rundir.trained.load_as_data``; ``data``: its bytes,
+    where the caller has read them to check them); a ConfigError naming the file and ``what`` was expected
+    otherwise."""
+    state = load_as_data(path, what, "weight files", ConfigError, data)
     if not isinstance(state, dict):
         raise ConfigError(f"{path}: not {what} (a state dict of tensors)")
     return state
 
 
-def backbone_state(path: Path) -> dict[str, Tensor]:
+def backbone_state(path: Path, data: bytes | None = None) -> dict[str, Tensor]:
     """AlexNet's convolution weights ``features.{i}.weight``/``bias`` from torchvision's state dict in ``path``
-    (its classifier's entries, which LPIPS does not use, left aside); a ConfigError naming the file and the
-    first entry missing or of another shape."""
+    (``data``: its bytes, where already read; its classifier's entries, which LPIPS does not use, left aside); a
+    ConfigError naming the file and the first entry missing or of another shape."""
     what = f"torchvision's AlexNet ImageNet weights ({ALEXNET_FILE})"
-    state = read_state(path, what)
+    state = read_state(path, what, data)
     expected = {f"features.{name}": value for name, value in alexnet_features().state_dict().items()}
     for name, value in expected.items():
         found = state.get(name)
@@ -201,19 +273,31 @@ def backbone_state(path: Path) -> dict[str, Tensor]:
 
 def head_state(path: Path = HEADS) -> dict[str, Tensor]:
     """LPIPS 0.1's heads for AlexNet as ``LpipsNetwork`` names them (``head_{l}`` [1, C_l, 1, 1]) from the lpips
-    package's file (its keys ``lin{l}.model.1.weight``)."""
-    state = read_state(path, "LPIPS 0.1's heads for AlexNet")
+    package's file (its keys ``lin{l}.model.1.weight``), whose SHA-256 must be ``HEADS_SHA256`` (a ConfigError
+    naming the file otherwise: an installation changed since)."""
+    data, found = weights_bytes(path)
+    if found != HEADS_SHA256:
+        raise ConfigError(f"{path}: not LPIPS 0.1's heads for AlexNet as nerfexp ships them: its SHA-256 is {found}, "
+                          f"expected {HEADS_SHA256} (reinstall nerfexp)")
+    state = read_state(path, "LPIPS 0.1's heads for AlexNet", data)
     return {f"head_{layer}": state[f"lin{layer}.model.1.weight"].float() for layer in range(len(CHANNELS))}
 
 
-def lpips_network(weights: Path) -> LpipsNetwork:
-    """``LpipsNetwork`` with AlexNet's weights from ``weights`` (torchvision's state dict) and LPIPS 0.1's
-    heads, in eval mode on the CPU."""
+def lpips_network(weights: Path, expected: str | None = None) -> LpipsNetwork:
+    """``LpipsNetwork`` with AlexNet's weights from the file ``weights`` (torchvision's state dict) and LPIPS 0.1's
+    heads, in eval mode on the CPU, its ``weights_sha256`` the digest of the bytes loaded (read once: what is
+    checked is what is loaded). ``expected``: the digest the file must have (``ALEXNET_SHA256`` for the published
+    weights; a ConfigError, ``mismatch``, where it has another), or None for weights of the user's choosing
+    (``model.lpips_custom=true``), whose digest the network keeps for the records."""
+    data, found = weights_bytes(weights)
+    if expected is not None and found != expected:
+        raise ConfigError(mismatch(weights, found))
     network = LpipsNetwork()
     network.features.load_state_dict({name.removeprefix("features."): value
-                                      for name, value in backbone_state(weights).items()})
+                                      for name, value in backbone_state(weights, data).items()})
     for name, head in head_state().items():
         getattr(network, name).copy_(head)
+    network.weights_sha256 = found
     return network.eval()
 
 
@@ -228,10 +312,14 @@ class LpipsScorer:
     """LPIPS of rendered images against their targets (``__call__``), on the images' device in float32 (autocast
     off: a mixed-precision evaluation still scores in float32), without gradients. A plain object rather
     than a module, so that it is no part of the model: not in its checkpoints, not trained, not wrapped
-    by DDP; its network moves to an image's device when one first arrives there."""
+    by DDP; its network moves to an image's device when one first arrives there. ``metric``: the name its scores
+    are recorded under, from the digest of the weights its network loaded (``weights_sha256``): ``lpips``
+    (``PUBLISHED``) for torchvision's (``ALEXNET_SHA256``), ``lpips_custom`` (``CUSTOM``) for any other."""
 
     def __init__(self, network: LpipsNetwork):
         self.network = network.eval()
+        self.weights_sha256 = network.weights_sha256
+        self.metric = PUBLISHED if network.weights_sha256 == ALEXNET_SHA256 else CUSTOM
 
     def __call__(self, image: Tensor, target: Tensor) -> float:
         """LPIPS of ``image`` against ``target``, [H, W, 3] in [0, 1] each (``lpips_input``); an
@@ -246,42 +334,60 @@ class LpipsScorer:
             return float(self.network(lpips_input(image), lpips_input(target))[0])
 
 
-def lpips_scorer(setting: bool | str, weights: str | Path | None) -> tuple[LpipsScorer | None, str]:
-    """The scorer ``model.lpips`` (``setting``: auto, true or false) and ``model.lpips_weights`` (``weights``)
-    ask for, and a line saying why there is none where auto has no weights (else ""). Weights missing from
-    the hub cache are downloaded there first (``fetch_alexnet``, from ``ALEXNET_URL``); a file the config names
-    is never downloaded. No weights at a path the config names, or none to be had under true, is a
-    ConfigError (``check_weights_file``); a file that is there but not AlexNet's weights is one under auto
-    too."""
+def lpips_scorer(setting: bool | str, weights: str | Path | None,
+                 custom: bool = False) -> tuple[LpipsScorer | None, str]:
+    """The scorer ``model.lpips`` (``setting``: auto, true or false), ``model.lpips_weights`` (``weights``) and
+    ``model.lpips_custom`` (``custom``) ask for, and a line saying why there is none where auto has no weights
+    (else ""). Weights missing from the hub cache are downloaded there first (``fetch_alexnet``, from
+    ``ALEXNET_URL``); a file the config names is never downloaded. No weights at a path the config names, none
+    to be had under true, a file whose SHA-256 is not ``ALEXNET_SHA256`` without ``custom``, or a file that is
+    not AlexNet's weights at all, is a ConfigError (``check_weights_file``, ``lpips_network``), under auto too.
+    The file's digest is taken again of the bytes loaded: a file changed since the settings were checked is
+    refused as well."""
     if setting is False:
         return None, ""
-    check_weights_file(setting, weights)
+    check_weights_file(setting, weights, custom)
     path = weights_file(weights)
     if not path.is_file():  # only auto reading the hub cache gets here without the file
         try:
-            path = fetch_alexnet(path.parent, ALEXNET_URL)
+            path = fetch_alexnet(path.parent)
         except DownloadFailed as error:
             return None, (f"LPIPS not scored: no AlexNet ImageNet weights at {path}, and downloading them failed "
                           f"({error}): put {ALEXNET_URL} there or set model.lpips_weights=FILE; model.lpips=false "
                           "turns LPIPS off (docs/metrics.md)")
-    return LpipsScorer(lpips_network(path)), ""
+    return LpipsScorer(lpips_network(path, None if custom else ALEXNET_SHA256)), ""
 
 
-def check_weights_file(setting: bool | str, weights: str | Path | None) -> None:
-    """A ConfigError where LPIPS must be scored from a file that is not there: the file ``model.lpips_weights``
-    names (``weights``), or under ``model.lpips=true`` the hub cache's where downloading it there
-    (``fetch_alexnet``, once, before any work) fails. Nothing to check under false, or under auto reading the
-    hub cache (which may lack it: ``lpips_scorer`` downloads it when LPIPS is set up, or says why not)."""
-    if setting is False or (setting == "auto" and weights is None):
+def check_weights_file(setting: bool | str, weights: str | Path | None, custom: bool = False) -> None:
+    """A ConfigError where LPIPS must be scored from a file that is not there, or is not the one nerfexp can
+    vouch for: ``model.lpips_custom`` (``custom``) without a file named; the file ``model.lpips_weights`` names
+    (``weights``) missing; a file, named or in the hub cache, whose SHA-256 is not ``ALEXNET_SHA256`` (``mismatch``),
+    unless ``custom`` says it is the user's own on purpose (then one not of AlexNet's keys and shapes,
+    ``backbone_state``); or under ``model.lpips=true`` no file in the hub cache
+    and downloading it there (``fetch_alexnet``, once, before any work) failing. Nothing to check under false, or
+    under auto where the hub cache lacks the file (``lpips_scorer`` downloads it when LPIPS is set up, or says why
+    not)."""
+    if setting is False:
         return
+    if custom and weights is None:
+        raise ConfigError("model.lpips_custom=true says the AlexNet weights model.lpips_weights names are your own, "
+                          "and it names none: set model.lpips_weights=FILE, or drop model.lpips_custom "
+                          "(docs/metrics.md)")
     path = weights_file(weights)
     if path.is_file():
+        data, found = weights_bytes(path)
+        if not custom and found != ALEXNET_SHA256:
+            raise ConfigError(mismatch(path, found))
+        if custom:  # any digest, so its keys and shapes are checked now (the published digest vouches for them)
+            backbone_state(path, data)
         return
     if weights is not None:
         raise ConfigError(f"model.lpips_weights={weights}: no such file; expected torchvision's AlexNet ImageNet "
                           f"weights ({ALEXNET_FILE}) there (docs/metrics.md)")
+    if setting == "auto":
+        return
     try:
-        fetch_alexnet(path.parent, ALEXNET_URL)
+        fetch_alexnet(path.parent)
     except DownloadFailed as error:
         raise ConfigError(f"model.lpips=true: no AlexNet ImageNet weights at {path}, and downloading them failed "
                           f"({error}): put {ALEXNET_URL} there or set model.lpips_weights=FILE "

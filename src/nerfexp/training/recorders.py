@@ -34,6 +34,7 @@ from nerfexp.rundir.layout import (
     write_json,
 )
 from nerfexp.training.loggers import log_hyperparams, log_image, log_labels
+from nerfexp.training.perceptual import CUSTOM, LPIPS_NAMES, PUBLISHED
 from nerfexp.training.resume import RESUMES, SETTINGS
 
 log = logging.getLogger("nerfexp")
@@ -41,11 +42,12 @@ log = logging.getLogger("nerfexp")
 IMAGES = ("rgb", "depth", "opacity", "target")  # what an evaluation step returns per image, besides its scores
 
 
-# each image's scores; lpips NaN where not scored (nerfexp.training.perceptual); then each protocol's own, which only
-# a test scores (NaN in a validation: ``NeRFModule._test``, docs/metrics.md)
+# each image's scores; lpips (the published weights') or lpips_custom (the user's own), NaN where not scored
+# (nerfexp.training.perceptual); then each protocol's own, which only a test scores (NaN in a validation:
+# ``NeRFModule._test``, docs/metrics.md)
 PROTOCOL_SCORES = ("psnr_full_image", "ssim_full_image", "psnr_right_half", "ssim_right_half")
 CAMERA_FIT = ("camera_fit_deg", "camera_fit_shift")  # the test cameras' corrections (test_cameras=refined)
-SCORES = ("psnr", "ssim", "lpips", *PROTOCOL_SCORES, *CAMERA_FIT)
+SCORES = ("psnr", "ssim", *LPIPS_NAMES, *PROTOCOL_SCORES, *CAMERA_FIT)
 ALWAYS_SCORED = ("psnr", "ssim")
 
 
@@ -106,11 +108,20 @@ def scores_record(scores: dict[int, dict[str, float]]) -> dict:
             **{f"test_{name}_per_view": [scores[i][name] for i in views] for name in means}}
 
 
+def lpips_text(scores: dict, prefix: str = "") -> str:
+    """", LPIPS 0.1234" (4 decimals) where ``scores`` has ``{prefix}lpips``; ", LPIPS with your own weights (not
+    comparable) 0.1234" where it has ``{prefix}lpips_custom`` instead; else ""."""
+    if f"{prefix}{PUBLISHED}" in scores:
+        return f", LPIPS {scores[f'{prefix}{PUBLISHED}']:.4f}"
+    if f"{prefix}{CUSTOM}" in scores:
+        return f", LPIPS with your own weights (not comparable) {scores[f'{prefix}{CUSTOM}']:.4f}"
+    return ""
+
+
 def scores_text(results: dict) -> str:
     """A run's test scores in words, from ``results.json`` or ``eval.json``: the PSNR in dB (2 decimals), the
-    SSIM (4), and the LPIPS (4) where it was scored."""
-    lpips = f", LPIPS {results['test_lpips']:.4f}" if "test_lpips" in results else ""
-    return f"test PSNR {results['test_psnr']:.2f} dB, SSIM {results['test_ssim']:.4f}{lpips}"
+    SSIM (4), and the LPIPS (4) where it was scored (``lpips_text``)."""
+    return f"test PSNR {results['test_psnr']:.2f} dB, SSIM {results['test_ssim']:.4f}{lpips_text(results, 'test_')}"
 
 
 def keep_metrics_through(output_dir: Path, step: int) -> None:
@@ -250,9 +261,8 @@ class RunRecorder(L.Callback):
             record = {"step": self.steps, "wall_time_s": self.wall_time_s(), "split": split, **means}
             append_metrics(self.output_dir, record)
             if split == "val":
-                lpips = f", LPIPS {means['lpips']:.4f}" if "lpips" in means else ""
                 log.info("step %d/%d: validation PSNR %.2f dB, SSIM %.4f%s after %.0f s of training", self.steps,
-                         trainer.max_steps, means["psnr"], means["ssim"], lpips, record["wall_time_s"])
+                         trainer.max_steps, means["psnr"], means["ssim"], lpips_text(means), record["wall_time_s"])
             for logger in trainer.loggers:
                 logger.log_metrics({f"{split}/{name}": value for name, value in means.items()}, self.steps)
         return scores
@@ -273,8 +283,9 @@ class RunRecorder(L.Callback):
         if not trainer.is_global_zero:
             return
         renderer, batch_rays = pl_module.renderer, getattr(trainer.datamodule, "batch_rays", None)
+        test_scores = scores_record(scores)
         results = {
-            **scores_record(scores), "val_psnr": self.last_val_psnr,
+            **test_scores, **pl_module.lpips_record(test_scores), "val_psnr": self.last_val_psnr,
             "train_time_s": self.elapsed_s, "steps": steps,
             "time_per_step_s": self.elapsed_s / max(steps, 1),
             "rays_per_s": batch_rays * steps / self.elapsed_s if batch_rays and self.elapsed_s > 0 else None,
@@ -294,8 +305,8 @@ class RunRecorder(L.Callback):
 
 class EvalRecorder(L.Callback):
     """Scores a checkpoint on the test split: ``eval.json`` in ``output_dir`` holds the test scores as
-    ``results.json`` does (``scores_record``: means and per view), the ``checkpoint``, its ``step`` and the
-    ``machine``."""
+    ``results.json`` does (``scores_record``: means and per view; the LPIPS weights' SHA-256,
+    ``NeRFModule.lpips_record``), the ``checkpoint``, its ``step`` and the ``machine``."""
 
     def __init__(self, output_dir: str | Path, checkpoint: str | Path, step: int):
         self.output_dir, self.checkpoint, self.step = Path(output_dir), Path(checkpoint), step
@@ -308,7 +319,8 @@ class EvalRecorder(L.Callback):
     def on_test_epoch_end(self, trainer, pl_module):
         if not trainer.is_global_zero:
             return
-        results = {**scores_record(self._scores), "test_protocol": pl_module.test_protocol,
+        test_scores = scores_record(self._scores)
+        results = {**test_scores, **pl_module.lpips_record(test_scores), "test_protocol": pl_module.test_protocol,
                    "test_cameras": pl_module.test_cameras,
                    "checkpoint": str(self.checkpoint.resolve()), "step": self.step,
                    "processes": trainer.world_size, "machine": machine()}

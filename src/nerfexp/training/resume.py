@@ -51,7 +51,7 @@ MAY_DIFFER = (
     "model.compile",  # the same networks, compiled
     "model.optimizer.fused",  # the same update, by one kernel or a loop
     "trainer.plugins",  # how checkpoints are written (nerfexp.training.checkpoints), not what is trained
-    "model.lpips", "model.lpips_weights",  # what the evaluations score, not what is trained
+    "model.lpips", "model.lpips_weights", "model.lpips_custom",  # what the evaluations score, not what is trained
     *LABELS,  # tags and notes: what the run is for, not what it trains (nerfexp.rundir.labels)
 )
 DERIVED = ("data.near", "data.far")  # null in a config: set from the scene (fill_ray_bounds), which is compared

@@ -26,8 +26,8 @@ class ScoringProtocols:
         ``scored`` (``_evaluate``'s: the whole image, with the test code where there are codes):
         "psnr_full_image", "ssim_full_image" (those of ``scored``) and "psnr_right_half", "ssim_right_half" (the
         right half, ``left_columns``, rendered with the code fitted on the left half, ``_fitted_code``; without
-        codes, the right half of the same render). Under ``test_protocol`` nerfw_right_half, "psnr", "ssim" and
-        "lpips" are the right half's; the render kept ("rgb") is the whole image's either way."""
+        codes, the right half of the same render). Under ``test_protocol`` nerfw_right_half, "psnr", "ssim",
+        "lpips" and "lpips_custom" are the right half's; the render kept ("rgb") is the whole image's either way."""
         H, W, _ = batch["rgb"].shape  # rows, columns, channels
         right = slice(left_columns(W), None)
         mask = batch.get("mask")
@@ -45,7 +45,7 @@ class ScoringProtocols:
             return {**scored, **protocols}
         shown = rendered if kept is None else torch.where(kept[..., None], rendered, target)
         return {**scored, **protocols, "psnr": protocols["psnr_right_half"], "ssim": protocols["ssim_right_half"],
-                "lpips": self._lpips(shown, target)}
+                **self._lpips(shown, target)}
 
     def _fitted_code(self, batch: dict) -> Tensor:
         """NeRF-W's protocol: the test image's code [D] fitted on its left half (the pixels its mask keeps there)
