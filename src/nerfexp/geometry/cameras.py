@@ -10,7 +10,7 @@ Ray directions are unit vectors, so a ray parameter ``t`` is a distance in world
 import torch
 from torch import Tensor
 
-from nerfexp.domains import POSITION_LIMIT
+from nerfexp.domains import POSITION_LIMIT, Rule, is_position, list_of
 from nerfexp.errors import DatasetError
 from nerfexp.geometry.lenses import Intrinsics, pixel_grid, pixel_rays
 
@@ -50,6 +50,11 @@ def look_at(eye: Tensor, target: Tensor, up: Tensor) -> Tensor:
     return c2w
 
 
+# a pose as a file lists it, for ``pose_problem`` to judge as float64: floats of any value (it names a NaN or a
+# distance beyond 2^24), whole numbers within +-2^24 (no entry of a rigid pose lies beyond: a rotation's are
+# within 1, a position's within 2^24; a larger whole number may have no float64)
+POSE_LISTS: Rule = ("a 4x4 list of numbers (whole ones within +-2^24)",
+                    list_of(list_of(("a number", lambda v: isinstance(v, float) or is_position(v)), 4), 4)[1])
 RIGID_TOLERANCE = 1e-3  # how far a stored rotation may be from orthonormal (float32 poses are ~1e-7 off)
 
 
