@@ -16,6 +16,7 @@ from omegaconf.errors import OmegaConfBaseException
 from nerfexp.errors import ConfigError, NerfexpError
 from nerfexp.reading import UnreadableFile, read_yaml_text
 from nerfexp.rundir.layout import LAST_CHECKPOINT, REFINED_POSES, RESULTS, RUN_CONFIG, read_json, sha256
+from nerfexp.rundir.records import checkpoint_problem
 from nerfexp.rundir.saved_configs import as_data, check_resolved
 
 # Where the classes of a run's config lived before the package was split into layers (and the data group
@@ -45,7 +46,10 @@ def find_run(path: str | Path) -> tuple[Path, Path]:
     run_dir, checkpoint = (path, path / LAST_CHECKPOINT) if path.is_dir() else (path.parent.parent, path)
     if not (run_dir / RUN_CONFIG).is_file():
         raise NerfexpError(f"{run_dir} is not a run directory: it has no {RUN_CONFIG}")
-    tested = (read_json(run_dir / RESULTS) or {}).get("checkpoint") if path.is_dir() else None
+    results = read_json(run_dir / RESULTS) if path.is_dir() else None
+    if results is not None and (problem := checkpoint_problem(results)) is not None:
+        raise NerfexpError(f"{run_dir / RESULTS}: {problem}: name a checkpoint file to use one")
+    tested = None if results is None else results.get("checkpoint")
     if tested is not None:
         checkpoint = run_dir / tested["path"]
         if checkpoint.is_file() and sha256(checkpoint) != tested["sha256"]:
