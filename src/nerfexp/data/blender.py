@@ -54,7 +54,7 @@ def pose_matrix(value, where: str) -> Tensor:
     """A 4x4 list of numbers (``POSE_LISTS``) that is a rigid camera pose (``pose_problem``) as a float64 tensor
     [4, 4], or a DatasetError naming ``where``."""
     if (wanted := breaks(POSE_LISTS, value)) is not None:
-        raise DatasetError(f"{where}: 'transform_matrix' must be {wanted}, got {str(value)[:80]}")
+        raise DatasetError(f"{where}: 'transform_matrix' must be {wanted}, got {value!r:.80}")
     matrix = torch.tensor(value, dtype=torch.float64)
     if (problem := pose_problem(matrix)) is not None:
         raise DatasetError(f"{where}: 'transform_matrix' must be a rigid camera pose, but {problem}")
@@ -69,7 +69,7 @@ def checked_frames(path: Path, content: dict) -> list[tuple[str, dict]]:
         raise DatasetError(f"{path}: missing key 'frames'")
     frames = content["frames"]
     if not isinstance(frames, list) or not frames:
-        raise DatasetError(f"{path}: 'frames' must be a non-empty list, got {str(frames)[:80]}")
+        raise DatasetError(f"{path}: 'frames' must be a non-empty list, got {frames!r:.80}")
     for i, frame in enumerate(frames):
         where = f"{path}: frame {i}"
         if not isinstance(frame, dict):

@@ -176,7 +176,7 @@ def ngp_box(content: dict, where: str) -> Tensor | None:
               "offset": content.get("offset", list(NGP_OFFSET))}
     for key, rule in NGP_BOX_KEYS.items():
         if (wanted := breaks(rule, values[key])) is not None:
-            raise DatasetError(f"{where}: '{key}' must be {wanted}, got {str(values[key])[:80]}")
+            raise DatasetError(f"{where}: '{key}' must be {wanted}, got {values[key]!r:.80}")
     offset = torch.tensor(values["offset"], dtype=torch.float64)
     centre = (0.5 - offset[[2, 0, 1]]) / values["scale"]
     half = values["aabb_scale"] / (2 * values["scale"])
@@ -234,7 +234,7 @@ def read_capture(path: Path) -> Capture:
         rows = isinstance(applied, list) and len(applied) in (3, 4) and all(map(list_of(POSITION, 4)[1], applied))
         if not rows:
             raise DatasetError(f"{path}: 'applied_transform' must be a 3x4 (or 4x4) list of finite numbers within "
-                               f"+-2^24, got {str(applied)[:80]}")
+                               f"+-2^24, got {applied!r:.80}")
         applied = torch.tensor(applied, dtype=torch.float64)
     return Capture(path, parsed, defaults, splits, applied, ngp_box(content, str(path)))
 
@@ -322,7 +322,8 @@ class NerfstudioScene(Scene):
     _normalization: tuple[Tensor, Tensor, float] | None = field(default=None, init=False, repr=False)
 
     def capture(self) -> Capture:
-        """The parsed transforms file, read once and kept, and the normalization of its poses."""
+        """The parsed transforms file, read once and kept, and the normalization of its poses; a DatasetError
+        where the scene box, normalized, is not one an occupancy grid covers (``box_problem``)."""
         if self._capture is None:
             root = Path(self.root)
             path = root / self.transforms
@@ -332,6 +333,10 @@ class NerfstudioScene(Scene):
             capture = read_capture(path)
             c2w = torch.stack([frame.c2w for frame in capture.frames])
             normalized, _, centre, scale = normalize_centres(c2w, torch.zeros(0, 3, dtype=c2w.dtype), self.bound)
+            box = None if capture.box is None else (capture.box - centre) * scale  # as bounding_box gives it
+            if box is not None and (problem := box_problem(box)) is not None:
+                raise DatasetError(f"{path}: the scene box of 'aabb_scale', 'scale' and 'offset', moved and scaled "
+                                   f"as the poses are (data.bound={self.bound}), {box.tolist()}, {problem}")
             self._capture, self._normalization = capture, (normalized, centre, scale)
         return self._capture
 
@@ -364,15 +369,11 @@ class NerfstudioScene(Scene):
 
     def bounding_box(self) -> Tensor | None:
         """[2, 3]: Instant-NGP's scene box (``ngp_box``) moved and scaled as the poses are; None without one."""
-        capture = self.capture()
-        if capture.box is None:
+        box = self.capture().box
+        if box is None:
             return None
         _, centre, scale = self._normalization
-        box = (capture.box - centre) * scale
-        if (problem := box_problem(box)) is not None:
-            raise DatasetError(f"{capture.path}: the scene box of 'aabb_scale', 'scale' and 'offset', moved and "
-                               f"scaled as the poses are (data.bound={self.bound}), {box.tolist()}, {problem}")
-        return box.float()
+        return ((box - centre) * scale).float()
 
     def views(self, split: str) -> Views:
         capture = self.capture()

@@ -139,8 +139,9 @@ def record_problem(record: object, fields: dict[str, Rule], required: tuple[str,
     if not isinstance(record, dict):
         return f"not a mapping of keys (it is {record!r:.80})"
     for key in required:
-        if lookup(record, key)[0] is ABSENT:
-            return f"no key '{key}'"
+        value, problem = lookup(record, key)
+        if value is ABSENT:
+            return problem or f"no key '{key}'"
     for key, rule in fields.items():
         value, problem = lookup(record, key)
         if problem is not None:
