@@ -18,7 +18,7 @@ from nerfexp.report.folder import write_report
 from nerfexp.report.runs import read_run
 from nerfexp.rundir.claim import admit_run, held_run
 from nerfexp.rundir.records import PSNR_LIMIT, RESULTS_FIELDS
-from nerfexp.rundir.trained import find_run
+from nerfexp.rundir.trained import find_run, read_refined_poses
 from tests.helpers import make_run
 
 # the highest finite PSNR of 8-bit images of at most 2^63 - 1 channels... of 3 (2^63 - 1) channels, by hand:
@@ -86,6 +86,7 @@ def test_a_status_field_not_as_nerfexp_writes_it_makes_the_run_damaged(tmp_path,
     ({"step": 10, "wall_time_s": 1.0, "split": ["val"], "psnr": 20.0}, "line 1: key 'split' is ['val']"),
     ({"step": 10, "wall_time_s": 1.0, "split": "val"}, "line 1: no key 'psnr'"),
     ([10, 1.0, "val", 20.0], "line 1: not a mapping of keys"),
+    ({"step": 10, "wall_time_s": 1.0, "split": "val", "psnr": -math.inf}, "line 1: key 'psnr' is -inf"),
 ])
 def test_a_metrics_line_not_as_nerfexp_writes_it_makes_the_run_damaged(tmp_path, line, says):
     run = make_run(tmp_path, "0", ["seed=0"])
@@ -102,13 +103,14 @@ SCORE_VALUES = st.one_of(st.floats(allow_nan=True, allow_infinity=True), st.none
 @given(key=st.sampled_from(["test_psnr", "test_ssim"]), value=SCORE_VALUES)
 def test_a_run_is_ranked_only_by_a_finite_score_in_range(tmp_path, key, value):
     # by hand: a score is one where it is a finite number in its range (PSNR [0, 242.55...], SSIM [-1, 1]);
-    # missing, null, NaN or infinite: not scored; any other number: not as nerfexp writes it, damaged
+    # missing, null, NaN or a PSNR's infinity: not scored; any other value: not as nerfexp writes it, damaged
     low, high = (0, PSNR_LIMIT) if key == "test_psnr" else (-1, 1)
     with tempfile.TemporaryDirectory(dir=tmp_path) as folder:
         run = make_run(Path(folder), "0", ["seed=0"])
         edit(run / "results.json", **{key: value})
         read = read_run(run)
-    if value is ... or value is None or (isinstance(value, float) and not math.isfinite(value)):
+    not_a_score = [math.inf] if key == "test_psnr" else []  # an image rendered exactly: PSNR's infinity
+    if value is ... or value is None or (isinstance(value, float) and (math.isnan(value) or value in not_a_score)):
         shown = "missing" if value is ... else value
         assert (read.state, read.detail) == ("not scored", f"results.json: {key} is {shown}: no test score to rank by")
     elif low <= value <= high:
@@ -191,3 +193,30 @@ def test_a_run_directory_whose_status_is_odd_is_described_and_never_replaced(tmp
                              "expected a list of items, each a text)")
     with pytest.raises(NerfexpError, match="holds a run whose status.json is not as nerfexp writes it"):
         admit_run(run, None)
+
+
+@pytest.mark.parametrize(("c2w", "says"), [
+    ("poses", "got a str"),
+    ([], "got an empty list"),
+    ([[[1, 0, 0, 10 ** 400], [0, 1, 0, 0], [0, 0, 1, 0], [0, 0, 0, 1]]], "item 0 is not a 4 x 4 matrix of numbers"),
+    ([[[1, 0, 0, 1e300], [0, 1, 0, 0], [0, 0, 1, 0], [0, 0, 0, 1]]], "item 0 is not a rigid camera pose: its position"),
+    ([[[2, 0, 0, 0], [0, 1, 0, 0], [0, 0, 1, 0], [0, 0, 0, 1]]], "item 0 is not a rigid camera pose"),
+])
+def test_refined_cameras_that_are_not_rigid_poses_are_one_line(tmp_path, c2w, says):
+    (tmp_path / "cameras").mkdir()
+    (tmp_path / "cameras" / "train_poses.json").write_text(json.dumps({"c2w": c2w}))
+    with pytest.raises(NerfexpError) as caught:
+        read_refined_poses(tmp_path)
+    message = str(caught.value)
+    assert message.startswith(f"{tmp_path / 'cameras' / 'train_poses.json'}: not a record of refined cameras")
+    assert says in message and "\n" not in message, message
+
+
+def test_validation_curves_with_nan_and_infinite_psnr_are_plotted_and_the_scores_reported(tmp_path):
+    # nerfexp writes a validation PSNR of NaN (a render that was not finite) or infinity (an image rendered
+    # exactly): the curves hold them, and the report is written from the test scores as ever
+    make_run(tmp_path, "a0", ["encoding=a", "seed=0"], curve=((50.0, math.nan), (100.0, math.inf)))
+    make_run(tmp_path, "a1", ["encoding=a", "seed=1"], psnr=22.0, curve=((50.0, 15.0), (100.0, 18.0)))
+    write_report([tmp_path], tmp_path)
+    assert "| encoding=a | 2/2 | 21.00 ± 1.41 |" in (tmp_path / "report.md").read_text()
+    assert (tmp_path / "psnr_vs_time.png").stat().st_size > 0

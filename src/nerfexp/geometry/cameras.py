@@ -87,6 +87,21 @@ def pose_problem(c2w: Tensor, tolerance: float = RIGID_TOLERANCE) -> str | None:
     return rotation_problem(c2w[:3, :3], tolerance)
 
 
+def poses_problem(c2w) -> str | None:
+    """Why a JSON value is not a non-empty list of rigid 4 x 4 camera-to-world matrices (``POSE_LISTS``, then
+    ``pose_problem``), in words naming the item, or None."""
+    if not isinstance(c2w, list):
+        return f"got a {type(c2w).__name__}"
+    if not c2w:
+        return "got an empty list"
+    for index, matrix in enumerate(c2w):
+        if not POSE_LISTS[1](matrix):
+            return f"item {index} is not a 4 x 4 matrix of numbers (whole ones within +-2^24)"
+        if problem := pose_problem(torch.tensor(matrix, dtype=torch.float64)):
+            return f"item {index} is not a rigid camera pose: {problem}"
+    return None
+
+
 def normalize_centres(c2w: Tensor, points: Tensor, bound: float) -> tuple[Tensor, Tensor, Tensor, float]:
     """Centre on the mean camera centre m and scale by s = bound / max_i |c_i - m|, so that every camera lies
     within ``bound`` of the origin (a scene's orientation is kept).

@@ -10,7 +10,7 @@ from torch import Tensor
 from nerfexp.data.video import FPS_RANGE
 from nerfexp.domains import TEXT, is_real, is_whole
 from nerfexp.errors import NerfexpError
-from nerfexp.geometry.cameras import POSE_LISTS, pose_problem
+from nerfexp.geometry.cameras import poses_problem
 from nerfexp.geometry.lens_records import FOCAL_RANGE, LensRecordError, lens_record, read_lens_record
 from nerfexp.geometry.lenses import Intrinsics, inversion_problem
 from nerfexp.memory import frame_bytes, require_memory
@@ -40,20 +40,6 @@ class CameraPath:
                 **lens_record(self.intrinsics), "c2w": self.c2w.tolist()}
 
 
-def _c2w_problem(c2w) -> str | None:
-    """Why a JSON value is not a non-empty list of rigid 4 x 4 camera-to-world matrices, or None."""
-    if not isinstance(c2w, list):
-        return f"got a {type(c2w).__name__}"
-    if not c2w:
-        return "got an empty list"
-    for index, matrix in enumerate(c2w):
-        if not POSE_LISTS[1](matrix):
-            return f"item {index} is not a 4 x 4 matrix of numbers (whole ones within +-2^24)"
-        if problem := pose_problem(torch.tensor(matrix, dtype=torch.float64)):
-            return f"item {index} is not a rigid camera pose: {problem}"
-    return None
-
-
 def read_camera_path(file: Path) -> CameraPath:
     """The cameras of ``file`` (``CameraPath.record``'s JSON: a render's ``cameras.json``, a path saved by
     ``nerfexp-view``), checked: a NerfexpError naming the file, the key and what was expected where it is
@@ -81,7 +67,7 @@ def read_camera_path(file: Path) -> CameraPath:
             raise NerfexpError(f"--cameras {file}: no key '{key}': expected {what}")
         value = data[key]
         if key == "c2w":
-            problem = _c2w_problem(value)
+            problem = poses_problem(value)
         elif key == "path":
             problem = None if TEXT[1](value) else f"got {value!r:.80}"
         elif key in ("height", "width"):

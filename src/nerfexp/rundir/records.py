@@ -10,7 +10,7 @@ absent leaves the field absent, one that is not a mapping is the problem.
 
 Numbers are bounded where their sums and means stop being numbers: counts, seconds and rates at 2^63 - 1
 (``INTEGER_LIMIT``), a PSNR at ``PSNR_LIMIT``. A test score may also be NaN or infinite, as nerfexp writes it for
-a render that was not finite or an image rendered exactly (``is_scored`` tells a score from those).
+a render that was not finite or, a PSNR, an image rendered exactly (``is_scored`` tells a score from those).
 """
 
 import math
@@ -43,10 +43,12 @@ SHA256 = ("64 hexadecimal digits", lambda v: isinstance(v, str) and len(v) == 64
           and all(c in "0123456789abcdef" for c in v))
 
 
-def score(low: float, high: float) -> Rule:
-    """A test score in [low, high], or NaN or infinite (not scored: ``is_scored``) as a float."""
-    return (f"a number in [{low:g}, {high:g}], or NaN or infinity (not scored)",
-            lambda v: (isinstance(v, float) and not math.isfinite(v)) or (is_real(v) and low <= v <= high))
+def score(low: float, high: float, perfect: float | None = None) -> Rule:
+    """A test score in [low, high], or, as a float, NaN (a render that was not finite) or ``perfect`` (the score
+    of an image rendered exactly, where it is not finite: a PSNR's infinity); neither is a score (``is_scored``)."""
+    beyond = "NaN" if perfect is None else f"NaN or {perfect}"
+    return (f"a number in [{low:g}, {high:g}], or {beyond} (not scored)",
+            lambda v: (isinstance(v, float) and (math.isnan(v) or v == perfect)) or (is_real(v) and low <= v <= high))
 
 
 def is_scored(value) -> bool:
@@ -66,7 +68,7 @@ def is_choices(value) -> bool:
                                            for v in value.values())
 
 
-PSNR, SSIM = score(0, PSNR_LIMIT), score(-1, 1)
+PSNR, SSIM = score(0, PSNR_LIMIT, math.inf), score(-1, 1)
 LPIPS = real(0, INTEGER_LIMIT)  # scored where present: nerfexp leaves LPIPS out where it did not score it
 # The headline test scores: each a number a report ranks and compares by, where a run has it (``is_scored``)
 SCORES = ("test_psnr", "test_ssim")
