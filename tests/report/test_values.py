@@ -21,7 +21,7 @@ from nerfexp.rundir.records import PSNR_LIMIT, RESULTS_FIELDS
 from nerfexp.rundir.trained import find_run, read_refined_poses
 from tests.helpers import make_run
 
-# the highest finite PSNR of 8-bit images of at most 2^63 - 1 channels... of 3 (2^63 - 1) channels, by hand:
+# the highest finite PSNR of 8-bit images of 3 (2^63 - 1) channels, one level off in one channel, by hand:
 # -10 log10((1/255)^2 / (3 (2^63 - 1))) = 20 log10(255) + 10 log10(3) + 10 log10(2^63 - 1) = 48.13 + 4.77 + 189.65
 assert math.isclose(PSNR_LIMIT, 242.55, abs_tol=0.01)
 
@@ -48,7 +48,8 @@ ODD_RESULTS = [
     ("train_time_s", 1e308, "key 'train_time_s' is 1e+308: expected a finite number >= 0 and <= 2^63 - 1"),
     ("n_params", "1000", "key 'n_params' is '1000': expected a whole number in [0, 2^63 - 1]"),
     ("choices", {"encoding": ["posenc"]}, "key 'choices' is {'encoding': ['posenc']}: expected a mapping"),
-    ("machine", "lab-pc", "key 'machine' is 'lab-pc': expected a mapping"),
+    ("machine", "lab-pc", "key 'machine' is 'lab-pc': expected a mapping of texts host and device"),
+    ("machine", {"host": "lab-pc"}, "key 'machine' is {'host': 'lab-pc'}: expected a mapping of texts host and"),
     ("config", {"trainer": [1]}, "key 'config.trainer' is [1]: expected a mapping"),
     ("test_views", [0, 1], "key 'test_psnr_per_view' has 1 items for 2 test_views"),
     ("collapse", ["step 9"], "key 'collapse' is ['step 9']: expected a text of one line, or null"),
@@ -124,7 +125,7 @@ def test_every_field_a_reader_uses_has_a_rule():
     read = {"test_psnr", "test_ssim", "test_lpips", "test_psnr_right_half", "test_ssim_right_half", "test_views",
             "test_psnr_per_view", "test_ssim_per_view", "test_lpips_per_view", "test_protocol", "test_cameras",
             "collapse", "choices", "overrides", "precision", "config.seed", "config.trainer.precision",
-            "machine.host", "machine.device", "train_time_s", "time_per_step_s", "rays_per_s", "n_params",
+            "machine", "train_time_s", "time_per_step_s", "rays_per_s", "n_params",
             "evaluations_per_ray", "checkpoint.path", "checkpoint.sha256"}
     assert read == set(RESULTS_FIELDS)
 
@@ -220,3 +221,31 @@ def test_validation_curves_with_nan_and_infinite_psnr_are_plotted_and_the_scores
     write_report([tmp_path], tmp_path)
     assert "| encoding=a | 2/2 | 21.00 ± 1.41 |" in (tmp_path / "report.md").read_text()
     assert (tmp_path / "psnr_vs_time.png").stat().st_size > 0
+
+
+ANY_VALUE = st.one_of(st.sampled_from([math.nan, math.inf, -math.inf, 5e-324, 1e300, 10 ** 400, -1, True, None, "",
+                                       "x\ny", [], {}, [1.0], {"x": 1}]),
+                      st.floats(allow_nan=True, allow_infinity=True), st.integers(), st.text(max_size=4),
+                      st.lists(st.integers(), max_size=3))
+
+
+@settings(max_examples=40, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
+@given(key=st.sampled_from(sorted(RESULTS_FIELDS)), value=ANY_VALUE)
+def test_a_report_over_a_run_with_any_value_in_any_field_is_written(tmp_path, key, value):
+    # whatever one field holds, the run is read (scored, not scored, collapsed, or damaged naming the field's key
+    # or the mapping on its way) and the report is written, never a traceback
+    with tempfile.TemporaryDirectory(dir=tmp_path) as folder:
+        run = make_run(Path(folder), "0", ["seed=0"])
+        results = json.loads((run / "results.json").read_text())
+        *parents, last = key.split(".")
+        inner = results
+        for part in parents:
+            inner = inner.setdefault(part, {})
+        inner[last] = value
+        (run / "results.json").write_text(json.dumps(results))
+        read = read_run(run)
+        assert read.state in ("finished", "not scored", "collapsed", "damaged") and "\n" not in read.detail
+        if read.state == "damaged":
+            assert read.detail.startswith(f"results.json: key '{parents[0] if parents else key}")
+        write_report([Path(folder)], Path(folder))
+        assert (Path(folder) / "report.md").is_file()
