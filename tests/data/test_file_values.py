@@ -14,12 +14,14 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from nerfexp.data.blender import read_transforms
+from nerfexp.data.colmap import colmap_lens, load_colmap
 from nerfexp.data.llff import read_poses_bounds, write_llff
 from nerfexp.data.nerfstudio import TRANSFORMS, NerfstudioScene, frame_lens_fields, read_capture
 from nerfexp.data.procedural import scene_cameras
 from nerfexp.errors import DatasetError, NerfexpError
 from nerfexp.geometry.lens_records import LensRecordError, read_lens_record
 from nerfexp.geometry.lenses import Intrinsics
+from nerfexp.pixels import png_bytes
 from nerfexp.products.camera_files import CameraPath, read_camera_path
 
 LIMIT = 2.0 ** 24  # scene units: distances and positions (nerfexp.domains.POSITION_LIMIT)
@@ -202,3 +204,29 @@ def test_an_llff_row_out_of_range_is_one_line(tmp_path, column, value, says):
     with pytest.raises(DatasetError) as caught:
         read_poses_bounds(tmp_path / "poses_bounds.npy")
     assert one_line_naming(caught.value, str(tmp_path / "poses_bounds.npy"), says), caught.value
+
+
+@pytest.mark.parametrize(("model", "params", "says"), [
+    ("SIMPLE_PINHOLE", [math.nan, 4, 3], "camera parameters [nan, 4.0, 3.0]: expected focal lengths in [2^-24, 2^24]"),
+    ("PINHOLE", [10, 10, 1e300, 3], "camera parameters [10.0, 10.0, 1e+300, 3.0]: expected"),
+    ("SIMPLE_RADIAL", [10, 4, 3, math.inf], "coefficients within +-1e+06"),
+])
+def test_a_colmap_camera_out_of_a_lens_records_ranges_is_one_line(model, params, says):
+    with pytest.raises(DatasetError) as caught:
+        colmap_lens(model, params, "sparse/0: camera 1")
+    assert one_line_naming(caught.value, "sparse/0: camera 1", says), caught.value
+
+
+def test_a_colmap_camera_placed_beyond_2_24_is_one_line(tmp_path):
+    # a text model (COLMAP 3's format) whose one image sits 1e30 units from the origin (t = (0, 0, 1e30))
+    model = tmp_path / "sparse" / "0"
+    model.mkdir(parents=True)
+    (model / "cameras.txt").write_text("1 SIMPLE_PINHOLE 8 6 10 4 3\n")
+    (model / "images.txt").write_text("1 1 0 0 0 0 0 1e30 1 a.png\n4 3 1\n2 1 0 0 0 0 0 4 1 b.png\n4 3 1\n")
+    (model / "points3D.txt").write_text("1 0 0 0 255 255 255 0 1 0 2 0\n")
+    (tmp_path / "images").mkdir()
+    for name in ("a.png", "b.png"):
+        (tmp_path / "images" / name).write_bytes(png_bytes(np.zeros((6, 8, 3), dtype=np.uint8)))
+    with pytest.raises(DatasetError) as caught:
+        load_colmap(tmp_path)
+    assert one_line_naming(caught.value, str(model), "image 1 (a.png): the pose must be a rigid camera pose, but its position"), caught.value
