@@ -18,6 +18,7 @@ from nerfexp.data.colmap import colmap_lens, load_colmap
 from nerfexp.data.llff import read_poses_bounds, write_llff
 from nerfexp.data.nerfstudio import TRANSFORMS, NerfstudioScene, frame_lens_fields, read_capture
 from nerfexp.data.procedural import scene_cameras
+from nerfexp.data.video import cached_frames
 from nerfexp.errors import DatasetError, NerfexpError
 from nerfexp.geometry.lens_records import LensRecordError, read_lens_record
 from nerfexp.geometry.lenses import Intrinsics
@@ -230,3 +231,16 @@ def test_a_colmap_camera_placed_beyond_2_24_is_one_line(tmp_path):
     with pytest.raises(DatasetError) as caught:
         load_colmap(tmp_path)
     assert one_line_naming(caught.value, str(model), "image 1 (a.png): the pose must be a rigid camera pose, but its position"), caught.value
+
+
+@pytest.mark.parametrize("source", [{"video": "clip.mp4", "fps": 10 ** 400}, {"video": "clip.mp4", "fps": math.nan},
+                                    {"video": ["clip.mp4"], "fps": 2.0}, {"video": "clip.mp4", "fps": "2"}, [2.0]])
+def test_a_frames_folder_whose_source_is_odd_is_refused_in_one_line(tmp_path, source):
+    # frames/source.json says which video and fps the frames were taken from; anything else is not nerfexp's
+    (tmp_path / "frames").mkdir()
+    (tmp_path / "frames" / "source.json").write_text(json.dumps(source))
+    with pytest.raises(DatasetError) as caught:
+        cached_frames(tmp_path / "frames", "clip.mp4", 2.0)
+    assert one_line_naming(caught.value, str(tmp_path / "frames"), "holds no readable source.json"), caught.value
+    (tmp_path / "frames" / "source.json").write_text(json.dumps({"video": "clip.mp4", "fps": 2}))
+    assert cached_frames(tmp_path / "frames", "clip.mp4", 2.0)  # as nerfexp writes it: its frames are reused
