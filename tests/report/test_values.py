@@ -223,29 +223,52 @@ def test_validation_curves_with_nan_and_infinite_psnr_are_plotted_and_the_scores
     assert (tmp_path / "psnr_vs_time.png").stat().st_size > 0
 
 
-ANY_VALUE = st.one_of(st.sampled_from([math.nan, math.inf, -math.inf, 5e-324, 1e300, 10 ** 400, -1, True, None, "",
-                                       "x\ny", [], {}, [1.0], {"x": 1}]),
-                      st.floats(allow_nan=True, allow_infinity=True), st.integers(), st.text(max_size=4),
-                      st.lists(st.integers(), max_size=3))
+EXTREMES = [math.nan, math.inf, -math.inf, 5e-324, 1e300, 10 ** 400, -1, True, None, "", "x\ny", [], {}, [1.0],
+            {"x": 1}]
+ANY_VALUE = st.one_of(st.sampled_from(EXTREMES), st.floats(allow_nan=True, allow_infinity=True), st.integers(),
+                      st.text(max_size=4), st.lists(st.integers(), max_size=3))
 
 
-@settings(max_examples=40, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
+def run_with(root: Path, name: str, key: str, value) -> Path:
+    """A finished run (``make_run``, seed 0) whose results.json holds ``value`` at ``key`` (dots: in mappings)."""
+    run = make_run(root, name, [f"seed={name}"])
+    results = json.loads((run / "results.json").read_text())
+    *parents, last = key.split(".")
+    inner = results
+    for part in parents:
+        inner = inner.setdefault(part, {})
+    inner[last] = value
+    (run / "results.json").write_text(json.dumps(results))
+    return run
+
+
+def read_as_expected(read, key: str) -> bool:
+    """Whether a run with an odd value at ``key`` was read as the report reads any run: scored, not scored,
+    collapsed, or damaged naming the key (or the mapping on its way), on one line."""
+    named = f"results.json: key '{key.split('.')[0]}"
+    return (read.state in ("finished", "not scored", "collapsed", "damaged") and "\n" not in read.detail
+            and (read.state != "damaged" or read.detail.startswith(named)))
+
+
+@settings(max_examples=300, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
 @given(key=st.sampled_from(sorted(RESULTS_FIELDS)), value=ANY_VALUE)
-def test_a_report_over_a_run_with_any_value_in_any_field_is_written(tmp_path, key, value):
-    # whatever one field holds, the run is read (scored, not scored, collapsed, or damaged naming the field's key
-    # or the mapping on its way) and the report is written, never a traceback
+def test_a_run_with_any_value_in_any_field_is_read(tmp_path, key, value):
     with tempfile.TemporaryDirectory(dir=tmp_path) as folder:
-        run = make_run(Path(folder), "0", ["seed=0"])
-        results = json.loads((run / "results.json").read_text())
-        *parents, last = key.split(".")
-        inner = results
-        for part in parents:
-            inner = inner.setdefault(part, {})
-        inner[last] = value
-        (run / "results.json").write_text(json.dumps(results))
-        read = read_run(run)
-        assert read.state in ("finished", "not scored", "collapsed", "damaged") and "\n" not in read.detail
-        if read.state == "damaged":
-            assert read.detail.startswith(f"results.json: key '{parents[0] if parents else key}")
-        write_report([Path(folder)], Path(folder))
-        assert (Path(folder) / "report.md").is_file()
+        read = read_run(run_with(Path(folder), "0", key, value))
+    assert read_as_expected(read, key), (read.state, read.detail)
+
+
+def test_a_report_over_runs_with_every_odd_value_in_every_field_is_written(tmp_path):
+    # one variant (the runs differ in their seeds alone), a run per field and odd value: the report is written,
+    # and its mean is over the runs that kept a score
+    odd = [(key, value) for key in sorted(RESULTS_FIELDS) for value in EXTREMES]
+    runs = [run_with(tmp_path, str(i), key, value) for i, (key, value) in enumerate(odd)]
+    write_report([tmp_path], tmp_path)
+    reads = [read_run(run) for run in runs]
+    assert all(read_as_expected(read, key) for read, (key, _) in zip(reads, odd))
+    scored = [read for read in reads if read.state == "finished"]
+    row = read_csv(tmp_path / "report.csv")["default"]
+    assert (int(row["runs"]), int(row["finished"])) == (len(odd), len(scored)) and 0 < len(scored) < len(odd)
+    # 20 dB each, as make_run wrote them, but the run whose test_psnr is 5e-324 (a PSNR in range): 20 (n - 1) / n
+    assert math.isclose(float(row["test_psnr_mean"]), 20.0 * (len(scored) - 1) / len(scored))
+    assert [read.results["test_psnr"] for read in scored].count(5e-324) == 1
