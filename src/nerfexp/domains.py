@@ -76,6 +76,23 @@ def optional(rule: Rule, meaning: str) -> Rule:
     return f"{rule[0]}, or null ({meaning})", lambda v: v is None or rule[1](v)
 
 
+def expected(rule: Rule) -> str:
+    """What ``rule`` expects, in words."""
+    return rule[0]() if callable(rule[0]) else rule[0]
+
+
+def breaks(rule: Rule, value) -> str | None:
+    """What ``rule`` expects, in words, where ``value`` breaks it; None where it keeps it."""
+    return None if rule[1](value) else expected(rule)
+
+
+def list_of(rule: Rule, length: int | None = None) -> Rule:
+    """A list (of ``length`` items where given) each of which keeps ``rule``."""
+    count = "" if length is None else f"{length} "
+    return (f"a list of {count}items, each {expected(rule)}",
+            lambda v: isinstance(v, list) and (length is None or len(v) == length) and all(map(rule[1], v)))
+
+
 def whole_list(low: int) -> Rule:
     return f"a list of whole numbers >= {low}", lambda v: isinstance(v, list) and all(whole(low)[1](x) for x in v)
 
@@ -110,6 +127,9 @@ LOSS_WEIGHT = real(0, LOSS_WEIGHT_LIMIT)
 def is_position(value) -> bool:
     """A coordinate in scene units within ``POSITION_LIMIT`` of 0."""
     return is_real(value) and abs(value) <= POSITION_LIMIT
+
+
+POSITION = ("a finite number within +-2^24", is_position)
 
 
 BOX = ("[[x0, y0, z0], [x1, y1, z1]] of numbers within +-2^24 with x0 < x1, y0 < y1, z0 < z1, or null",

@@ -23,10 +23,10 @@ from tqdm import tqdm
 from nerfexp.data.base import Scene
 from nerfexp.data.images import downscale_rgba, fit_factor, has_alpha, read_image
 from nerfexp.data.views import Source, Views, check_shared_file
-from nerfexp.domains import COUNT, Rule
+from nerfexp.domains import COUNT, Rule, breaks, is_real
 from nerfexp.errors import DatasetError
 from nerfexp.files import atomic_write
-from nerfexp.geometry.cameras import focal_from_fov, pose_problem
+from nerfexp.geometry.cameras import POSE_LISTS, focal_from_fov, pose_problem
 from nerfexp.geometry.lenses import Intrinsics
 from nerfexp.pixels import png_bytes, to_uint8
 from nerfexp.reading import UnreadableFile, read_json
@@ -35,6 +35,7 @@ TRANSFORMS = "transforms_{split}.json"
 BLENDER_HALF_SIDE = 1.5  # the synthetic scenes' objects lie in [-1.5, 1.5]^3
 # an image file, by whether it has an alpha channel
 ALPHA_KINDS = {True: "an RGBA image", False: "an RGB image (no alpha)"}
+FIELD_OF_VIEW = ("a field of view in (0, pi) radians", lambda v: is_real(v) and 0 < v < math.pi)
 
 
 def write_blender(root: Path, split: str, views: Views, camera_angle_x: float) -> None:
@@ -49,17 +50,11 @@ def write_blender(root: Path, split: str, views: Views, camera_angle_x: float) -
     atomic_write(root / TRANSFORMS.format(split=split), text.encode())
 
 
-def is_number(value) -> bool:
-    return isinstance(value, (int, float)) and not isinstance(value, bool)
-
-
 def pose_matrix(value, where: str) -> Tensor:
-    """A 4x4 list of numbers that is a rigid camera pose (``pose_problem``) as a float64 tensor [4, 4], or a
-    DatasetError naming ``where``."""
-    is_4x4 = isinstance(value, list) and len(value) == 4
-    is_4x4 = is_4x4 and all(isinstance(row, list) and len(row) == 4 and all(map(is_number, row)) for row in value)
-    if not is_4x4:
-        raise DatasetError(f"{where}: 'transform_matrix' must be a 4x4 list of numbers, got {str(value)[:80]}")
+    """A 4x4 list of numbers (``POSE_LISTS``) that is a rigid camera pose (``pose_problem``) as a float64 tensor
+    [4, 4], or a DatasetError naming ``where``."""
+    if (wanted := breaks(POSE_LISTS, value)) is not None:
+        raise DatasetError(f"{where}: 'transform_matrix' must be {wanted}, got {value!r:.80}")
     matrix = torch.tensor(value, dtype=torch.float64)
     if (problem := pose_problem(matrix)) is not None:
         raise DatasetError(f"{where}: 'transform_matrix' must be a rigid camera pose, but {problem}")
@@ -74,7 +69,7 @@ def checked_frames(path: Path, content: dict) -> list[tuple[str, dict]]:
         raise DatasetError(f"{path}: missing key 'frames'")
     frames = content["frames"]
     if not isinstance(frames, list) or not frames:
-        raise DatasetError(f"{path}: 'frames' must be a non-empty list, got {str(frames)[:80]}")
+        raise DatasetError(f"{path}: 'frames' must be a non-empty list, got {frames!r:.80}")
     for i, frame in enumerate(frames):
         where = f"{path}: frame {i}"
         if not isinstance(frame, dict):
@@ -100,12 +95,12 @@ def read_transforms(path: Path) -> tuple[float, list[tuple[str, Tensor]]]:
         if key not in content:
             raise DatasetError(f"{path}: missing key '{key}'")
     angle = content["camera_angle_x"]
-    if not (is_number(angle) and 0 < angle < math.pi):
-        raise DatasetError(f"{path}: 'camera_angle_x' must be a field of view in (0, pi) radians, got {angle!r}")
+    if (wanted := breaks(FIELD_OF_VIEW, angle)) is not None:
+        raise DatasetError(f"{path}: 'camera_angle_x' must be {wanted}, got {angle!r:.80}")
     parsed = []
     for where, frame in checked_frames(path, content):
         if not isinstance(frame["file_path"], str):
-            raise DatasetError(f"{where}: 'file_path' must be a string, got {frame['file_path']!r}")
+            raise DatasetError(f"{where}: 'file_path' must be a string, got {frame['file_path']!r:.80}")
         parsed.append((frame["file_path"], pose_matrix(frame["transform_matrix"], where)))
     return float(angle), parsed
 

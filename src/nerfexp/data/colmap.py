@@ -64,6 +64,7 @@ from nerfexp.domains import (
     FAR,
     INTEGER_LIMIT,
     PATH,
+    POSITION_LIMIT,
     TEXT,
     Applies,
     Rule,
@@ -73,7 +74,8 @@ from nerfexp.domains import (
     whole,
 )
 from nerfexp.errors import DatasetError
-from nerfexp.geometry.cameras import normalize_centres
+from nerfexp.geometry.cameras import normalize_centres, pose_problem
+from nerfexp.geometry.lens_records import COEFFICIENT_LIMIT, FOCAL_RANGE
 from nerfexp.geometry.lenses import FISHEYE_MODELS, PARAMETERS, Intrinsics, distortion_vector, inversion_problem
 
 PERCENTILES = (0.1, 99.9)  # of each image's point distances: near and far (as LLFF's imgs2poses)
@@ -119,13 +121,19 @@ def near_far(centres: Tensor, points: Tensor, observed: list[Tensor]) -> tuple[f
 def colmap_lens(model: str, params, where: str) -> Intrinsics:
     """The lens (shape []) of a COLMAP camera ``model`` with parameters ``params`` (COLMAP's order: f or
     fx, fy, then cx, cy, then the distortion coefficients ``lenses.PARAMETERS`` names), or a DatasetError
-    naming ``where`` for a model nerfexp does not read."""
+    naming ``where`` for a model nerfexp does not read or parameters out of a lens record's ranges
+    (``nerfexp.geometry.lens_records``: ``FOCAL_RANGE``, ``COEFFICIENT_LIMIT``)."""
     if model not in PARAMETERS:
         raise DatasetError(f"{where}: camera model {model} is not one nerfexp reads ({', '.join(PARAMETERS)})")
     names = PARAMETERS[model]
     params = [float(v) for v in params]
     lead = params[:len(params) - len(names)]  # (f, cx, cy) or (fx, fy, cx, cy)
     fx, fy, cx, cy = (lead[0], *lead) if len(lead) == 3 else lead
+    focal, centre = FOCAL_RANGE, (-FOCAL_RANGE[1], FOCAL_RANGE[1])  # NaN is in no range
+    if not (all(focal[0] <= f <= focal[1] for f in (fx, fy)) and all(centre[0] <= c <= centre[1] for c in (cx, cy))
+            and all(abs(k) <= COEFFICIENT_LIMIT for k in params[len(lead):])):
+        raise DatasetError(f"{where}: camera parameters {params}: expected focal lengths in [2^-24, 2^24] pixels, a "
+                           f"principal point within +-2^24 pixels and coefficients within +-{COEFFICIENT_LIMIT:g}")
     distortion = distortion_vector(dict(zip(names, params[len(lead):])))
     return Intrinsics(torch.tensor([fx, fy, cx, cy], dtype=torch.float64), distortion,
                       torch.tensor(model in FISHEYE_MODELS))
@@ -203,7 +211,15 @@ def load_colmap(root, bound: float = 4.0, camera_model: str = "SIMPLE_RADIAL", m
     points = torch.tensor(np.array([reconstruction.points3D[p].xyz for p in point_ids]).reshape(-1, 3))
     observed = [torch.tensor([row[p.point3D_id] for p in reconstruction.images[i].get_observation_points2D()],
                              dtype=torch.long) for i in ids]
-    c2w, points, centre, scale = normalize_centres(colmap_to_c2w(cam_from_world(reconstruction, ids)), points, bound)
+    poses = colmap_to_c2w(cam_from_world(reconstruction, ids))
+    for i, pose in zip(ids, poses):
+        if (problem := pose_problem(pose)) is not None:
+            raise DatasetError(f"{model_dir}: image {i} ({reconstruction.images[i].name}): the pose must be a rigid "
+                               f"camera pose, but {problem}")
+    if not bool((points.abs() <= POSITION_LIMIT).all()):  # NaN is not
+        raise DatasetError(f"{model_dir}: a 3D point that is not finite or lies more than 2^24 scene units from the "
+                           "origin, where float32 positions have no sub-unit resolution")
+    c2w, points, centre, scale = normalize_centres(poses, points, bound)
     near, far = near_far(c2w[:, :3, 3], points, observed)
     names = [reconstruction.images[i].name for i in ids]
     return ColmapData(names, source_dir, c2w, intrinsics, width, height, near, far, centre, scale)

@@ -34,10 +34,11 @@ from tqdm import tqdm
 from nerfexp.data.base import Scene
 from nerfexp.data.images import downscale_rgba, fit_factor, read_image
 from nerfexp.data.views import IMAGE_SUFFIXES, Source, Views, check_shared_file, holdout_split
-from nerfexp.domains import BOOLEAN, COUNT, INTEGER_LIMIT, Rule, whole
+from nerfexp.domains import BOOLEAN, COUNT, INTEGER_LIMIT, POSITION_LIMIT, Rule, whole
 from nerfexp.errors import ConfigError, DatasetError
 from nerfexp.files import atomic_write
 from nerfexp.geometry.cameras import look_at, pose_problem
+from nerfexp.geometry.lens_records import FOCAL_RANGE
 from nerfexp.geometry.lenses import Intrinsics, pixel_rays
 from nerfexp.geometry.ndc import ndc_rays
 from nerfexp.pixels import png_bytes, to_uint8
@@ -52,8 +53,9 @@ LAYOUT = (f"an LLFF scene holds {POSES_BOUNDS} (N x 17: per image a 3x5 matrix [
 def read_poses_bounds(path: Path) -> tuple[Tensor, Tensor]:
     """The rows of a ``poses_bounds.npy``: (poses [N, 3, 5], bounds [N, 2]), float64, as stored.
 
-    Raises a DatasetError naming the file unless it is a finite N x 17 array with 0 < near < far,
-    positive H, W and focal in every row, the same in all, and a rigid pose in every row.
+    Raises a DatasetError naming the file unless it is a finite N x 17 array with 0 < near < far <= 2^24,
+    H and W whole numbers of pixels up to 2^24 and focal in ``FOCAL_RANGE`` in every row, the same in all, and a
+    rigid pose in every row.
     """
     path = Path(path)
     if not path.is_file():
@@ -70,15 +72,19 @@ def read_poses_bounds(path: Path) -> tuple[Tensor, Tensor]:
     if bad.any():
         raise DatasetError(f"{path}: row {int(bad.nonzero()[0])} holds a NaN or infinite value")
     poses, bounds = rows[:, :15].reshape(-1, 3, 5), rows[:, 15:]
-    bad = ~((bounds[:, 0] > 0) & (bounds[:, 1] > bounds[:, 0]))
+    bad = ~((bounds[:, 0] > 0) & (bounds[:, 1] > bounds[:, 0]) & (bounds[:, 1] <= POSITION_LIMIT))
     if bad.any():
         i = int(bad.nonzero()[0])
-        raise DatasetError(f"{path}: row {i}: depth bounds must satisfy 0 < near < far, got {bounds[i].tolist()}")
+        raise DatasetError(f"{path}: row {i}: depth bounds must satisfy 0 < near < far <= 2^24 (scene units), got "
+                           f"{bounds[i].tolist()}")
     hwf = poses[:, :, 4]
-    bad = ~(hwf > 0).all(-1)
+    sides, focal = hwf[:, :2], hwf[:, 2]
+    bad = ~(((sides >= 1) & (sides <= FOCAL_RANGE[1]) & (sides == sides.round())).all(-1)
+            & (focal >= FOCAL_RANGE[0]) & (focal <= FOCAL_RANGE[1]))
     if bad.any():
         i = int(bad.nonzero()[0])
-        raise DatasetError(f"{path}: row {i}: height, width and focal must be positive, got {hwf[i].tolist()}")
+        raise DatasetError(f"{path}: row {i}: height, width and focal must be positive (height and width whole "
+                           f"numbers of pixels up to 2^24, focal in [2^-24, 2^24] pixels), got {hwf[i].tolist()}")
     if not (hwf == hwf[0]).all():  # one camera: nerfexp's Views share one focal length
         raise DatasetError(f"{path}: every row must record the same height, width and focal (one camera), "
                            f"got {hwf.unique(dim=0).tolist()[:3]}")

@@ -38,7 +38,6 @@ Every malformed field is a DatasetError naming the file, the frame and the key, 
 """
 
 import json
-import math
 from collections.abc import Iterable
 from dataclasses import dataclass, field
 from pathlib import Path, PurePosixPath
@@ -49,14 +48,35 @@ from torch import Tensor
 from tqdm import tqdm
 
 from nerfexp.data.base import Scene
-from nerfexp.data.blender import checked_frames, is_number, pose_matrix
+from nerfexp.data.blender import FIELD_OF_VIEW, checked_frames, pose_matrix
 from nerfexp.data.images import downscale_rgba, fit_factor, read_image
 from nerfexp.data.views import SPLIT_NAMES, Source, Views, check_shared_file, holdout_split, shrink_mask
-from nerfexp.domains import COUNT, FAR, INTEGER_LIMIT, TEXT, Rule, whole
+from nerfexp.domains import (
+    COUNT,
+    FAR,
+    INTEGER_LIMIT,
+    POSITION,
+    POSITION_LIMIT,
+    TEXT,
+    Rule,
+    bound_text,
+    breaks,
+    is_real,
+    list_of,
+    real,
+    whole,
+)
 from nerfexp.errors import DatasetError
 from nerfexp.files import atomic_write
+from nerfexp.geometry.boxes import box_problem
 from nerfexp.geometry.cameras import focal_from_fov, normalize_centres
-from nerfexp.geometry.lens_records import INTRINSIC_KEYS, LensRecordError, lens_record, read_lens_record
+from nerfexp.geometry.lens_records import (
+    FOCAL_RANGE,
+    INTRINSIC_KEYS,
+    LensRecordError,
+    lens_record,
+    read_lens_record,
+)
 from nerfexp.geometry.lenses import SLOTS, Intrinsics, inversion_problem
 from nerfexp.pixels import png_bytes, to_uint8
 from nerfexp.reading import UnreadableFile, read_json
@@ -66,6 +86,11 @@ NEAR_FRACTION = 0.05  # near = 0.05 bound where not given
 FAR_FACTOR = 2.0  # far = 2 bound where not given
 SPLIT_KEYS = {"train": "train_filenames", "val": "val_filenames", "test": "test_filenames"}
 NGP_SCALE, NGP_OFFSET = 0.33, (0.5, 0.5, 0.5)  # Instant-NGP's defaults for ``scale`` and ``offset``
+# Instant-NGP's scene box keys (``ngp_box``); their bounds keep the arithmetic finite, the box itself is checked
+NGP_BOX_KEYS = {"aabb_scale": ("a positive number at most 2^16 (a power of two up to 128 in Instant-NGP)",
+                               real(0, 2 ** 16, above=True)[1]),
+                "scale": ("a positive number at most 2^24", real(0, POSITION_LIMIT, above=True)[1]),
+                "offset": ("a list of 3 numbers within +-2^24", list_of(POSITION, 3)[1])}
 
 
 def write_nerfstudio(root: Path, splits: Iterable[tuple[str, Views]]) -> None:
@@ -124,6 +149,12 @@ class Capture:
     box: Tensor | None
 
 
+def is_pixel_side(value) -> bool:
+    """An image's ``w`` or ``h``: a whole number of pixels from 1 to 2^24 (``FOCAL_RANGE``'s top: the lens's
+    ``cx`` and ``cy``, half a side, are pixel coordinates within it), given as an integer or a float."""
+    return is_real(value) and 1 <= value <= FOCAL_RANGE[1] and float(value).is_integer()
+
+
 def relative_file(value, where: str, key: str) -> str:
     """A frame's file key: a string naming a file below the scene's folder (relative, no ``..``)."""
     if not isinstance(value, str) or not value.strip():
@@ -139,22 +170,28 @@ def ngp_box(content: dict, where: str) -> Tensor | None:
     """Instant-NGP's scene box in the file's coordinates [2, 3], or None where ``aabb_scale`` is not given.
     Instant-NGP maps a position p to (p_y, p_z, p_x) ``scale`` + ``offset`` and bounds the scene by the cube
     of side ``aabb_scale`` centred on (0.5, 0.5, 0.5) there; mapped back, the cube's centre is
-    ((0.5 - offset_z), (0.5 - offset_x), (0.5 - offset_y)) / scale and its half side aabb_scale / (2 scale)."""
+    ((0.5 - offset_z), (0.5 - offset_x), (0.5 - offset_y)) / scale and its half side aabb_scale / (2 scale).
+    Each key keeps its rule (``NGP_BOX_KEYS``) and the box what an occupancy grid covers (``box_problem``),
+    else a DatasetError names ``where``, the keys and their values."""
     if "aabb_scale" not in content:
         return None
-    side, scale = content["aabb_scale"], content.get("scale", NGP_SCALE)
-    offset = content.get("offset", list(NGP_OFFSET))
-    if not (is_number(side) and 0 < side <= 2 ** 16):
-        raise DatasetError(f"{where}: 'aabb_scale' must be a positive number (a power of two up to 128 in "
-                           f"Instant-NGP), got {side!r}")
-    if not (is_number(scale) and 0 < scale < math.inf):
-        raise DatasetError(f"{where}: 'scale' must be a positive number, got {scale!r}")
-    if not (isinstance(offset, list) and len(offset) == 3 and all(map(is_number, offset))):
-        raise DatasetError(f"{where}: 'offset' must be a list of 3 numbers, got {str(offset)[:80]}")
-    x, y, z = ((0.5 - offset[2]) / scale, (0.5 - offset[0]) / scale, (0.5 - offset[1]) / scale)
-    half = side / (2 * scale)
-    centre = torch.tensor([x, y, z], dtype=torch.float64)
-    return torch.stack([centre - half, centre + half])
+    values = {"aabb_scale": content["aabb_scale"], "scale": content.get("scale", NGP_SCALE),
+              "offset": content.get("offset", list(NGP_OFFSET))}
+    for key, rule in NGP_BOX_KEYS.items():
+        if (wanted := breaks(rule, values[key])) is not None:
+            raise DatasetError(f"{where}: '{key}' must be {wanted}, got {values[key]!r:.80}")
+    offset = torch.tensor(values["offset"], dtype=torch.float64)
+    centre = (0.5 - offset[[2, 0, 1]]) / values["scale"]
+    half = values["aabb_scale"] / (2 * values["scale"])
+    box = torch.stack([centre - half, centre + half])
+    if (problem := box_problem(box)) is not None:
+        raise DatasetError(f"{where}: the scene box of {box_keys(values)}, {box.tolist()}, {problem}")
+    return box
+
+
+def box_keys(values: dict) -> str:
+    """The keys that make Instant-NGP's scene box, with their ``values``, as an error names them."""
+    return ", ".join(f"'{key}' {values[key]}" for key in NGP_BOX_KEYS)
 
 
 def read_capture(path: Path) -> Capture:
@@ -191,11 +228,10 @@ def read_capture(path: Path) -> Capture:
         check_disjoint_lists(path, splits)
     applied = content.get("applied_transform")
     if applied is not None:
-        rows = isinstance(applied, list) and len(applied) in (3, 4) and all(
-            isinstance(row, list) and len(row) == 4 and all(map(is_number, row)) for row in applied)
+        rows = isinstance(applied, list) and len(applied) in (3, 4) and all(map(list_of(POSITION, 4)[1], applied))
         if not rows:
-            raise DatasetError(f"{path}: 'applied_transform' must be a 3x4 (or 4x4) list of numbers, got "
-                               f"{str(applied)[:80]}")
+            raise DatasetError(f"{path}: 'applied_transform' must be a 3x4 (or 4x4) list of finite numbers within "
+                               f"+-2^24, got {applied!r:.80}")
         applied = torch.tensor(applied, dtype=torch.float64)
     return Capture(path, parsed, defaults, splits, applied, ngp_box(content, str(path)))
 
@@ -213,7 +249,7 @@ def listed_frames(path: Path, content: dict, key: str, frame_of: dict[str, Frame
     file paths, names a file no frame has, or names one frame twice."""
     listed = content.get(key, [])
     if not isinstance(listed, list) or not all(isinstance(name, str) for name in listed):
-        raise DatasetError(f"{path}: '{key}' must be a list of file paths, got {str(listed)[:80]}")
+        raise DatasetError(f"{path}: '{key}' must be a list of file paths, got {listed!r:.80}")
     found: dict[str, str] = {}  # spelling -> the entry that named it first
     for name in listed:
         frame = frame_of.get(spelling(name))
@@ -245,12 +281,12 @@ def frame_lens_fields(frame: Frame, defaults: dict, image_size: tuple[int, int] 
     the frame and the key."""
     merged = {**defaults, **frame.fields}
     for key in ("w", "h"):
-        if key in merged and not (is_number(merged[key]) and merged[key] >= 1 and float(merged[key]).is_integer()):
-            raise DatasetError(f"{frame.where}: '{key}' must be a whole number of pixels, got {merged[key]!r}")
+        if key in merged and not is_pixel_side(merged[key]):
+            raise DatasetError(f"{frame.where}: '{key}' must be a whole number of pixels, got {merged[key]!r:.80} "
+                               f"(expected 1 to {bound_text(FOCAL_RANGE[1])})")
     for key in ("camera_angle_x", "camera_angle_y"):
-        if key in merged and not (is_number(merged[key]) and 0 < merged[key] < math.pi):
-            raise DatasetError(f"{frame.where}: '{key}' must be a field of view in (0, pi) radians, got "
-                               f"{merged[key]!r}")
+        if key in merged and (wanted := breaks(FIELD_OF_VIEW, merged[key])) is not None:
+            raise DatasetError(f"{frame.where}: '{key}' must be {wanted}, got {merged[key]!r:.80}")
     if "fl_x" not in merged and "camera_angle_x" not in merged:
         raise DatasetError(f"{frame.where}: missing key 'fl_x' (or Instant-NGP's 'camera_angle_x')")
     if image_size is None and ("w" not in merged or "h" not in merged):
@@ -320,7 +356,8 @@ class NerfstudioScene(Scene):
     _normalization: tuple[Tensor, Tensor, float] | None = field(default=None, init=False, repr=False)
 
     def capture(self) -> Capture:
-        """The parsed transforms file, read once and kept, and the normalization of its poses."""
+        """The parsed transforms file, read once and kept, and the normalization of its poses; a DatasetError
+        where the scene box, normalized, is not one an occupancy grid covers (``box_problem``)."""
         if self._capture is None:
             root = Path(self.root)
             path = root / self.transforms
@@ -332,6 +369,10 @@ class NerfstudioScene(Scene):
                                for frame in capture.frames])
             c2w = torch.stack([frame.c2w for frame in capture.frames])
             normalized, _, centre, scale = normalize_centres(c2w, torch.zeros(0, 3, dtype=c2w.dtype), self.bound)
+            box = None if capture.box is None else (capture.box - centre) * scale  # as bounding_box gives it
+            if box is not None and (problem := box_problem(box)) is not None:
+                raise DatasetError(f"{path}: the scene box of 'aabb_scale', 'scale' and 'offset', moved and scaled "
+                                   f"as the poses are (data.bound={self.bound}), {box.tolist()}, {problem}")
             self._capture, self._normalization = capture, (normalized, centre, scale)
         return self._capture
 

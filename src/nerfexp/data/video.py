@@ -27,6 +27,7 @@ import imageio.v2 as imageio
 import numpy as np
 from tqdm import tqdm
 
+from nerfexp.domains import TEXT, real
 from nerfexp.errors import ConfigError, DatasetError
 from nerfexp.extras import require
 from nerfexp.files import atomic_directory
@@ -116,11 +117,13 @@ def cached_frames(folder: Path, video: str, fps: float) -> bool:
         return False
     try:
         source = read_json(folder / SOURCE)  # bounded: the folder may come from elsewhere
-        made_from = (str(source["video"]), float(source["fps"]))
+        made_from = (source["video"], source["fps"])
+        if not (TEXT[1](made_from[0]) and real(*FPS_RANGE)[1](made_from[1])):
+            raise ValueError(made_from)
     except (UnreadableFile, ValueError, KeyError, TypeError):
         raise DatasetError(f"{folder} exists but holds no readable {SOURCE}, so nerfexp did not take it from a "
                            f"video; move it away (nerfexp never deletes it) to use data.video") from None
-    if made_from != (Path(video).name, float(fps)):
+    if made_from != (Path(video).name, fps):
         raise DatasetError(f"{folder} holds the frames of {made_from[0]} at {made_from[1]:g} per second, not of "
                            f"{Path(video).name} at data.fps={fps:g}; move {FRAMES}/ and colmap/ away (nerfexp never "
                            f"deletes them) to take the frames again")

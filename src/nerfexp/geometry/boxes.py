@@ -6,23 +6,39 @@ import math
 import torch
 from torch import Tensor
 
+from nerfexp.domains import POSITION_LIMIT
 from nerfexp.errors import ConfigError
 from nerfexp.geometry.lenses import Intrinsics, border_pixels, pixel_rays
 
 FRUSTUM_SAMPLES = 33  # directions per image side when bounding the cameras' frusta
 
 
+def box_problem(box: Tensor) -> str | None:
+    """Why a box [2, 3] is not one an occupancy grid can cover, or None: its corners must be finite, within
+    ``POSITION_LIMIT`` of the origin along each axis (float32 positions farther out have no sub-unit
+    resolution), and, as float32 (the grid's), lower < upper on every axis (a box without volume holds nothing)."""
+    if not bool(torch.isfinite(box).all()):
+        return "is not finite"
+    if float(box.abs().max()) > POSITION_LIMIT:
+        return "reaches more than 2^24 scene units from the origin, where float32 positions have no sub-unit resolution"
+    corners = box.float()
+    if not bool((corners[0] < corners[1]).all()):
+        return "is empty: as float32 its lower corner is not below its upper one on every axis"
+    return None
+
+
 def parse_aabb(value, key: str = "data.aabb") -> Tensor:
     """``[[x0, y0, z0], [x1, y1, z1]]`` (or the flat ``[x0, y0, z0, x1, y1, z1]``) as a float32 tensor
-    [2, 3] with finite x0 < x1, y0 < y1, z0 < z1; anything else is a ConfigError naming ``key``."""
+    [2, 3] that an occupancy grid can cover (``box_problem``); anything else is a ConfigError naming ``key``."""
     try:
-        box = torch.as_tensor([float(v) for v in _flatten(value)], dtype=torch.float32)
-    except (TypeError, ValueError):
+        box = torch.as_tensor([float(v) for v in _flatten(value)], dtype=torch.float64)
+    except (TypeError, ValueError, OverflowError):
         box = None
-    if box is None or box.numel() != 6 or not torch.isfinite(box).all() or not (box[:3] < box[3:]).all():
-        raise ConfigError(f"{key}: expected the scene's box as [[x0, y0, z0], [x1, y1, z1]] with finite "
-                          f"x0 < x1, y0 < y1, z0 < z1 (or null: from the scene or its cameras), got {value!r}")
-    return box.reshape(2, 3)
+    if box is None or box.numel() != 6 or box_problem(box.reshape(2, 3)) is not None:
+        raise ConfigError(f"{key}: expected the scene's box as [[x0, y0, z0], [x1, y1, z1]] of finite numbers within "
+                          f"+-2^24 with x0 < x1, y0 < y1, z0 < z1 (or null: from the scene or its cameras), got "
+                          f"{value!r:.200}")
+    return box.reshape(2, 3).float()
 
 
 def _flatten(value) -> list:

@@ -10,7 +10,7 @@ Ray directions are unit vectors, so a ray parameter ``t`` is a distance in world
 import torch
 from torch import Tensor
 
-from nerfexp.domains import POSITION_LIMIT
+from nerfexp.domains import POSITION_LIMIT, Rule, is_position, list_of
 from nerfexp.errors import DatasetError
 from nerfexp.geometry.lenses import Intrinsics, pixel_grid, pixel_rays
 
@@ -50,6 +50,11 @@ def look_at(eye: Tensor, target: Tensor, up: Tensor) -> Tensor:
     return c2w
 
 
+# a pose as a file lists it, for ``pose_problem`` to judge as float64: floats of any value (it names a NaN or a
+# distance beyond 2^24), whole numbers within +-2^24 (no entry of a rigid pose lies beyond: a rotation's are
+# within 1, a position's within 2^24; a larger whole number may have no float64)
+POSE_LISTS: Rule = ("a 4x4 list of numbers (whole ones within +-2^24)",
+                    list_of(list_of(("a number", lambda v: isinstance(v, float) or is_position(v)), 4), 4)[1])
 RIGID_TOLERANCE = 1e-3  # how far a stored rotation may be from orthonormal (float32 poses are ~1e-7 off)
 
 
@@ -80,6 +85,21 @@ def pose_problem(c2w: Tensor, tolerance: float = RIGID_TOLERANCE) -> str | None:
     if not torch.equal(c2w[3], torch.tensor([0.0, 0.0, 0.0, 1.0], dtype=c2w.dtype)):
         return f"its last row is {c2w[3].tolist()}, not [0, 0, 0, 1]"
     return rotation_problem(c2w[:3, :3], tolerance)
+
+
+def poses_problem(c2w) -> str | None:
+    """Why a JSON value is not a non-empty list of rigid 4 x 4 camera-to-world matrices (``POSE_LISTS``, then
+    ``pose_problem``), in words naming the item, or None."""
+    if not isinstance(c2w, list):
+        return f"got a {type(c2w).__name__}"
+    if not c2w:
+        return "got an empty list"
+    for index, matrix in enumerate(c2w):
+        if not POSE_LISTS[1](matrix):
+            return f"item {index} is not a 4 x 4 matrix of numbers (whole ones within +-2^24)"
+        if problem := pose_problem(torch.tensor(matrix, dtype=torch.float64)):
+            return f"item {index} is not a rigid camera pose: {problem}"
+    return None
 
 
 def normalize_centres(c2w: Tensor, points: Tensor, bound: float) -> tuple[Tensor, Tensor, Tensor, float]:

@@ -8,10 +8,9 @@ which nerfstudio does not write: nerfexp writes it for a COLMAP camera of that m
 out are 0. nerfstudio's ``OPENCV`` also has a ``k4`` (an r^8 term of its own); nerfexp refuses a nonzero one.
 """
 
-import math
-
 import torch
 
+from nerfexp.domains import is_real
 from nerfexp.geometry.lenses import SLOTS, Intrinsics, distortion_vector
 
 RECORD_MODELS = {
@@ -50,10 +49,6 @@ def lens_record(lens: Intrinsics) -> dict:
             **{name: named[name] for name in RECORD_MODELS[model]}}
 
 
-def _number(value) -> bool:
-    return isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value)
-
-
 def read_lens_record(fields: dict, defaults: dict | None = None) -> Intrinsics:
     """The lens (shape []) of the JSON keys ``fields`` (``lens_record``'s), a key missing from ``fields``
     taken from ``defaults`` (a file's top-level keys, where a frame may override them); ``camera_model``
@@ -62,20 +57,20 @@ def read_lens_record(fields: dict, defaults: dict | None = None) -> Intrinsics:
     the model (a nonzero ``k4`` on ``OPENCV``, a coefficient of another model)."""
     merged = {**(defaults or {}), **fields}
     model = merged.get("camera_model", "PINHOLE")
-    if model not in RECORD_MODELS:
-        raise LensRecordError("camera_model", f"expected one of {', '.join(RECORD_MODELS)}, got {model!r}")
+    if not (isinstance(model, str) and model in RECORD_MODELS):
+        raise LensRecordError("camera_model", f"expected one of {', '.join(RECORD_MODELS)}, got {model!r:.80}")
     for key in INTRINSIC_KEYS:
         if key not in merged:
             raise LensRecordError(key, "missing: expected a number of pixels")
         value = merged[key]
         low, high = FOCAL_RANGE if key.startswith("fl_") else (-FOCAL_RANGE[1], FOCAL_RANGE[1])
-        if not (_number(value) and low <= value <= high):
-            raise LensRecordError(key, f"expected a number of pixels in [{low:.3g}, {high:.3g}], got {value!r}")
+        if not (is_real(value) and low <= value <= high):
+            raise LensRecordError(key, f"expected a number of pixels in [{low:.3g}, {high:.3g}], got {value!r:.80}")
     coefficients = {}
     for name in SLOTS:
         value = merged.get(name, 0.0)
-        if not (_number(value) and abs(value) <= COEFFICIENT_LIMIT):
-            raise LensRecordError(name, f"expected a finite number within +-{COEFFICIENT_LIMIT:g}, got {value!r}")
+        if not (is_real(value) and abs(value) <= COEFFICIENT_LIMIT):
+            raise LensRecordError(name, f"expected a finite number within +-{COEFFICIENT_LIMIT:g}, got {value!r:.80}")
         if value != 0 and name not in RECORD_MODELS[model]:
             raise LensRecordError(name, f"camera_model {model} has no coefficient {name} (it has "
                                         f"{', '.join(RECORD_MODELS[model]) or 'none'}), got {value!r}")

@@ -8,8 +8,9 @@ import torch
 from torch import Tensor
 
 from nerfexp.data.video import FPS_RANGE
+from nerfexp.domains import TEXT, is_real, is_whole
 from nerfexp.errors import NerfexpError
-from nerfexp.geometry.cameras import pose_problem
+from nerfexp.geometry.cameras import poses_problem
 from nerfexp.geometry.lens_records import FOCAL_RANGE, LensRecordError, lens_record, read_lens_record
 from nerfexp.geometry.lenses import Intrinsics, inversion_problem
 from nerfexp.memory import frame_bytes, require_memory
@@ -39,27 +40,6 @@ class CameraPath:
                 **lens_record(self.intrinsics), "c2w": self.c2w.tolist()}
 
 
-def _number(value, integer: bool = False) -> bool:
-    """Whether a JSON value is a number (an integer where ``integer``), not a boolean."""
-    return isinstance(value, int if integer else (int, float)) and not isinstance(value, bool)
-
-
-def _c2w_problem(c2w) -> str | None:
-    """Why a JSON value is not a non-empty list of rigid 4 x 4 camera-to-world matrices, or None."""
-    if not isinstance(c2w, list):
-        return f"got a {type(c2w).__name__}"
-    if not c2w:
-        return "got an empty list"
-    for index, matrix in enumerate(c2w):
-        shaped = isinstance(matrix, list) and len(matrix) == 4 and all(
-            isinstance(row, list) and len(row) == 4 and all(map(_number, row)) for row in matrix)
-        if not shaped:
-            return f"item {index} is not a 4 x 4 matrix of numbers"
-        if problem := pose_problem(torch.tensor(matrix, dtype=torch.float64)):
-            return f"item {index} is not a rigid camera pose: {problem}"
-    return None
-
-
 def read_camera_path(file: Path) -> CameraPath:
     """The cameras of ``file`` (``CameraPath.record``'s JSON: a render's ``cameras.json``, a path saved by
     ``nerfexp-view``), checked: a NerfexpError naming the file, the key and what was expected where it is
@@ -73,7 +53,8 @@ def read_camera_path(file: Path) -> CameraPath:
         data = read_json(Path(file))  # bounded: a file from others
     except UnreadableFile as error:
         raise NerfexpError(f"--cameras {file}: {error.reason}") from None
-    expected = {"height": "a positive even number of pixels", "width": "a positive even number of pixels",
+    expected = {"path": "a text (the path's name)", "height": "a positive even number of pixels",
+                "width": "a positive even number of pixels",
                 "fps": f"a number of frames per second in [{FPS_RANGE[0]:g}, {FPS_RANGE[1]:g}]",
                 "c2w": "a non-empty list of 4 x 4 rigid camera-to-world matrices (OpenGL convention)"}
     ranges = {"focal": FOCAL_RANGE, "fps": FPS_RANGE}
@@ -86,19 +67,21 @@ def read_camera_path(file: Path) -> CameraPath:
             raise NerfexpError(f"--cameras {file}: no key '{key}': expected {what}")
         value = data[key]
         if key == "c2w":
-            problem = _c2w_problem(value)
+            problem = poses_problem(value)
+        elif key == "path":
+            problem = None if TEXT[1](value) else f"got {value!r:.80}"
         elif key in ("height", "width"):
-            problem = None if _number(value, integer=True) and value > 0 and value % 2 == 0 else f"got {value!r}"
-        elif not (_number(value) and ranges[key][0] <= value <= ranges[key][1]):
-            problem = f"got {value!r}"
+            problem = None if is_whole(value) and value > 0 and value % 2 == 0 else f"got {value!r:.80}"
+        elif not (is_real(value) and ranges[key][0] <= value <= ranges[key][1]):
+            problem = f"got {value!r:.80}"
         else:
             problem = None
         if problem:
             raise NerfexpError(f"--cameras {file}: key '{key}': expected {what}, {problem}")
     height, width = data["height"], data["width"]
     if "focal" in data:  # a file of an earlier nerfexp: a pinhole centred on the frame
-        if not (_number(data["focal"]) and FOCAL_RANGE[0] <= data["focal"] <= FOCAL_RANGE[1]):
-            raise NerfexpError(f"--cameras {file}: key 'focal': expected {expected_focal}, got {data['focal']!r}")
+        if not (is_real(data["focal"]) and FOCAL_RANGE[0] <= data["focal"] <= FOCAL_RANGE[1]):
+            raise NerfexpError(f"--cameras {file}: key 'focal': expected {expected_focal}, got {data['focal']!r:.80}")
         lens = Intrinsics.pinhole(float(data["focal"]), height, width)
     else:
         try:
@@ -108,5 +91,5 @@ def read_camera_path(file: Path) -> CameraPath:
         if problem := inversion_problem(lens, height, width):
             raise NerfexpError(f"--cameras {file}: the lens of {width} x {height} frames: {problem}")
     require_memory(f"--cameras {file}", f"a frame of {height} x {width} pixels", frame_bytes(height, width))
-    return CameraPath(str(data["path"]), torch.tensor(data["c2w"], dtype=torch.float64), height, width, lens,
+    return CameraPath(data["path"], torch.tensor(data["c2w"], dtype=torch.float64), height, width, lens,
                       float(data["fps"]))

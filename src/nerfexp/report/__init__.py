@@ -10,8 +10,10 @@ Reads every run under the given directories (a run is a folder holding ``status.
   step, rays/s, parameters, network evaluations per ray, and for rows of the paper's ablation table
   the paper's numbers beside ours; then the ranking in groups the seeds cannot tell apart, and which
   pairs of ablation rows agree with the paper's order, are reversed, or are not resolved; then every
-  job that did not finish (failed, or running / killed) with its reason, and every run whose files
-  cannot be read (damaged: the file and why), none of whose numbers is used;
+  job that did not finish (failed, or running / killed) with its reason, every finished run without a test
+  score (collapsed, with its message; not scored: a score missing, null, NaN or infinite), and every run whose
+  files cannot be read as nerfexp writes them (damaged: the file, the key and why,
+  ``nerfexp.rundir.records``), none of whose numbers is used;
 - ``psnr_vs_time.png``: validation PSNR against training wall-clock seconds: each variant's mean over
   seeds with a band from the lowest to the highest seed, single runs faint;
 - ``pareto.png``: final test PSNR against total training time (bars: one standard deviation over

@@ -11,8 +11,8 @@ from dataclasses import replace
 from nerfexp.nerf.appearance import FULL_IMAGE, NERFW_RIGHT_HALF
 from nerfexp.report.lpips_weights import without_lpips
 from nerfexp.report.runs import Run
+from nerfexp.rundir.records import GIVEN, REFINED, is_scored
 
-GIVEN, REFINED = "given", "refined"  # results.json's test_cameras (conf/test_cameras/)
 RIGHT_HALF_KEYS = {"test_psnr": "test_psnr_right_half", "test_ssim": "test_ssim_right_half"}
 WORDS = {FULL_IMAGE: "the full-image protocol (each whole test image)",
          NERFW_RIGHT_HALF: "NeRF-W's protocol (the right half of each test image, its appearance code fitted on the "
@@ -66,11 +66,12 @@ def compared_protocols(runs: list[Run], finished: list[Run]) -> tuple[list[Run],
         if protocols in ([], [FULL_IMAGE]):
             return runs, ""
         return runs, f"Test scores are under {WORDS.get(protocols[0], protocols[0])}."
-    lacking = [run for run in finished if not all(key in run.results for key in RIGHT_HALF_KEYS.values())]
+    lacking = [run for run in finished
+               if not all(is_scored(run.results.get(key)) for key in RIGHT_HALF_KEYS.values())]
     if lacking:
         raise SystemExit(f"nerfexp-report: error: the runs' test scores come from different protocols "
                          f"({', '.join(protocols)}) and {lacking[0].path} has no right-half scores "
-                         f"({RIGHT_HALF_KEYS['test_psnr']}) to compare them on; report them apart")
+                         f"({RIGHT_HALF_KEYS['test_psnr']}, finite numbers) to compare them on; report them apart")
     compared = [replace(run, results=right_halves(run.results)) if run.state == "finished" else run for run in runs]
     return compared, (f"The runs' headline test scores come from different protocols ({', '.join(protocols)}): every "
                       "test score here is over the right half of each test image (test_psnr_right_half, "

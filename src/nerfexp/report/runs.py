@@ -1,12 +1,23 @@
 """Reading a sweep's runs back: each job's state, overrides, results and validation curve, as data;
-a file that cannot be read as nerfexp writes it makes the run damaged, never a wrong number."""
+a file that cannot be read as nerfexp writes it (``nerfexp.rundir.records``: every field the report uses, typed
+and bounded) makes the run damaged, never a wrong number. A finished run is ranked and compared only with its
+test scores: one whose training collapsed, or whose results hold no finite test score, is listed as such."""
 
 
 import socket
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 
 from nerfexp.reading import UnreadableFile
+from nerfexp.rundir.records import (
+    METRICS_FIELDS,
+    SCORES,
+    STATUS_FIELDS,
+    is_scored,
+    record_problem,
+    results_problem,
+)
 from nerfexp.rundir.labels import NO_LABELS, is_notes, is_tags
 from nerfexp.rundir.layout import (
     METRICS,
@@ -21,7 +32,8 @@ from nerfexp.rundir.layout import (
 
 @dataclass
 class Run:
-    """One job's directory and what it left: ``state`` is finished, failed, running or killed."""
+    """One job's directory and what it left: ``state`` is finished, failed, running, killed, damaged, unknown,
+    collapsed or not scored (finished without a test score: ``unscored``, whose reason is the ``detail``)."""
 
     path: Path
     state: str
@@ -45,27 +57,41 @@ class Damaged(Exception):
     """A run's file that cannot be read as nerfexp writes it; the message names the file and why."""
 
 
-def read_record(path: Path, required: tuple[str, ...]) -> dict | None:
-    """A run's JSON file (None where there is none) holding the keys ``required``, else ``Damaged``."""
+def read_record(path: Path, problem: Callable[[object], str | None]) -> dict | None:
+    """A run's JSON file (None where there is none) as nerfexp writes it (``problem`` of its data None: a
+    ``nerfexp.rundir.records`` check), else ``Damaged`` naming the file and the problem."""
     try:
         record = read_json(path)
     except UnreadableFile as error:  # truncated, empty, not UTF-8, too large, unreadable
         raise Damaged(f"{path.name}: {error.reason}") from None
-    if record is not None and not (isinstance(record, dict) and all(key in record for key in required)):
-        raise Damaged(f"{path.name}: not a record with {', '.join(required)}")
+    if record is not None and (found := problem(record)) is not None:
+        raise Damaged(f"{path.name}: {found}")
     return record
 
 
 def read_curve(path: Path, ended: bool) -> list[tuple[int, float, float]]:
-    """(step, wall seconds, validation PSNR) of each validation in a run's ``metrics.jsonl``, else
-    ``Damaged``; a last line cut short is damage where the run has ``ended`` (``read_metrics``)."""
+    """(step, wall seconds, validation PSNR) of each validation in a run's ``metrics.jsonl``, each line as
+    nerfexp writes it (``METRICS_FIELDS``), else ``Damaged``; a last line cut short is damage where the run has
+    ``ended`` (``read_metrics``)."""
     try:
-        return [(record["step"], record["wall_time_s"], record["psnr"])
-                for record in read_metrics(path, ended) if record["split"] == "val"]
+        records = read_metrics(path, ended)
     except (ValueError, OSError) as error:
         raise Damaged(f"{METRICS}: {error}") from None
-    except (KeyError, TypeError):
-        raise Damaged(f"{METRICS}: a record without step, wall_time_s, split and psnr") from None
+    for number, record in enumerate(records, 1):
+        if (problem := record_problem(record, METRICS_FIELDS, ("step", "wall_time_s", "split", "psnr"))) is not None:
+            raise Damaged(f"{METRICS}: line {number}: {problem}")
+    return [(record["step"], record["wall_time_s"], record["psnr"]) for record in records if record["split"] == "val"]
+
+
+def unscored(results: dict) -> str | None:
+    """Why a finished run's ``results`` give no test score to rank or compare it by, or None: its training
+    collapsed (``collapse``: the message), or a headline score (``SCORES``) is missing, null, NaN or infinite."""
+    if results.get("collapse") is not None:
+        return results["collapse"]
+    for key in SCORES:
+        if not is_scored(value := results.get(key)):
+            return f"{RESULTS}: {key} is {'missing' if key not in results else value}: no test score to rank by"
+    return None
 
 
 def record_labels(name: str, record: dict) -> dict:
@@ -83,7 +109,7 @@ def job_overrides(path: Path) -> list[str] | None:
     None where neither can."""
     for name in (STATUS, RESULTS):
         try:
-            record = read_record(path / name, ())
+            record = read_record(path / name, lambda record: None)
         except Damaged:
             continue
         overrides = (record or {}).get("overrides")
@@ -99,8 +125,8 @@ def read_run(path: Path) -> Run:
     they can be read (``job_overrides``; else none, and it joins no variant), and none of its numbers is
     used. Its labels are those of its results, else of its status."""
     try:
-        status = read_record(path / STATUS, ("state",)) or {}
-        results = read_record(path / RESULTS, ("test_psnr", "test_ssim", "choices"))
+        status = read_record(path / STATUS, lambda record: record_problem(record, STATUS_FIELDS, ("state",))) or {}
+        results = read_record(path / RESULTS, lambda record: results_problem(record, ("choices",)))
         labels = record_labels(*((RESULTS, results) if results is not None else (STATUS, status)))
     except Damaged as damage:
         return Run(path, "damaged", job_overrides(path), str(damage))
@@ -120,6 +146,8 @@ def read_run(path: Path) -> Run:
     except Damaged as damage:
         ended = "" if state == "finished" else f" (the job {state}" + (f": {detail})" if detail else ")")
         return Run(path, "damaged", list(overrides), f"{damage}{ended}", **labels)
+    if state == "finished" and (reason := unscored(results)) is not None:
+        state, detail = ("collapsed" if results.get("collapse") is not None else "not scored"), reason
     return Run(path, state, list(overrides), detail, results if state == "finished" else None, curve, **labels)
 
 

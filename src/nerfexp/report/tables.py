@@ -170,7 +170,7 @@ def markdown(variants: list[Variant], rows: list[dict], runs: list[Run], sources
     started = {source: sum(source in run.path.parents for run in runs) for source in sources}
     not_started = [f"`{source}` plans {n} jobs, {started[source]} started" for source, n in planned
                    if n is not None and n > started[source]]
-    order = ["finished", "failed", "killed", "running", "damaged", "unknown"]
+    order = ["finished", "collapsed", "not scored", "failed", "killed", "running", "damaged", "unknown"]
     states = {state: n for state in order if (n := sum(run.state == state for run in runs))}
     has_paper = any(row["paper_row"] for row in rows)
     has_lpips = any(v.values("test_lpips") for v in variants)
@@ -226,7 +226,8 @@ def markdown(variants: list[Variant], rows: list[dict], runs: list[Run], sources
         lines += [f"- {v.label}: {markdown_text(note)}" for v in variants for note in v.notes]
     lines += [""] + ranking_text(variants)
     unfinished = [run for run in runs if run.state != "finished"]
-    lines += ["", "## Jobs that did not finish, or whose files are damaged (not counted)", ""]
+    lines += ["", "## Jobs that did not finish, collapsed or have no test score, or whose files are damaged "
+              "(not counted)", ""]
     lines += [f"- `{run.path}` ({overrides_text(run.overrides)}): {run.state}"
               + (f": {run.detail}" if run.detail else "") for run in unfinished]
     lines += [f"- {text}: the rest never started (the sweep stopped or is still going)" for text in not_started]

@@ -29,14 +29,17 @@ from nerfexp.rundir.layout import (
     read_json,
     status_bytes,
 )
+from nerfexp.rundir.records import STATUS_FIELDS, record_problem
 
 
 def held_run(run_dir: Path) -> str | None:
     """What run ``run_dir`` holds, described (its state and overrides, from ``status.json``), or None
     where it holds none (no status, results, metrics or checkpoints)."""
     status = read_json(run_dir / STATUS)
+    if status is not None and (problem := record_problem(status, STATUS_FIELDS, ("state",))) is not None:
+        return f"a run whose {STATUS} is not as nerfexp writes it ({problem})"
     if status is not None:
-        return f"a {status.get('state')} run ({' '.join(status.get('overrides', [])) or 'no overrides'})"
+        return f"a {status['state']} run ({' '.join(status.get('overrides', [])) or 'no overrides'})"
     if any((run_dir / name).exists() for name in (RESULTS, METRICS, LAST_CHECKPOINT.parent)):
         return "a run's results"
     return None
@@ -82,12 +85,15 @@ def saved_checkpoints(run_dir: Path) -> list[Path]:
 def ended_unfinished(status: dict | None) -> bool:
     """Whether the run whose ``status.json`` reads ``status`` ended without finishing: ``failed``, or
     ``running`` in a process of this host that no longer runs (``process_alive``; killed, out of memory).
-    A run of another host, or with no status, may still run: not."""
-    if status is None or status.get("state") == "failed":
-        return status is not None
+    A run of another host, or with no status or one not as nerfexp writes it (``STATUS_FIELDS``), may still
+    run: not."""
+    if status is None or record_problem(status, STATUS_FIELDS, ("state",)) is not None:
+        return False
+    if status["state"] == "failed":
+        return True
     pid = status.get("pid")
-    return (status.get("state") == "running" and status.get("host") == socket.gethostname()
-            and isinstance(pid, int) and not process_alive(pid, status.get("process_start")))
+    return (status["state"] == "running" and status.get("host") == socket.gethostname()
+            and pid is not None and not process_alive(pid, status.get("process_start")))
 
 
 def admit_run(run_dir: Path, resume: str | None) -> list[str] | None:

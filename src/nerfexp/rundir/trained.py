@@ -15,8 +15,10 @@ from omegaconf import DictConfig, OmegaConf, open_dict
 from omegaconf.errors import OmegaConfBaseException
 
 from nerfexp.errors import ConfigError, NerfexpError
+from nerfexp.geometry.cameras import poses_problem
 from nerfexp.reading import UnreadableFile, read_yaml_text
 from nerfexp.rundir.layout import LAST_CHECKPOINT, REFINED_POSES, RESULTS, RUN_CONFIG, read_json, sha256
+from nerfexp.rundir.records import checkpoint_problem
 from nerfexp.rundir.saved_configs import as_data, check_resolved
 
 # Where the classes of a run's config lived before the package was split into layers (and the data group
@@ -46,7 +48,10 @@ def find_run(path: str | Path) -> tuple[Path, Path]:
     run_dir, checkpoint = (path, path / LAST_CHECKPOINT) if path.is_dir() else (path.parent.parent, path)
     if not (run_dir / RUN_CONFIG).is_file():
         raise NerfexpError(f"{run_dir} is not a run directory: it has no {RUN_CONFIG}")
-    tested = (read_json(run_dir / RESULTS) or {}).get("checkpoint") if path.is_dir() else None
+    results = read_json(run_dir / RESULTS) if path.is_dir() else None
+    if results is not None and (problem := checkpoint_problem(results)) is not None:
+        raise NerfexpError(f"{run_dir / RESULTS}: {problem}: name a checkpoint file to use one")
+    tested = None if results is None else results.get("checkpoint")
     if tested is not None:
         checkpoint = run_dir / tested["path"]
         if checkpoint.is_file() and sha256(checkpoint) != tested["sha256"]:
@@ -151,20 +156,14 @@ def read_checkpoint(path: Path) -> dict:
 def read_refined_poses(run_dir: Path) -> torch.Tensor | None:
     """The training cameras c2w [N, 4, 4] (float64) as the run's camera refinement left them (its
     ``REFINED_POSES``, read as data: ``nerfexp.training.pose_records``); None where the run has no such file (it
-    did not refine its cameras). A file whose ``c2w`` is not a list of 4 x 4 matrices of finite numbers with
-    the last row [0, 0, 0, 1] is a NerfexpError naming it."""
+    did not refine its cameras). A file whose ``c2w`` is not a list of rigid 4 x 4 camera poses within 2^24 scene
+    units of the origin (``nerfexp.geometry.cameras.pose_problem``) is a NerfexpError naming it."""
     path = Path(run_dir) / REFINED_POSES
     record = read_json(path)
     if record is None:
         return None
     c2w = record.get("c2w") if isinstance(record, dict) else None
-    try:
-        poses = torch.tensor(c2w, dtype=torch.float64)
-    except (TypeError, ValueError, RuntimeError):
-        poses = None
-    bottom = torch.tensor([0.0, 0.0, 0.0, 1.0], dtype=torch.float64)
-    if (poses is None or poses.ndim != 3 or poses.shape[1:] != (4, 4) or not len(poses)
-            or not bool(poses.isfinite().all()) or not bool((poses[:, 3] == bottom).all())):
-        raise NerfexpError(f"{path}: not a record of refined cameras (expected c2w, a list of 4 x 4 camera-to-world "
-                           "matrices of finite numbers, each with the last row [0, 0, 0, 1])")
-    return poses
+    if (problem := poses_problem(c2w)) is not None:
+        raise NerfexpError(f"{path}: not a record of refined cameras (expected c2w, a non-empty list of 4 x 4 rigid "
+                           f"camera-to-world matrices): {problem}")
+    return torch.tensor(c2w, dtype=torch.float64)

@@ -16,6 +16,7 @@ from hydra.experimental.callback import Callback
 from omegaconf import MISSING, DictConfig, OmegaConf
 
 from nerfexp.config_keys import leaves, reference, source_key
+from nerfexp.domains import breaks
 from nerfexp.errors import ConfigError
 from nerfexp.extras import require
 from nerfexp.memory import grid_bytes, hash_table_bytes, network_bytes, parameter_bytes, require_memory, scene_bytes
@@ -59,9 +60,8 @@ def check_rules(cfg: DictConfig, strict: bool = True) -> None:
                 raise ConfigError(f"{key}={value}: not a setting nerfexp reads "
                                   "(`nerfexp --cfg job` shows those it reads)")
             continue
-        expected, valid = rule
-        if not valid(value):
-            raise ConfigError(f"{named(cfg, key, value)}: expected {expected() if callable(expected) else expected}")
+        if (wanted := breaks(rule, value)) is not None:
+            raise ConfigError(f"{named(cfg, key, value)}: expected {wanted}")
 
 
 def check_frequencies(cfg: DictConfig) -> None:
