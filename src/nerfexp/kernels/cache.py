@@ -27,7 +27,6 @@ for longer than ``BUILD_LIMIT`` is given up on with a line naming the file, neve
 import contextlib
 import fcntl
 import hashlib
-import importlib.machinery
 import importlib.util
 import json
 import os
@@ -50,6 +49,7 @@ RECORD = "record.json"  # beside the library: what it was built from, its SHA-25
 RECORD_BYTES = 64 << 10  # a record is a few hundred bytes
 CFLAGS = ("-O3", "-fopenmp")  # the architecture's baseline (no -march=native): the CPU is in the key all the same
 LDFLAGS = ("-fopenmp",)
+LIBRARY_SUFFIX = ".so"  # torch's name for the library it builds, NAME.so, on every POSIX system
 BUILD_LIMIT = 20 * 60  # seconds: a build takes about a minute on 2 cores; a lock held 20 times that is not a build
 LOCK_POLL = 0.5  # seconds between tries of a held lock
 COMPILER_SECONDS = 60  # for ``CXX --version``: a compiler that does not answer in a minute builds nothing
@@ -159,7 +159,7 @@ def read_record(folder: Path, expected: dict) -> dict:
     if record["built_from"] != expected:
         raise FailedCheck(f"{folder / RECORD}: built from other sources, flags, compiler, torch or CPU")
     if (not re.fullmatch(rf"nerfexp_{re.escape(expected['kernel'])}(_v\d+)?", record["module"])
-            or record["library"] not in {record["module"] + suffix for suffix in importlib.machinery.EXTENSION_SUFFIXES}):
+            or record["library"] != record["module"] + LIBRARY_SUFFIX):
         raise FailedCheck(f"{folder / RECORD}: names module {record['module']!r} in {record['library']!r}, not "
                           f"nerfexp_{expected['kernel']}'s library")
     return record

@@ -233,11 +233,12 @@ def check_lpips(cfg: DictConfig) -> None:
 
 def check_settings(cfg: DictConfig, training: bool = True, scoring: bool = True) -> None:
     """A ConfigError for a ``NERFEXP_KERNELS`` that is not on or off (``nerfexp.kernels.enabled``), a missing
-    optional package (first: a component whose package is missing cannot say what its settings are), then the first setting that is out of its domain (``check_rules``), a frequency
-    float32 cannot resolve, a skip connection past the field's depth, hash grid levels out of order, ray
-    bounds with near not before far, sparse gradients without an optimizer that takes them, a size that would
-    not fit in memory, or LPIPS weights that must be there and are not (where
-    ``scoring``). ``training``: False for a run read back (``check_run_settings``)."""
+    optional package (first: a component whose package is missing cannot say what its settings are), then the
+    first setting that is out of its domain (``check_rules``), a frequency float32 cannot resolve, a skip
+    connection past the field's depth, hash grid levels out of order, ray bounds with near not before far,
+    sparse gradients without an optimizer that takes them, a size that would not fit in memory, or LPIPS weights
+    that must be there and are not (where ``scoring``). ``training``: False for a run read back
+    (``check_run_settings``)."""
     missing = sorted(key for key, value in checked_settings(cfg) if value is MISSING)
     if missing:
         raise ConfigError(f"missing mandatory value: {', '.join(missing)} (set it on the command line, "
