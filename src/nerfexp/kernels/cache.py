@@ -133,11 +133,10 @@ def private_cache(root: Path) -> Path:
     """``ROOT/nerfexp``, made where missing (mode 0700), once every folder from ``/`` to it is one that only
     this user (or root) can write: ``NotBuilt`` otherwise, naming the folder and what to do."""
     cache = Path(os.path.realpath(root)) / CACHE_FOLDER
-    missing = [folder for folder in (cache, *cache.parents) if not os.path.lexists(folder)]
-    for folder in reversed(missing):
-        with contextlib.suppress(FileExistsError):  # another process made it meanwhile: checked below
-            os.mkdir(folder, 0o700)
-    for folder in reversed((cache, *cache.parents)):
+    for folder in reversed((cache, *cache.parents)):  # from the top: a folder is made only in one checked first
+        if not os.path.lexists(folder):
+            with contextlib.suppress(FileExistsError):  # another process made it meanwhile: checked all the same
+                os.mkdir(folder, 0o700)
         reason = shared_reason(folder, os.lstat(folder), own=folder == cache)
         if reason is not None:
             raise NotBuilt(f"{reason}: nerfexp builds and loads kernels only where no one else can write "
