@@ -3,6 +3,7 @@ lazy Adam kernel (the smaller one) into a cache of the test's own, and copies of
 hostile user would (truncated, planted, copied from elsewhere, a forged or broken record, folders others can
 write, a lock left by a killed build); the switch ``NERFEXP_KERNELS`` read as a boolean word or refused."""
 
+import hashlib
 import json
 import os
 import shutil
@@ -87,8 +88,9 @@ def test_a_build_is_recorded_and_a_later_process_imports_that_file_after_its_che
     root, module = built
     (folder,) = [path for path in (root / cache.CACHE_FOLDER).iterdir() if path.is_dir()]
     record = json.loads((folder / cache.RECORD).read_text())
-    assert record["built_from"] == expected() and record["built_from"]["source_sha256"] == cache.hashlib.sha256(
-        SOURCE).hexdigest()
+    assert record["built_from"] == expected()
+    assert record["built_from"]["source_sha256"] == hashlib.sha256(SOURCE).hexdigest()
+    assert record["sha256"] == hashlib.sha256(library(folder).read_bytes()).hexdigest()
     assert (folder / f"{NAME}.cpp").read_bytes() == SOURCE  # the bytes hashed are the bytes compiled
     assert folder == cache.build_folder(root / cache.CACHE_FOLDER, expected())
     # Adam's first step moves each touched value by lr (m / sqrt(v) = 1 after bias correction): 1 - 0.1

@@ -42,7 +42,7 @@ from pathlib import Path
 from types import ModuleType
 
 from nerfexp.files import atomic_directory, atomic_write
-from nerfexp.reading import UnreadableFile, read_json
+from nerfexp.reading import UnreadableFile, read_json, sha256
 
 CACHE_FOLDER = "nerfexp"  # under the cache root: nerfexp's builds, one folder per kernel and what it is built from
 RECORD = "record.json"  # beside the library: what it was built from, its SHA-256, inode and change time
@@ -190,9 +190,7 @@ def checked_build(folder: Path, expected: dict) -> tuple[str, Path] | None:
         raise FailedCheck(reason)
     if (found.st_ino, found.st_ctime_ns) != (record["inode"], record["changed_ns"]):
         raise FailedCheck(f"{library} is not the file nerfexp wrote there (copied, replaced or changed since)")
-    with open(library, "rb") as file:
-        digest = hashlib.file_digest(file, "sha256").hexdigest()
-    if digest != record["sha256"]:
+    if sha256(library) != record["sha256"]:
         raise FailedCheck(f"{library}: its SHA-256 is not its record's (truncated or changed)")
     return record["module"], library
 
@@ -248,9 +246,7 @@ def build(folder: Path, source: bytes, expected: dict) -> ModuleType:
                       extra_ldflags=list(LDFLAGS), build_directory=str(new), verbose=False)
         library = Path(module.__file__)
         found = os.lstat(library)
-        with open(library, "rb") as file:
-            digest = hashlib.file_digest(file, "sha256").hexdigest()
-        record = {"built_from": expected, "module": module.__name__, "library": library.name, "sha256": digest,
+        record = {"built_from": expected, "module": module.__name__, "library": library.name, "sha256": sha256(library),
                   "inode": found.st_ino, "changed_ns": found.st_ctime_ns}
         atomic_write(new / RECORD, json.dumps(record, indent=1).encode())
     return module
