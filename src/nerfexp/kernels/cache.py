@@ -246,8 +246,8 @@ def build(folder: Path, source: bytes, expected: dict) -> ModuleType:
                       extra_ldflags=list(LDFLAGS), build_directory=str(new), verbose=False)
         library = Path(module.__file__)
         found = os.lstat(library)
-        record = {"built_from": expected, "module": module.__name__, "library": library.name, "sha256": sha256(library),
-                  "inode": found.st_ino, "changed_ns": found.st_ctime_ns}
+        record = {"built_from": expected, "module": module.__name__, "library": library.name,
+                  "sha256": sha256(library), "inode": found.st_ino, "changed_ns": found.st_ctime_ns}
         atomic_write(new / RECORD, json.dumps(record, indent=1).encode())
     return module
 
@@ -268,7 +268,7 @@ def cached_kernel(name: str, source: bytes) -> tuple[ModuleType, bool, str | Non
     try:
         return _cached_kernel(name, source)
     except OSError as error:
-        raise NotBuilt(f"{error.filename}: {error.strerror or error}") from None
+        raise NotBuilt(f"{error.filename or 'the kernel cache'}: {error.strerror or error}") from None
 
 
 def _cached_kernel(name: str, source: bytes) -> tuple[ModuleType, bool, str | None]:
