@@ -17,7 +17,7 @@ import pytest
 import torch
 from hypothesis import assume, given
 from hypothesis import strategies as st
-from torch.utils.cpp_extension import get_cxx_compiler
+from torch.utils.cpp_extension import get_cxx_compiler, is_ninja_available
 
 from nerfexp import kernels
 from nerfexp.errors import ConfigError
@@ -26,7 +26,8 @@ from tests.helpers import TINY, run_nerfexp
 
 NAME = "lazy_adam"
 SOURCE = (Path(kernels.__file__).parent / f"{NAME}.cpp").read_bytes()
-needs_compiler = pytest.mark.skipif(shutil.which(get_cxx_compiler()) is None, reason="no C++ compiler to build with")
+needs_compiler = pytest.mark.skipif(shutil.which(get_cxx_compiler()) is None or not is_ninja_available(),
+                                    reason="no C++ compiler, or no ninja, to build the kernel with")
 
 
 @pytest.fixture(scope="module")
