@@ -92,6 +92,8 @@ def test_a_build_is_recorded_and_a_later_process_imports_that_file_after_its_che
     assert record["built_from"] == expected()
     assert record["built_from"]["source_sha256"] == hashlib.sha256(SOURCE).hexdigest()
     assert record["sha256"] == hashlib.sha256(library(folder).read_bytes()).hexdigest()
+    found = os.lstat(library(folder))
+    assert (record["inode"], record["changed_ns"]) == (found.st_ino, found.st_ctime_ns)
     assert (folder / f"{NAME}.cpp").read_bytes() == SOURCE  # the bytes hashed are the bytes compiled
     assert folder == cache.build_folder(root / cache.CACHE_FOLDER, expected())
     # Adam's first step moves each touched value by lr (m / sqrt(v) = 1 after bias correction): 1 - 0.1
@@ -270,6 +272,8 @@ def test_a_failed_check_rebuilds_and_modules_planted_by_name_never_run(built, tm
     monkeypatch.setenv("TORCH_EXTENSIONS_DIR", str(root))
     module, now, failed = cache.cached_kernel(NAME, SOURCE)  # the genuine build passes: imported, not built
     assert not now and failed is None and torch.equal(adam_rows(module), adam_rows(built[1]))
+    shutil.rmtree(root / cache.CACHE_FOLDER)  # never truncate a library this process has loaded: a SIGBUS
+    root, folder = copied(built, root)
     truncate(folder)
     rebuilt = []
     monkeypatch.setattr(cache, "build", lambda *args: rebuilt.append(args) or "the rebuilt module")

@@ -244,9 +244,10 @@ def build(folder: Path, source: bytes, expected: dict) -> ModuleType:
         atomic_write(new / f"{name}.cpp", source)
         module = load(f"nerfexp_{name}", [str(new / f"{name}.cpp")], extra_cflags=list(CFLAGS),
                       extra_ldflags=list(LDFLAGS), build_directory=str(new), verbose=False)
-        library = Path(module.__file__)
+        (library,) = new.glob(f"*{LIBRARY_SUFFIX}")  # the one torch linked, named for its module (not
+        # module.__file__: a process that holds a module of that name already is handed that one by Python)
         found = os.lstat(library)
-        record = {"built_from": expected, "module": module.__name__, "library": library.name,
+        record = {"built_from": expected, "module": library.name.removesuffix(LIBRARY_SUFFIX), "library": library.name,
                   "sha256": sha256(library), "inode": found.st_ino, "changed_ns": found.st_ctime_ns}
         atomic_write(new / RECORD, json.dumps(record, indent=1).encode())
     return module
