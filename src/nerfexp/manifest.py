@@ -18,7 +18,6 @@ starts it afresh.
 
 import contextlib
 import fcntl
-import hashlib
 import json
 import os
 import stat
@@ -27,7 +26,7 @@ from pathlib import Path
 
 from nerfexp.errors import NerfexpError
 from nerfexp.files import atomic_write, folder_entries, is_made
-from nerfexp.reading import UnreadableFile, parse_json, read_bytes
+from nerfexp.reading import UnreadableFile, parse_json, read_bytes, sha256
 
 MANIFEST = "nerfexp-manifest.json"
 LOCK = ".nerfexp-manifest.lock"  # flock'd around a change of the manifest (the manifest itself is renamed over)
@@ -44,14 +43,11 @@ def fingerprint(path: Path) -> dict | None:
         return None
     if not stat.S_ISREG(found.st_mode):
         return None
-    digest = hashlib.sha256()
     try:
-        with open(path, "rb") as file:
-            for block in iter(lambda: file.read(1 << 20), b""):
-                digest.update(block)
+        digest = sha256(path)
     except FileNotFoundError:  # removed since (a logger's file replaced as the run ends)
         return None
-    return {"size": found.st_size, "sha256": digest.hexdigest()}
+    return {"size": found.st_size, "sha256": digest}
 
 
 def _is_record(record: object) -> bool:

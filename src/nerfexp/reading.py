@@ -10,6 +10,7 @@ nerfexp's and Hydra's saved configs never use them) and nesting deeper than ``MA
 recurse).
 """
 
+import hashlib
 import json
 import os
 import stat
@@ -49,6 +50,15 @@ def read_bytes(path: Path, limit: int) -> bytes:
     if len(data) > limit:
         raise UnreadableFile(path, f"larger than the {limit:,} bytes nerfexp reads of such a file")
     return data
+
+
+def sha256(path: Path) -> str:
+    """The SHA-256 of the file ``path``'s bytes, hexadecimal, read in blocks of 1 MiB (a file of any size)."""
+    digest = hashlib.sha256()
+    with open(path, "rb") as file:
+        for block in iter(lambda: file.read(1 << 20), b""):
+            digest.update(block)
+    return digest.hexdigest()
 
 
 def read_text(path: Path, limit: int) -> str:

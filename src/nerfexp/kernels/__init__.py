@@ -1,11 +1,13 @@
-"""Fused CPU kernels (C++), built at first use with torch's own ``cpp_extension`` and cached (torch's extension
-cache: ``TORCH_EXTENSIONS_DIR``, else ``~/.cache/torch_extensions``), so that an install needs no compiler and a
+"""Fused CPU kernels (C++), built at first use with torch's own ``cpp_extension`` and cached in torch's extension
+cache (``TORCH_EXTENSIONS_DIR``, else ``~/.cache/torch_extensions``), so that an install needs no compiler and a
 machine without one runs the pure torch path: ``kernel(name)`` is the built module, or None after one log line
-saying why (no compiler, a failed build, ``NERFEXP_KERNELS=off``). Why C++ rather than numba or
-``torch.compile``: ``benchmarks/kernel_tools.py`` (docs/acceleration.md).
+saying why (no compiler, a failed build, a cache others can write, ``NERFEXP_KERNELS=off``). A cached build is
+imported only where it is the one nerfexp built here (``nerfexp.kernels.cache``: a record beside it, checked
+first); anything else is rebuilt. Why C++ rather than numba or ``torch.compile``: ``benchmarks/kernel_tools.py``
+(docs/acceleration.md).
 
-Each kernel is compiled -O3 for the architecture's baseline (no -march=native: a cache shared between machines
-must not hold instructions another CPU lacks), with OpenMP, as ATen's ``at::parallel_for`` uses it.
+Each kernel is compiled -O3 for the architecture's baseline (no -march=native), with OpenMP, as ATen's
+``at::parallel_for`` uses it.
 """
 
 import functools
@@ -15,33 +17,44 @@ import time
 from importlib.resources import files
 from types import ModuleType
 
+from nerfexp.errors import ConfigError
+from nerfexp.kernels.cache import NotBuilt, cached_kernel
+
 log = logging.getLogger(__name__)
 
-SWITCH = "NERFEXP_KERNELS"  # "off": the torch path everywhere (the reference; tests compare the two)
+SWITCH = "NERFEXP_KERNELS"  # off: the torch path everywhere (the reference; tests compare the two)
+SWITCH_WORDS = {"on": True, "true": True, "yes": True, "1": True, "off": False, "false": False, "no": False,
+                "0": False}  # any case
 
 
 def enabled() -> bool:
-    """Whether kernels may be used at all (``NERFEXP_KERNELS`` is not "off")."""
-    return os.environ.get(SWITCH, "on").lower() != "off"
+    """Whether kernels may be used at all: ``NERFEXP_KERNELS`` read as a boolean word (``SWITCH_WORDS``, any
+    case; unset: on). Any other value is a ConfigError naming the variable and the value, never a guess."""
+    value = os.environ.get(SWITCH)
+    if value is None:
+        return True
+    if value.lower() not in SWITCH_WORDS:
+        raise ConfigError(f"{SWITCH}={value!r}: expected on or off ({', '.join(SWITCH_WORDS)}, in any case), "
+                          f"or unset (on)")
+    return SWITCH_WORDS[value.lower()]
 
 
 @functools.cache
 def _built(name: str) -> ModuleType | None:
-    """The kernel ``name`` (``NAME.cpp`` beside this file) built, or None with one log line."""
-    source = files(__name__) / f"{name}.cpp"
+    """The kernel ``name`` (``NAME.cpp`` beside this file), or None with one log line; a build made now is said
+    in one line too (with why, where a cached one failed its check)."""
     started = time.perf_counter()
     try:
-        from torch.utils.cpp_extension import load
-
-        built = load(f"nerfexp_{name}", [str(source)], extra_cflags=["-O3", "-fopenmp"], extra_ldflags=["-fopenmp"],
-                     verbose=False)
-    except Exception as error:  # no compiler, no ninja, a failed build: the torch path runs instead
-        reason = str(error).strip().splitlines()[-1] if str(error).strip() else type(error).__name__
-        log.info("kernel %s not built (%s): the torch path runs instead (docs/acceleration.md)", name, reason)
+        built, now, failed = cached_kernel(name, (files(__name__) / f"{name}.cpp").read_bytes())
+    except NotBuilt as error:  # no compiler, no ninja, a failed build, a cache others can write
+        log.info("kernel %s not built (%s): the torch path runs instead (docs/acceleration.md)", name, error)
         return None
     seconds = time.perf_counter() - started
-    if seconds > 1:  # compiled now, not read from the cache: once per machine and source
+    if now and failed is None:  # compiled now, not read from the cache: once per machine and source
         log.info("kernel %s built in %.0f s (cached for later runs)", name, seconds)
+    elif now:
+        log.info("kernel %s rebuilt in %.0f s (cached for later runs): its cached build failed a check: %s", name,
+                 seconds, failed)
     return built
 
 

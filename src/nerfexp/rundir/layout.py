@@ -2,7 +2,6 @@
 atomically and read back, and how runs are found under a folder (the package's docstring lists them)."""
 
 import contextlib
-import hashlib
 import json
 import math
 import os
@@ -18,6 +17,7 @@ from hydra.errors import HydraException
 
 from nerfexp import manifest, reading
 from nerfexp.files import writing
+from nerfexp.reading import sha256
 
 STATUS = "status.json"
 RESULTS = "results.json"
@@ -249,15 +249,6 @@ def machine() -> dict:
             model = "CPU"
         device = f"{model} ({os.cpu_count()} cores, {torch.get_num_threads()} torch threads)"
     return {"host": socket.gethostname(), "device": device}
-
-
-def sha256(path: Path) -> str:
-    """The SHA-256 of a file's bytes, hexadecimal."""
-    digest = hashlib.sha256()
-    with open(path, "rb") as file:
-        for block in iter(lambda: file.read(1 << 20), b""):
-            digest.update(block)
-    return digest.hexdigest()
 
 
 def checkpoint_record(run_dir: Path, checkpoint: Path) -> dict:

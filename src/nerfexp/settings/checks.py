@@ -19,6 +19,7 @@ from nerfexp.config_keys import leaves, reference, source_key
 from nerfexp.domains import breaks
 from nerfexp.errors import ConfigError
 from nerfexp.extras import require
+from nerfexp.kernels import enabled
 from nerfexp.memory import grid_bytes, hash_table_bytes, network_bytes, parameter_bytes, require_memory, scene_bytes
 from nerfexp.settings.rows import check_row
 from nerfexp.settings.schema import FLOAT32_TOP_OCTAVE, PASSED_ON, REFERENCES, matching, rule_of
@@ -233,16 +234,18 @@ def check_lpips(cfg: DictConfig) -> None:
 
 
 def check_settings(cfg: DictConfig, training: bool = True, scoring: bool = True) -> None:
-    """A ConfigError for a missing optional package (first: a component whose package is missing cannot say
-    what its settings are), then the first setting that is out of its domain (``check_rules``), a frequency
-    float32 cannot resolve, a skip connection past the field's depth, hash grid levels out of order, ray
-    bounds with near not before far, sparse gradients without an optimizer that takes them, a size that would
-    not fit in memory, or LPIPS weights that must be there and are not (where
-    ``scoring``). ``training``: False for a run read back (``check_run_settings``)."""
+    """A ConfigError for a ``NERFEXP_KERNELS`` that is not on or off (``nerfexp.kernels.enabled``), a missing
+    optional package (first: a component whose package is missing cannot say what its settings are), then the
+    first setting that is out of its domain (``check_rules``), a frequency float32 cannot resolve, a skip
+    connection past the field's depth, hash grid levels out of order, ray bounds with near not before far,
+    sparse gradients without an optimizer that takes them, a size that would not fit in memory, or LPIPS weights
+    that must be there and are not (where ``scoring``). ``training``: False for a run read back
+    (``check_run_settings``)."""
     missing = sorted(key for key, value in checked_settings(cfg) if value is MISSING)
     if missing:
         raise ConfigError(f"missing mandatory value: {', '.join(missing)} (set it on the command line, "
                           f"e.g. {missing[0]}=...)")
+    enabled()  # the kernels' switch, read now so that a value it does not take stops the run before any work
     check_extras(cfg)  # first: a component whose package is missing cannot say what its settings are
     check_rules(cfg, strict=training)
     check_frequencies(cfg)
