@@ -8,7 +8,15 @@ import types
 import pytest
 import torch
 
-from nerfexp.training.recorders import IMAGES, gather_evaluations, image_means, scores_record, scores_text
+from nerfexp.training.recorders import (
+    IMAGES,
+    collapse_record,
+    gather_evaluations,
+    image_means,
+    image_scores,
+    scores_record,
+    scores_text,
+)
 
 NAN = math.nan
 
@@ -46,3 +54,23 @@ def test_the_scores_travel_between_processes_as_float64_nan_included():
         for item in gathered:
             assert (item["index"], item["psnr"], item["ssim"]) == (7, 31.234567890123, 0.91)
             assert item["lpips"] == lpips or (math.isnan(lpips) and math.isnan(item["lpips"]))
+
+
+def test_each_views_contrast_travels_with_its_scores_and_decides_the_collapse_record():
+    def all_gather(tensor):
+        return torch.stack([tensor, tensor])
+
+    trainer = types.SimpleNamespace(world_size=2, strategy=types.SimpleNamespace(all_gather=all_gather))
+    images = {key: torch.zeros(2, 2, 3) for key in IMAGES}
+    outputs = {"index": 4, "psnr": 14.71, "ssim": 0.5, "lpips": NAN, "contrast": 0.0078125, **images}
+    (first, second) = gather_evaluations(trainer, outputs)
+    assert first["contrast"] == second["contrast"] == 0.0078125
+    blank = {4: image_scores(first), 5: {**image_scores(first), "contrast": 0.0}}
+    assert collapse_record(blank) == {"collapse": "every test view rendered nothing (2 views: an empty or one-colour "
+                                      "image each, its colours' spread at most 0.8% of its target's, below 1%)"}
+    assert collapse_record({**blank, 6: {**image_scores(first), "contrast": 0.25}}) == {"collapse": None}
+    assert "contrast" not in image_means(blank) and "test_contrast" not in scores_record(blank)  # not a score
+    record = {**scores_record(blank), **collapse_record(blank)}
+    assert scores_text(record) == ("test PSNR 14.71 dB, SSIM 0.5000, scores of a render of nothing: every test view "
+                                   "rendered nothing (2 views: an empty or one-colour image each, its colours' spread "
+                                   "at most 0.8% of its target's, below 1%)")

@@ -123,8 +123,9 @@ def train(cfg: DictConfig) -> dict | None:
     if not trainer.is_global_zero:
         return None
     results = read_json(recorder.output_dir / RESULTS)
-    log.info("%s after %d steps in %.0f s (%s); outputs in %s", scores_text(results), results["steps"],
-             results["train_time_s"], results["precision"], recorder.output_dir)
+    level = logging.WARNING if results["collapse"] else logging.INFO  # scores of a render of nothing: said as such
+    log.log(level, "%s after %d steps in %.0f s (%s); outputs in %s", scores_text(results), results["steps"],
+            results["train_time_s"], results["precision"], recorder.output_dir)
     return results
 
 
@@ -145,7 +146,8 @@ def build_logger(cfg: DictConfig | None) -> "Logger | bool":
 
 @hydra.main(version_base=None, config_path="pkg://nerfexp.conf", config_name="config")
 def main(cfg: DictConfig) -> float | None:
-    """Run one job; its status goes to ``status.json``. Returns the last validation PSNR, which a
+    """Run one job; its status goes to ``status.json`` (a finished run's with ``collapse``, as ``results.json``'s:
+    null, or the line saying that every test view rendered nothing). Returns the last validation PSNR, which a
     hyper-parameter sweeper (``+sweeps=optuna``) maximizes.
 
     A single run with bad input ends with one line on stderr and exit status 1. In a multirun the
@@ -202,7 +204,7 @@ def main(cfg: DictConfig) -> float | None:
                 record_matching(output_dir, (*RUN_LIBRARY_FILES, f"{hydra_config.job.name}.log"))
     if results is None:  # not global rank 0
         return None
-    write_status(output_dir, "finished", overrides, **labels)
+    write_status(output_dir, "finished", overrides, collapse=results["collapse"], **labels)
     return results["val_psnr"]
 
 

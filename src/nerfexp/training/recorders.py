@@ -31,6 +31,7 @@ from nerfexp.rundir.layout import (
     read_metrics,
     write_json,
 )
+from nerfexp.training.collapse import blank_views
 from nerfexp.training.loggers import log_hyperparams, log_image, log_labels
 from nerfexp.training.resume import RESUMES, SETTINGS
 
@@ -45,29 +46,32 @@ PROTOCOL_SCORES = ("psnr_full_image", "ssim_full_image", "psnr_right_half", "ssi
 CAMERA_FIT = ("camera_fit_deg", "camera_fit_shift")  # the test cameras' corrections (test_cameras=refined)
 SCORES = ("psnr", "ssim", "lpips", *PROTOCOL_SCORES, *CAMERA_FIT)
 ALWAYS_SCORED = ("psnr", "ssim")
+# what each image's evaluation measures: its SCORES, and its render's contrast against its target's, which is no
+# score (never averaged or logged) but says whether the view rendered anything (nerfexp.training.collapse)
+MEASURES = (*SCORES, "contrast")
 
 
 def gather_evaluations(trainer: L.Trainer, outputs: dict) -> list[dict]:
     """The outputs of this evaluation step on every process (``NeRFModule._evaluate``: "index", the
-    ``SCORES`` and the images ``IMAGES``), one dict per process in rank order; on one process ``[outputs]``.
+    ``MEASURES`` and the images ``IMAGES``), one dict per process in rank order; on one process ``[outputs]``.
 
     Every process must call it at every step (it is a collective): Lightning's distributed sampler
     gives each process the same number of images, repeating some where they do not divide evenly,
-    so callers keep the first result for each image index. Scores travel as float64, exactly (NaN too)."""
+    so callers keep the first result for each image index. Measures travel as float64, exactly (NaN too)."""
     if trainer.world_size == 1:
         return [outputs]
     images = outputs["rgb"]
-    numbers = torch.tensor([outputs["index"], *(outputs.get(name, math.nan) for name in SCORES)], dtype=torch.float64,
-                           device=images.device)
+    numbers = torch.tensor([outputs["index"], *(outputs.get(name, math.nan) for name in MEASURES)],
+                           dtype=torch.float64, device=images.device)
     gathered = {key: trainer.strategy.all_gather(outputs[key]) for key in IMAGES}  # each [world size, ...]
-    numbers = trainer.strategy.all_gather(numbers)  # [world size, 1 + len(SCORES)]
-    return [{"index": int(numbers[r, 0]), **{name: float(numbers[r, 1 + i]) for i, name in enumerate(SCORES)},
+    numbers = trainer.strategy.all_gather(numbers)  # [world size, 1 + len(MEASURES)]
+    return [{"index": int(numbers[r, 0]), **{name: float(numbers[r, 1 + i]) for i, name in enumerate(MEASURES)},
              **{key: gathered[key][r] for key in IMAGES}} for r in range(trainer.world_size)]
 
 
 def image_scores(item: dict) -> dict[str, float]:
-    """The ``SCORES`` of one evaluated image (``gather_evaluations``), NaN for those it was not scored by."""
-    return {name: item.get(name, math.nan) for name in SCORES}
+    """The ``MEASURES`` of one evaluated image (``gather_evaluations``), NaN for those it was not scored by."""
+    return {name: item.get(name, math.nan) for name in MEASURES}
 
 
 def scored(scores: dict[int, dict[str, float]]) -> tuple[str, ...]:
@@ -96,11 +100,22 @@ def scores_record(scores: dict[int, dict[str, float]]) -> dict:
             **{f"test_{name}_per_view": [scores[i][name] for i in views] for name in means}}
 
 
+def collapse_record(scores: dict[int, dict[str, float]]) -> dict[str, str | None]:
+    """What ``results.json`` and ``eval.json`` say of whether the test views ``{index: {..., "contrast"}}``
+    rendered anything: ``collapse``, where every one rendered nothing (``nerfexp.training.collapse.blank_views``),
+    the line that says so, which a report never ranks; else null."""
+    contrasts = {index: measures["contrast"] for index, measures in scores.items()}
+    return {"collapse": blank_views(contrasts, "test")}
+
+
 def scores_text(results: dict) -> str:
     """A run's test scores in words, from ``results.json`` or ``eval.json``: the PSNR in dB (2 decimals), the
-    SSIM (4), and the LPIPS (4) where it was scored."""
+    SSIM (4), and the LPIPS (4) where it was scored; where the run ``collapse``d, the scores are said to be of a
+    render of nothing, and how."""
     lpips = f", LPIPS {results['test_lpips']:.4f}" if "test_lpips" in results else ""
-    return f"test PSNR {results['test_psnr']:.2f} dB, SSIM {results['test_ssim']:.4f}{lpips}"
+    collapse = results.get("collapse")
+    of_nothing = f", scores of a render of nothing: {collapse}" if collapse else ""
+    return f"test PSNR {results['test_psnr']:.2f} dB, SSIM {results['test_ssim']:.4f}{lpips}{of_nothing}"
 
 
 def keep_metrics_through(output_dir: Path, step: int) -> None:
@@ -124,7 +139,8 @@ class RunRecorder(L.Callback):
     each validation logs one line: step, PSNR, SSIM (and LPIPS) and the training's wall-clock seconds so far. Each
     test view's render, its ground truth and their absolute difference (per channel, in [0, 1]) are
     saved as ``test/r_{i}.png``, ``r_{i}_target.png``, ``r_{i}_error.png``, with ``r_{i}_depth.png``. Every
-    file it writes is recorded in the run's manifest as it is written (``nerfexp.manifest``).
+    file it writes is recorded in the run's manifest as it is written (``nerfexp.manifest``). Where every test
+    view rendered nothing, ``results.json``'s ``collapse`` says so (``collapse_record``), whatever the guard did.
 
     The elapsed time and the last validation PSNR are part of the checkpoint, so a resumed run keeps
     counting from where it stopped, and a test in processes that did not train (``trainer=ddp`` spawns
@@ -151,7 +167,7 @@ class RunRecorder(L.Callback):
         self.labels = {**NO_LABELS, **(labels or {})}  # {"tags": [...], "notes": text or None}
         self.last_val_psnr: float | None = None
         self.elapsed_s, self._started, self.steps, self.trained = 0.0, None, 0, False
-        self._scores: dict[int, dict[str, float]] = {}  # image index -> its scores (SCORES)
+        self._scores: dict[int, dict[str, float]] = {}  # image index -> its measures (MEASURES)
 
     def wall_time_s(self) -> float:
         return self.elapsed_s + (time.perf_counter() - self._started if self._started is not None else 0.0)
@@ -264,7 +280,7 @@ class RunRecorder(L.Callback):
             return
         renderer, batch_rays = pl_module.renderer, getattr(trainer.datamodule, "batch_rays", None)
         results = {
-            **scores_record(scores), "val_psnr": self.last_val_psnr,
+            **scores_record(scores), **collapse_record(scores), "val_psnr": self.last_val_psnr,
             "train_time_s": self.elapsed_s, "steps": steps,
             "time_per_step_s": self.elapsed_s / max(steps, 1),
             "rays_per_s": batch_rays * steps / self.elapsed_s if batch_rays and self.elapsed_s > 0 else None,
@@ -284,12 +300,12 @@ class RunRecorder(L.Callback):
 
 class EvalRecorder(L.Callback):
     """Scores a checkpoint on the test split: ``eval.json`` in ``output_dir`` holds the test scores as
-    ``results.json`` does (``scores_record``: means and per view), the ``checkpoint``, its ``step`` and the
-    ``machine``."""
+    ``results.json`` does (``scores_record``: means and per view; ``collapse_record``), the ``checkpoint``, its
+    ``step`` and the ``machine``."""
 
     def __init__(self, output_dir: str | Path, checkpoint: str | Path, step: int):
         self.output_dir, self.checkpoint, self.step = Path(output_dir), Path(checkpoint), step
-        self._scores: dict[int, dict[str, float]] = {}  # image index -> its scores (SCORES)
+        self._scores: dict[int, dict[str, float]] = {}  # image index -> its measures (MEASURES)
 
     def on_test_batch_end(self, trainer, pl_module, outputs, batch, batch_idx, dataloader_idx=0):
         for item in gather_evaluations(trainer, outputs):
@@ -298,8 +314,8 @@ class EvalRecorder(L.Callback):
     def on_test_epoch_end(self, trainer, pl_module):
         if not trainer.is_global_zero:
             return
-        results = {**scores_record(self._scores), "test_protocol": pl_module.test_protocol,
-                   "test_cameras": pl_module.test_cameras,
+        results = {**scores_record(self._scores), **collapse_record(self._scores),
+                   "test_protocol": pl_module.test_protocol, "test_cameras": pl_module.test_cameras,
                    "checkpoint": str(self.checkpoint.resolve()), "step": self.step,
                    "processes": trainer.world_size, "machine": machine()}
         write_json(self.output_dir / EVAL, results)
