@@ -3,6 +3,7 @@
 import contextlib
 import difflib
 import logging
+import math
 import os
 import re
 import sys
@@ -147,8 +148,8 @@ def build_logger(cfg: DictConfig | None) -> "Logger | bool":
 @hydra.main(version_base=None, config_path="pkg://nerfexp.conf", config_name="config")
 def main(cfg: DictConfig) -> float | None:
     """Run one job; its status goes to ``status.json`` (a finished run's with ``collapse``, as ``results.json``'s:
-    null, or the line saying that every test view rendered nothing). Returns the last validation PSNR, which a
-    hyper-parameter sweeper (``+sweeps=optuna``) maximizes.
+    null, or the line saying that every test view rendered nothing). Returns what a hyper-parameter sweeper
+    (``+sweeps=optuna``) maximizes (``sweep_objective``).
 
     A single run with bad input ends with one line on stderr and exit status 1. In a multirun the
     error is raised instead, so that Hydra records this job as failed and goes on with the others
@@ -205,7 +206,14 @@ def main(cfg: DictConfig) -> float | None:
     if results is None:  # not global rank 0
         return None
     write_status(output_dir, "finished", overrides, collapse=results["collapse"], **labels)
-    return results["val_psnr"]
+    return sweep_objective(results)
+
+
+def sweep_objective(results: dict) -> float:
+    """What a hyper-parameter sweeper maximizes of a finished run's ``results``: the last validation PSNR; for a run
+    that rendered nothing (``collapse``), -inf, below every run that rendered something, so never the best trial
+    (Optuna's TPE takes it as a completed trial; a NaN would make Hydra's Optuna sweeper fail)."""
+    return -math.inf if results["collapse"] else results["val_psnr"]
 
 
 def signalled_job_line(run_dir: Path, signal_name: str) -> str:
