@@ -236,7 +236,8 @@ class TrainingGuard(L.Callback):
         if self.on_collapse == "stop":
             raise FieldCollapseError(message)
         self._reported_collapse.add("validation")
-        log.warning(message)
+        if trainer.is_global_zero:  # every process judged the same views: one line says it
+            log.warning(message)
 
 
 def gathered_contrasts(trainer: L.Trainer, pl_module: L.LightningModule, contrasts: dict[int, float]
