@@ -168,3 +168,16 @@ def test_hash_tables_train_with_dense_gradients_under_ddp(tmp_path):
     assert len(lines) == 1 and lines[0].endswith("2 processes: the hash tables' gradients are dense (DDP all-reduces "
                                                  "dense gradients); encoding.position.sparse_gradients=true applies "
                                                  "to one process")
+
+
+@pytest.mark.slow
+def test_a_fog_under_ddp_is_judged_on_every_view_once_and_said_once(tmp_path):
+    # 3 validation views on 2 processes: each process renders 2 (the sampler repeats one); the guard gathers them
+    fog = ["model.renderer.field.density_bias=-8", "callbacks.guard.collapse_patience=10",
+           "callbacks.guard.on_collapse=warn"]
+    done = run_nerfexp(*TINY, *DDP, *fog, "data.n_val=3", "data.n_test=3", f"hydra.run.dir={tmp_path}",
+                       new_process=True, cwd=tmp_path)
+    assert done.returncode == 0, done.stderr[-3000:]
+    output = done.stdout + done.stderr
+    assert output.count("step 30: every validation view rendered nothing (3 views: ") == 1
+    assert read_json(tmp_path / "results.json")["collapse"].startswith("every test view rendered nothing (3 views: ")

@@ -8,14 +8,20 @@ from PIL import Image
 from torch import Tensor
 
 
+def levels(image: Tensor) -> Tensor:
+    """The 8-bit levels of values in [0, 1], any shape, in ``image``'s dtype: round(clamp(x) * 255), whole numbers
+    in [0, 255] (exact in any float dtype)."""
+    return torch.round(image.clamp(0, 1) * 255)
+
+
 def quantize(image: Tensor) -> Tensor:
     """The image as an 8-bit PNG would store it, back in [0, 1]: round(clamp(x) * 255) / 255."""
-    return torch.round(image.clamp(0, 1) * 255) / 255
+    return levels(image) / 255
 
 
 def to_uint8(image: Tensor) -> np.ndarray:
     """8-bit pixels (uint8, on the host) of values in [0, 1], any shape: round(clamp(x) * 255), as ``quantize``."""
-    return torch.round(image.clamp(0, 1) * 255).to(torch.uint8).cpu().numpy()
+    return levels(image).to(torch.uint8).cpu().numpy()
 
 
 def png_bytes(pixels: np.ndarray) -> bytes:

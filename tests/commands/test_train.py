@@ -10,6 +10,7 @@ import pytest
 import torch
 from PIL import Image
 
+from nerfexp.commands.train import sweep_objective
 from nerfexp.data.procedural import load_procedural
 from nerfexp.pixels import to_uint8
 from nerfexp.training.metrics import psnr
@@ -36,6 +37,7 @@ def test_a_short_run_learns_the_scene_and_writes_every_output(tmp_path):
     baseline = blank_psnr(2, 32)
     assert results["test_psnr"] > baseline + 6, (results["test_psnr"], baseline)
     assert 0 < results["test_ssim"] <= 1 and results["steps"] == 400 and results["n_params"] > 0
+    assert results["collapse"] is None  # nor a false alarm: the guard judged the validation of step 200 too
     assert results["choices"] == {"encoding": "posenc", "view_dependence": "mlp", "data": "procedural",
                                   "field": "nerf", "optimizer": "adam", "scale": "cpu", "trainer": "default",
                                   "acceleration": "none", "contraction": "none", "appearance": "none",
@@ -256,3 +258,9 @@ def test_a_run_without_lpips_records_none_and_says_why_in_one_line(tiny_run):
     assert not [r for r in map(json.loads, (tiny_run / "metrics.jsonl").read_text().splitlines()) if "lpips" in r]
     lines = [line for line in (tiny_run / "nerfexp.log").read_text().splitlines() if "LPIPS" in line]
     assert len(lines) == 1 and "LPIPS not scored: " in lines[0], lines
+
+
+def test_a_sweeper_never_takes_a_run_that_rendered_nothing_for_its_best():
+    assert sweep_objective({"val_psnr": 14.71, "collapse": None}) == 14.71
+    collapsed = sweep_objective({"val_psnr": 14.71, "collapse": "every test view rendered nothing (...)"})
+    assert collapsed == -math.inf and collapsed < sweep_objective({"val_psnr": -300.0, "collapse": None})

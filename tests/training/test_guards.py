@@ -1,14 +1,18 @@
 """TrainingGuard in real Lightning training: NaNs and infinities at known steps, skipped batches, collapsed fields."""
 
 import functools
+import json
 import logging
 import math
+import types
 
 import lightning as L
+import numpy as np
 import pytest
 import torch
 import torch.nn.functional as F
 from lightning.pytorch.plugins.precision import MixedPrecision
+from PIL import Image
 from torch import nn
 from torch.utils.data import DataLoader
 
@@ -16,10 +20,11 @@ from nerfexp.errors import FieldCollapseError, NonFiniteError
 from nerfexp.nerf.encodings import HashGridEncoding
 from nerfexp.nerf.fields import FieldOutputs
 from nerfexp.nerf.volume_renderer import VolumeRenderer
-from nerfexp.training.guards import TrainingGuard
+from nerfexp.training.collapse import colour_spread
+from nerfexp.training.guards import TrainingGuard, gathered_contrasts
 from nerfexp.training.module import NeRFModule
 from nerfexp.training.optimizers import LazyAdam
-from tests.helpers import nan_targets, run_nerfexp
+from tests.helpers import nan_targets, read_json, run_nerfexp
 
 
 class LinearField(nn.Module):
@@ -95,12 +100,34 @@ def batches(n: int) -> list[dict]:
     return out
 
 
-def fit(m: NeRFModule, guard: TrainingGuard, steps: int, root, callbacks=(), **trainer_args) -> L.Trainer:
+def views(n: int, side: int = 6) -> list[dict]:
+    """``n`` validation views of ``side`` x ``side`` rays through the origin from 4 units away (each seen at its
+    own turn about the y axis), whose targets are half black, half white."""
+    u = torch.linspace(-0.3, 0.3, side)
+    target = torch.zeros(side, side, 3)
+    target[:, side // 2:] = 1.0
+    out = []
+    for index in range(n):
+        turn = torch.tensor(0.5 * index)
+        forward = torch.stack([torch.sin(turn), torch.tensor(0.0), torch.cos(turn)])
+        right = torch.stack([torch.cos(turn), torch.tensor(0.0), -torch.sin(turn)])
+        directions = F.normalize(forward + u[None, :, None] * right + u[:, None, None] * torch.tensor([0.0, 1, 0]),
+                                 dim=-1)  # [side, side, 3]
+        out.append({"origins": -4 * directions, "directions": directions, "rgb": target, "index": index})
+    return out
+
+
+def fit(m: NeRFModule, guard: TrainingGuard, steps: int, root, callbacks=(), val_every: int | None = None,
+        **trainer_args) -> L.Trainer:
+    """Train ``m`` for ``steps`` on ``batches``, validating on two ``views`` every ``val_every`` steps (None: never)."""
     torch.manual_seed(0)
+    validation = {} if val_every is None else {"val_check_interval": val_every, "check_val_every_n_epoch": None,
+                                               "num_sanity_val_steps": 0}
     trainer = L.Trainer(max_steps=steps, accelerator="cpu", logger=False, enable_checkpointing=False,
                         enable_progress_bar=False, enable_model_summary=False, default_root_dir=root,
-                        callbacks=[guard, *callbacks], **trainer_args)
-    trainer.fit(m, train_dataloaders=DataLoader(batches(steps + 2), batch_size=None))
+                        callbacks=[guard, *callbacks], **validation, **trainer_args)
+    trainer.fit(m, train_dataloaders=DataLoader(batches(steps + 2), batch_size=None),
+                val_dataloaders=None if val_every is None else DataLoader(views(2), batch_size=None))
     return trainer
 
 
@@ -313,6 +340,75 @@ def test_a_healthy_field_is_not_flagged(tmp_path):
     assert guard.empty_batches == {"coarse": 0, "fine": 0} and guard.skipped_batches == 0
 
 
+class Fog(nn.Module):
+    """An even fog of density ``sigma`` and one colour (grey, a parameter): every ray keeps the same opacity, far
+    above any "empty" threshold on opacity, and the render is one colour: no scene."""
+
+    def __init__(self, sigma: float):
+        super().__init__()
+        self.raw = nn.Parameter(torch.zeros(()))
+        self.sigma = sigma
+
+    def forward(self, positions, directions):
+        rgb = torch.sigmoid(self.raw).expand(*positions.shape[:-1], 3)
+        return FieldOutputs(rgb=rgb, sigma=torch.full(positions.shape[:-1], self.sigma) + 0 * self.raw)
+
+
+VALIDATION_COLLAPSE = (r"every validation view rendered nothing \(2 views: an empty or one-colour image each, its "
+                       r"colours' spread at most 0\.0% of its target's, below 1%\): the field shows no scene")
+
+
+@pytest.mark.parametrize("sigma", [1e-3, 0.5])  # opacity about 0.004 on every ray, or 0.86: neither is empty
+def test_an_even_fog_stops_at_the_first_validation_from_patience_on(tmp_path, sigma):
+    m = module(Fog(sigma), Fog(sigma))
+    guard = TrainingGuard(collapse_patience=3)
+    with pytest.raises(FieldCollapseError, match=rf"^step 4: {VALIDATION_COLLAPSE}, however little opacity its rays "
+                       r"keep\. .*scale\.lr"):
+        fit(m, guard, 10, tmp_path, val_every=2)  # the validation of step 2 comes before the patience: not judged
+    assert m.trainer.global_step == 4
+    assert guard.empty_batches == {"coarse": 0, "fine": 0}  # the rule on opacity saw rays that were not empty
+
+
+def test_an_even_fog_warns_once_and_trains_on(tmp_path, caplog):
+    m = module(Fog(1e-3), Fog(1e-3))
+    with caplog.at_level(logging.WARNING, logger="nerfexp.training.guards"):
+        trainer = fit(m, TrainingGuard(on_collapse="warn", collapse_patience=3), 10, tmp_path, val_every=2)
+    assert trainer.global_step == 10
+    warnings = [r.getMessage() for r in caplog.records if r.name == "nerfexp.training.guards"]
+    assert len(warnings) == 1 and warnings[0].startswith("step 4: every validation view rendered nothing (2 views")
+
+
+def test_validations_before_the_patience_are_not_judged(tmp_path):
+    # an untrained field may render a fog: the first validations say nothing until it had patience steps to learn
+    m = module(Fog(1e-3), Fog(1e-3))
+    assert fit(m, TrainingGuard(collapse_patience=100), 8, tmp_path, val_every=2).global_step == 8
+
+
+def test_a_field_that_renders_a_scene_is_not_flagged_at_any_validation(tmp_path):
+    torch.manual_seed(0)
+    m = module(LinearField(), LinearField())
+    renders = []
+
+    class Renders(L.Callback):
+        def on_validation_batch_end(self, trainer, pl_module, outputs, batch, batch_idx, dataloader_idx=0):
+            renders.append(outputs["rgb"])
+
+    assert fit(m, TrainingGuard(collapse_patience=1), 6, tmp_path, callbacks=[Renders()], val_every=1).global_step == 6
+    assert len(renders) == 12 and all(colour_spread(r) > 0.01 * colour_spread(views(1)[0]["rgb"]) for r in renders)
+
+
+def test_each_view_is_judged_once_whichever_processes_scored_it():
+    def all_gather(tensor):  # two processes; the distributed sampler gave both view 2 (its padding)
+        return torch.stack([tensor, torch.tensor([[1.0, 0.5], [2.0, 0.25]], dtype=torch.float64)])
+
+    trainer = types.SimpleNamespace(world_size=2, strategy=types.SimpleNamespace(all_gather=all_gather))
+    module_ = types.SimpleNamespace(device=torch.device("cpu"))
+    gathered = gathered_contrasts(trainer, module_, {0: 0.125, 2: 0.25})
+    assert gathered == {0: 0.125, 1: 0.5, 2: 0.25}
+    single = types.SimpleNamespace(world_size=1)
+    assert gathered_contrasts(single, module_, {3: 0.5}) == {3: 0.5}
+
+
 def test_options_are_checked():
     with pytest.raises(ValueError, match="on_nonfinite"):
         TrainingGuard(on_nonfinite="ignore")
@@ -343,3 +439,46 @@ def test_a_collapsed_relu_run_ends_with_the_collapse_message(tmp_path, tiny):
     assert last.startswith("nerfexp: error: step 9: the coarse and fine networks rendered nothing (opacity below "
                            "0.0001 on every ray) for 10 consecutive batches")
     assert "density_activation=softplus" in last
+
+
+# softplus(raw - 8): a fog of about 0.2% opacity on every ray, twenty times the rule on opacity's 1e-4, and one colour
+FOG = ["model.renderer.field.density_bias=-8", "callbacks.guard.collapse_patience=10"]
+
+
+def test_a_run_that_renders_a_fog_stops_at_its_first_validation_in_one_line(tmp_path, tiny):
+    result = run_nerfexp(*tiny, *FOG, f"hydra.run.dir={tmp_path}", cwd=tmp_path)
+    assert result.returncode == 1 and "Traceback" not in result.stderr
+    last = result.stderr.strip().splitlines()[-1]
+    assert last.startswith("nerfexp: error: step 30: every validation view rendered nothing (1 view: an empty or "
+                           "one-colour image each, its colours' spread at most 0.0% of its target's, below 1%)")
+    status = read_json(tmp_path / "status.json")
+    assert status["state"] == "failed" and status["error"] == f"FieldCollapseError: {last[len('nerfexp: error: '):]}"
+    validations = [json.loads(line) for line in (tmp_path / "metrics.jsonl").read_text().splitlines()]
+    assert [(r["step"], r["split"]) for r in validations] == [(30, "val")]  # recorded before the run stopped
+    assert not (tmp_path / "results.json").exists()
+
+
+def test_a_fog_run_that_warns_finishes_recorded_as_collapsed(tmp_path, tiny):
+    run_dir = tmp_path / "run"
+    result = run_nerfexp(*tiny, *FOG, "callbacks.guard.on_collapse=warn", f"hydra.run.dir={run_dir}", cwd=tmp_path)
+    assert result.returncode == 0, result.stderr[-2000:]
+    for view in (0, 1):  # what a person sees: each test image is one colour
+        pixels = np.asarray(Image.open(run_dir / "test" / f"r_{view}.png")).reshape(-1, 3)
+        assert len(np.unique(pixels, axis=0)) == 1
+    line = ("every test view rendered nothing (2 views: an empty or one-colour image each, its colours' spread at "
+            "most 0.0% of its target's, below 1%)")
+    assert read_json(run_dir / "results.json")["collapse"] == line
+    status = read_json(run_dir / "status.json")
+    assert (status["state"], status["collapse"]) == ("finished", line)
+    output = result.stdout + result.stderr
+    assert output.count("step 30: every validation view rendered nothing") == 1  # warned once, at the first
+    assert f"scores of a render of nothing: {line} after 60 steps" in output
+    evaluation = run_nerfexp(str(run_dir), cwd=tmp_path, script="nerfexp-eval")
+    assert evaluation.returncode == 0 and f"scores of a render of nothing: {line} of " in evaluation.stdout
+    assert read_json(run_dir / "eval.json")["collapse"] == line
+
+
+def test_a_run_that_learns_is_not_recorded_as_collapsed(tiny_run):
+    assert read_json(tiny_run / "results.json")["collapse"] is None
+    status = read_json(tiny_run / "status.json")
+    assert (status["state"], status["collapse"]) == ("finished", None)

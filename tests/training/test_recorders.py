@@ -12,6 +12,7 @@ from nerfexp.errors import NonFiniteError
 from nerfexp.training.metrics import psnr, ssim
 from nerfexp.training.recorders import (
     IMAGES,
+    collapse_record,
     gather_evaluations,
     image_means,
     image_scores,
@@ -73,3 +74,23 @@ def test_a_render_of_nan_is_scored_nan():
     # what image_scores stops: the scores of a NaN render (weights that are not finite) are NaN, not a number
     image, target = torch.full((16, 16, 3), NAN), torch.rand(16, 16, 3)
     assert math.isnan(psnr(image, target)) and math.isnan(ssim(image, target))
+
+
+def test_each_views_contrast_travels_with_its_scores_and_decides_the_collapse_record():
+    def all_gather(tensor):
+        return torch.stack([tensor, tensor])
+
+    trainer = types.SimpleNamespace(world_size=2, strategy=types.SimpleNamespace(all_gather=all_gather))
+    images = {key: torch.zeros(2, 2, 3) for key in IMAGES}
+    outputs = {"index": 4, "psnr": 14.71, "ssim": 0.5, "lpips": NAN, "contrast": 0.0078125, **images}
+    (first, second) = gather_evaluations(trainer, outputs)
+    assert first["contrast"] == second["contrast"] == 0.0078125
+    blank = {4: image_scores(first, "test", 0), 5: {**image_scores(first, "test", 0), "contrast": 0.0}}
+    assert collapse_record(blank) == {"collapse": "every test view rendered nothing (2 views: an empty or one-colour "
+                                      "image each, its colours' spread at most 0.8% of its target's, below 1%)"}
+    assert collapse_record({**blank, 6: {**image_scores(first, "test", 0), "contrast": 0.25}}) == {"collapse": None}
+    assert "contrast" not in image_means(blank) and "test_contrast" not in scores_record(blank)  # not a score
+    record = {**scores_record(blank), **collapse_record(blank)}
+    assert scores_text(record) == ("test PSNR 14.71 dB, SSIM 0.5000, scores of a render of nothing: every test view "
+                                   "rendered nothing (2 views: an empty or one-colour image each, its colours' spread "
+                                   "at most 0.8% of its target's, below 1%)")

@@ -3,6 +3,7 @@
 import contextlib
 import difflib
 import logging
+import math
 import os
 import re
 import sys
@@ -123,8 +124,9 @@ def train(cfg: DictConfig) -> dict | None:
     if not trainer.is_global_zero:
         return None
     results = read_json(recorder.output_dir / RESULTS)
-    log.info("%s after %d steps in %.0f s (%s); outputs in %s", scores_text(results), results["steps"],
-             results["train_time_s"], results["precision"], recorder.output_dir)
+    level = logging.WARNING if results["collapse"] else logging.INFO  # scores of a render of nothing: said as such
+    log.log(level, "%s after %d steps in %.0f s (%s); outputs in %s", scores_text(results), results["steps"],
+            results["train_time_s"], results["precision"], recorder.output_dir)
     return results
 
 
@@ -145,8 +147,9 @@ def build_logger(cfg: DictConfig | None) -> "Logger | bool":
 
 @hydra.main(version_base=None, config_path="pkg://nerfexp.conf", config_name="config")
 def main(cfg: DictConfig) -> float | None:
-    """Run one job; its status goes to ``status.json``. Returns the last validation PSNR, which a
-    hyper-parameter sweeper (``+sweeps=optuna``) maximizes.
+    """Run one job; its status goes to ``status.json`` (a finished run's with ``collapse``, as ``results.json``'s:
+    null, or the line saying that every test view rendered nothing). Returns what a hyper-parameter sweeper
+    (``+sweeps=optuna``) maximizes (``sweep_objective``).
 
     A single run with bad input ends with one line on stderr and exit status 1. In a multirun the
     error is raised instead, so that Hydra records this job as failed and goes on with the others
@@ -202,8 +205,15 @@ def main(cfg: DictConfig) -> float | None:
                 record_matching(output_dir, (*RUN_LIBRARY_FILES, f"{hydra_config.job.name}.log"))
     if results is None:  # not global rank 0
         return None
-    write_status(output_dir, "finished", overrides, **labels)
-    return results["val_psnr"]
+    write_status(output_dir, "finished", overrides, collapse=results["collapse"], **labels)
+    return sweep_objective(results)
+
+
+def sweep_objective(results: dict) -> float:
+    """What a hyper-parameter sweeper maximizes of a finished run's ``results``: the last validation PSNR; for a run
+    that rendered nothing (``collapse``), -inf, below every run that rendered something, so never the best trial
+    (Optuna's TPE takes it as a completed trial; a NaN would make Hydra's Optuna sweeper fail)."""
+    return -math.inf if results["collapse"] else results["val_psnr"]
 
 
 def signalled_job_line(run_dir: Path, signal_name: str) -> str:

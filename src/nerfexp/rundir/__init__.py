@@ -3,16 +3,17 @@ found and read back.
 
 A run's directory holds (every file written atomically):
 
-- ``status.json``: ``running`` (with host, process id and the process's start), ``finished`` or
-  ``failed`` (with the error), and the run's command-line overrides and labels (``tags``, ``notes``:
-  ``nerfexp.rundir.labels``), so a report can list jobs that crashed or still run.
+- ``status.json``: ``running`` (with host, process id and the process's start), ``finished`` (with
+  ``collapse``, as ``results.json``'s) or ``failed`` (with the error), and the run's command-line overrides and
+  labels (``tags``, ``notes``: ``nerfexp.rundir.labels``), so a report can list jobs that crashed or still run.
 - ``metrics.jsonl``: one JSON object per evaluation: step, wall_time_s, split, psnr, ssim (means), and
   lpips where LPIPS was scored (``nerfexp.training.perceptual``; absent, never NaN, where it was not;
   lpips_custom instead with the user's own weights).
 - ``results.json``: final test means and per-view scores (``test_lpips`` too where scored, with
   ``lpips_weights_sha256``, the weights file's SHA-256; ``test_lpips_custom`` for the user's own), last
   validation PSNR, training time, throughput, parameters, the machine, the resolved choices and
-  overrides, the tags and notes (``nerfexp.training.recorders.RunRecorder``).
+  overrides, the tags and notes, and ``collapse``: null, or the line saying that every test view rendered
+  nothing (``nerfexp.training.recorders.RunRecorder``, ``nerfexp.training.collapse``).
 - ``test/``: each test view's render (``r_{i}.png``), ground truth (``r_{i}_target.png``), absolute
   error (``r_{i}_error.png``) and depth (``r_{i}_depth.png``).
 - ``checkpoints/last.ckpt``, ``.hydra/config.yaml`` (the composed config, as Hydra saves it).

@@ -1,4 +1,4 @@
-"""Guards during training: a NaN or infinite loss or gradient, and a density field collapsed to zero.
+"""Guards during training: a NaN or infinite loss or gradient, and a field collapsed to an empty or one-colour scene.
 
 ``TrainingGuard`` is a Lightning callback that looks at every optimizer step in
 ``on_before_optimizer_step``: after the backward pass (after gradient accumulation, and after mixed
@@ -13,6 +13,9 @@ by name only when that norm is not finite (finite gradients whose norm overflowe
 A sparse gradient (a hash table's, ``HashGridEncoding(sparse_gradients=True)``) is checked by the entries
 it holds (``held_entries``), its rows the batch touched.
 With gradient accumulation, the losses and the batch seen are those of the last accumulated batch.
+
+After each validation it reads each view's "contrast" (``NeRFModule._evaluate``; ``nerfexp.training.collapse``), a
+number per view, gathered from every process in a distributed run.
 """
 
 import logging
@@ -26,6 +29,7 @@ from torch import Tensor
 
 from nerfexp.errors import FieldCollapseError, NonFiniteError
 from nerfexp.training.checkpoints import save_whole
+from nerfexp.training.collapse import blank_views
 from nerfexp.training.guard_actions import COLLAPSE_ACTIONS, NONFINITE_ACTIONS
 
 log = logging.getLogger(__name__)
@@ -62,7 +66,10 @@ class TrainingGuard(L.Callback):
     Collapse: a network whose opacity stays below ``collapse_opacity`` on every ray of
     ``collapse_patience`` consecutive training batches renders an empty scene; a ReLU density that
     went negative everywhere has zero gradient and never comes back (on a white background the loss
-    then sits at the empty scene's).
+    then sits at the empty scene's). And a validation after ``collapse_patience`` steps in which every view
+    rendered nothing (``nerfexp.training.collapse.blank_views``: an empty or one-colour render, whatever opacity the
+    rays keep) is a collapse: what a person sees, which a field that keeps a little opacity everywhere hides from
+    the rule on opacity. The validation's scores are recorded before the run stops.
 
     With a gradient scaler (``trainer.precision=16-mixed``) infinite gradients are routine: the scaler
     skips those steps and lowers its scale. Only the losses are checked then.
@@ -72,8 +79,10 @@ class TrainingGuard(L.Callback):
         on_nonfinite: ``stop`` raises ``NonFiniteError``; ``skip`` drops the batch's update (no
             parameter or optimizer state changes), logs ``train/skipped_batches`` and goes on.
         max_skips: ``skip`` skips at most this many batches in a run; the next non-finite one stops it.
-        on_collapse: ``stop`` raises ``FieldCollapseError``; ``warn`` logs the message once per network.
-        collapse_patience: consecutive empty batches that make a collapse.
+        on_collapse: ``stop`` raises ``FieldCollapseError``; ``warn`` logs the message once per network (and once
+            for the validations).
+        collapse_patience: consecutive empty batches that make a collapse; validations are judged from this
+            step on (earlier ones may show an untrained field).
         collapse_opacity: a ray whose opacity is below this counts as empty.
     """
 
@@ -91,7 +100,8 @@ class TrainingGuard(L.Callback):
         self.collapse_opacity = collapse_opacity
         self.skipped_batches = 0
         self.empty_batches: dict[str, int] = {}  # network -> consecutive batches with every ray empty
-        self._reported_collapse: set[str] = set()
+        self._reported_collapse: set[str] = set()  # the networks, and "validation", whose collapse was reported
+        self._contrasts: dict[int, float] = {}  # view index -> its render's contrast, in this validation
         self._batch = None
         self._check_gradients = True
 
@@ -205,3 +215,37 @@ class TrainingGuard(L.Callback):
             raise FieldCollapseError(message)
         self._reported_collapse.update(collapsed)
         log.warning(message)
+
+    def on_validation_batch_end(self, trainer: L.Trainer, pl_module: L.LightningModule, outputs: dict, batch,
+                                batch_idx: int, dataloader_idx: int = 0) -> None:
+        if not trainer.sanity_checking:
+            self._contrasts[outputs["index"]] = outputs["contrast"]
+
+    def on_validation_end(self, trainer: L.Trainer, pl_module: L.LightningModule) -> None:
+        """After the validation (and the recorders' lines of it), where every view rendered nothing."""
+        contrasts, self._contrasts = self._contrasts, {}
+        step = trainer.global_step
+        if trainer.sanity_checking or step < self.collapse_patience or "validation" in self._reported_collapse:
+            return
+        blank = blank_views(gathered_contrasts(trainer, pl_module, contrasts), "validation")
+        if blank is None:
+            return
+        message = (f"step {step}: {blank}: the field shows no scene, however little opacity its rays keep. Training "
+                   "views that disagree (poses some degrees off) can make an empty scene their closest fit; try "
+                   "a lower learning rate (scale.lr) or a higher model.renderer.field.density_bias")
+        if self.on_collapse == "stop":
+            raise FieldCollapseError(message)
+        self._reported_collapse.add("validation")
+        if trainer.is_global_zero:  # every process judged the same views: one line says it
+            log.warning(message)
+
+
+def gathered_contrasts(trainer: L.Trainer, pl_module: L.LightningModule, contrasts: dict[int, float]
+                       ) -> dict[int, float]:
+    """Each validation view's contrast ``{index: contrast}``, this process's ``contrasts`` with those of every other
+    process (a collective: every process calls it); a view that the distributed sampler gave two processes once."""
+    if trainer.world_size == 1:
+        return contrasts
+    local = torch.tensor(list(contrasts.items()), dtype=torch.float64, device=pl_module.device).reshape(-1, 2)
+    everyone = trainer.strategy.all_gather(local).reshape(-1, 2)  # [world size * views each, (index, contrast)]
+    return {int(index): value for index, value in everyone.tolist()}

@@ -19,6 +19,7 @@ from nerfexp.nerf.encodings import Encoding
 from nerfexp.nerf.poses import PoseCorrection, PoseFit
 from nerfexp.nerf.schedules import warmup_exponential_decay
 from nerfexp.nerf.volume_renderer import VolumeRenderer, final_output
+from nerfexp.training.collapse import contrast
 from nerfexp.training.metrics import psnr, ssim
 from nerfexp.training.perceptual import LPIPS_NAMES, NOT_SCORED, ImageTooSmall, LpipsScorer, lpips_scorer
 from nerfexp.training.scoring import ScoringProtocols, check_scored
@@ -214,17 +215,19 @@ class NeRFModule(ScoringProtocols, L.LightningModule):
     def _evaluate(self, batch: dict) -> dict:
         """One whole image scored (over the pixels its "mask" keeps, where it has one:
         ``nerfexp.training.metrics``; LPIPS with the render's masked pixels the target's): its "index",
-        "psnr", "ssim", "lpips" and "lpips_custom" (``_lpips``), the render ("rgb", "depth", "opacity") and the
-        "target". The means over images are logged by ``nerfexp.training.recorders.RunRecorder``, which
-        gathers the images of all processes in a distributed run (a mean per process would weigh them
-        wrongly)."""
+        "psnr", "ssim", "lpips" and "lpips_custom" (``_lpips``), the render ("rgb", "depth", "opacity"), the
+        "target", and the render's "contrast" against the target's (``nerfexp.training.collapse``: whether
+        the view rendered anything, which the guard and the recorders judge). The means over images are
+        logged by ``nerfexp.training.recorders.RunRecorder``, which gathers the images of all processes in a
+        distributed run (a mean per process would weigh them wrongly)."""
         image = self.render_image(batch["origins"], batch["directions"], batch.get("viewdirs"))
         mask = batch.get("mask")  # [H, W]: the pixels that count, where the views have masks
         # LPIPS has no mask: the masked pixels of the render are the target's, so they differ nowhere
         scored = image["rgb"] if mask is None else torch.where(mask[..., None], image["rgb"], batch["rgb"])
         scores = {"psnr": psnr(image["rgb"], batch["rgb"], mask), "ssim": ssim(image["rgb"], batch["rgb"], mask),
                   **self._lpips(scored, batch["rgb"])}
-        return {"index": int(batch["index"]), "target": batch["rgb"], **image, **scores}
+        return {"index": int(batch["index"]), "target": batch["rgb"], **image, **scores,
+                "contrast": contrast(image["rgb"], batch["rgb"], mask)}
 
     def _lpips(self, image: Tensor, target: Tensor) -> dict[str, float]:
         """LPIPS of ``image`` against ``target`` ([H, W, 3] each) under its scorer's name (``LpipsScorer.metric``:

@@ -33,6 +33,7 @@ from nerfexp.rundir.layout import (
     read_metrics,
     write_json,
 )
+from nerfexp.training.collapse import blank_views
 from nerfexp.training.loggers import log_hyperparams, log_image, log_labels
 from nerfexp.training.perceptual import CUSTOM, LPIPS_NAMES, PUBLISHED
 from nerfexp.training.resume import RESUMES, SETTINGS
@@ -49,33 +50,36 @@ PROTOCOL_SCORES = ("psnr_full_image", "ssim_full_image", "psnr_right_half", "ssi
 CAMERA_FIT = ("camera_fit_deg", "camera_fit_shift")  # the test cameras' corrections (test_cameras=refined)
 SCORES = ("psnr", "ssim", *LPIPS_NAMES, *PROTOCOL_SCORES, *CAMERA_FIT)
 ALWAYS_SCORED = ("psnr", "ssim")
+# what each image's evaluation measures: its SCORES, and its render's contrast against its target's, which is no
+# score (never averaged or logged) but says whether the view rendered anything (nerfexp.training.collapse)
+MEASURES = (*SCORES, "contrast")
 
 
 def gather_evaluations(trainer: L.Trainer, outputs: dict) -> list[dict]:
     """The outputs of this evaluation step on every process (``NeRFModule._evaluate``: "index", the
-    ``SCORES`` and the images ``IMAGES``), one dict per process in rank order; on one process ``[outputs]``.
+    ``MEASURES`` and the images ``IMAGES``), one dict per process in rank order; on one process ``[outputs]``.
 
     Every process must call it at every step (it is a collective): Lightning's distributed sampler
     gives each process the same number of images, repeating some where they do not divide evenly,
-    so callers keep the first result for each image index. Scores travel as float64, exactly (NaN too)."""
+    so callers keep the first result for each image index. Measures travel as float64, exactly (NaN too)."""
     if trainer.world_size == 1:
         return [outputs]
     images = outputs["rgb"]
-    numbers = torch.tensor([outputs["index"], *(outputs.get(name, math.nan) for name in SCORES)], dtype=torch.float64,
-                           device=images.device)
+    numbers = torch.tensor([outputs["index"], *(outputs.get(name, math.nan) for name in MEASURES)],
+                           dtype=torch.float64, device=images.device)
     gathered = {key: trainer.strategy.all_gather(outputs[key]) for key in IMAGES}  # each [world size, ...]
-    numbers = trainer.strategy.all_gather(numbers)  # [world size, 1 + len(SCORES)]
-    return [{"index": int(numbers[r, 0]), **{name: float(numbers[r, 1 + i]) for i, name in enumerate(SCORES)},
+    numbers = trainer.strategy.all_gather(numbers)  # [world size, 1 + len(MEASURES)]
+    return [{"index": int(numbers[r, 0]), **{name: float(numbers[r, 1 + i]) for i, name in enumerate(MEASURES)},
              **{key: gathered[key][r] for key in IMAGES}} for r in range(trainer.world_size)]
 
 
 def image_scores(item: dict, split: str, step: int) -> dict[str, float]:
-    """The ``SCORES`` of one evaluated image (``gather_evaluations``) of ``split`` at ``step``, NaN for those it
+    """The ``MEASURES`` of one evaluated image (``gather_evaluations``) of ``split`` at ``step``, NaN for those it
     was not scored by; a NonFiniteError where its PSNR or SSIM (``ALWAYS_SCORED``) is NaN, so that no mean over
     it is recorded. Every view scored was checked to have pixels to score before the first step
     (``nerfexp.training.scoring.check_scored``), so such a score comes from the render: weights or an appearance
     code that render NaN. Every process raises it alike: the items are every process's."""
-    scores = {name: item.get(name, math.nan) for name in SCORES}
+    scores = {name: item.get(name, math.nan) for name in MEASURES}
     if missing := [name for name in ALWAYS_SCORED if math.isnan(scores[name])]:
         raise NonFiniteError(f"step {step}: the {SPLIT_NAMES[split]} view {item['index']} scored "
                              f"{' and '.join(missing)} NaN (its render holds NaN pixels): no score is recorded")
@@ -118,10 +122,22 @@ def lpips_text(scores: dict, prefix: str = "") -> str:
     return ""
 
 
+def collapse_record(scores: dict[int, dict[str, float]]) -> dict[str, str | None]:
+    """What ``results.json`` and ``eval.json`` say of whether the test views ``{index: {..., "contrast"}}``
+    rendered anything: ``collapse``, where every one rendered nothing (``nerfexp.training.collapse.blank_views``),
+    the line that says so, which a report never ranks; else null."""
+    contrasts = {index: measures["contrast"] for index, measures in scores.items()}
+    return {"collapse": blank_views(contrasts, "test")}
+
+
 def scores_text(results: dict) -> str:
     """A run's test scores in words, from ``results.json`` or ``eval.json``: the PSNR in dB (2 decimals), the
-    SSIM (4), and the LPIPS (4) where it was scored (``lpips_text``)."""
-    return f"test PSNR {results['test_psnr']:.2f} dB, SSIM {results['test_ssim']:.4f}{lpips_text(results, 'test_')}"
+    SSIM (4), and the LPIPS (4) where it was scored (``lpips_text``); where the run ``collapse``d, the scores
+    are said to be of a render of nothing, and how."""
+    collapse = results.get("collapse")
+    of_nothing = f", scores of a render of nothing: {collapse}" if collapse else ""
+    return (f"test PSNR {results['test_psnr']:.2f} dB, SSIM {results['test_ssim']:.4f}{lpips_text(results, 'test_')}"
+            f"{of_nothing}")
 
 
 def keep_metrics_through(output_dir: Path, step: int) -> None:
@@ -145,7 +161,8 @@ class RunRecorder(L.Callback):
     each validation logs one line: step, PSNR, SSIM (and LPIPS) and the training's wall-clock seconds so far. Each
     test view's render, its ground truth and their absolute difference (per channel, in [0, 1]) are
     saved as ``test/r_{i}.png``, ``r_{i}_target.png``, ``r_{i}_error.png``, with ``r_{i}_depth.png``. Every
-    file it writes is recorded in the run's manifest as it is written (``nerfexp.manifest``).
+    file it writes is recorded in the run's manifest as it is written (``nerfexp.manifest``). Where every test
+    view rendered nothing, ``results.json``'s ``collapse`` says so (``collapse_record``), whatever the guard did.
 
     The elapsed time and the last validation PSNR are part of the checkpoint, so a resumed run keeps
     counting from where it stopped, and a test in processes that did not train (``trainer=ddp`` spawns
@@ -172,7 +189,7 @@ class RunRecorder(L.Callback):
         self.labels = {**NO_LABELS, **(labels or {})}  # {"tags": [...], "notes": text or None}
         self.last_val_psnr: float | None = None
         self.elapsed_s, self._started, self.steps, self.trained = 0.0, None, 0, False
-        self._scores: dict[int, dict[str, float]] = {}  # image index -> its scores (SCORES)
+        self._scores: dict[int, dict[str, float]] = {}  # image index -> its measures (MEASURES)
 
     def wall_time_s(self) -> float:
         return self.elapsed_s + (time.perf_counter() - self._started if self._started is not None else 0.0)
@@ -285,7 +302,8 @@ class RunRecorder(L.Callback):
         renderer, batch_rays = pl_module.renderer, getattr(trainer.datamodule, "batch_rays", None)
         test_scores = scores_record(scores)
         results = {
-            **test_scores, **pl_module.lpips_record(test_scores), "val_psnr": self.last_val_psnr,
+            **test_scores, **pl_module.lpips_record(test_scores), **collapse_record(scores),
+            "val_psnr": self.last_val_psnr,
             "train_time_s": self.elapsed_s, "steps": steps,
             "time_per_step_s": self.elapsed_s / max(steps, 1),
             "rays_per_s": batch_rays * steps / self.elapsed_s if batch_rays and self.elapsed_s > 0 else None,
@@ -306,11 +324,11 @@ class RunRecorder(L.Callback):
 class EvalRecorder(L.Callback):
     """Scores a checkpoint on the test split: ``eval.json`` in ``output_dir`` holds the test scores as
     ``results.json`` does (``scores_record``: means and per view; the LPIPS weights' SHA-256,
-    ``NeRFModule.lpips_record``), the ``checkpoint``, its ``step`` and the ``machine``."""
+    ``NeRFModule.lpips_record``; ``collapse_record``), the ``checkpoint``, its ``step`` and the ``machine``."""
 
     def __init__(self, output_dir: str | Path, checkpoint: str | Path, step: int):
         self.output_dir, self.checkpoint, self.step = Path(output_dir), Path(checkpoint), step
-        self._scores: dict[int, dict[str, float]] = {}  # image index -> its scores (SCORES)
+        self._scores: dict[int, dict[str, float]] = {}  # image index -> its measures (MEASURES)
 
     def on_test_batch_end(self, trainer, pl_module, outputs, batch, batch_idx, dataloader_idx=0):
         for item in gather_evaluations(trainer, outputs):
@@ -320,8 +338,8 @@ class EvalRecorder(L.Callback):
         if not trainer.is_global_zero:
             return
         test_scores = scores_record(self._scores)
-        results = {**test_scores, **pl_module.lpips_record(test_scores), "test_protocol": pl_module.test_protocol,
-                   "test_cameras": pl_module.test_cameras,
+        results = {**test_scores, **pl_module.lpips_record(test_scores), **collapse_record(self._scores),
+                   "test_protocol": pl_module.test_protocol, "test_cameras": pl_module.test_cameras,
                    "checkpoint": str(self.checkpoint.resolve()), "step": self.step,
                    "processes": trainer.world_size, "machine": machine()}
         write_json(self.output_dir / EVAL, results)
