@@ -109,6 +109,18 @@ def composed(*overrides):
                                                                     "encoding of 100000000 levels needs about"),
     (["acceleration=occupancy", "acceleration.grid.resolution=100000"], "acceleration.grid.resolution=100000: an "
                                                                         "occupancy grid of 100000^3 cells needs"),
+    # a test-time fit's step renders its rays with the outputs kept for its backward pass, as a training batch:
+    # 2^40 rays x 48 samples x (8 + 2 x 32) floats x 4 bytes = 2^40 x 13824 bytes = 13.5 PiB
+    (["appearance=embedding", "appearance.fit.rays=1099511627776"],
+     "appearance.fit.rays=1099511627776 (which sets model.appearance_fit.rays), scale.n_coarse=16 (which sets "
+     "model.renderer.n_coarse), scale.n_fine=16 (which sets model.renderer.n_fine), scale.width=32 (which sets "
+     "model.renderer.field.width), scale.depth=2 (which sets model.renderer.field.depth): a step of the test "
+     "images' appearance fit of 1099511627776 rays x 48 samples through 2 layers of 32 units needs about 13.5 PiB"),
+    (["test_cameras=refined", "test_cameras.fit.rays=1099511627776"],
+     "test_cameras.fit.rays=1099511627776 (which sets model.test_camera_fit.rays), scale.n_coarse=16 (which sets "
+     "model.renderer.n_coarse), scale.n_fine=16 (which sets model.renderer.n_fine), scale.width=32 (which sets "
+     "model.renderer.field.width), scale.depth=2 (which sets model.renderer.field.depth): a step of the test "
+     "cameras' fit of 1099511627776 rays x 48 samples through 2 layers of 32 units needs about 13.5 PiB"),
     (["scale.image_size=" + "9" * 400], f"scale.image_size={'9' * 400} (which sets data.image_size): expected a "
                                         "whole number in [1, 2^63 - 1]"),
     # every number has an upper bound where it stops meaning anything (issue 39 section 4)

@@ -5,6 +5,7 @@ image; the fit must turn it back (translation changes nothing there, so the rota
 every network weight as it was, and use only the pixels the headline protocol does not score apart."""
 
 import functools
+import logging
 import math
 
 import pytest
@@ -17,6 +18,7 @@ from nerfexp.nerf.fields import FieldOutputs
 from nerfexp.nerf.poses import PoseFit, so3_exp
 from nerfexp.nerf.volume_renderer import VolumeRenderer
 from nerfexp.training.module import NeRFModule
+from nerfexp.training.progress import fit_progress
 
 H, W = 16, 16  # rows, columns of the test image
 TURN = torch.tensor([0.02, -0.025, 0.015])  # the camera's error, a rotation vector (radians): 1.99 degrees
@@ -115,3 +117,28 @@ def test_a_test_image_whose_mask_keeps_nothing_is_scored_from_its_given_camera()
     with torch.inference_mode():
         refined, sizes = m.refined_test_camera(batch)
     assert refined is batch and sizes == {}
+
+
+def test_a_fit_says_its_start_in_the_log_and_draws_its_steps_where_the_trainer_draws_bars(caplog, capsys,
+                                                                                           monkeypatch):
+    batch, _ = turned_batch()
+    m = module(FULL_IMAGE, PoseFit(steps=7, rays=16))
+    with caplog.at_level(logging.INFO, logger="nerfexp"), torch.inference_mode():
+        m.refined_test_camera(batch)
+    assert "test view 5: fitting its camera (7 Adam steps of 16 rays)" in caplog.messages
+    assert capsys.readouterr().out == ""  # no trainer drawing bars (a file, a pipe): no bar
+    monkeypatch.setattr(m, "_draws_bars", lambda: True)  # as under a trainer whose bar is on (a terminal)
+    with torch.inference_mode():
+        m.refined_test_camera(batch)
+    assert "test view 5: its camera" in capsys.readouterr().out
+
+
+def test_a_fits_bar_counts_its_steps_and_draws_nothing_where_bars_are_off(capsys):
+    with fit_progress("test view 2: its appearance code", 4, shown=True) as progress:
+        for done in range(1, 5):
+            progress(done)
+    drawn = capsys.readouterr().out
+    assert "test view 2: its appearance code:   0%|          | 0/4 " in drawn  # its steps, from the first
+    with fit_progress("test view 2: its appearance code", 4, shown=False) as progress:
+        progress(4)
+    assert capsys.readouterr().out == ""

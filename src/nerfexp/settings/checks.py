@@ -122,10 +122,16 @@ def settings_named(cfg: DictConfig, keys: list[str]) -> str:
     return ", ".join(named(cfg, key, OmegaConf.select(cfg, key)) for key in keys)
 
 
+TEST_TIME_FITS = (("model.appearance_fit", "a step of the test images' appearance fit"),
+                  ("model.test_camera_fit", "a step of the test cameras' fit"))  # (key, what a step renders)
+
+
 def check_memory(cfg: DictConfig, training: bool = True) -> None:
     """A ConfigError naming every setting an estimate multiplies (the one a user set among them) where the
-    scene, a training batch (where ``training``), an evaluation chunk, a network's weights, the hash tables or
-    the occupancy grid would need more than the machine's memory (``nerfexp.memory``)."""
+    scene, a training batch (where ``training``), an evaluation chunk, a step of a test-time fit (its rays
+    rendered with every layer's output kept for the backward pass to the fitted vector, as a training batch's),
+    a network's weights, the hash tables or the occupancy grid would need more than the machine's memory
+    (``nerfexp.memory``)."""
     data, field = cfg.data, cfg.model.renderer.field
     if "image_size" in data:
         views = (data.n_train or 0) + data.n_val + data.n_test
@@ -140,6 +146,7 @@ def check_memory(cfg: DictConfig, training: bool = True) -> None:
     batches = [("model.chunk", "an evaluation chunk", False)]
     if training:
         batches.insert(0, ("datamodule.batch_rays", "a training batch", True))
+    batches += [(f"{key}.rays", what, True) for key, what in TEST_TIME_FITS if OmegaConf.select(cfg, key) is not None]
     for key, what, kept in batches:
         rays = OmegaConf.select(cfg, key)
         needed = network_bytes(rays, samples, width, field.depth, kept)
