@@ -121,6 +121,10 @@ def composed(*overrides):
      "model.renderer.n_coarse), scale.n_fine=16 (which sets model.renderer.n_fine), scale.width=32 (which sets "
      "model.renderer.field.width), scale.depth=2 (which sets model.renderer.field.depth): a step of the test "
      "cameras' fit of 1099511627776 rays x 48 samples through 2 layers of 32 units needs about 13.5 PiB"),
+    # 12 codes x 2^40 numbers x 4 copies (the code, its gradient, Adam's two moments) x 4 bytes = 192 TiB
+    (["appearance=embedding", "appearance.embedding.dim=1099511627776"],
+     "appearance.embedding.dim=1099511627776 (which sets model.renderer.appearance.dim), data.n_train=12: training "
+     "the appearance codes of 12 views of 1099511627776 numbers needs about 192 TiB"),
     (["scale.image_size=" + "9" * 400], f"scale.image_size={'9' * 400} (which sets data.image_size): expected a "
                                         "whole number in [1, 2^63 - 1]"),
     # every number has an upper bound where it stops meaning anything (issue 39 section 4)
