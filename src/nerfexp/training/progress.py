@@ -54,11 +54,14 @@ def progress_bars(trainer: DictConfig) -> list[Callback]:
 
 
 @contextlib.contextmanager
-def fit_progress(description: str, steps: int, shown: bool) -> Iterator[Callable[[int], None]]:
+def fit_progress(description: str, steps: int, shown: bool) -> Iterator[Callable[[int], None] | None]:
     """A test-time fit's bar of ``steps`` steps (``description``: what is fitted, for which view), drawn under
-    Lightning's test bar on standard output where ``shown`` (the trainer draws bars: ``StepProgressBar`` on a
+    Lightning's test bar on standard output where ``shown`` (the trainer draws bars: ``StepProgressBar``, on a
     terminal) and gone when the fit ends. Yields the callback a fit calls with the steps done
-    (``nerfexp.nerf.frozen_fit.fit_frozen``'s ``progress``); where not ``shown`` it draws nothing."""
+    (``nerfexp.nerf.frozen_fit.fit_frozen``'s ``progress``), or None where not ``shown``: nothing to draw."""
+    if not shown:
+        yield None
+        return
     with tqdm(total=steps, desc=description, unit="step", position=1, leave=False, file=sys.stdout,
-              dynamic_ncols=True, disable=not shown) as bar:
+              dynamic_ncols=True, disable=None) as bar:
         yield lambda done: bar.update(done - bar.n)

@@ -69,10 +69,10 @@ class ScoringProtocols:
                                            progress=progress)
 
     def _fit_progress(self, what: str, fit: CodeFit | PoseFit, batch: dict
-                      ) -> contextlib.AbstractContextManager[Callable[[int], None]]:
+                      ) -> contextlib.AbstractContextManager[Callable[[int], None] | None]:
         """A test-time ``fit`` of ``what`` for the test view ``batch``, said as it starts: a line in the log with
         its steps and rays (what a long fit takes its time over) and a bar of its steps where the trainer draws
-        bars (``nerfexp.training.progress.fit_progress``). Yields the fit's ``progress`` callback."""
+        bars (``nerfexp.training.progress.fit_progress``). Yields the fit's ``progress`` callback (None: no bar)."""
         index = int(batch["index"])
         log.info("test view %d: fitting %s (%d Adam steps of %d rays)", index, what, fit.steps, fit.rays)
         return fit_progress(f"test view {index}: {what}", fit.steps, self._draws_bars())
