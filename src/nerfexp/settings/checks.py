@@ -154,7 +154,8 @@ def check_memory(cfg: DictConfig, training: bool = True) -> None:
     batches = [("model.chunk", "an evaluation chunk", False)]
     if training:
         batches.insert(0, ("datamodule.batch_rays", "a training batch", True))
-    batches += [(f"{key}.rays", what, True) for key, what in TEST_TIME_FITS if OmegaConf.select(cfg, key) is not None]
+    batches += [(f"{key}.rays", what, True) for key, what in TEST_TIME_FITS  # where a fit is set, with its rays
+                if OmegaConf.select(cfg, f"{key}.rays") is not None]
     for key, what, kept in batches:
         rays = OmegaConf.select(cfg, key)
         needed = network_bytes(rays, samples, width, field.depth, kept)
