@@ -96,8 +96,9 @@ def wait_for_torch(process: subprocess.Popen, timeout_s: float = 120) -> None:
 
 
 @pytest.mark.skipif(not Path("/proc/self/maps").exists(), reason="reads which libraries a process loaded from /proc")
-@pytest.mark.parametrize("script", sorted(ENTRY_POINTS))
-def test_ctrl_c_while_a_command_starts_is_its_stopped_line_and_130(script, tmp_path):
+@pytest.mark.parametrize(("script", "signum"), [*((script, signal.SIGINT) for script in sorted(ENTRY_POINTS)),
+                                                ("nerfexp-report", signal.SIGTERM)])
+def test_a_signal_while_a_command_starts_is_its_stopped_line_and_128_plus_it(script, signum, tmp_path):
     module, function = ENTRY_POINTS[script].split(":")
     # what the wrapper `pip install` writes for the entry point runs, whatever version is installed here
     wrapper = f"import sys; sys.argv[0] = {script!r}; from {module} import {function}; sys.exit({function}())"
@@ -105,10 +106,11 @@ def test_ctrl_c_while_a_command_starts_is_its_stopped_line_and_130(script, tmp_p
     process = subprocess.Popen([sys.executable, "-c", wrapper, str(tmp_path / "no_run")], cwd=tmp_path, env=env,
                                stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     wait_for_torch(process)
-    process.send_signal(signal.SIGINT)
+    process.send_signal(signum)
     _, stderr = process.communicate(timeout=120)
-    assert process.returncode == 130, stderr[-3000:]
-    assert "Traceback" not in stderr and stderr.strip().splitlines() == [f"{script}: stopped (SIGINT)"], stderr
+    assert process.returncode == 128 + signum, stderr[-3000:]
+    said = [f"{script}: stopped ({signal.Signals(signum).name})"]
+    assert "Traceback" not in stderr and stderr.strip().splitlines() == said, stderr
     assert list(tmp_path.iterdir()) == []
 
 
