@@ -37,7 +37,8 @@ importable function (``torch.load`` of a pickle with ``weights_only: false``, sa
   the file as written and the config resolved (where a reference lands a section elsewhere) are checked.
 
 A config you compose yourself (``nerfexp ...`` with your overrides, ``KEY=VALUE`` arguments of the commands
-that read a run back) is your own code, as in any Hydra application, and is not checked.
+that read a run back) is your own code, as in any Hydra application, and is not checked, but for this: the
+arguments change a saved config, whose ``_target_``s are checked once more at their keys after them.
 """
 
 import functools
