@@ -73,3 +73,16 @@ def test_a_run_with_codes_and_pose_corrections_killed_and_resumed_ends_as_the_un
     assert expected["camera_opt.delta"].shape == (11, 6) and expected["camera_opt.delta"].abs().sum() > 0
     assert read_json(killed / "results.json")["test_psnr"] == read_json(alone / "results.json")["test_psnr"]
     assert read_json(killed / REFINED_POSES)["c2w"] == read_json(alone / REFINED_POSES)["c2w"]
+
+
+def test_a_runs_test_time_fits_each_say_their_start_in_its_log(tmp_path):
+    # a fit of many steps (appearance.fit.steps=1000000000) takes its time after training: its line says why
+    fits = ["appearance=embedding", "appearance.fit.steps=3", "appearance.fit.rays=8", "test_cameras=refined",
+            "test_cameras.fit.steps=2", "test_cameras.fit.rays=8", "logger=none", "scale.steps=2",
+            "scale.val_every=2"]
+    result = run_nerfexp(*TINY, *fits, f"hydra.run.dir={tmp_path}", cwd=tmp_path)
+    assert result.returncode == 0, result.stderr[-3000:]
+    log = (tmp_path / "nerfexp.log").read_text()
+    for view in range(2):  # data.n_test=2 of TINY
+        assert f"test view {view}: fitting its camera (2 Adam steps of 8 rays)" in log
+        assert f"test view {view}: fitting its appearance code (3 Adam steps of 8 rays)" in log

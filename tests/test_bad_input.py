@@ -8,8 +8,12 @@ import sys
 import zlib
 
 import pytest
+from hypothesis import given
+from hypothesis import strategies as st
 from PIL import Image
 
+from nerfexp.commands.train import check_group_choices
+from nerfexp.errors import ConfigError
 from nerfexp.settings.checks import FLOAT32_TOP_OCTAVE
 from tests.helpers import one_error_line, run_nerfexp
 
@@ -262,3 +266,43 @@ def test_a_command_that_stops_at_bad_input_or_help_does_not_import_lightning(ent
     lightning = "precision" in args[0]
     assert result.stdout.rstrip().endswith(f"lightning imported: {lightning}"), result.stdout[-2000:]
     assert list(tmp_path.iterdir()) == []  # nothing made
+
+
+# A config group's choice is an option's name: null, a number, a mapping or a range there is one line (a
+# ValueError's traceback from Hydra before), and GROUP=null is refused rather than read as no option.
+
+@pytest.mark.parametrize(("arguments", "message"), [
+    (["experiment=null"], "experiment=null: a config group takes an option's name (choose from fast); none is "
+                          "experiment's default: leave it out for none"),
+    (["+ablation=null"], "+ablation=null: a config group takes an option's name (choose from complete, "
+                         "far_fewer_images, fewer_frequencies, fewer_images, more_frequencies, no_hierarchical, "
+                         "no_pe_vd_h, no_posenc, no_view_dependence); none is ablation's default: leave it out for none"),
+    (["encoding=null"], "encoding=null: a config group takes an option's name (choose from hashgrid, none, posenc)"),
+    (["logger=true"], "logger=true: a config group takes an option's name (choose from csv, mlflow, none, "
+                      "tensorboard, wandb)"),
+    (["-m", "experiment=fast,null"], "experiment=fast,null: a config group takes an option's name (choose from "
+                                     "fast); none is experiment's default: leave it out for none"),
+    (["-m", "scale=range(0,2)"], "scale=range(0,2): a config group takes an option's name (choose from cpu, paper)"),
+])
+def test_a_group_given_what_is_not_an_option_is_one_line_before_anything_is_made(tmp_path, arguments, message):
+    result = run_nerfexp(*arguments, f"hydra.run.dir={tmp_path / 'run'}", f"hydra.sweep.dir={tmp_path / 'sweep'}",
+                         cwd=tmp_path)
+    assert one_error_line(result) == f"nerfexp: error: {message}"
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_removing_a_group_or_choosing_its_options_is_not_refused():
+    check_group_choices(["~experiment", "experiment=fast", "encoding=[posenc]", "-m", "encoding=posenc,none",
+                         "encoding=glob(*)", "scale.lr=0.1", "data.root=/x=y", "--cfg", "job"])
+
+
+@given(st.sampled_from(["experiment", "+experiment", "++encoding", "view_dependence", "hydra/launcher"]),
+       st.one_of(st.none(), st.booleans(), st.integers(), st.floats(allow_nan=False, allow_infinity=False),
+                 st.dictionaries(st.sampled_from("ab"), st.integers(), min_size=1, max_size=2)))
+def test_any_value_but_an_options_name_at_a_group_is_refused(key, value):
+    text = {None: "null", True: "true", False: "false"}.get(value, value) if not isinstance(value, dict) else (
+        "{" + ",".join(f"{k}:{v}" for k, v in value.items()) + "}")
+    argument = f"{key}={text}"
+    with pytest.raises(ConfigError) as raised:
+        check_group_choices([argument, "encoding=posenc"])
+    assert str(raised.value).startswith(f"{argument}: a config group takes an option's name")

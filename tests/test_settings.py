@@ -109,6 +109,22 @@ def composed(*overrides):
                                                                     "encoding of 100000000 levels needs about"),
     (["acceleration=occupancy", "acceleration.grid.resolution=100000"], "acceleration.grid.resolution=100000: an "
                                                                         "occupancy grid of 100000^3 cells needs"),
+    # a test-time fit's step renders its rays with the outputs kept for its backward pass, as a training batch:
+    # 2^40 rays x 48 samples x (8 + 2 x 32) floats x 4 bytes = 2^40 x 13824 bytes = 13.5 PiB
+    (["appearance=embedding", "appearance.fit.rays=1099511627776"],
+     "appearance.fit.rays=1099511627776 (which sets model.appearance_fit.rays), scale.n_coarse=16 (which sets "
+     "model.renderer.n_coarse), scale.n_fine=16 (which sets model.renderer.n_fine), scale.width=32 (which sets "
+     "model.renderer.field.width), scale.depth=2 (which sets model.renderer.field.depth): a step of the test "
+     "images' appearance fit of 1099511627776 rays x 48 samples through 2 layers of 32 units needs about 13.5 PiB"),
+    (["test_cameras=refined", "test_cameras.fit.rays=1099511627776"],
+     "test_cameras.fit.rays=1099511627776 (which sets model.test_camera_fit.rays), scale.n_coarse=16 (which sets "
+     "model.renderer.n_coarse), scale.n_fine=16 (which sets model.renderer.n_fine), scale.width=32 (which sets "
+     "model.renderer.field.width), scale.depth=2 (which sets model.renderer.field.depth): a step of the test "
+     "cameras' fit of 1099511627776 rays x 48 samples through 2 layers of 32 units needs about 13.5 PiB"),
+    # 12 codes x 2^40 numbers x 4 copies (the code, its gradient, Adam's two moments) x 4 bytes = 192 TiB
+    (["appearance=embedding", "appearance.embedding.dim=1099511627776"],
+     "appearance.embedding.dim=1099511627776 (which sets model.renderer.appearance.dim), data.n_train=12: training "
+     "the appearance codes of 12 views of 1099511627776 numbers needs about 192 TiB"),
     (["scale.image_size=" + "9" * 400], f"scale.image_size={'9' * 400} (which sets data.image_size): expected a "
                                         "whole number in [1, 2^63 - 1]"),
     # every number has an upper bound where it stops meaning anything (issue 39 section 4)
@@ -366,3 +382,11 @@ def test_the_precisions_named_are_lightnings_own():
             L.Trainer(precision=name, accelerator="cpu", logger=False, enable_checkpointing=False)
     with pytest.raises(ValueError):
         L.Trainer(precision="bogus", accelerator="cpu", logger=False, enable_checkpointing=False)
+
+
+def test_a_test_time_fit_is_estimated_where_it_has_rays_and_one_without_leaves_its_class_default(saved_run):
+    check_run_settings(run_config(saved_run, ["model.appearance_fit={steps: 1}"]))  # CodeFit's 256 rays: fits
+    with pytest.raises(ConfigError, match=r"^model.appearance_fit.rays=1099511627776, scale.n_coarse=16 .*: a step "
+                                          "of the test images' appearance fit of 1099511627776 rays"):
+        check_run_settings(run_config(saved_run, ["model.appearance_fit={_target_: nerfexp.nerf.appearance.CodeFit, "
+                                                  "rays: 1099511627776}"]))

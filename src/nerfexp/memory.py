@@ -72,6 +72,11 @@ def hash_table_bytes(n_levels: int, log2_table_size: int, features_per_level: in
     return n_levels * 2 ** log2_table_size * features_per_level * FLOAT * PARAMETER_COPIES
 
 
+def codes_bytes(n_views: int, dim: int) -> int:
+    """Per-image appearance codes: ``n_views`` codes of ``dim`` numbers, trained (``PARAMETER_COPIES``)."""
+    return n_views * dim * FLOAT * PARAMETER_COPIES
+
+
 def grid_bytes(resolution: int) -> int:
     """nerfexp-export's grid of ``resolution``^3 densities."""
     return resolution ** 3 * VOXEL_BYTES

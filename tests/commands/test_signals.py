@@ -3,13 +3,16 @@
 import logging
 import os
 import signal
+import subprocess
+import sys
 import time
+import tomllib
 from pathlib import Path
 
 import pytest
 
-from nerfexp.commands.signals import Signalled, job_signals, received_signal
-from tests.helpers import read_json, start_nerfexp
+from nerfexp.commands.signals import Signalled, ending_signals, job_signals, received_signal
+from tests.helpers import REPO, command, read_json, start_nerfexp
 
 LONG = ["scale.steps=100000", "scale.val_every=5"]  # far longer than the test waits; a validation every 5 steps
 
@@ -73,3 +76,49 @@ def test_the_notice_is_the_signal_submitit_is_told_to_use_and_outside_a_job_noth
         os.kill(os.getpid(), signal.SIGUSR1)
         time.sleep(0.05)
     assert "SIGUSR1: SLURM's notice" in caplog.text
+
+
+# Ctrl-C while a command is still importing its libraries: the entry points pyproject.toml declares
+# (nerfexp.commands.start) set the handlers first, so even then it is one line and 130.
+
+ENTRY_POINTS = tomllib.loads((REPO / "pyproject.toml").read_text())["project"]["scripts"]
+
+
+def wait_for_torch(process: subprocess.Popen, timeout_s: float = 120) -> None:
+    """Until ``process`` has loaded torch's library: it is importing its command's modules (the entry point,
+    which imports nothing heavy, has run), seconds before the command can do anything."""
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline and process.poll() is None:
+        if "libtorch" in Path(f"/proc/{process.pid}/maps").read_text():
+            return
+        time.sleep(0.01)
+    raise AssertionError(f"the process did not load torch within {timeout_s} s (exit status {process.poll()})")
+
+
+@pytest.mark.skipif(not Path("/proc/self/maps").exists(), reason="reads which libraries a process loaded from /proc")
+@pytest.mark.parametrize(("script", "signum"), [*((script, signal.SIGINT) for script in sorted(ENTRY_POINTS)),
+                                                ("nerfexp-report", signal.SIGTERM)])
+def test_a_signal_while_a_command_starts_is_its_stopped_line_and_128_plus_it(script, signum, tmp_path):
+    module, function = ENTRY_POINTS[script].split(":")
+    # what the wrapper `pip install` writes for the entry point runs, whatever version is installed here
+    wrapper = f"import sys; sys.argv[0] = {script!r}; from {module} import {function}; sys.exit({function}())"
+    _, env = command(script)
+    process = subprocess.Popen([sys.executable, "-c", wrapper, str(tmp_path / "no_run")], cwd=tmp_path, env=env,
+                               stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    wait_for_torch(process)
+    process.send_signal(signum)
+    _, stderr = process.communicate(timeout=120)
+    assert process.returncode == 128 + signum, stderr[-3000:]
+    said = [f"{script}: stopped ({signal.Signals(signum).name})"]
+    assert "Traceback" not in stderr and stderr.strip().splitlines() == said, stderr
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_a_block_inside_another_leaves_the_line_to_it(capsys):
+    before = signal.getsignal(signal.SIGINT)
+    with pytest.raises(SystemExit) as ended, ending_signals("outer"), ending_signals("inner"):
+        os.kill(os.getpid(), signal.SIGINT)
+        time.sleep(5)
+    assert ended.value.code == 130 and received_signal() == "SIGINT"
+    assert capsys.readouterr().err.splitlines() == ["outer: stopped (SIGINT)"]
+    assert signal.getsignal(signal.SIGINT) == before

@@ -76,6 +76,9 @@ def test_the_fit_steps_the_code_alone_and_finds_it():
     assert torch.equal(W.weight, before) and W.weight.grad is None
     again = CodeFit(steps=400, lr=0.05, rays=16)(loss, torch.zeros(3), 40, seed=0)
     assert torch.equal(code, again)  # seeded: the same pixels, the same code
+    done = []
+    watched = CodeFit(steps=400, lr=0.05, rays=16)(loss, torch.zeros(3), 40, seed=0, progress=done.append)
+    assert done == list(range(1, 401)) and torch.equal(watched, code)  # each step told, the fit unchanged
 
 
 @pytest.mark.parametrize("width, left", [(24, 12), (25, 12), (1, 0)])

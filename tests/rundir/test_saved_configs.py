@@ -8,12 +8,14 @@ import pytest
 import torch
 import yaml
 from hydra import compose, initialize_config_module
+from hypothesis import given, settings
+from hypothesis import strategies as st
 from omegaconf import OmegaConf
 
 from nerfexp.commands import evaluate, export, render, view
 from nerfexp.errors import ConfigError
 from nerfexp.rundir.layout import planned_jobs
-from nerfexp.rundir.saved_configs import buildable, targets
+from nerfexp.rundir.saved_configs import buildable, check_targets, named_targets, targets
 from nerfexp.rundir.trained import run_config
 from tests.helpers import TINY, one_error_line, run_nerfexp
 
@@ -443,3 +445,116 @@ def test_a_run_saved_before_lpips_custom_reads_back_with_it(tmp_path, saved_text
     run_dir = saved_run(tmp_path, yaml.safe_dump(config))
     assert run_config(run_dir).model.lpips_custom is False
     assert run_config(run_dir, ["model.lpips_custom=true"]).model.lpips_custom is True
+
+
+# Only the classes a key's owner allows are built at that key: those nerfexp's own config files name there
+# (nerfexp.rundir.saved_configs.named_targets), so that a logger planted under the renderer builds nothing.
+
+LOGGERS = {"lightning.pytorch.loggers.CSVLogger", "lightning.pytorch.loggers.MLFlowLogger",
+           "lightning.pytorch.loggers.TensorBoardLogger", "lightning.pytorch.loggers.WandbLogger"}
+ENCODINGS = {"nerfexp.nerf.encodings.IdentityEncoding", "nerfexp.nerf.encodings.PositionalEncoding"}
+
+
+def test_the_classes_a_key_allows_are_those_nerfexps_own_files_name_there_or_reference_there():
+    named = named_targets()
+    assert named["logger"] == LOGGERS  # conf/logger/*.yaml
+    assert named["model.renderer.grid"] == {"nerfexp.nerf.occupancy.OccupancyGrid"}  # ${acceleration.grid}
+    assert named["model.appearance_fit"] == {"nerfexp.nerf.appearance.CodeFit"}  # ${appearance.fit}
+    assert named["model.renderer.field"] == {"nerfexp.nerf.fields.NeRFField"}  # conf/field/, @package
+    # ${view_dependence} in conf/field/, whose head holds ${encoding.direction}: carried through both
+    assert named["model.renderer.field.view_head.direction_encoding"] == ENCODINGS
+    assert named["model.renderer.field.position_encoding"] == {*ENCODINGS, "nerfexp.nerf.encodings.HashGridEncoding"}
+    assert named["model.optimizer"] == {"torch.optim.Adam", "nerfexp.training.optimizers.LazyAdam"}  # the sweeps'
+    assert named["trainer.plugins.0"] == {"nerfexp.training.checkpoints.AtomicCheckpointIO"}
+    assert not any(key.startswith("model.renderer.") and LOGGERS & classes for key, classes in named.items())
+
+
+@pytest.mark.parametrize("overrides", [[], ["logger=csv", "acceleration=occupancy", "trainer=ddp"],
+                                       ["logger=mlflow", "view_dependence=sh", "encoding=none"],
+                                       ["encoding=hashgrid", "hierarchical=proposal", "appearance=embedding",
+                                        "test_cameras=refined", "camera_opt=so3xr3", "contraction=mipnerf360"],
+                                       ["view_dependence=ref", "model.optimizer._target_=torch.optim.SGD"],
+                                       ["+sweeps=sparse_tables"]])
+def test_every_target_of_nerfexps_own_configs_is_allowed_at_its_key_as_written_and_resolved(tmp_path, overrides):
+    with initialize_config_module("nerfexp.conf", version_base=None):
+        cfg = compose("config", overrides=[*TINY, *overrides])
+    check_targets(OmegaConf.to_container(cfg, resolve=False), tmp_path)
+    run_dir = saved_run(tmp_path, OmegaConf.to_yaml(cfg))  # as the commands read it: resolved, training's keys out
+    assert run_config(run_dir).model.renderer.field._target_ == "nerfexp.nerf.fields.NeRFField"
+
+
+PLANTED = {"_target_": "lightning.pytorch.loggers.MLFlowLogger", "experiment_name": "planted"}
+
+
+@pytest.mark.parametrize("key", ["model.renderer.grid", "model.renderer.field.view_head", "trainer.plugins.1",
+                                 "model.appearance_fit", "data.planted", "planted"])
+def test_a_logger_planted_at_another_key_is_refused_naming_the_file_the_key_and_the_class(tmp_path, saved_text, key):
+    config = yaml.safe_load(saved_text)
+    if key == "trainer.plugins.1":
+        config["trainer"]["plugins"].append(PLANTED)
+    else:
+        put(config, key, PLANTED) if key.count(".") else config.update({key: PLANTED})
+    run_dir = saved_run(tmp_path, yaml.safe_dump(config))
+    with pytest.raises(ConfigError) as raised:
+        run_config(run_dir)
+    named = sorted(named_targets().get(key, ()))
+    expected = f"its configs name {', '.join(named)} there" if named else "its configs build nothing there"
+    assert str(raised.value) == (
+        f"{run_dir / '.hydra' / 'config.yaml'}: {key}._target_='lightning.pytorch.loggers.MLFlowLogger' is not a "
+        f"class nerfexp builds at {key} ({expected}): a run directory from elsewhere is read as data, never run")
+
+
+def test_a_reference_that_lands_a_section_where_another_belongs_is_refused_once_resolved(tmp_path, saved_text):
+    run_dir = saved_run(tmp_path, saved_text, model__appearance_fit="${model.renderer.field}")
+    with pytest.raises(ConfigError) as raised:
+        run_config(run_dir)
+    assert str(raised.value).startswith(
+        f"{run_dir / '.hydra' / 'config.yaml'}: model.appearance_fit._target_='nerfexp.nerf.fields.NeRFField' is "
+        "not a class nerfexp builds at model.appearance_fit (its configs name nerfexp.nerf.appearance.CodeFit there)")
+
+
+def test_another_torch_optimizer_is_allowed_where_nerfexp_names_one_and_nowhere_else(tmp_path, saved_text):
+    assert run_config(saved_run(tmp_path, saved_text, model__optimizer___target_="torch.optim.SGD"))
+    run_dir = saved_run(tmp_path, saved_text, model__optimizer___target_="torch.optim.Adam",
+                        model__renderer__grid={"_target_": "torch.optim.SGD"})
+    with pytest.raises(ConfigError, match="model.renderer.grid._target_='torch.optim.SGD' is not a class nerfexp "
+                                          "builds at model.renderer.grid"):
+        run_config(run_dir)
+
+
+@settings(deadline=None)  # a class's first check imports its module (a scene's imports its format's packages)
+@given(st.lists(st.from_regex(r"[a-z][a-z_]{0,8}", fullmatch=True), min_size=1, max_size=4).map(".".join),
+       st.sampled_from(sorted(set().union(*named_targets().values()))))
+def test_at_a_key_nerfexps_files_build_nothing_at_no_class_is_built(key, target):
+    if key in named_targets():  # one of nerfexp's own sections: its classes (and their families') only
+        return
+    config: dict = {}
+    put_new(config, key, {"_target_": target})
+    with pytest.raises(ConfigError, match=f"{key}._target_='{target}' is not a class nerfexp builds at {key} "
+                                          r"\(its configs build nothing there\)"):
+        check_targets(config, Path("planted.yaml"))
+
+
+def put_new(config: dict, dotted: str, value) -> None:
+    """Set ``value`` at ``dotted`` in the plain dict ``config``, making the sections on the way."""
+    *parents, leaf = dotted.split(".")
+    for key in parents:
+        config = config.setdefault(key, {})
+    config[leaf] = value
+
+
+def test_nerfexp_eval_refuses_a_planted_logger_before_it_creates_anything(tmp_path, saved_text, monkeypatch):
+    monkeypatch.setenv("MLFLOW_ALLOW_FILE_STORE", "true")  # MLflow would make its plain-file store
+    store = tmp_path / "planted_store"
+    (tmp_path / "run").mkdir()
+    run_dir = saved_run(tmp_path / "run", saved_text,
+                        model__renderer__grid={**PLANTED, "tracking_uri": f"file://{store}"})
+    (run_dir / "checkpoints").mkdir()
+    (run_dir / "checkpoints" / "last.ckpt").write_bytes(b"never read")
+    before = snapshot(run_dir)
+    result = run_nerfexp(str(run_dir), cwd=tmp_path, script="nerfexp-eval")
+    assert one_error_line(result, "nerfexp-eval").startswith(
+        f"nerfexp-eval: error: {run_dir / '.hydra' / 'config.yaml'}: model.renderer.grid._target_="
+        "'lightning.pytorch.loggers.MLFlowLogger' is not a class nerfexp builds at model.renderer.grid")
+    assert not store.exists() and snapshot(run_dir) == before
+    assert sorted(path.name for path in tmp_path.iterdir()) == ["run"]

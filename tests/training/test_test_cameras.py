@@ -5,7 +5,10 @@ image; the fit must turn it back (translation changes nothing there, so the rota
 every network weight as it was, and use only the pixels the headline protocol does not score apart."""
 
 import functools
+import io
+import logging
 import math
+import sys
 
 import pytest
 import torch
@@ -17,6 +20,7 @@ from nerfexp.nerf.fields import FieldOutputs
 from nerfexp.nerf.poses import PoseFit, so3_exp
 from nerfexp.nerf.volume_renderer import VolumeRenderer
 from nerfexp.training.module import NeRFModule
+from nerfexp.training.progress import fit_progress
 
 H, W = 16, 16  # rows, columns of the test image
 TURN = torch.tensor([0.02, -0.025, 0.015])  # the camera's error, a rotation vector (radians): 1.99 degrees
@@ -115,3 +119,36 @@ def test_a_test_image_whose_mask_keeps_nothing_is_scored_from_its_given_camera()
     with torch.inference_mode():
         refined, sizes = m.refined_test_camera(batch)
     assert refined is batch and sizes == {}
+
+
+class Terminal(io.StringIO):
+    """Standard output as a terminal shows it to tqdm (``isatty``), kept as text."""
+
+    def isatty(self) -> bool:
+        return True
+
+
+def test_a_fit_says_its_start_in_the_log_and_draws_its_steps_where_the_trainer_draws_bars(caplog, monkeypatch):
+    batch, _ = turned_batch()
+    m = module(FULL_IMAGE, PoseFit(steps=7, rays=16))
+    monkeypatch.setattr(sys, "stdout", Terminal())
+    with caplog.at_level(logging.INFO, logger="nerfexp"), torch.inference_mode():
+        m.refined_test_camera(batch)
+    assert "test view 5: fitting its camera (7 Adam steps of 16 rays)" in caplog.messages
+    assert sys.stdout.getvalue() == ""  # no trainer drawing bars (a file, a pipe, enable_progress_bar=false)
+    monkeypatch.setattr(m, "_draws_bars", lambda: True)  # as under a trainer whose bar is on (a terminal)
+    with torch.inference_mode():
+        m.refined_test_camera(batch)
+    assert "test view 5: its camera:   0%|          | 0/7 " in sys.stdout.getvalue()
+
+
+def test_a_fits_bar_counts_its_steps_and_draws_nothing_where_bars_are_off(monkeypatch):
+    monkeypatch.setattr(sys, "stdout", Terminal())
+    with fit_progress("test view 2: its appearance code", 4, shown=True) as progress:
+        for done in range(1, 5):
+            progress(done)
+    assert "test view 2: its appearance code:   0%|          | 0/4 " in sys.stdout.getvalue()  # its steps
+    monkeypatch.setattr(sys, "stdout", Terminal())
+    with fit_progress("test view 2: its appearance code", 4, shown=False) as progress:
+        assert progress is None
+    assert sys.stdout.getvalue() == ""

@@ -60,7 +60,12 @@ def ending_signals(prog: str | None = None) -> Iterator[None]:
     """Inside the block SIGTERM and SIGINT raise (see the module's docstring); whatever the block then
     raises ends the process with exit status 128 + the signal's number, after the line ``PROG: stopped
     (SIGNAL)`` on standard error where ``prog`` is given (an enclosing block says it, or the command
-    itself). The handlers found before are restored after it."""
+    itself). The handlers found before are restored after it. A block inside another (a console script's
+    entry point, ``nerfexp.commands.start``, holds one around the whole command) leaves it all to that one,
+    so the line is said once."""
+    if signal.getsignal(signal.SIGINT) is _handle:  # inside another block: that one ends the process
+        yield
+        return
     _received.clear()
     previous = {signum: signal.signal(signum, _handle) for signum in ENDING}
     try:

@@ -100,8 +100,11 @@ class CodeFit:
         self.lr = lr
         self.rays = rays
 
-    def __call__(self, loss: Callable[[Tensor, Tensor], Tensor], start: Tensor, n_pixels: int, seed: int) -> Tensor:
+    def __call__(self, loss: Callable[[Tensor, Tensor], Tensor], start: Tensor, n_pixels: int, seed: int,
+                 progress: Callable[[int], None] | None = None) -> Tensor:
         """The code [D] fitted from ``start`` [D]: ``loss(pixels [R], code [D])`` is the scalar loss of the
         fitting pixels ``pixels`` (indices < ``n_pixels``) rendered with ``code`` (``fit_frozen``: only the code
-        is differentiated, so no other tensor's gradient or value changes)."""
-        return fit_frozen(loss, start, n_pixels, seed, steps=self.steps, lr=self.lr, rays=self.rays)
+        is differentiated, so no other tensor's gradient or value changes); ``progress(steps done)`` after each
+        step, where given."""
+        return fit_frozen(loss, start, n_pixels, seed, steps=self.steps, lr=self.lr, rays=self.rays,
+                          progress=progress)

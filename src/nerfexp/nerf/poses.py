@@ -159,8 +159,10 @@ class PoseFit:
         self.rays = rays
 
     def __call__(self, loss: Callable[[Tensor, Tensor], Tensor], n_pixels: int, seed: int,
-                 device: torch.device | None = None) -> Tensor:
+                 device: torch.device | None = None, progress: Callable[[int], None] | None = None) -> Tensor:
         """The correction [6] (float32) fitted from zero: ``loss(pixels [R], delta [6])`` is the scalar loss of
-        the fitting pixels ``pixels`` (indices < ``n_pixels``) rendered through the rays ``delta`` corrects."""
+        the fitting pixels ``pixels`` (indices < ``n_pixels``) rendered through the rays ``delta`` corrects;
+        ``progress(steps done)`` after each step, where given (``fit_frozen``)."""
         start = torch.zeros(6, device=device)
-        return fit_frozen(loss, start, n_pixels, seed, steps=self.steps, lr=self.lr, rays=self.rays)
+        return fit_frozen(loss, start, n_pixels, seed, steps=self.steps, lr=self.lr, rays=self.rays,
+                          progress=progress)

@@ -31,12 +31,21 @@ importable function (``torch.load`` of a pickle with ``weights_only: false``, sa
   - ``lightning.Trainer``;
   - a torch optimizer (a subclass of ``torch.optim.Optimizer`` from ``torch.optim``);
   - a Lightning logger or callback (a subclass of ``Logger`` / ``Callback`` from
-    ``lightning.pytorch.loggers`` / ``lightning.pytorch.callbacks``).
+    ``lightning.pytorch.loggers`` / ``lightning.pytorch.callbacks``);
+
+  and one that its key allows (``allowed_at``): a class nerfexp's own config files (``conf/``, the sweeps
+  and rows included) name at that key, directly or through the references that put a section of theirs
+  there (``model.renderer.grid: ${acceleration.grid}``), or, where they name a torch optimizer, a Lightning
+  logger or callback there, another of that kind (``model.optimizer._target_=torch.optim.SGD``). So a
+  logger planted under the renderer, or a field where the appearance fit goes, is refused by its key. Both
+  the file as written and the config resolved (where a reference lands a section elsewhere) are checked.
 
 A config you compose yourself (``nerfexp ...`` with your overrides, ``KEY=VALUE`` arguments of the commands
-that read a run back) is your own code, as in any Hydra application, and is not checked.
+that read a run back) is your own code, as in any Hydra application, and is not checked, but for this: the
+arguments change a saved config, whose ``_target_``s are checked once more at their keys after them.
 """
 
+import functools
 from collections.abc import Iterator
 from importlib.resources import files
 from pathlib import Path
@@ -48,7 +57,7 @@ from omegaconf.grammar.gen.OmegaConfGrammarLexer import OmegaConfGrammarLexer
 from omegaconf.grammar_parser import parse
 from omegaconf.grammar_visitor import OmegaConfGrammarParser
 
-from nerfexp.config_keys import entries
+from nerfexp.config_keys import entries, reference
 from nerfexp.errors import ConfigError
 
 TRAINERS = ("lightning.Trainer", "lightning.pytorch.Trainer")
@@ -56,8 +65,10 @@ TRAINERS = ("lightning.Trainer", "lightning.pytorch.Trainer")
 FAMILIES = (("nerfexp.", "builtins.object"), ("torch.optim.", "torch.optim.Optimizer"),
             ("lightning.pytorch.loggers.", "lightning.pytorch.loggers.Logger"),
             ("lightning.pytorch.callbacks.", "lightning.pytorch.callbacks.Callback"))
+OPEN_FAMILIES = FAMILIES[1:]  # the kinds a key naming one of them takes any of: torch's optimizers, Lightning's
 TRAINING_ONLY = ("callbacks", "logger", "trainer.default_root_dir")  # what only training builds (dotted keys)
 READERS_OWN = ("model.lpips", "model.lpips_weights", "model.lpips_custom")  # what the reader's evaluation reads
+PACKAGE = "# @package "  # a config file's header naming where its keys go (Hydra's package)
 
 
 def targets(node, path: str = "") -> Iterator[tuple[str, object]]:
@@ -109,11 +120,112 @@ def buildable(target: object) -> bool:
     return False
 
 
+def package(text: str, group: str) -> str:
+    """Where the keys of a config file of ``group`` (its folder under ``conf/``, ``""`` for ``config.yaml``) go, as
+    Hydra places them: the dotted key its header names (``# @package model.renderer.field``; ``_global_``: the
+    top), else the group's own (``appearance``, ``hydra/launcher``: ``hydra.launcher``)."""
+    for line in text.splitlines():
+        if not line.startswith("#"):
+            break
+        if line.startswith(PACKAGE):
+            named = line.removeprefix(PACKAGE).strip()
+            return "" if named == "_global_" else named
+    return group.replace("/", ".")
+
+
+def referenced_key(key: str, raw: object) -> str | None:
+    """The key that ``raw``, the value at the dotted ``key``, names where it is a plain reference, absolute
+    (``${acceleration.grid}``) or relative to the section holding ``key`` (``${.near}``, ``${..near}``: a dot
+    more for each section up); else None."""
+    named = reference(raw)
+    if named is None or not named.startswith("."):
+        return named
+    dots = len(named) - len(named.lstrip("."))
+    base = key.split(".")[:-dots]
+    return ".".join([*base, named[dots:]])
+
+
+def under(key: str, section: str) -> str | None:
+    """What follows ``section`` in the dotted ``key`` (``""`` for the section itself, ``.x`` below it), or None
+    where ``key`` is not in it."""
+    return key[len(section):] if key == section or key.startswith(f"{section}.") else None
+
+
+@functools.cache
+def named_targets() -> dict[str, frozenset[str]]:
+    """{the dotted key of a section: the classes nerfexp's own config files name as its ``_target_``}: every
+    YAML file of the packaged ``nerfexp.conf`` (the groups, the sweeps, the rows, ``config.yaml``), each at its
+    package (``package``), with each plain reference to a section carrying that section's classes to the key
+    holding it, and to the keys below (``model.renderer.field.view_head.direction_encoding``), to the end."""
+    found: dict[str, set[str]] = {}
+    aliases: list[tuple[str, str]] = []  # (the key holding a reference, the key it names)
+    root = files("nerfexp.conf")
+    pending = [(root, "")]
+    while pending:
+        folder, group = pending.pop()
+        for item in folder.iterdir():
+            name = f"{group}/{item.name}" if group else item.name
+            if item.is_dir():
+                pending.append((item, name))
+            elif item.name.endswith(".yaml"):
+                text = item.read_text()
+                prefix = package(text, group)
+                content = yaml.safe_load(text) or {}
+                content.pop("defaults", None)
+                for key, value in entries(content, prefix):
+                    if key.split(".")[-1] == "_target_" and isinstance(value, str):
+                        found.setdefault(key.rpartition(".")[0], set()).add(value)
+                    elif (named := referenced_key(key, value)) is not None:
+                        aliases.append((key, named))
+    changed = True
+    while changed:  # a reference to a section holding a reference: carried until nothing more is
+        changed = False
+        for key, named in aliases:
+            for section, classes in list(found.items()):
+                rest = under(section, named)
+                if rest is not None and not classes <= found.setdefault(key + rest, set()):
+                    found[key + rest] |= classes
+                    changed = True
+    return {section: frozenset(classes) for section, classes in found.items()}
+
+
+def allowed_at(section: str, target: object) -> bool:
+    """Whether a saved config may build ``target`` as the section at the dotted key ``section`` (see the
+    module's docstring): a class nerfexp's own configs name there (``named_targets``), or, where they name one
+    of ``OPEN_FAMILIES`` there, another class of that family (``buildable``)."""
+    named = named_targets().get(section, frozenset())
+    if target in named:
+        return True
+    return isinstance(target, str) and buildable(target) and any(
+        target.startswith(prefix) and any(other.startswith(prefix) for other in named)
+        for prefix, _ in OPEN_FAMILIES)
+
+
+def check_targets(plain: dict, source: Path) -> None:
+    """A ConfigError naming ``source``, the key and the class for the first ``_target_`` of ``plain`` (a saved
+    config's containers, resolved or not) that a saved config may not build (``buildable``), or not at its key
+    (``allowed_at``). Nothing is imported but nerfexp's, torch's optimizers' and Lightning's own modules."""
+    for key, target in targets(plain):
+        section = key.rpartition(".")[0]
+        if not buildable(target):
+            raise ConfigError(
+                f"{source}: {key}={target!r} is not a class nerfexp builds from a run's saved config (nerfexp's "
+                "own classes, lightning.Trainer, torch optimizers, Lightning loggers and callbacks): a run "
+                "directory from elsewhere is read as data, never run")
+        if not allowed_at(section, target):
+            named = sorted(named_targets().get(section, ()))
+            expected = f"its configs name {', '.join(named)} there" if named else "its configs build nothing there"
+            raise ConfigError(
+                f"{source}: {key}={target!r} is not a class nerfexp builds at {section} ({expected}): a run "
+                "directory from elsewhere is read as data, never run")
+
+
 def check_saved_config(plain: dict, source: Path) -> None:
     """A ConfigError naming ``source`` (the file the config came from) and the key for the first key of
     ``plain`` (a saved config's containers, unresolved) that holds ``${``, or value that calls a resolver
     (``resolvers``) or holds an escaped interpolation (``escapes_interpolation``), then for the first
-    ``_target_`` that a saved config may not build (``buildable``). Nothing is built or resolved."""
+    ``_target_`` that a saved config may not build, or not at its key (``check_targets``). Nothing is built or
+    resolved."""
     for key, value in entries(plain):
         if "${" in key:
             raise ConfigError(f"{source}: the key {key!r} holds '${{': a run directory from elsewhere is read as "
@@ -128,23 +240,20 @@ def check_saved_config(plain: dict, source: Path) -> None:
                 f"{source}: {key}={value!r} holds an escaped interpolation, text that becomes a live one when the "
                 "run's objects are built: a run directory from elsewhere is read as data: only plain references "
                 "${key} to its own keys are followed")
-    for key, target in targets(plain):
-        if not buildable(target):
-            raise ConfigError(
-                f"{source}: {key}={target!r} is not a class nerfexp builds from a run's saved config (nerfexp's "
-                "own classes, lightning.Trainer, torch optimizers, Lightning loggers and callbacks): a run "
-                "directory from elsewhere is read as data, never run")
+    check_targets(plain, source)
 
 
 def check_resolved(resolved: dict, source: Path) -> None:
     """A ConfigError naming ``source`` and the key where a value or key of ``resolved`` (a saved config's
     containers after the caller's overrides, resolved once) holds ``${``: text that Hydra would resolve
-    again when it builds the objects."""
+    again when it builds the objects; then where a ``_target_`` is not one its key allows (``check_targets``:
+    a reference may have landed a section where another belongs)."""
     for key, value in entries(resolved):
         if "${" in key or (isinstance(value, str) and "${" in value):
             shown = f"the key {key!r}" if "${" in key else f"{key}, resolved, is {value!r}:"
             raise ConfigError(f"{source}: {shown} text with '${{' in it, which building the run's objects would "
                               "resolve again: a run directory from elsewhere is read as data, never resolved twice")
+    check_targets(resolved, source)
 
 
 def holder(plain: dict, dotted: str) -> tuple[dict | None, str]:

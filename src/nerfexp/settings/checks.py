@@ -20,7 +20,15 @@ from nerfexp.domains import breaks
 from nerfexp.errors import ConfigError
 from nerfexp.extras import require
 from nerfexp.kernels import enabled
-from nerfexp.memory import grid_bytes, hash_table_bytes, network_bytes, parameter_bytes, require_memory, scene_bytes
+from nerfexp.memory import (
+    codes_bytes,
+    grid_bytes,
+    hash_table_bytes,
+    network_bytes,
+    parameter_bytes,
+    require_memory,
+    scene_bytes,
+)
 from nerfexp.settings.rows import check_row
 from nerfexp.settings.schema import FLOAT32_TOP_OCTAVE, PASSED_ON, REFERENCES, matching, rule_of
 from nerfexp.settings.unused import check_used
@@ -123,10 +131,16 @@ def settings_named(cfg: DictConfig, keys: list[str]) -> str:
     return ", ".join(named(cfg, key, OmegaConf.select(cfg, key)) for key in keys)
 
 
+TEST_TIME_FITS = (("model.appearance_fit", "a step of the test images' appearance fit"),
+                  ("model.test_camera_fit", "a step of the test cameras' fit"))  # (key, what a step renders)
+
+
 def check_memory(cfg: DictConfig, training: bool = True) -> None:
     """A ConfigError naming every setting an estimate multiplies (the one a user set among them) where the
-    scene, a training batch (where ``training``), an evaluation chunk, a network's weights, the hash tables or
-    the occupancy grid would need more than the machine's memory (``nerfexp.memory``)."""
+    scene, a training batch (where ``training``), an evaluation chunk, a step of a test-time fit (its rays
+    rendered with every layer's output kept for the backward pass to the fitted vector, as a training batch's),
+    a network's weights, the appearance codes, the hash tables or the occupancy grid would need more than the
+    machine's memory (``nerfexp.memory``)."""
     data, field = cfg.data, cfg.model.renderer.field
     if "image_size" in data:
         views = (data.n_train or 0) + data.n_val + data.n_test
@@ -141,6 +155,8 @@ def check_memory(cfg: DictConfig, training: bool = True) -> None:
     batches = [("model.chunk", "an evaluation chunk", False)]
     if training:
         batches.insert(0, ("datamodule.batch_rays", "a training batch", True))
+    batches += [(f"{key}.rays", what, True) for key, what in TEST_TIME_FITS  # where a fit is set, with its rays
+                if OmegaConf.select(cfg, f"{key}.rays") is not None]
     for key, what, kept in batches:
         rays = OmegaConf.select(cfg, key)
         needed = network_bytes(rays, samples, width, field.depth, kept)
@@ -158,6 +174,12 @@ def check_memory(cfg: DictConfig, training: bool = True) -> None:
             keys = [size_key, *([f"{key}.depth"] if "depth" in network else [])]
             require_memory(settings_named(cfg, keys), f"training {what} of {depth} layers of {size} units",
                            parameter_bytes(size, depth))
+    embedding = OmegaConf.select(cfg, "model.renderer.appearance")
+    if embedding is not None:
+        views = data.get("n_train") or 1  # null: every training view of the scene, at least one
+        keys = ["model.renderer.appearance.dim", *(["data.n_train"] if "n_train" in data else [])]
+        require_memory(settings_named(cfg, keys), f"training the appearance codes of {views} views of "
+                       f"{embedding.dim} numbers", codes_bytes(views, embedding.dim))
     position = cfg.encoding.position
     if "log2_table_size" in position:
         needed = hash_table_bytes(position.n_levels, position.log2_table_size, position.features_per_level)

@@ -3,7 +3,10 @@ of per-image appearance (``nerfexp.nerf.appearance.PROTOCOLS``: the whole image,
 image's code fitted on its left half), from its camera as given or refined with the networks frozen first
 (``test_cameras=refined``, ``nerfexp.nerf.poses.PoseFit``)."""
 
+import contextlib
+import logging
 import math
+from collections.abc import Callable
 
 import torch
 import torch.nn.functional as F
@@ -11,15 +14,18 @@ from torch import Tensor
 
 from nerfexp.data.views import SPLIT_NAMES, Views
 from nerfexp.errors import DatasetError
-from nerfexp.nerf.appearance import FULL_IMAGE, NERFW_RIGHT_HALF, left_columns
-from nerfexp.nerf.poses import camera_corrected_rays
+from nerfexp.nerf.appearance import FULL_IMAGE, NERFW_RIGHT_HALF, CodeFit, left_columns
+from nerfexp.nerf.poses import PoseFit, camera_corrected_rays
 from nerfexp.nerf.volume_renderer import final_output
 from nerfexp.training.metrics import psnr, ssim, unscorable
+from nerfexp.training.progress import fit_progress
+
+log = logging.getLogger(__name__)
 
 
 class ScoringProtocols:
     """The test-time scoring of ``NeRFModule`` (a mixin: it reads the module's ``renderer``, ``test_protocol``,
-    ``appearance_fit``, ``test_camera_fit``, ``render_image`` and ``_lpips``)."""
+    ``appearance_fit``, ``test_camera_fit``, ``render_image``, ``_lpips`` and its trainer's progress bar)."""
 
     def _test(self, scored: dict, batch: dict) -> dict:
         """A test image's scores under both protocols (``nerfexp.nerf.appearance.PROTOCOLS``), added to
@@ -60,7 +66,27 @@ class ScoringProtocols:
 
             def loss(pixels: Tensor, code: Tensor) -> Tensor:
                 return self._fitting_loss(rays, pixels, code)
-            return self.appearance_fit(loss, start.clone(), len(rays["rgb"]), seed=int(batch["index"]))
+            with self._fit_progress("its appearance code", self.appearance_fit, batch) as progress:
+                return self.appearance_fit(loss, start.clone(), len(rays["rgb"]), seed=int(batch["index"]),
+                                           progress=progress)
+
+    def _fit_progress(self, what: str, fit: CodeFit | PoseFit, batch: dict
+                      ) -> contextlib.AbstractContextManager[Callable[[int], None] | None]:
+        """A test-time ``fit`` of ``what`` for the test view ``batch``, said as it starts: a line in the log with
+        its steps and rays (what a long fit takes its time over) and a bar of its steps where the trainer draws
+        bars (``nerfexp.training.progress.fit_progress``). Yields the fit's ``progress`` callback (None: no bar)."""
+        index = int(batch["index"])
+        log.info("test view %d: fitting %s (%d Adam steps of %d rays)", index, what, fit.steps, fit.rays)
+        return fit_progress(f"test view {index}: {what}", fit.steps, self._draws_bars())
+
+    def _draws_bars(self) -> bool:
+        """Whether the trainer running the test draws progress bars (its bar callback is on: standard output a
+        terminal and ``trainer.enable_progress_bar``); False for a module called without a trainer."""
+        try:
+            bar = self.trainer.progress_bar_callback
+        except RuntimeError:  # Lightning's "not attached to a Trainer": called directly
+            return False
+        return bar is not None and not bar.is_disabled
 
     def _fitting_loss(self, rays: dict[str, Tensor], pixels: Tensor, code: Tensor | None,
                       delta: Tensor | None = None) -> Tensor:
@@ -102,7 +128,9 @@ class ScoringProtocols:
 
             def loss(pixels: Tensor, delta: Tensor) -> Tensor:
                 return self._fitting_loss(rays, pixels, code, delta)
-            delta = self.test_camera_fit(loss, len(rays["rgb"]), seed=int(batch["index"]), device=self.device)
+            with self._fit_progress("its camera", self.test_camera_fit, batch) as progress:
+                delta = self.test_camera_fit(loss, len(rays["rgb"]), seed=int(batch["index"]), device=self.device,
+                                             progress=progress)
         origins, directions, viewdirs = camera_corrected_rays(delta, batch["origins"], batch["directions"],
                                                               batch.get("viewdirs"))
         refined = {**batch, "origins": origins.to(batch["origins"].dtype),
