@@ -22,7 +22,8 @@ the true and the perturbed poses without refinement. Writes
 ``camera_opt_schedules.json`` and ``camera_opt_schedules_table.md``: per variant the test PSNR's mean over
 seeds, how many seeds collapsed, the training poses' rotation error after refinement, each variant paired by
 seed against ``so3xr3`` as configured, and the best variant none of whose seeds collapsed: the candidate for
-``conf/camera_opt/so3xr3.yaml``'s defaults.
+``conf/camera_opt/so3xr3.yaml``'s defaults. ``--variants`` runs some of them (``so3xr3`` among them); a run
+already in ``--out`` is read back, not trained again, so a later call can add variants to the same table.
 
 ``--model small``: 2 layers of 32, 16 + 16 samples, 256 rays per batch, ``scale.position_input_scale=0.125``;
 ``--model default``: the default model at ``scale=cpu``'s sizes. Both in float32, 16 training and 4 test views,
@@ -119,7 +120,12 @@ def main() -> None:
     parser.add_argument("--size", type=int, default=24)
     parser.add_argument("--noise", type=float, nargs=2, default=[2.0, 0.02], metavar=("DEGREES", "FRACTION"))
     parser.add_argument("--warmup", type=int, default=300, help="--study schedules: the warm-up's steps")
+    parser.add_argument("--variants", nargs="+", choices=tuple(SCHEDULES), default=list(SCHEDULES),
+                        help=f"--study schedules: the variants to run (they must include {REFERENCE}); runs already "
+                             "in --out are read, not trained again, so a later call can add variants")
     args = parser.parse_args()
+    if REFERENCE not in args.variants:
+        parser.error(f"--variants must include {REFERENCE}, the variant the others are paired against")
     args.out.mkdir(parents=True, exist_ok=True)
     (run_gap if args.study == "gap" else run_schedules)(args)
 
@@ -173,8 +179,8 @@ def run_gap(args: argparse.Namespace) -> None:
 def run_schedules(args: argparse.Namespace) -> None:
     """``--study schedules`` (the module's docstring)."""
     runs = []
-    for variant, variant_overrides in SCHEDULES.items():
-        chosen = [o.format(warmup=args.warmup) for o in variant_overrides]
+    for variant in args.variants:
+        chosen = [o.format(warmup=args.warmup) for o in SCHEDULES[variant]]
         noise = [] if variant == "true" else [perturbed(args.noise)]
         for seed in args.seeds:
             run_dir = args.out / f"schedules_{variant}_{seed}"
@@ -185,7 +191,7 @@ def run_schedules(args: argparse.Namespace) -> None:
         return {r["seed"]: r["psnr"] for r in runs if r["variant"] == variant}
 
     summary = {}
-    for variant in SCHEDULES:
+    for variant in args.variants:
         own = [r for r in runs if r["variant"] == variant]
         refined = [r["pose_errors"]["after"]["rotation_deg"] for r in own if r["pose_errors"]]
         summary[variant] = {"psnr": statistics.mean(psnrs(variant).values()),
@@ -193,12 +199,12 @@ def run_schedules(args: argparse.Namespace) -> None:
                             "rotation_deg_after": statistics.mean(refined) if refined else None,
                             f"minus_{REFERENCE}": None if variant == REFERENCE else difference(
                                 psnrs(variant), psnrs(REFERENCE))}
-    candidates = [v for v in SCHEDULES if v not in ("true", "perturbed") and not summary[v]["collapsed"]]
+    candidates = [v for v in args.variants if v not in ("true", "perturbed") and not summary[v]["collapsed"]]
     best = max(candidates, key=lambda v: summary[v]["psnr"]) if candidates else None
     record = {"command": "python " + " ".join(sys.argv), "machine": machine(), "cpu": cpu_model(),
               "model": args.model, "steps": args.steps, "seeds": args.seeds, "size": args.size, "noise": args.noise,
               "warmup": args.warmup, "variants": {v: [o.format(warmup=args.warmup) for o in SCHEDULES[v]]
-                                                  for v in SCHEDULES},
+                                                  for v in args.variants},
               "runs": runs, "summary": summary, "best": best}
     atomic_write(args.results / "camera_opt_schedules.json", json.dumps(record, indent=2).encode())
 
@@ -217,7 +223,7 @@ def run_schedules(args: argparse.Namespace) -> None:
         f"rendered nothing; rotation: the training poses' error after refinement (degrees, after a similarity); "
         f"paired by seed against `{REFERENCE}` as configured, 95% t-intervals.", "",
         "| variant | overrides | test PSNR | collapsed | rotation | minus so3xr3 |",
-        "|---|---|---|---|---|---|", *(row(v) for v in SCHEDULES), "",
+        "|---|---|---|---|---|---|", *(row(v) for v in args.variants), "",
         f"Best refinement none of whose seeds collapsed: {best or 'none'}.", "",
     ])
     atomic_write(args.results / "camera_opt_schedules_table.md", text.encode())
