@@ -23,6 +23,7 @@ from nerfexp import kernels
 from nerfexp.errors import ConfigError
 from nerfexp.kernels import cache
 from tests.helpers import TINY, run_nerfexp
+from tests.kernels.adam_step import adam_rows
 
 NAME = "lazy_adam"
 SOURCE = (Path(kernels.__file__).parent / f"{NAME}.cpp").read_bytes()
@@ -71,17 +72,10 @@ LATER = """
 import json, logging, sys
 logging.basicConfig(level=logging.INFO, stream=sys.stderr, format="%(name)s: %(message)s")
 from nerfexp.kernels import kernel
-from tests.kernels.test_kernel_cache import adam_rows
+from tests.kernels.adam_step import adam_rows
 module = kernel("lazy_adam")
 print(json.dumps([module.__file__, adam_rows(module).tolist()]))
 """
-
-
-def adam_rows(module) -> torch.Tensor:
-    """One touched-rows Adam step of a 4 x 3 parameter by ``module`` (rows 0 and 2): the parameter after it."""
-    param, m, v = torch.ones(4, 3), torch.zeros(4, 3), torch.zeros(4, 3)
-    module.rows(param, m, v, torch.tensor([0, 2]), torch.full((2, 3), 0.5), 1.0, 0.1, 0.9, 0.999, 1e-8)
-    return param
 
 
 @needs_compiler
