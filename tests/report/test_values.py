@@ -54,6 +54,9 @@ ODD_RESULTS = [
     ("test_views", [0, 1], "key 'test_psnr_per_view' has 1 items for 2 test_views"),
     ("collapse", ["step 9"], "key 'collapse' is ['step 9']: expected a text of one line, or null"),
     ("precision", 32, "key 'precision' is 32: expected a text"),
+    ("lpips_weights_sha256", "7be5be79", "key 'lpips_weights_sha256' is '7be5be79': expected 64 hexadecimal digits"),
+    ("test_lpips_custom", -0.5, "key 'test_lpips_custom' is -0.5: expected a finite number >= 0"),
+    ("test_lpips_custom_per_view", [0.1, 0.2], "key 'test_lpips_custom_per_view' has 2 items for 1 test_views"),
 ]
 
 
@@ -124,7 +127,7 @@ def test_every_field_a_reader_uses_has_a_rule():
     # what the report, the page's pictures and nerfexp-eval read of results.json (src/nerfexp/report, find_run)
     read = {"test_psnr", "test_ssim", "test_lpips", "test_psnr_right_half", "test_ssim_right_half", "test_views",
             "test_psnr_per_view", "test_ssim_per_view", "test_lpips_per_view", "test_protocol", "test_cameras",
-            "collapse", "choices", "overrides", "precision", "config.seed", "config.trainer.precision",
+            "test_lpips_custom", "test_lpips_custom_per_view", "lpips_weights_sha256", "collapse", "choices", "overrides", "precision", "config.seed", "config.trainer.precision",
             "machine", "train_time_s", "time_per_step_s", "rays_per_s", "n_params",
             "evaluations_per_ray", "checkpoint.path", "checkpoint.sha256"}
     assert read == set(RESULTS_FIELDS)

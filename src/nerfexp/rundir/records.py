@@ -82,6 +82,9 @@ RESULTS_FIELDS: dict[str, Rule] = {
     "test_psnr_per_view": list_of(PSNR),
     "test_ssim_per_view": list_of(SSIM),
     "test_lpips_per_view": list_of(LPIPS),
+    "test_lpips_custom": LPIPS,  # a user's own AlexNet weights' (nerfexp.training.perceptual): never LPIPS
+    "test_lpips_custom_per_view": list_of(LPIPS),
+    "lpips_weights_sha256": SHA256,  # the AlexNet weights' file that scored either (nerfexp.report.lpips_weights)
     "test_protocol": choice(*PROTOCOLS),
     "test_cameras": choice(GIVEN, REFINED),
     "collapse": optional(("a text of one line", is_line), "the run did not collapse"),
@@ -101,7 +104,8 @@ RESULTS_FIELDS: dict[str, Rule] = {
     "checkpoint.sha256": SHA256,
 }
 CHECKPOINT_FIELDS = ("checkpoint.path", "checkpoint.sha256")  # the checkpoint a run's test scored
-PER_VIEW = ("test_psnr_per_view", "test_ssim_per_view", "test_lpips_per_view")  # one item per test view
+PER_VIEW = ("test_psnr_per_view", "test_ssim_per_view", "test_lpips_per_view",  # one item per test view
+            "test_lpips_custom_per_view")
 STATUS_FIELDS: dict[str, Rule] = {
     "state": choice(*STATES),
     "overrides": list_of(TEXT),
