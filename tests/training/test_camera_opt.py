@@ -92,3 +92,18 @@ def test_perturbed_training_poses_are_brought_toward_the_truth(tmp_path):
     before, after = errors["before"], errors["after"]
     assert before["rotation_deg"] / after["rotation_deg"] >= ROTATION_SHRINK, errors
     assert after["centre"] <= before["centre"], errors
+
+
+@pytest.mark.parametrize(("overrides", "window", "warmup"), [
+    ([], 0.0, None),  # the paper's NeRF: no window, no corrections
+    (["camera_opt=so3xr3"], 0.5, 300),  # the measured best schedule (docs/results/camera_opt_schedules.md)
+    (["camera_opt=so3xr3", "encoding.position.coarse_to_fine=0.2"], 0.2, 300),  # the command line wins
+    (["camera_opt=so3xr3", "camera_opt.coarse_to_fine=0"], 0.0, 300),  # camera_opt's own key, read by the encoding
+])
+def test_camera_refinement_asks_the_positional_encoding_for_barfs_window(overrides, window, warmup):
+    from hydra import compose, initialize_config_module
+
+    with initialize_config_module("nerfexp.conf", version_base=None):
+        cfg = compose("config", overrides=overrides)
+    assert cfg.encoding.position.coarse_to_fine == window
+    assert (cfg.camera_opt.correction and cfg.camera_opt.correction.warmup_steps) == warmup

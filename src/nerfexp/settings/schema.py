@@ -154,6 +154,7 @@ SCHEMA: dict[str, Rule] = {
     "appearance.fit": NULL,
     "appearance.test_protocol": choice(*PROTOCOLS),
     "camera_opt.correction": NULL,  # camera_opt=off
+    "camera_opt.coarse_to_fine": FRACTION,  # the window it asks of the positional encoding (encoding.position)
     "test_cameras.fit": NULL,  # test_cameras=given
     "datamodule.pose_noise": optional(POSE_NOISE, "the poses as the data gives them"),
     "contraction.function": NULL,  # contraction=none
