@@ -21,6 +21,7 @@ from nerfexp.geometry.lenses import PARAMETERS
 CACHE = "colmap"  # DIR/colmap: nerfexp's own database and sparse model
 MODEL_FILES = ("cameras", "images", "points3D")
 MATCHERS = ("exhaustive", "sequential")
+SEED = 0  # COLMAP's random choices (RANSAC, the mapper's initial pairs) are seeded: the same images give the same model
 ADVICE = ("try more overlap between neighbouring views (60-80%), more texture (plain walls, sky, glass and "
           "reflections give no features), sharper images, more features (data.max_features), "
           "data.matcher=exhaustive, or a camera model that fits the lens (data.camera_model=OPENCV for wide angles)")
@@ -134,7 +135,9 @@ def reconstruct(root, camera_model: str = "SIMPLE_RADIAL", matcher: str = "exhau
     Features (``extract_features``: SIFT on the CPU, at most ``max_features`` per image, one
     ``camera_model`` camera shared by all images, a progress bar over the images), then matching
     (``exhaustive`` or ``sequential``) and incremental mapping, each a step of a second bar
-    (``verbose``: COLMAP's own log too). ``threads`` -1 uses every core. Raises a DatasetError, and
+    (``verbose``: COLMAP's own log too). ``threads`` -1 uses every core. COLMAP's random choices are seeded
+    (``SEED``), so that a reconstruction does not depend on the draw (with several threads their order may
+    still differ). Raises a DatasetError, and
     keeps nothing, when fewer than ``min_registered`` of the images are registered.
     """
     root = Path(root)
@@ -150,6 +153,7 @@ def reconstruct(root, camera_model: str = "SIMPLE_RADIAL", matcher: str = "exhau
         raise DatasetError(f"{cache} exists but holds no sparse model in sparse/0; move it away (nerfexp never "
                            f"deletes it) to reconstruct the scene again")
     with _colmap_log_level(verbose), atomic_directory(cache) as work:
+        pycolmap.set_random_seed(SEED)
         database = work / "database.db"
         extract_features(database, image_dir, names, camera_model, max_features, threads)
         with tqdm(total=2, desc="COLMAP", unit="stage", disable=None) as bar:
@@ -159,7 +163,8 @@ def reconstruct(root, camera_model: str = "SIMPLE_RADIAL", matcher: str = "exhau
             match(database, matching_options=matching, device=pycolmap.Device.cpu)
             bar.update()
             bar.set_postfix_str("incremental mapping")
-            options = pycolmap.IncrementalPipelineOptions(num_threads=threads, multiple_models=False)
+            options = pycolmap.IncrementalPipelineOptions(num_threads=threads, multiple_models=False,
+                                                          random_seed=SEED)
             models = pycolmap.incremental_mapping(database, image_dir, work / "sparse", options)
             bar.update()
         n_registered = max((m.num_reg_images() for m in models.values()), default=0)
