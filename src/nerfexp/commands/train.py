@@ -85,7 +85,7 @@ def train(cfg: DictConfig) -> dict | None:
     for override, reason in unused:
         log.warning("%s: not used with %s; results.json records it as null", override, reason)
     quiet_dependencies()
-    fill_ray_bounds(cfg)
+    bounds = fill_ray_bounds(cfg)
     fill_precision(cfg)
     L.seed_everything(cfg.seed, workers=True, verbose=False)
     runtime = HydraConfig.get().runtime
@@ -106,7 +106,8 @@ def train(cfg: DictConfig) -> dict | None:
         check_weights(resumed.weights, model, Path(cfg.resume))
     overrides = list(HydraConfig.get().overrides.task)
     recorded = without_unused(cfg, resolved, [override for override, _ in unused])
-    recorder = RunRecorder(runtime.output_dir, choices, recorded, overrides, settings, resumes, run_labels(cfg))
+    recorder = RunRecorder(runtime.output_dir, choices, recorded, overrides, settings, resumes, run_labels(cfg),
+                           bounds)
     callbacks = [instantiate(c) for c in cfg.callbacks.values()] + [recorder] + progress_bars(cfg.trainer)
     if cfg.model.get("camera_opt") is not None:  # camera_opt=so3xr3: the refined training cameras into the run
         callbacks.append(RefinedPoses(runtime.output_dir))

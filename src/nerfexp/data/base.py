@@ -24,7 +24,7 @@ class Scene(abc.ABC):
             such a scene (the paper's 1 for real forward-facing captures, 0 for synthetic ones); the field's
             config reads it (``${data.density_noise_std}``), so the scene's format chooses it and the
             command line still can.
-    Methods with a default: ``split_rule``, ``bounding_box``, ``ray_bounds``, ``depth_bounds``, ``model_rays``.
+    Methods with a default: ``split_rule``, ``bounds_rule``, ``bounding_box``, ``ray_bounds``, ``depth_bounds``, ``model_rays``.
     """
 
     # the domains of the arguments every format shares (nerfexp.domains; a format adds its own)
@@ -54,6 +54,11 @@ class Scene(abc.ABC):
         """How the views were split into train, val and test, where a rule (not the dataset's own files)
         or a choice between rules made them; results.json records it as ``split``. None: the format's own
         splits."""
+        return None
+
+    def bounds_rule(self) -> str | None:
+        """Where the ray bounds ``ray_bounds()`` came from, where the format found them (not both configured);
+        results.json records it as ``bounds``. None: the configured values."""
         return None
 
     def bounding_box(self) -> Tensor | None:

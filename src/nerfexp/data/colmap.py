@@ -56,6 +56,7 @@ from nerfexp.data.colmap_sfm import (
     registered_enough,
 )
 from nerfexp.data.images import downscale_rgba, fit_factor, read_image
+from nerfexp.data.sparse_points import near_far
 from nerfexp.data.video import FPS_RANGE, video_frames
 from nerfexp.data.views import Source, Views, check_shared_file, holdout_split
 from nerfexp.domains import (
@@ -78,9 +79,6 @@ from nerfexp.geometry.cameras import normalize_centres, pose_problem
 from nerfexp.geometry.lens_records import COEFFICIENT_LIMIT, FOCAL_RANGE
 from nerfexp.geometry.lenses import FISHEYE_MODELS, PARAMETERS, Intrinsics, distortion_vector, inversion_problem
 
-PERCENTILES = (0.1, 99.9)  # of each image's point distances: near and far (as LLFF's imgs2poses)
-MARGINS = (0.9, 1.1)  # near and far are widened by these factors
-
 
 def colmap_to_c2w(cam_from_world: Tensor) -> Tensor:
     """nerfexp camera-to-world matrices [N, 4, 4] from COLMAP's world-to-camera [R | t] [N, 3, 4].
@@ -102,20 +100,15 @@ def cam_from_world(reconstruction, image_ids: list[int]) -> Tensor:
     return torch.tensor(np.stack([reconstruction.images[i].cam_from_world().matrix() for i in image_ids]))
 
 
-def near_far(centres: Tensor, points: Tensor, observed: list[Tensor]) -> tuple[float, float]:
-    """Ray bounds from the sparse points: centres [N, 3], points [P, 3], observed[i] the indices [K_i]
-    of the points image i sees. near = 0.9 min_i q0.1_i, far = 1.1 max_i q99.9_i, with q_i the
-    percentiles of image i's distances |X - c_i| (images that see no point are left out)."""
-    low, high = [], []
-    for centre, index in zip(centres, observed):
-        if len(index):
-            distances = torch.linalg.vector_norm(points[index] - centre, dim=-1)
-            q = torch.quantile(distances, torch.tensor(PERCENTILES, dtype=distances.dtype) / 100)
-            low.append(q[0])
-            high.append(q[1])
-    if not low:
-        raise DatasetError("the COLMAP model has no 3D points seen by its images: near and far are undefined")
-    return MARGINS[0] * torch.stack(low).min().item(), MARGINS[1] * torch.stack(high).max().item()
+def model_points(reconstruction, image_ids: list[int]) -> tuple[Tensor, list[Tensor]]:
+    """(points [P, 3] float64, observed): a COLMAP model's 3D points, and for each image of ``image_ids`` the
+    indices [K_i] of the points it observes (as ``near_far`` takes them)."""
+    point_ids = sorted(reconstruction.point3D_ids())
+    row = {point_id: k for k, point_id in enumerate(point_ids)}
+    points = torch.tensor(np.array([reconstruction.points3D[p].xyz for p in point_ids]).reshape(-1, 3))
+    observed = [torch.tensor([row[p.point3D_id] for p in reconstruction.images[i].get_observation_points2D()],
+                             dtype=torch.long) for i in image_ids]
+    return points, observed
 
 
 def colmap_lens(model: str, params, where: str) -> Intrinsics:
@@ -206,11 +199,7 @@ def load_colmap(root, bound: float = 4.0, camera_model: str = "SIMPLE_RADIAL", m
     ids = sorted(reconstruction.reg_image_ids(), key=lambda i: reconstruction.images[i].name)
     registered_enough(len(ids), max(n_images, len(ids)), min_registered, f"{source_dir} (model {model_dir})")
     intrinsics, width, height = image_lenses(reconstruction, ids, model_dir)
-    point_ids = sorted(reconstruction.point3D_ids())
-    row = {point_id: k for k, point_id in enumerate(point_ids)}
-    points = torch.tensor(np.array([reconstruction.points3D[p].xyz for p in point_ids]).reshape(-1, 3))
-    observed = [torch.tensor([row[p.point3D_id] for p in reconstruction.images[i].get_observation_points2D()],
-                             dtype=torch.long) for i in ids]
+    points, observed = model_points(reconstruction, ids)
     poses = colmap_to_c2w(cam_from_world(reconstruction, ids))
     for i, pose in zip(ids, poses):
         if (problem := pose_problem(pose)) is not None:
@@ -220,7 +209,11 @@ def load_colmap(root, bound: float = 4.0, camera_model: str = "SIMPLE_RADIAL", m
         raise DatasetError(f"{model_dir}: a 3D point that is not finite or lies more than 2^24 scene units from the "
                            "origin, where float32 positions have no sub-unit resolution")
     c2w, points, centre, scale = normalize_centres(poses, points, bound)
-    near, far = near_far(c2w[:, :3, 3], points, observed)
+    bounds = near_far(c2w[:, :3, 3], points, observed)
+    if bounds is None:
+        raise DatasetError(f"{model_dir}: the COLMAP model has no 3D points seen by its images: near and far are "
+                           "undefined")
+    near, far = bounds
     names = [reconstruction.images[i].name for i in ids]
     return ColmapData(names, source_dir, c2w, intrinsics, width, height, near, far, centre, scale)
 
@@ -315,6 +308,11 @@ class ColmapScene(Scene):
         """(near, far): the configured values where set, else the sparse points' (see ``near_far``)."""
         data = self.load()
         return (data.near if self.near is None else self.near), (data.far if self.far is None else self.far)
+
+    def bounds_rule(self) -> str | None:
+        if self.near is not None and self.far is not None:
+            return None
+        return "the COLMAP model's sparse points, each image's points it observes"
 
     def split_rule(self) -> str:
         return f"every {self.holdout}th image in name order a test view (data.holdout)"

@@ -6,6 +6,7 @@ them into the model's rays (NDC for forward-facing LLFF scenes) and adds the wor
 """
 
 import functools
+import logging
 from dataclasses import replace
 
 import lightning as L
@@ -21,19 +22,25 @@ from nerfexp.data.rays import RandomRays, WholeImages, model_batch
 from nerfexp.data.views import Views, check_distinct_views
 from nerfexp.nerf.backgrounds import BACKGROUNDS
 
+log = logging.getLogger(__name__)
 SPLITS = ("train", "val", "test")
 SCORED = {"fit": ("val", "test"), "test": ("test",)}  # the splits that training and a test alone score
 
 
-def fill_ray_bounds(cfg: DictConfig) -> None:
+def fill_ray_bounds(cfg: DictConfig) -> str | None:
     """Set ``data.near`` and ``data.far`` left null in ``cfg`` (``data=colmap``: they come from the sparse
     points) to the scene's ``ray_bounds()``, in place, so that the renderer built from ``cfg`` and the
-    config a run records hold the values used. Values set in the config stay."""
+    config a run records hold the values used, and log one line saying where they came from. Values set in
+    the config stay. Returns the scene's ``bounds_rule()`` (None where both were set)."""
     if cfg.data.get("near") is not None and cfg.data.get("far") is not None:
-        return
-    near, far = instantiate(cfg.data).ray_bounds()
+        return None
+    scene = instantiate(cfg.data)
+    near, far = scene.ray_bounds()
+    rule = scene.bounds_rule()
+    log.info("ray bounds near %.4g, far %.4g: %s", near, far, rule or "data.near and data.far")
     with open_dict(cfg.data):
         cfg.data.near, cfg.data.far = float(near), float(far)
+    return rule
 
 
 class RayDataModule(L.LightningDataModule):

@@ -57,6 +57,19 @@ def read_image(path: Path, source: str) -> Tensor:
     return torch.from_numpy(rgba.copy())
 
 
+def image_size(path: Path, source: str) -> tuple[int, int]:
+    """(height, width) of an image file from its header alone (nothing is decoded); a missing or unreadable
+    file is a DatasetError naming it (``source``: what pointed to the file)."""
+    if not path.is_file():
+        raise DatasetError(f"image {path} does not exist (named by {source})")
+    try:
+        with Image.open(path) as image:
+            width, height = image.size
+    except (OSError, ValueError, SyntaxError, struct.error) as error:
+        raise DatasetError(f"{path}: a damaged or unreadable image file ({error})") from None
+    return height, width
+
+
 def has_alpha(path: Path) -> bool:
     """Whether the image file ``path`` carries transparency: an alpha channel (RGBA, LA, ...) or a
     transparent colour (PNG's ``tRNS``); ``read_image`` gives every other image alpha 255 (opaque). Reads

@@ -31,8 +31,20 @@ Reading (``NerfstudioScene``):
   in ``train_filenames`` and another list is refused (validation may list test frames), and so are two frames
   whose images are one file under any spelling or link (``check_shared_file``), before any image is read;
 - poses: camera centres moved and scaled to lie within ``bound`` of the origin (``normalize_centres``, as
-  for COLMAP scenes); ``near`` and ``far`` given, or ``NEAR_FRACTION`` x ``bound`` and ``FAR_FACTOR`` x
-  ``bound`` (every camera lies within ``bound``, so a ray crosses the cameras' ball within 2 ``bound``).
+  for COLMAP scenes);
+- ray bounds: ``near`` and ``far`` where given, else from what the capture holds, the first that bounds the
+  views of every frame (``found_bounds``; ``bounds_rule()`` says which, results.json records it as ``bounds``):
+  1. sparse points: the PLY that ``ply_file_path`` names (nerfstudio's ``sparse_pc.ply``: COLMAP's points in the
+     poses' coordinates), else a COLMAP model in the folder (``colmap/sparse/0``, ``sparse/0``, ``sparse``: its
+     cameras matched to the frames by file name, its distances scaled by the cameras' spread); near and far as
+     for COLMAP scenes (``nerfexp.data.sparse_points.near_far``), the points a camera sees being those in its
+     view (a PLY records no visibility) or those COLMAP observed;
+  2. Instant-NGP's scene box (``ngp_box``): the nearest and the farthest point of the box in any camera's view
+     (``nerfexp.geometry.frusta.box_reach``: exact for the pyramid of the pixel rays);
+  3. ``NEAR_FRACTION`` x ``bound`` and ``FAR_FACTOR`` x ``bound`` (every camera lies within ``bound``, so a ray
+     crosses the cameras' ball within 2 ``bound``).
+  near is at least ``NEAR_FRACTION`` x ``bound`` (a camera inside the box, or a stray point beside a camera, would
+  give 0); every frame's camera counts, not only the training ones, since one near and far serve every render.
 
 Every malformed field is a DatasetError naming the file, the frame and the key, before any image is read.
 """
@@ -49,7 +61,8 @@ from tqdm import tqdm
 
 from nerfexp.data.base import Scene
 from nerfexp.data.blender import FIELD_OF_VIEW, checked_frames, pose_matrix
-from nerfexp.data.images import downscale_rgba, fit_factor, read_image
+from nerfexp.data.images import downscale_rgba, fit_factor, image_size, read_image
+from nerfexp.data.sparse_points import near_far, read_ply_points
 from nerfexp.data.views import SPLIT_NAMES, Source, Views, check_shared_file, holdout_split, shrink_mask
 from nerfexp.domains import (
     COUNT,
@@ -70,6 +83,7 @@ from nerfexp.errors import DatasetError
 from nerfexp.files import atomic_write
 from nerfexp.geometry.boxes import box_problem
 from nerfexp.geometry.cameras import focal_from_fov, normalize_centres
+from nerfexp.geometry.frusta import box_reach, in_view, view_planes
 from nerfexp.geometry.lens_records import (
     FOCAL_RANGE,
     INTRINSIC_KEYS,
@@ -138,8 +152,8 @@ class Frame:
 class Capture:
     """A parsed transforms file: its ``path``, the ``frames`` in ``file_path`` order, the top-level keys
     ``defaults`` of every frame's lens, the file's ``splits`` (lists of file paths) or None, its
-    ``applied_transform`` [3 or 4, 4] or None, and its scene ``box`` [2, 3] in the file's coordinates
-    (``ngp_box``) or None."""
+    ``applied_transform`` [3 or 4, 4] or None, its scene ``box`` [2, 3] in the file's coordinates
+    (``ngp_box``) or None, and its sparse points' PLY file ``ply_file`` (``ply_file_path``) or None."""
 
     path: Path
     frames: list[Frame]
@@ -147,6 +161,7 @@ class Capture:
     splits: dict[str, list[str]] | None
     applied_transform: Tensor | None
     box: Tensor | None
+    ply_file: str | None = None
 
 
 def is_pixel_side(value) -> bool:
@@ -233,7 +248,9 @@ def read_capture(path: Path) -> Capture:
             raise DatasetError(f"{path}: 'applied_transform' must be a 3x4 (or 4x4) list of finite numbers within "
                                f"+-2^24, got {applied!r:.80}")
         applied = torch.tensor(applied, dtype=torch.float64)
-    return Capture(path, parsed, defaults, splits, applied, ngp_box(content, str(path)))
+    ply_file = content.get("ply_file_path")
+    ply_file = None if ply_file is None else relative_file(ply_file, str(path), "ply_file_path")
+    return Capture(path, parsed, defaults, splits, applied, ngp_box(content, str(path)), ply_file)
 
 
 def spelling(name: str) -> str:
@@ -326,6 +343,34 @@ def downscaled_file(root: Path, relative: str, prefix: str, downscale: int) -> t
     return full, downscale
 
 
+def colmap_point_bounds(model: Path, frames: list[Frame], c2w: Tensor) -> tuple[float, float] | None:
+    """(near, far) from the sparse points of the COLMAP model in ``model`` for the ``frames`` posed by ``c2w``
+    [N, 4, 4] (normalized), or None where fewer than two of its images match a frame by file name or none
+    observes a point. The model's coordinates are its own (before nerfstudio's ``applied_transform``, any
+    scale or re-centring): distances are measured there, from the matched images' camera centres to the
+    points each observes (``near_far``), and scaled by the ratio of the cameras' spreads (the root mean square
+    distance from their mean centre) in the frames' and in the model's coordinates, which a similarity keeps."""
+    from nerfexp.data.colmap import cam_from_world, colmap_to_c2w, model_points  # they import pycolmap
+    from nerfexp.data.colmap_sfm import read_model
+
+    reconstruction = read_model(model)
+    by_name = {PurePosixPath(reconstruction.images[i].name).name: i for i in reconstruction.reg_image_ids()}
+    matched = [(k, by_name[name]) for k, frame in enumerate(frames)
+               if (name := PurePosixPath(frame.file_path).name) in by_name]
+    if len(matched) < 2:
+        return None
+    ids = [i for _, i in matched]
+    centres = colmap_to_c2w(cam_from_world(reconstruction, ids))[:, :3, 3]
+    ours = c2w[[k for k, _ in matched], :3, 3]
+    spread = [torch.linalg.vector_norm(c - c.mean(0), dim=-1).square().mean().sqrt() for c in (ours, centres)]
+    if not spread[1] > 0:
+        return None
+    points, observed = model_points(reconstruction, ids)
+    bounds = near_far(centres, points, observed)
+    ratio = (spread[0] / spread[1]).item()
+    return None if bounds is None else (bounds[0] * ratio, bounds[1] * ratio)
+
+
 def read_mask(path: Path, source: str) -> Tensor:
     """A mask image as bool [H, W]: True where the pixel counts (nonzero), as nerfstudio reads masks."""
     return read_image(path, source)[..., 0] > 0
@@ -354,6 +399,7 @@ class NerfstudioScene(Scene):
     density_noise_std: float = 0.0
     _capture: Capture | None = field(default=None, init=False, repr=False)
     _normalization: tuple[Tensor, Tensor, float] | None = field(default=None, init=False, repr=False)
+    _bounds: tuple[float, float, str] | None = field(default=None, init=False, repr=False)
 
     def capture(self) -> Capture:
         """The parsed transforms file, read once and kept, and the normalization of its poses; a DatasetError
@@ -399,9 +445,91 @@ class NerfstudioScene(Scene):
         return index[:self.n_val] if split == "val" else index
 
     def ray_bounds(self) -> tuple[float, float]:
-        """(near, far): the configured values where set, else ``NEAR_FRACTION`` and ``FAR_FACTOR`` x ``bound``."""
-        near = NEAR_FRACTION * self.bound if self.near is None else self.near
-        return near, (FAR_FACTOR * self.bound if self.far is None else self.far)
+        """(near, far): the configured values where set, else the capture's (``found_bounds``)."""
+        if self.near is not None and self.far is not None:
+            return self.near, self.far
+        near, far, _ = self.found_bounds()
+        return (near if self.near is None else self.near), (far if self.far is None else self.far)
+
+    def bounds_rule(self) -> str | None:
+        """Where near and far came from (the module's docstring), or None where both are configured."""
+        if self.near is not None and self.far is not None:
+            return None
+        rule = self.found_bounds()[2]
+        if self.near is not None or self.far is not None:
+            return f"data.{'near' if self.near is not None else 'far'} as configured; the other from {rule}"
+        return rule
+
+    def found_bounds(self) -> tuple[float, float, str]:
+        """(near, far, rule): the first of the capture's sparse points, its scene box and the cameras' bound
+        that bounds the frames' views (module docstring), found once and kept."""
+        if self._bounds is None:
+            floor = NEAR_FRACTION * self.bound
+            for find in (self.point_bounds, self.box_bounds):
+                found = find()
+                if found is not None and found[1] > max(floor, found[0]):
+                    self._bounds = (max(floor, found[0]), found[1], found[2] + f", near at least "
+                                    f"{NEAR_FRACTION:g} x data.bound")
+                    return self._bounds
+            self._bounds = (floor, FAR_FACTOR * self.bound, f"the cameras' bound ({NEAR_FRACTION:g} and "
+                            f"{FAR_FACTOR:g} x data.bound): the capture has no sparse points or scene box that its "
+                            "cameras see")
+        return self._bounds
+
+    def frame_views(self) -> Tensor:
+        """[N, 4, 3]: the view of every frame's camera, as normalized (``nerfexp.geometry.frusta.view_planes``),
+        its lens at the image's recorded size (an image's header is read where the file gives no ``w, h``)."""
+        capture = self.capture()
+        normalized, _, _ = self._normalization
+        root, planes = Path(self.root), []
+        for frame, c2w in zip(capture.frames, normalized):
+            size = None
+            if "w" not in {**capture.defaults, **frame.fields} or "h" not in {**capture.defaults, **frame.fields}:
+                path, shrink = downscaled_file(root, frame.file_path, "images", self.downscale)
+                stored = self.downscale if shrink == 1 else 1
+                height, width = image_size(path, f"{frame.where}'s file_path")
+                size = (height * stored, width * stored)
+            fields = frame_lens_fields(frame, capture.defaults, size)
+            lens = read_lens_record(fields)
+            planes.append(view_planes(c2w[None], Intrinsics.stack([lens]), int(fields["h"]), int(fields["w"])))
+        return torch.cat(planes)
+
+    def point_bounds(self) -> tuple[float, float, str] | None:
+        """(near, far, rule) from the capture's sparse points (module docstring), or None where it has none
+        that a camera sees."""
+        capture = self.capture()
+        normalized, centre, scale = self._normalization
+        root = Path(self.root)
+        if capture.ply_file is not None:
+            path = scene_file(root, capture.ply_file)
+            if not path.is_file():
+                raise DatasetError(f"{path} does not exist (named by {capture.path}'s 'ply_file_path')")
+            points = (read_ply_points(path) - centre) * scale
+            seen = in_view(points, normalized, self.frame_views())  # [N, P]
+            bounds = near_far(normalized[:, :3, 3], points, [row.nonzero()[:, 0] for row in seen])
+            if bounds is not None:
+                return (*bounds, f"the sparse points of {path} ('ply_file_path'), each camera's points in its view")
+        from nerfexp.data.colmap_sfm import find_model  # pycolmap: imported only where a capture may hold a model
+        model = find_model(root)
+        if model is not None:
+            bounds = colmap_point_bounds(model, capture.frames, normalized)
+            if bounds is not None:
+                return (*bounds, f"the sparse points of the COLMAP model {model}")
+        return None
+
+    def box_bounds(self) -> tuple[float, float, str] | None:
+        """(near, far, rule) from Instant-NGP's scene box (the nearest and farthest point of it in any frame's
+        view), or None where the capture has none, or no camera sees it."""
+        box = self.bounding_box()
+        if box is None:
+            return None
+        normalized, _, _ = self._normalization
+        nearest, farthest = box_reach(normalized, self.frame_views(), box.double())
+        seen = torch.isfinite(nearest)
+        if not seen.any():
+            return None
+        return (nearest[seen].min().item(), farthest[seen].max().item(),
+                "Instant-NGP's scene box ('aabb_scale'): its nearest and farthest point in the cameras' views")
 
     def bounding_box(self) -> Tensor | None:
         """[2, 3]: Instant-NGP's scene box (``ngp_box``) moved and scaled as the poses are; None without one."""

@@ -181,8 +181,9 @@ class RunRecorder(L.Callback):
 
     def __init__(self, output_dir: str, choices: dict, run_config: dict | None = None,
                  overrides: list[str] = (), settings: dict | None = None, resumes: list[dict] = (),
-                 labels: dict | None = None):
+                 labels: dict | None = None, bounds: str | None = None):
         self.output_dir = Path(output_dir)
+        self.bounds = bounds  # where the scene's near and far came from (``Scene.bounds_rule``), or None
         self.choices, self.run_config, self.overrides = dict(choices), run_config, list(overrides)
         self.settings = settings
         self.resumes = list(resumes)
@@ -316,6 +317,8 @@ class RunRecorder(L.Callback):
         rule = trainer.datamodule.scene.split_rule() if trainer.datamodule is not None else None
         if rule is not None:  # how the views were split, where a rule made the split
             results["split"] = rule
+        if self.bounds is not None:  # where near and far came from, where the scene found them
+            results["bounds"] = self.bounds
         if trainer.ckpt_path is not None:  # the weights scored: the checkpoint the test loaded
             results["checkpoint"] = checkpoint_record(self.output_dir, Path(trainer.ckpt_path))
         write_json(self.output_dir / RESULTS, results)
