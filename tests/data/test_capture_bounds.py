@@ -126,3 +126,22 @@ def test_a_missing_ply_is_named_with_the_key(scene_root, tmp_path):
     scene = scene_with(scene_root, tmp_path, ply_file_path="sparse_pc.ply")
     with pytest.raises(DatasetError, match="sparse_pc.ply does not exist .*'ply_file_path'"):
         scene.ray_bounds()
+
+
+def test_a_colmap_model_beside_the_frames_gives_its_points_bounds_in_the_frames_units(tmp_path):
+    """The hand-made model of tests/data/test_colmap.py (a ring of cameras 4 from two points, whose near and far
+    are RING_BOUNDS there) beside frames posed at half its scale: the bounds are RING_BOUNDS halved, and a
+    model matching fewer than two frames by file name gives none."""
+    from nerfexp.data.nerfstudio import Frame, colmap_point_bounds
+    from tests.data.test_colmap import RING, RING_BOUNDS, hand_made_model
+
+    model = tmp_path / "sparse" / "0"
+    model.mkdir(parents=True)
+    hand_made_model().write_binary(model)
+    c2w = torch.eye(4, dtype=torch.float64).repeat(len(RING), 1, 1)
+    c2w[:, :3, 3] = 0.5 * torch.tensor(RING, dtype=torch.float64) + torch.tensor([1.0, -2.0, 3.0])  # moved too
+    frames = [Frame(f"images/view_{i}.png", c2w[i - 1], {}, None, f"frame {i}") for i in range(1, len(RING) + 1)]
+    near, far = colmap_point_bounds(model, frames, c2w)
+    assert (near, far) == pytest.approx((0.5 * RING_BOUNDS[0], 0.5 * RING_BOUNDS[1]), rel=1e-6)
+    others = [Frame(f"images/other_{i}.png", c2w[i - 1], {}, None, f"frame {i}") for i in range(1, len(RING))]
+    assert colmap_point_bounds(model, [frames[0], *others], c2w) is None

@@ -10,7 +10,7 @@ from omegaconf import OmegaConf
 from nerfexp.rundir.trained import read_checkpoint
 from nerfexp.training import precision
 from nerfexp.training.precision import auto_precision, cpu_bf16_units, fill_precision
-from tests.helpers import read_json, run_nerfexp
+from tests.helpers import read_json, run_nerfexp, tiny_config
 
 SAPPHIRE_RAPIDS = "processor\t: 0\nflags\t\t: fpu sse2 avx2 avx512f avx512_bf16 amx_bf16 amx_tile\n"
 SKYLAKE = "processor\t: 0\nflags\t\t: fpu sse2 avx2 avx512f avx512bw\n"  # AVX-512 without bf16: emulated
@@ -71,3 +71,29 @@ def test_an_auto_run_records_and_resumes_in_the_precision_it_chose(tmp_path, tin
                          f"resume={checkpoint}", f"hydra.run.dir={run_dir}", cwd=tmp_path)
     assert result.returncode == 0, result.stderr[-3000:]
     assert read_json(run_dir / "results.json")["steps"] == 40
+
+
+@pytest.mark.parametrize(("overrides", "expected"), [
+    ((), "bf16-mixed"),  # the paper's field: bf16 autocast pays on a CPU with bf16 units
+    (("encoding=hashgrid",), "32-true"),  # the hash encoding says autocast slows its step on a CPU
+    (("experiment=fast", "trainer.precision=auto"), "32-true"),
+])
+def test_auto_on_a_bf16_cpu_keeps_float32_for_a_component_that_autocast_slows(tmp_path, monkeypatch, caplog,
+                                                                                  overrides, expected):
+    (tmp_path / "cpuinfo").write_text(SAPPHIRE_RAPIDS)
+    monkeypatch.setattr(precision, "CPUINFO", tmp_path / "cpuinfo")
+    cfg = tiny_config("trainer.accelerator=cpu", "trainer.precision=auto", *overrides)
+    with caplog.at_level(logging.INFO, logger="nerfexp"):
+        fill_precision(cfg)
+    assert cfg.trainer.precision == expected
+    if expected == "32-true":
+        assert "but HashGridEncoding: bf16 autocast made a hash-grid step" in caplog.text
+
+
+def test_the_component_rule_is_the_cpus_only(monkeypatch):
+    """On a GPU with bf16 (faked) the hash encoding's CPU measurement does not apply."""
+    monkeypatch.setattr(precision, "fast_bf16", lambda device: (True, f"a {device} with bf16"))
+    targets = ["nerfexp.nerf.encodings.HashGridEncoding", "not.a.module.Class"]
+    assert auto_precision("cuda", targets) == ("bf16-mixed", "a cuda with bf16")
+    assert auto_precision("cpu", targets)[0] == "32-true"
+    assert auto_precision("cpu", ["nerfexp.nerf.encodings.PositionalEncoding"]) == ("bf16-mixed", "a cpu with bf16")

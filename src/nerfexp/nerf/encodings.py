@@ -302,6 +302,10 @@ class HashGridEncoding(Bounded, Encoding):
     levels keep dense gradients. torch.optim.Adam refuses sparse gradients.
     """
 
+    # Read by trainer.precision=auto (nerfexp.training.precision): its lookups and interpolation stay float32
+    CPU_AUTOCAST_SLOWER: ClassVar[str] = ("bf16 autocast made a hash-grid step with the grid 1.65x slower on a 2-core "
+                                          "CPU (benchmarks/results/step_profile_kernel.md, field=ngp)")
+
     DOMAINS = {
         "n_levels": COUNT,
         "features_per_level": COUNT,

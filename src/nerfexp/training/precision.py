@@ -4,7 +4,9 @@ hardware, float32 elsewhere, chosen when a job starts.
 bf16 is fast on GPUs from Ampere on (compute capability 8.0) and on CPUs with AMX or AVX-512 BF16 units
 (Intel from Cooper Lake and Sapphire Rapids, AMD from Zen 4): there ``bf16-mixed`` runs the networks' matrix
 products in bf16 (weights, optimizer and volume rendering stay float32, ``nerfexp.nerf``). Elsewhere ``auto``
-keeps ``32-true``. docs/precision.md has the measurements behind the choice (``benchmarks/precision.py``,
+keeps ``32-true``, and so it does on a CPU where a component the run builds says that autocast slows its step
+there (a class attribute ``CPU_AUTOCAST_SLOWER``, the measurement in words: the hash encoding's lookups stay
+float32, so autocast only adds casts around its small field). docs/precision.md has the measurements behind the choice (``benchmarks/precision.py``,
 and quality paired by seed).
 """
 
@@ -12,7 +14,8 @@ import logging
 from pathlib import Path
 
 import torch
-from omegaconf import DictConfig, open_dict
+from hydra.utils import get_class
+from omegaconf import DictConfig, OmegaConf, open_dict
 
 log = logging.getLogger(__name__)
 
@@ -53,10 +56,45 @@ def device_type(accelerator: str) -> str:
     return "cpu"
 
 
-def auto_precision(accelerator: str) -> tuple[str, str]:
-    """(``bf16-mixed`` or ``32-true``, why) for a trainer with ``accelerator`` on this machine."""
-    fast, why = fast_bf16(device_type(accelerator))
+def config_targets(node) -> list[str]:
+    """Every ``_target_`` string in ``node`` (a plain dict, list or value, e.g. a resolved config), depth first."""
+    if isinstance(node, dict):
+        found = [node["_target_"]] if isinstance(node.get("_target_"), str) else []
+        return found + [target for key, value in node.items() if key != "_target_" for target in config_targets(value)]
+    if isinstance(node, list):
+        return [target for value in node for target in config_targets(value)]
+    return []
+
+
+def cpu_autocast_slower(targets: list[str]) -> list[tuple[str, str]]:
+    """(class name, measurement) of each class among ``targets`` that declares autocast slows its step on a CPU
+    (``CPU_AUTOCAST_SLOWER``); targets that are not classes nerfexp can import are skipped."""
+    slower = {}
+    for target in targets:
+        try:
+            cls = get_class(target)
+        except Exception:  # a function, or a target the settings check names: not this rule's to judge
+            continue
+        if isinstance(reason := getattr(cls, "CPU_AUTOCAST_SLOWER", None), str):
+            slower[cls.__name__] = reason
+    return list(slower.items())
+
+
+def auto_precision(accelerator: str, targets: list[str] = ()) -> tuple[str, str]:
+    """(``bf16-mixed`` or ``32-true``, why) for a trainer with ``accelerator`` on this machine building the
+    components ``targets`` (``_target_`` strings): bf16 where the device computes it in hardware, unless on a
+    CPU a component says autocast slows it there (``cpu_autocast_slower``)."""
+    device = device_type(accelerator)
+    fast, why = fast_bf16(device)
+    slower = cpu_autocast_slower(list(targets)) if fast and device == "cpu" else []
+    if slower:
+        return "32-true", f"{why}, but " + "; ".join(f"{name}: {reason}" for name, reason in slower)
     return ("bf16-mixed" if fast else "32-true"), why
+
+
+def model_targets(cfg: DictConfig) -> list[str]:
+    """The ``_target_`` of every component the run's ``model`` builds, its interpolations followed."""
+    return config_targets(OmegaConf.to_container(cfg.model, resolve=True)) if "model" in cfg else []
 
 
 def fill_precision(cfg: DictConfig) -> None:
@@ -65,7 +103,7 @@ def fill_precision(cfg: DictConfig) -> None:
     config a run records hold the precision used. Any other value stays."""
     if cfg.trainer.get("precision") != AUTO:
         return
-    precision, why = auto_precision(str(cfg.trainer.get("accelerator", AUTO)))
+    precision, why = auto_precision(str(cfg.trainer.get("accelerator", AUTO)), model_targets(cfg))
     log.info("trainer.precision=auto: %s (%s)", precision, why)
     with open_dict(cfg.trainer):
         cfg.trainer.precision = precision
