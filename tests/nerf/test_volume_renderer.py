@@ -64,7 +64,7 @@ class Fog(nn.Module):
 
     def forward(self, positions, directions):
         sigma = torch.full(positions.shape[:-1], 0.1, dtype=positions.dtype, device=positions.device)
-        return FieldOutputs(rgb=torch.ones_like(sigma)[..., None].expand(*sigma.shape, 3), sigma=sigma)
+        return FieldOutputs(rgb=sigma.new_ones(*sigma.shape, 3), sigma=sigma)
 
 
 def test_hierarchical_rendering_reaches_back_to_near(device):
