@@ -6,8 +6,8 @@ per second and network evaluations per ray (``benchmarks/step_profile.py``'s fil
     python benchmarks/gpu_check_report.py summary WORK OUT      # OUT/gpu_check.json and OUT/gpu_check.md
 
 WORK holds what the stages wrote: ``machine.json``, ``stages.tsv`` (stage, exit status, seconds: one line each),
-``tests.xml`` and ``step_N.json`` (N: the variants' order). A stage that failed or timed out (exit status 124) is recorded as such, and
-the others' figures still are.
+``tests.xml`` and ``step_N.json`` (N: the variants' order). A stage that failed or timed out (exit status 124) is
+recorded as such, and the others' figures still are.
 """
 
 import json

@@ -43,7 +43,8 @@ def chosen_device() -> torch.device:
     except RuntimeError:
         device = None
     if device is None or device.type not in ("cpu", "cuda"):
-        raise pytest.UsageError(f"{TEST_DEVICE}={value!r}: expected cpu or a CUDA device (cuda, cuda:N), or unset (cpu)")
+        raise pytest.UsageError(f"{TEST_DEVICE}={value!r}: expected cpu or a CUDA device (cuda, cuda:N), "
+                                f"or unset (cpu)")
     if device.type == "cuda" and (device.index or 0) >= torch.cuda.device_count():
         raise pytest.UsageError(f"{TEST_DEVICE}={value!r}: torch sees {torch.cuda.device_count()} CUDA devices here")
     return device
