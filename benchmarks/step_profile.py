@@ -7,21 +7,25 @@ steps. Seconds per step: the wall-clock mean over the last ``--window`` steps (a
 occupancy grid's included); then ``--profile`` more steps under ``torch.profiler``, whose operators by
 self time are listed (the profiler's own cost makes those steps slower: compare operators, not totals).
 The variants run one after the other in this process, so that they share the machine's state.
+On a GPU (the config's ``trainer.accelerator``: auto takes one where there is one; ``trainer.accelerator=gpu``
+requires it) the clock waits for the GPU's queued work at both ends of the window, and the operators are
+ranked by their kernels' device time.
 
 Unlike ``benchmarks/precision.py`` (fixed inputs), the networks here see the batches of training: with
 ``acceleration=occupancy`` a packed batch of another size every step.
 
     python benchmarks/step_profile.py [--steps 1000] [--window 200] [--profile 20] [--threads N]
-                                      [--variant NAME OVERRIDE ...]... [--out NAME]
+                                      [--variant NAME OVERRIDE ...]... [--out NAME_OR_PATH]
 
 Default variants: the ``cpu_ablation`` sweep's complete model in float32 and in bf16. Writes
-``benchmarks/results/NAME.{json,md}`` (NAME ``step_profile``).
+``benchmarks/results/NAME.{json,md}`` (NAME ``step_profile``; an absolute path writes PATH.json and PATH.md).
 """
 
 import argparse
 import json
 import os
 import platform
+import shutil
 import subprocess
 import sys
 import time
@@ -45,8 +49,15 @@ VARIANTS = {"cpu_ablation complete, float32": [*ABLATION, "trainer.precision=32-
 TOP_OPS = 12
 
 
+def synchronize(device: torch.device) -> None:
+    """Wait for the work queued on ``device`` (a GPU's kernels run after the Python that launched them returns)."""
+    if device.type == "cuda":
+        torch.cuda.synchronize(device)
+
+
 class StepClock(L.Callback):
-    """Wall-clock seconds of the steps [start, stop), then ``profiled`` steps under torch.profiler."""
+    """Wall-clock seconds of the steps [start, stop), then ``profiled`` steps under torch.profiler (on a GPU,
+    its operators by their kernels' device time)."""
 
     def __init__(self, start: int, stop: int, profiled: int):
         self.start, self.stop, self.profiled = start, stop, profiled
@@ -57,18 +68,23 @@ class StepClock(L.Callback):
 
     def on_train_batch_start(self, trainer, pl_module, batch, batch_idx):
         if trainer.global_step in (self.start, self.stop):
+            synchronize(pl_module.device)
             self._began = time.perf_counter()
         if trainer.global_step == self.stop:
-            self._profiler = profile(activities=[ProfilerActivity.CPU])
+            cuda = pl_module.device.type == "cuda"
+            self._profiler = profile(activities=[ProfilerActivity.CPU] + ([ProfilerActivity.CUDA] if cuda else []))
             self._profiler.__enter__()
 
     def on_train_batch_end(self, trainer, pl_module, outputs, batch, batch_idx):
         if trainer.global_step == self.stop:
+            synchronize(pl_module.device)
             self.step_s = (time.perf_counter() - self._began) / (self.stop - self.start)
         elif trainer.global_step == self.stop + self.profiled:
+            synchronize(pl_module.device)
             self._profiler.__exit__(None, None, None)
-            events = sorted(self._profiler.key_averages(), key=lambda e: -e.self_cpu_time_total)[:TOP_OPS]
-            self.top_ops_ms = {e.key: round(e.self_cpu_time_total / 1e3 / self.profiled, 2) for e in events}
+            time_of = "self_device_time_total" if pl_module.device.type == "cuda" else "self_cpu_time_total"
+            events = sorted(self._profiler.key_averages(), key=lambda e: -getattr(e, time_of))[:TOP_OPS]
+            self.top_ops_ms = {e.key: round(getattr(e, time_of) / 1e3 / self.profiled, 2) for e in events}
 
 
 def measure(overrides: list[str], args) -> dict:
@@ -84,18 +100,20 @@ def measure(overrides: list[str], args) -> dict:
                         enable_progress_bar=False, enable_model_summary=False, limit_val_batches=0,
                         num_sanity_val_steps=0, callbacks=[FlushDenormals(), clock])
     trainer.fit(model, datamodule=datamodule)
-    return {"overrides": overrides, "precision": cfg.trainer.precision, "step_s": clock.step_s,
-            "evaluations_per_ray": float(model.renderer.evaluations_per_ray), "top_ops_ms": clock.top_ops_ms}
+    return {"overrides": overrides, "device": str(model.device), "precision": cfg.trainer.precision,
+            "step_s": clock.step_s, "evaluations_per_ray": float(model.renderer.evaluations_per_ray),
+            "top_ops_ms": clock.top_ops_ms}
 
 
 def markdown(rows: dict, meta: dict) -> str:
     lines = [f"Seconds per training step (Lightning's loop, mean of steps {meta['steps'] - meta['window']} to "
              f"{meta['steps']}), then the operators by self time in {meta['profile']} profiled steps.", "",
-             "| variant | precision | s / step | evaluations / ray |", "|---|---|---|---|"]
-    lines += [f"| {name} | {row['precision']} | {row['step_s']:.4f} | {row['evaluations_per_ray']:.1f} |"
-              for name, row in rows.items()]
+             "| variant | device | precision | s / step | evaluations / ray |", "|---|---|---|---|---|"]
+    lines += [f"| {name} | {row['device']} | {row['precision']} | {row['step_s']:.4f} | "
+              f"{row['evaluations_per_ray']:.1f} |" for name, row in rows.items()]
     for name, row in rows.items():
-        lines += ["", f"{name} (`{' '.join(row['overrides'])}`), ms per profiled step:", "",
+        lines += ["", f"{name} (`{' '.join(row['overrides'])}`), ms per profiled step "
+                  f"({'device' if row['device'].startswith('cuda') else 'CPU'} self time):", "",
                   ", ".join(f"`{op}` {ms}" for op, ms in row["top_ops_ms"].items())]
     lines += ["", f"Command: `{meta['command']}`, the code measured (``nerfexp``) at commit {meta['commit']}.", "",
               f"Machine: {meta['machine']}."]
@@ -120,11 +138,13 @@ def main() -> None:
         rows[name] = measure(overrides, args)
         print(name, f"{rows[name]['step_s']:.4f} s/step", flush=True)
     commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True,
-                            cwd=Path(nerfexp.__file__).parent).stdout.strip()  # of the code measured
+                            cwd=Path(nerfexp.__file__).parent).stdout.strip() if shutil.which("git") else ""
     meta = {"steps": args.steps, "window": args.window, "profile": args.profile, "commit": commit,
             "command": "python benchmarks/step_profile.py " + " ".join(sys.argv[1:]),
             "machine": {"cpu_count": os.cpu_count(), "torch_threads": torch.get_num_threads(),
-                        "processor": platform.processor() or platform.machine(), "torch": torch.__version__}}
+                        "processor": platform.processor() or platform.machine(), "torch": torch.__version__,
+                        "cuda": torch.version.cuda,
+                        "gpu": torch.cuda.get_device_name() if torch.cuda.is_available() else None}}
     atomic_write(RESULTS / f"{args.out}.json", json.dumps({"meta": meta, "variants": rows}, indent=2).encode())
     atomic_write(RESULTS / f"{args.out}.md", markdown(rows, meta).encode())
 

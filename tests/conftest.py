@@ -1,5 +1,6 @@
 """Shared fixtures: the real config, shrunk to run in seconds on a CPU (``tests.helpers.TINY``), and no test
-reaching the internet; the pytest-xdist workers (``-n auto``) and each one's share of the CPUs."""
+reaching the internet; the pytest-xdist workers (``-n auto``) and each one's share of the CPUs; the device that the
+device-independent tests run on (``device``: ``NERFEXP_TEST_DEVICE``, the CPU where unset)."""
 
 import os
 from pathlib import Path
@@ -12,6 +13,8 @@ from tests.helpers import NO_INTERNET, TINY, run_nerfexp
 from tests.training.weights_server import refused_url
 
 MOST_WORKERS = 4  # pytest-xdist's -n auto: each worker a torch process of its own (memory, and DDP's extra ones)
+TEST_DEVICE = "NERFEXP_TEST_DEVICE"  # cpu (unset), cuda, cuda:1: where the tests taking ``device`` run
+ON_DEVICE = "on_device"  # the marker of those tests (``-m on_device`` selects them: benchmarks/gpu_check.sh)
 
 
 def pytest_xdist_auto_num_workers(config) -> int:
@@ -28,6 +31,31 @@ def pytest_configure(config) -> None:
         threads = max(1, len(os.sched_getaffinity(0)) // workers)
         os.environ["OMP_NUM_THREADS"] = str(threads)
         torch.set_num_threads(threads)
+    chosen_device()  # a device that is misspelt or not here stops the session in one line, before any test
+
+
+def chosen_device() -> torch.device:
+    """``NERFEXP_TEST_DEVICE`` as a torch device (the CPU where unset); a value torch does not read as a device,
+    or a CUDA device that torch does not see, is a pytest usage error naming the variable."""
+    value = os.environ.get(TEST_DEVICE, "cpu")
+    try:
+        device = torch.device(value)
+    except RuntimeError:
+        device = None
+    if device is None or device.type not in ("cpu", "cuda"):
+        raise pytest.UsageError(f"{TEST_DEVICE}={value!r}: expected cpu or a CUDA device (cuda, cuda:N), "
+                                f"or unset (cpu)")
+    if device.type == "cuda" and (device.index or 0) >= torch.cuda.device_count():
+        raise pytest.UsageError(f"{TEST_DEVICE}={value!r}: torch sees {torch.cuda.device_count()} CUDA devices here")
+    return device
+
+
+def pytest_collection_modifyitems(items) -> None:
+    """Every test that takes ``device`` is marked ``on_device``, so that ``-m on_device`` runs them all (where
+    ``NERFEXP_TEST_DEVICE`` names a GPU) and a new one needs no list kept by hand."""
+    for item in items:
+        if "device" in getattr(item, "fixturenames", ()):
+            item.add_marker(ON_DEVICE)
 
 
 @pytest.fixture(autouse=True)
@@ -39,6 +67,13 @@ def no_downloads(monkeypatch):
     monkeypatch.setattr(perceptual, "ALEXNET_URL", refused_url(perceptual.ALEXNET_FILE))
     for name, value in NO_INTERNET.items():
         monkeypatch.setenv(name, value)
+
+
+@pytest.fixture
+def device() -> torch.device:
+    """The device of a device-independent test (``NERFEXP_TEST_DEVICE``, the CPU where unset): the test builds its
+    inputs and modules there, and compares against its truth (float64 references, closed forms) on the CPU."""
+    return chosen_device()
 
 
 @pytest.fixture

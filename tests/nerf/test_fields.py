@@ -22,12 +22,12 @@ def test_paper_mlp_parameter_count_by_hand():
     assert sum(p.numel() for p in paper_field().parameters()) == trunk + (256 + 1) + head
 
 
-def test_density_depends_on_position_only_and_colour_on_direction():
+def test_density_depends_on_position_only_and_colour_on_direction(device):
     torch.manual_seed(0)
-    field = paper_field()
-    x = torch.randn(64, 3)
-    d1 = torch.nn.functional.normalize(torch.randn(64, 3), dim=-1)
-    d2 = torch.nn.functional.normalize(torch.randn(64, 3), dim=-1)
+    field = paper_field().to(device)
+    x = torch.randn(64, 3).to(device)
+    d1 = torch.nn.functional.normalize(torch.randn(64, 3), dim=-1).to(device)
+    d2 = torch.nn.functional.normalize(torch.randn(64, 3), dim=-1).to(device)
     (rgb1, sigma1, penalties), (rgb2, sigma2, _) = field(x, d1), field(x, d2)
     assert rgb1.shape == (64, 3) and sigma1.shape == (64,) and penalties is None  # the paper's head: no penalties
     assert torch.equal(sigma1, sigma2)

@@ -12,6 +12,7 @@ import pytest
 import torch
 
 from nerfexp import kernels
+from nerfexp.nerf import encodings
 from tests.nerf.hashgrid_reference import BOX, reference_features, small_encoding
 
 FUSED = kernels.kernel("hash_encoding")
@@ -107,6 +108,31 @@ def test_positions_that_need_a_gradient_take_the_torch_path():
     points = edge_points(enc).requires_grad_()
     assert enc._fused_kernel(points) is None  # autograd's own gather: differentiable in positions, and twice
     assert enc._fused_kernel(points.detach()) is FUSED  # the kernel where it was built
+
+
+def test_on_any_device_but_the_cpu_the_torch_path_runs(monkeypatch):
+    # a GPU's tensors never reach the CPU kernel: the meta device (in every torch build) stands for a GPU here,
+    # and a stand-in for the kernel is "built", so that the choice is seen whether or not a compiler is here
+    built = object()
+    monkeypatch.setattr(encodings, "kernel", lambda name: built)
+    enc = small_encoding()
+    assert enc._fused_kernel(torch.rand(5, 3)) is built  # float32 on the CPU: the kernel
+    assert enc.to("meta")._fused_kernel(torch.rand(5, 3, device="meta")) is None  # elsewhere: the torch path
+
+
+@needs_kernel
+def test_the_kernel_refuses_tensors_off_the_cpu_or_of_another_shape_in_one_line():
+    enc = small_encoding()
+    volumes = [volume[0] for volume in enc.dense]
+    shape = enc.kernel_shape()
+    with pytest.raises(RuntimeError, match="hash_encoding: unit is on meta, not the CPU"):
+        FUSED.forward(torch.rand(5, 3, device="meta"), volumes, enc.hashed.detach(), *shape)
+    with pytest.raises(RuntimeError, match=r"hash_encoding: unit must be \[N, 3\], got \[5, 2\]"):
+        FUSED.forward(torch.rand(5, 2), volumes, enc.hashed.detach(), *shape)
+    with pytest.raises(RuntimeError, match="hash_encoding: hashed is not contiguous"):
+        FUSED.forward(torch.rand(5, 3), volumes, enc.hashed.detach().transpose(0, 1), *shape)
+    with pytest.raises(RuntimeError, match=r"hash_encoding: grad must be \[5, 8\], got \[5, 7\]"):
+        FUSED.backward(torch.rand(5, 3), torch.rand(5, 7), volumes, enc.hashed.detach(), *shape)
 
 
 HIDDEN_COMPILER = """

@@ -31,7 +31,7 @@ def test_dense_and_hashed_levels_split_where_the_vertices_fit_the_table():
 
 
 @pytest.mark.parametrize("log2_table_size", [10, 4, 20])  # mixed; every level hashed; every level dense
-def test_matches_the_float64_reference(log2_table_size):
+def test_matches_the_float64_reference(log2_table_size, device):
     enc = small_encoding(log2_table_size=log2_table_size).double()
     generator = torch.Generator().manual_seed(1)
     inside = torch.rand(200, 3, generator=generator, dtype=torch.float64)
@@ -39,7 +39,8 @@ def test_matches_the_float64_reference(log2_table_size):
     points = torch.cat([lo + inside * (hi - lo),
                         torch.stack([lo, hi, (lo + hi) / 2]),  # corners of the box, its centre
                         lo + torch.tensor([[1.5, 0.5, 0.5], [-0.2, 0.3, 1.0]], dtype=torch.float64) * (hi - lo)])
-    torch.testing.assert_close(enc(points), reference_features(enc, points), atol=1e-12, rtol=0)
+    expected = reference_features(enc, points)  # on the CPU
+    torch.testing.assert_close(enc.to(device)(points.to(device)).cpu(), expected, atol=1e-12, rtol=0)
 
 
 def test_linear_functions_are_interpolated_exactly_at_every_level():
@@ -171,20 +172,21 @@ def rows_read(enc: HashGridEncoding, points: torch.Tensor) -> set[tuple[int, int
 # 2 hashed levels of 1024 rows; 8 rows read per point and level: 40 points read fewer rows than the table
 # has (summed by sorting them), 400 more (summed over the whole table, the rows read picked out)
 @pytest.mark.parametrize("n_points", [40, 400])
-def test_sparse_gradients_hold_each_row_read_once_with_the_dense_gradients_sum(n_points):
+def test_sparse_gradients_hold_each_row_read_once_with_the_dense_gradients_sum(n_points, device):
     dense, sparse = small_encoding(), small_encoding(sparse_gradients=True)  # the same tables (seeded)
+    dense, sparse = dense.to(device), sparse.to(device)
     assert sparse.state_dict().keys() == dense.state_dict().keys()  # checkpoints of either load in the other
     generator = torch.Generator().manual_seed(2)
     lo, hi = torch.tensor(BOX)
-    points = lo + torch.rand(n_points, 3, generator=generator) * (hi - lo)
-    weights = torch.randn(dense.out_dim, generator=generator)
+    points = (lo + torch.rand(n_points, 3, generator=generator) * (hi - lo)).to(device)
+    weights = torch.randn(dense.out_dim, generator=generator).to(device)
     for enc in (dense, sparse):
         (enc(points) @ weights).sum().backward()
     grad = sparse.hashed.grad
     assert grad.is_sparse and (grad.sparse_dim(), grad.dense_dim()) == (2, 1) and grad.shape == sparse.hashed.shape
     rows = [tuple(index) for index in grad._indices().T.tolist()]
     assert rows == sorted(set(rows))  # summed: each row once, in order
-    assert set(rows) == rows_read(sparse, points) and len(rows) < sparse.hashed[..., 0].numel()
+    assert set(rows) == rows_read(sparse, points.cpu()) and len(rows) < sparse.hashed[..., 0].numel()
     torch.testing.assert_close(grad.to_dense(), dense.hashed.grad)  # the dense gradient, up to summation order
     for a, b in zip(dense.dense, sparse.dense, strict=True):  # the dense levels keep dense gradients
         assert not b.grad.is_sparse  # (the fused kernel's, where it was built, sum in another order)

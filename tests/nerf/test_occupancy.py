@@ -16,10 +16,11 @@ BOX = [[-1.0, -1.0, -1.0], [1.0, 1.0, 1.0]]
 NEAR, FAR = 2.0, 6.0
 
 
-def trained_grid(field, resolution=16, updates=16, **options) -> OccupancyGrid:
+def trained_grid(field, resolution=16, updates=16, device="cpu", **options) -> OccupancyGrid:
     """A grid over BOX from ``field.density``: one warm-up update (every cell), then ``updates`` more,
-    each re-evaluating a random quarter of the cells with the decaying memory of training's later steps."""
-    grid = OccupancyGrid(resolution=resolution, update_every=1, warmup_steps=1, aabb=BOX, **options)
+    each re-evaluating a random quarter of the cells with the decaying memory of training's later steps;
+    on ``device``."""
+    grid = OccupancyGrid(resolution=resolution, update_every=1, warmup_steps=1, aabb=BOX, **options).to(device)
     torch.manual_seed(0)
     for step in range(updates + 1):
         grid.update(step, [field.density])
@@ -87,18 +88,20 @@ def test_after_warm_up_a_quarter_of_the_cells_is_re_evaluated_and_decays():
 
 
 def render_pair(field, grid, hierarchical=False, n=2048):
-    """The same rays through ``field`` rendered without and with ``grid``, deterministic samples, float32."""
+    """The same rays through ``field`` rendered without and with ``grid``, deterministic samples, float32, on the
+    grid's device."""
+    device = grid.density.device
     origins, directions = aimed_rays(n, torch.Generator().manual_seed(1), impact=1.2, distance=(3.5, 4.5))
-    origins, directions = origins.float(), directions.float()
+    origins, directions = origins.float().to(device), directions.float().to(device)
     options = dict(hierarchical=hierarchical, n_coarse=64, n_fine=64, n_single=128, near=NEAR, far=FAR)
-    plain = VolumeRenderer(lambda: field, **options)
-    fast = VolumeRenderer(lambda: field, **options, grid=grid)
+    plain = VolumeRenderer(lambda: field, **options).to(device)
+    fast = VolumeRenderer(lambda: field, **options, grid=grid).to(device)
     out = plain(origins, directions, deterministic=True), fast(origins, directions, deterministic=True)
     return out[0], out[1], fast.stats
 
 
 @pytest.mark.parametrize("hierarchical", [False, True])
-def test_skipping_empty_cells_changes_no_pixel_by_more_than_the_stated_tolerance(hierarchical):
+def test_skipping_empty_cells_changes_no_pixel_by_more_than_the_stated_tolerance(hierarchical, device):
     # The blob (peak 5, radius 0.3) absorbs 1 - exp(-5 * 0.3 sqrt(2 pi)) = 0.98 through its centre.
     # A cell is left out when its density estimate is below sigma_t, the density at which light crossing
     # it loses threshold = 1%. Stated tolerance: five such cells' worth, 1 - 0.99^5 = 0.049: a ray
@@ -108,7 +111,7 @@ def test_skipping_empty_cells_changes_no_pixel_by_more_than_the_stated_tolerance
     # can underestimate.
     tolerance = 1 - 0.99**5
     blob = GaussianBlob(peak=5.0, radius=0.3)
-    grid = trained_grid(blob, early_stop_transmittance=0.0)
+    grid = trained_grid(blob, device=device, early_stop_transmittance=0.0)
     plain, fast, stats = render_pair(blob, grid, hierarchical)
     for name in plain:
         opacity = (plain[name]["opacity"] - fast[name]["opacity"]).abs()
@@ -118,11 +121,11 @@ def test_skipping_empty_cells_changes_no_pixel_by_more_than_the_stated_tolerance
     assert stats["samples_per_ray"] < total / 3
 
 
-def test_a_skipped_sample_is_a_sample_that_absorbs_nothing():
+def test_a_skipped_sample_is_a_sample_that_absorbs_nothing(device):
     # Independent of the grid's estimates: the accelerated render equals the plain render of a field
     # whose density is zeroed wherever the grid says empty (float32 rounding apart).
     blob = GaussianBlob(peak=5.0, radius=0.3)
-    grid = trained_grid(blob, early_stop_transmittance=0.0)
+    grid = trained_grid(blob, device=device, early_stop_transmittance=0.0)
 
     class Masked(GaussianBlob):
         def density(self, positions):

@@ -7,15 +7,15 @@ from nerfexp.nerf.quadrature import composite, render_weights
 
 
 @pytest.mark.parametrize("sigma", [0.0, 1e-6, 0.3, 2.0, 50.0])
-def test_constant_density_segment_opacity_is_closed_form(sigma):
+def test_constant_density_segment_opacity_is_closed_form(sigma, device):
     # A segment [0, L] of constant density, cut into S intervals: the weights sum to 1 - exp(-sigma L)
     # exactly, whatever S, since the quadrature of a constant is exact.
     length, S = 1.7, 13
     edges = torch.linspace(0, length, S + 1, dtype=torch.float64)
     sigmas = torch.full((S,), sigma, dtype=torch.float64)
-    weights, transmittance = render_weights(sigmas, edges[:-1], edges[1:])
+    weights, transmittance = render_weights(sigmas.to(device), edges[:-1].to(device), edges[1:].to(device))
     assert math.isclose(weights.sum().item(), -math.expm1(-sigma * length), rel_tol=1e-12, abs_tol=1e-300)
-    torch.testing.assert_close(transmittance, torch.exp(-sigma * edges[:-1]), rtol=1e-12, atol=0)
+    torch.testing.assert_close(transmittance.cpu(), torch.exp(-sigma * edges[:-1]), rtol=1e-12, atol=0)
 
 
 def test_float32_small_optical_depth_keeps_relative_precision():
@@ -33,13 +33,14 @@ def test_opaque_interval_blocks_everything_behind_it():
     torch.testing.assert_close(transmittance, torch.tensor([1.0, 1.0, 0.0, 0.0]))
 
 
-def test_weights_match_float64_reference_and_gradients_are_finite():
+def test_weights_match_float64_reference_and_gradients_are_finite(device):
     torch.manual_seed(0)
-    sigmas = (torch.rand(8, 32) * 20).requires_grad_()
-    t = torch.sort(torch.rand(8, 33) * 4 + 2, -1).values
+    sigmas = (torch.rand(8, 32) * 20).to(device).requires_grad_()
+    t = torch.sort(torch.rand(8, 33) * 4 + 2, -1).values.to(device)
     weights, _ = render_weights(sigmas, t[:, :-1], t[:, 1:])
-    # Reference: the textbook product form, in float64.
-    s, d = sigmas.detach().double(), (t[:, 1:] - t[:, :-1]).double()
+    weights, t = weights.cpu(), t.cpu()
+    # Reference: the textbook product form, in float64 on the CPU.
+    s, d = sigmas.detach().cpu().double(), (t[:, 1:] - t[:, :-1]).double()
     alpha = 1 - torch.exp(-s * d)
     trans = torch.cumprod(torch.cat([torch.ones(8, 1, dtype=torch.float64), 1 - alpha[:, :-1]], 1), 1)
     torch.testing.assert_close(weights.double(), trans * alpha, rtol=1e-5, atol=1e-6)
@@ -47,15 +48,15 @@ def test_weights_match_float64_reference_and_gradients_are_finite():
     assert torch.isfinite(sigmas.grad).all()
 
 
-def test_composite_colour_depth_opacity():
+def test_composite_colour_depth_opacity(device):
     # Half the light stops at t in [1, 2] (colour red), the rest reaches a white background.
-    weights = torch.tensor([[0.0, 0.5, 0.0]])
-    rgbs = torch.tensor([[[0.0, 1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]]])
-    mids = torch.tensor([[0.5, 1.5, 2.5]])
-    out = composite(weights, rgbs, mids, torch.ones(3), far=6.0)
-    torch.testing.assert_close(out["rgb"], torch.tensor([[1.0, 0.5, 0.5]]))
-    torch.testing.assert_close(out["opacity"], torch.tensor([0.5]))
-    torch.testing.assert_close(out["depth"], torch.tensor([1.5]))
+    weights = torch.tensor([[0.0, 0.5, 0.0]], device=device)
+    rgbs = torch.tensor([[[0.0, 1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]]], device=device)
+    mids = torch.tensor([[0.5, 1.5, 2.5]], device=device)
+    out = composite(weights, rgbs, mids, torch.ones(3, device=device), far=6.0)
+    torch.testing.assert_close(out["rgb"].cpu(), torch.tensor([[1.0, 0.5, 0.5]]))
+    torch.testing.assert_close(out["opacity"].cpu(), torch.tensor([0.5]))
+    torch.testing.assert_close(out["depth"].cpu(), torch.tensor([1.5]))
 
 
 def test_composite_empty_ray_is_background_at_far_depth():

@@ -6,10 +6,10 @@ import torch
 from nerfexp.nerf.sampling import dilate_weights, intervals, sample_pdf, stratified_samples
 
 
-def test_stratified_one_sample_per_bin():
-    near, far = torch.full((1000,), 2.0), torch.full((1000,), 6.0)
-    t = stratified_samples(near, far, 8, deterministic=False, generator=torch.Generator().manual_seed(0))
-    edges = torch.linspace(2, 6, 9)
+def test_stratified_one_sample_per_bin(device):
+    near, far = torch.full((1000,), 2.0, device=device), torch.full((1000,), 6.0, device=device)
+    t = stratified_samples(near, far, 8, deterministic=False, generator=torch.Generator(device).manual_seed(0))
+    edges = torch.linspace(2, 6, 9, device=device)
     assert ((t >= edges[:-1]) & (t <= edges[1:])).all()
     # jitter covers each bin: the mean position within a bin is about its middle
     torch.testing.assert_close(t.mean(0), 0.5 * (edges[:-1] + edges[1:]), atol=0.05, rtol=0)
@@ -29,13 +29,14 @@ def _chi_square_pvalue_upper(stat: float, dof: int) -> float:
     return 0.5 * math.erfc(z / math.sqrt(2))
 
 
-def test_sample_pdf_recovers_piecewise_constant_density():
+def test_sample_pdf_recovers_piecewise_constant_density(device):
     # Goodness of fit: the histogram of samples over the bins follows the weights (chi-square test),
     # and within a bin the samples are uniform (a second chi-square on half-bins).
     bins = torch.tensor([0.0, 1.0, 1.5, 4.0, 4.2, 6.0], dtype=torch.float64)
     weights = torch.tensor([0.1, 0.0, 0.5, 0.3, 0.1], dtype=torch.float64)
     n = 200_000
-    samples = sample_pdf(bins, weights, n, deterministic=False, generator=torch.Generator().manual_seed(1))
+    samples = sample_pdf(bins.to(device), weights.to(device), n, deterministic=False,
+                         generator=torch.Generator(device).manual_seed(1)).cpu()
     assert samples.shape == (n,)
     assert (samples[1:] >= samples[:-1]).all()  # sorted
     half_edges = torch.stack([bins[:-1], 0.5 * (bins[:-1] + bins[1:])], 1).flatten()

@@ -12,7 +12,7 @@ from tests.analytic import rays_down_z, slab
 
 @pytest.mark.parametrize("shift", [0.0, 0.1, 0.2, -0.13])
 @pytest.mark.parametrize("half_width", [0.45, 0.5])
-def test_hierarchical_rendering_of_a_slab_converges_to_the_closed_form(shift, half_width):
+def test_hierarchical_rendering_of_a_slab_converges_to_the_closed_form(shift, half_width, device):
     # A ray down z from z = 4 crosses the slab |z - shift| < w for t in (4 - shift - w, 4 - shift + w):
     # opacity 1 - exp(-3 * 2w), the colour (0.2, 0.4, 0.6) over a white background, and depth
     # E[t | absorbed] of an exponential entering at t0 truncated at length 2w, in closed form.
@@ -23,14 +23,15 @@ def test_hierarchical_rendering_of_a_slab_converges_to_the_closed_form(shift, ha
     field = functools.partial(slab, sigma=s, half_width=half_width, shift=shift)
     errors = []
     for n_fine in (16, 256):
-        renderer = VolumeRenderer(field, hierarchical=True, n_coarse=8, n_fine=n_fine, n_single=0, near=2.0, far=6.0)
-        out = renderer(*rays_down_z(1), deterministic=True)["fine"]
+        renderer = VolumeRenderer(field, hierarchical=True, n_coarse=8, n_fine=n_fine, n_single=0, near=2.0,
+                                  far=6.0).to(device)
+        out = renderer(*(x.to(device) for x in rays_down_z(1)), deterministic=True)["fine"]
         errors.append(abs(out["opacity"][0].item() - exact_opacity))
     # 8 coarse samples are 0.5 apart: the coarse error is O(0.1); 256 fine samples resolve the slab.
     assert errors[1] < 2e-3 and errors[1] <= errors[0]
     assert abs(out["depth"][0].item() - mean_depth) < 0.02
     expected_rgb = exact_opacity * torch.tensor([0.2, 0.4, 0.6], dtype=torch.float64) + (1 - exact_opacity)
-    torch.testing.assert_close(out["rgb"][0], expected_rgb, atol=2e-3, rtol=0)
+    torch.testing.assert_close(out["rgb"][0].cpu(), expected_rgb, atol=2e-3, rtol=0)
 
 
 def test_no_hierarchy_uses_one_network_with_its_own_sample_count():
@@ -41,16 +42,16 @@ def test_no_hierarchy_uses_one_network_with_its_own_sample_count():
     assert VolumeRenderer(slab, True, 8, 16, 40, 2.0, 6.0).evaluations_per_ray == 8 + 24
 
 
-def test_gradients_flow_to_both_networks():
+def test_gradients_flow_to_both_networks(device):
     from nerfexp.nerf.encodings import IdentityEncoding
     from nerfexp.nerf.fields import DiffuseHead, NeRFField
 
     def field():
         return NeRFField(IdentityEncoding(), DiffuseHead, depth=2, width=16, skips=(), density_activation="softplus")
 
-    renderer = VolumeRenderer(field, True, 8, 8, 16, near=2.0, far=6.0)
+    renderer = VolumeRenderer(field, True, 8, 8, 16, near=2.0, far=6.0).to(device)
     origins, directions = rays_down_z(3)
-    out = renderer(origins.float(), directions.float(), deterministic=False)
+    out = renderer(origins.float().to(device), directions.float().to(device), deterministic=False)
     (out["coarse"]["rgb"].sum() + out["fine"]["rgb"].sum()).backward()
     for net in (renderer.coarse, renderer.fine):
         grads = [p.grad for p in net.parameters()]
@@ -62,18 +63,19 @@ class Fog(nn.Module):
     """Density 0.1 everywhere, white."""
 
     def forward(self, positions, directions):
-        sigma = torch.full(positions.shape[:-1], 0.1, dtype=positions.dtype)
-        return FieldOutputs(rgb=torch.ones(*sigma.shape, 3, dtype=positions.dtype), sigma=sigma)
+        sigma = torch.full(positions.shape[:-1], 0.1, dtype=positions.dtype, device=positions.device)
+        return FieldOutputs(rgb=sigma.new_ones(*sigma.shape, 3), sigma=sigma)
 
 
-def test_hierarchical_rendering_reaches_back_to_near():
+def test_hierarchical_rendering_reaches_back_to_near(device):
     # Fog filling [near, far] = [2, 6]: opacity 1 - exp(-0.4). The first coarse sample lies half a spacing
     # past near; the fine samples must still reach [near, t_0], or the fog there is lost for good
     # (an error of e^-0.375 - e^-0.4 = 0.017 with 8 coarse samples, whatever n_fine).
     exact = -math.expm1(-0.4)
     errors = []
     for n_fine in (64, 1024, 16384):
-        renderer = VolumeRenderer(Fog, hierarchical=True, n_coarse=8, n_fine=n_fine, n_single=0, near=2.0, far=6.0)
-        out = renderer(*rays_down_z(1), deterministic=True)["fine"]
+        renderer = VolumeRenderer(Fog, hierarchical=True, n_coarse=8, n_fine=n_fine, n_single=0, near=2.0,
+                                  far=6.0).to(device)
+        out = renderer(*(x.to(device) for x in rays_down_z(1)), deterministic=True)["fine"]
         errors.append(abs(out["opacity"].item() - exact))
     assert errors[0] < 5e-3 and errors[1] < 3e-4 and errors[2] < 2e-5, errors

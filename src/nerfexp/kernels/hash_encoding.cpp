@@ -5,7 +5,9 @@
 //
 // Inputs: unit positions [N, 3] in [0, 1] (float32, contiguous); dense levels as [F, n+1, n+1, n+1] volumes
 // (vertex (i, j, k) of feature f at f (n+1)^3 + (i (n+1) + j) (n+1) + k), the hashed levels' table [Lh, T, F];
-// the levels' cells per side. Output features [N, (Ld + Lh) F], level-major, as the torch path's.
+// the levels' cells per side. Output features [N, (Ld + Lh) F], level-major, as the torch path's. A tensor on
+// another device (a GPU's: the torch path runs there), not contiguous or of another shape is a one-line error
+// (``check_inputs``), never a read through a pointer these loops cannot follow (the dtypes: data_ptr<float>).
 #include <torch/extension.h>
 #include <ATen/Parallel.h>
 
@@ -55,6 +57,38 @@ struct Level {
   int64_t feature_stride;  // 1 for the hashed table, (n+1)^3 for a dense volume
 };
 
+void check_cpu_contiguous(const torch::Tensor& t, const char* name) {
+  TORCH_CHECK(t.device().is_cpu(), "hash_encoding: ", name, " is on ", t.device(), ", not the CPU");
+  TORCH_CHECK(t.is_contiguous(), "hash_encoding: ", name, " is not contiguous");
+}
+
+// The inputs every entry point reads: unit [N, 3]; one [F, n+1, n+1, n+1] volume per dense level; the hashed
+// table [Lh, T, F]; where given, the features' gradient [N, L F].
+void check_inputs(const torch::Tensor& unit, const std::vector<torch::Tensor>& dense, const torch::Tensor& hashed,
+                  const std::vector<int64_t>& dense_res, const std::vector<int64_t>& hashed_res, int64_t features,
+                  const torch::Tensor* grad) {
+  check_cpu_contiguous(unit, "unit");
+  check_cpu_contiguous(hashed, "hashed");
+  TORCH_CHECK(unit.dim() == 2 && unit.size(1) == 3, "hash_encoding: unit must be [N, 3], got ", unit.sizes());
+  TORCH_CHECK(dense.size() == dense_res.size(), "hash_encoding: ", dense.size(), " dense volumes for ",
+              dense_res.size(), " dense resolutions");
+  TORCH_CHECK(hashed.dim() == 3 && hashed.size(0) == static_cast<int64_t>(hashed_res.size()) &&
+                  hashed.size(2) == features,
+              "hash_encoding: hashed must be [", hashed_res.size(), ", T, ", features, "], got ", hashed.sizes());
+  for (size_t d = 0; d < dense.size(); ++d) {
+    check_cpu_contiguous(dense[d], "a dense volume");
+    const int64_t side = dense_res[d] + 1;
+    TORCH_CHECK(dense[d].numel() == features * side * side * side, "hash_encoding: dense level ", d, " holds ",
+                dense[d].numel(), " values, not ", features, " x ", side, "^3");
+  }
+  if (grad != nullptr) {
+    check_cpu_contiguous(*grad, "grad");
+    const int64_t L = static_cast<int64_t>(dense.size() + hashed_res.size());
+    TORCH_CHECK(grad->dim() == 2 && grad->size(0) == unit.size(0) && grad->size(1) == L * features,
+                "hash_encoding: grad must be [", unit.size(0), ", ", L * features, "], got ", grad->sizes());
+  }
+}
+
 std::vector<Level> levels_of(std::vector<torch::Tensor>& dense, torch::Tensor& hashed,
                              const std::vector<int64_t>& dense_res, const std::vector<int64_t>& hashed_res) {
   std::vector<Level> levels;
@@ -73,6 +107,7 @@ std::vector<Level> levels_of(std::vector<torch::Tensor>& dense, torch::Tensor& h
 torch::Tensor hash_encoding_forward(torch::Tensor unit, std::vector<torch::Tensor> dense, torch::Tensor hashed,
                                     std::vector<int64_t> dense_res, std::vector<int64_t> hashed_res,
                                     int64_t features) {
+  check_inputs(unit, dense, hashed, dense_res, hashed_res, features, nullptr);
   const int64_t N = unit.size(0), T = hashed.size(1);
   std::vector<Level> levels = levels_of(dense, hashed, dense_res, hashed_res);
   const int64_t L = static_cast<int64_t>(levels.size()), F = features;
@@ -130,6 +165,7 @@ std::vector<torch::Tensor> hash_encoding_backward(torch::Tensor unit, torch::Ten
                                                   std::vector<torch::Tensor> dense, torch::Tensor hashed,
                                                   std::vector<int64_t> dense_res, std::vector<int64_t> hashed_res,
                                                   int64_t features) {
+  check_inputs(unit, dense, hashed, dense_res, hashed_res, features, &grad);
   std::vector<torch::Tensor> grads;
   for (auto& volume : dense) grads.push_back(torch::zeros_like(volume));
   auto hashed_grad = torch::zeros_like(hashed);
@@ -148,6 +184,7 @@ std::vector<torch::Tensor> hash_encoding_backward_rows(torch::Tensor unit, torch
                                                        std::vector<torch::Tensor> dense, torch::Tensor hashed,
                                                        std::vector<int64_t> dense_res,
                                                        std::vector<int64_t> hashed_res, int64_t features) {
+  check_inputs(unit, dense, hashed, dense_res, hashed_res, features, &grad);
   const int64_t Lh = hashed.size(0), T = hashed.size(1), F = features;
   std::vector<torch::Tensor> grads;
   for (auto& volume : dense) grads.push_back(torch::zeros_like(volume));

@@ -5,14 +5,37 @@
 // within float32 rounding (ATen's vectorized loops may fuse a multiply and an add where this one rounds twice).
 //
 // Inputs: the parameter, its first and second moments, each [R, D] (contiguous float32, R rows of D values);
-// rows [U] (int64, distinct) and their summed gradients values [U, D]; the step's scalars.
+// rows [U] (int64, distinct) and their summed gradients values [U, D]; the step's scalars. A tensor on another
+// device (a GPU's: the torch path runs there), not contiguous or of another shape is a one-line error, never a read
+// through a pointer this loop cannot follow (the dtypes are checked by data_ptr<T>).
 #include <torch/extension.h>
 #include <ATen/Parallel.h>
 
 #include <cmath>
 
+namespace {
+
+void check_cpu_contiguous(const torch::Tensor& t, const char* name) {
+  TORCH_CHECK(t.device().is_cpu(), "lazy_adam: ", name, " is on ", t.device(), ", not the CPU");
+  TORCH_CHECK(t.is_contiguous(), "lazy_adam: ", name, " is not contiguous");
+}
+
+}  // namespace
+
 void lazy_adam_rows(torch::Tensor param, torch::Tensor exp_avg, torch::Tensor exp_avg_sq, torch::Tensor rows,
                     torch::Tensor values, double step, double lr, double beta1, double beta2, double eps) {
+  check_cpu_contiguous(param, "param");
+  check_cpu_contiguous(exp_avg, "exp_avg");
+  check_cpu_contiguous(exp_avg_sq, "exp_avg_sq");
+  check_cpu_contiguous(rows, "rows");
+  check_cpu_contiguous(values, "values");
+  TORCH_CHECK(param.dim() == 2 && exp_avg.sizes() == param.sizes() && exp_avg_sq.sizes() == param.sizes(),
+              "lazy_adam: param, exp_avg and exp_avg_sq must be [R, D] alike, got ", param.sizes(), ", ",
+              exp_avg.sizes(), ", ", exp_avg_sq.sizes());
+  TORCH_CHECK(rows.dim() == 1 && values.dim() == 2 && values.size(0) == rows.size(0) &&
+                  values.size(1) == param.size(1),
+              "lazy_adam: rows [U] and values [U, D] of the parameter's D = ", param.size(1), " expected, got ",
+              rows.sizes(), " and ", values.sizes());
   const int64_t U = rows.size(0), D = values.size(1);
   float* p = param.data_ptr<float>();
   float* m = exp_avg.data_ptr<float>();
