@@ -6,11 +6,13 @@ import json
 import time
 
 import pytest
+import torch
+from hydra.utils import instantiate
 
 from nerfexp import kernels
 from nerfexp.training.machine_share import available_cpus
 from nerfexp.training.module import NeRFModule
-from tests.helpers import run_nerfexp
+from tests.helpers import run_nerfexp, tiny_config
 
 JUMP = 1000.0  # seconds a fake build moves the clock on
 SHORT = ["scale.steps=4", "scale.val_every=2"]
@@ -76,3 +78,16 @@ def test_a_run_records_its_cpu_time_the_others_load_its_cpus_and_threads(tmp_pat
     assert results["cpu_time_s"] > 0 and results["cpus"] == available_cpus()
     assert results["other_load"] is None or results["other_load"] >= 0  # None only without /proc/stat
     assert results["kernel_build_s"] == 0.0  # the default model runs no fused kernel
+
+
+@pytest.mark.parametrize(("overrides", "expected"), [
+    ([], []),  # the positional encoding runs no fused kernel
+    (["encoding=hashgrid"], ["hash_encoding"]),
+    (["encoding=hashgrid", "encoding.position.sparse_gradients=true",
+      "model.optimizer._target_=nerfexp.training.optimizers.LazyAdam"], ["hash_encoding", "lazy_adam"]),
+])
+def test_a_model_names_the_kernels_its_training_runs_on_a_cpu(overrides, expected):
+    model = instantiate(tiny_config(*overrides).model)
+    assert model.kernels() == expected
+    model.to(torch.float64)  # tables no longer float32: the fused kernels would not run
+    assert model.kernels() == []
