@@ -120,6 +120,7 @@ def test_two_cpu_processes_train_and_record_once(ddp_sweep):
     run_dir = ddp_sweep / "0"
     results = read_json(run_dir / "results.json")
     assert (results["processes"], results["steps"], results["batch_rays"]) == (2, 20, 256)
+    assert results["cpu_time_s"] > 0  # both processes' (summed over the ranks as training ends)
     assert sorted(p.name for p in (run_dir / "test").iterdir()) == sorted(
         f"r_{i}{suffix}.png" for i in range(3) for suffix in ("", "_depth", "_error", "_target"))
     # each evaluation recorded once, by rank 0, with the step of the weights it scored

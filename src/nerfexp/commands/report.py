@@ -10,6 +10,7 @@ from nerfexp.commands.arguments import command_parser
 from nerfexp.commands.console import one_line_errors
 from nerfexp.report.folder import write_report
 from nerfexp.report.pictures import VIEWS_SHOWN
+from nerfexp.report.shared_machines import shared_lines
 from nerfexp.rundir.layout import REPORT_HTML, REPORT_MD
 
 
@@ -35,4 +36,6 @@ def main(argv: list[str] | None = None) -> None:
     out = args.out or args.dirs[0]
     with one_line_errors("nerfexp-report"):
         variants = write_report(args.dirs, out, tuple(args.over), args.reference, args.views)
+    for line in shared_lines(variants):  # report.md says it too, beside the table
+        print(f"nerfexp-report: {line}", file=sys.stderr)
     print(f"{len(variants)} variants; report in {out / REPORT_MD} and {out / REPORT_HTML}", file=sys.stderr)

@@ -71,6 +71,7 @@ def train(cfg: DictConfig) -> dict | None:
     from nerfexp.products.trained import check_weights
     from nerfexp.training.callbacks import KeepSigtermHandler
     from nerfexp.training.loggers import finish
+    from nerfexp.training.machine_share import start_threads
     from nerfexp.training.pose_records import RefinedPoses
     from nerfexp.training.precision import fill_precision
     from nerfexp.training.progress import progress_bars
@@ -88,6 +89,11 @@ def train(cfg: DictConfig) -> dict | None:
     bounds = fill_ray_bounds(cfg)
     fill_precision(cfg)
     L.seed_everything(cfg.seed, workers=True, verbose=False)
+    launcher = OmegaConf.to_container(HydraConfig.get().launcher, resolve=True) if sweep else None
+    threads, busy = start_threads(cfg.threads, launcher)  # one line each, before any work
+    log.info("%s", threads)
+    if busy is not None:
+        log.warning("%s", busy)
     runtime = HydraConfig.get().runtime
     choices = {k: v for k, v in runtime.choices.items() if not k.startswith("hydra") and v is not None}
     choices.update(hierarchical=cfg.hierarchical, seed=cfg.seed)

@@ -6,6 +6,11 @@ imported only where it is the one nerfexp built here (``nerfexp.kernels.cache``:
 first); anything else is rebuilt. Why C++ rather than numba or ``torch.compile``: ``benchmarks/kernel_tools.py``
 (docs/acceleration.md).
 
+A build takes about a minute, once per machine and source: it is no part of a run's training time. A run builds
+(or reads from the cache) the kernels its components will use before its training clock starts (``prepare``,
+called by ``nerfexp.training.recorders.RunRecorder``), and ``seconds_spent`` says how long this process spent
+getting kernels, so that a kernel first asked for inside the clock is taken out of it all the same.
+
 Each kernel is compiled -O3 for the architecture's baseline (no -march=native), with OpenMP, as ATen's
 ``at::parallel_for`` uses it.
 """
@@ -39,6 +44,14 @@ def enabled() -> bool:
     return SWITCH_WORDS[value.lower()]
 
 
+_SPENT: dict[str, float] = {}  # kernel name -> seconds its first use in this process took (built or read)
+
+
+def seconds_spent() -> float:
+    """Seconds this process has spent getting kernels (building them, or reading them from the cache), so far."""
+    return sum(_SPENT.values())
+
+
 @functools.cache
 def _built(name: str) -> ModuleType | None:
     """The kernel ``name`` (``NAME.cpp`` beside this file), or None with one log line; a build made now is said
@@ -49,7 +62,9 @@ def _built(name: str) -> ModuleType | None:
     except NotBuilt as error:  # no compiler, no ninja, a failed build, a cache others can write
         log.info("kernel %s not built (%s): the torch path runs instead (docs/acceleration.md)", name, error)
         return None
-    seconds = time.perf_counter() - started
+    finally:
+        _SPENT[name] = time.perf_counter() - started
+    seconds = _SPENT[name]
     if now and failed is None:  # compiled now, not read from the cache: once per machine and source
         log.info("kernel %s built in %.0f s (cached for later runs)", name, seconds)
     elif now:
@@ -61,3 +76,11 @@ def _built(name: str) -> ModuleType | None:
 def kernel(name: str) -> ModuleType | None:
     """The built kernel ``name``, or None where kernels are off or it cannot be built (said once)."""
     return _built(name) if enabled() else None
+
+
+def prepare(names: list[str]) -> float:
+    """Each kernel of ``names`` built or read from the cache now (``kernel``), once; the seconds it took."""
+    before = seconds_spent()
+    for name in dict.fromkeys(names):
+        kernel(name)
+    return seconds_spent() - before

@@ -51,6 +51,11 @@ class Encoding(nn.Module):
     def parameter_groups(self) -> dict[str, dict]:
         return {}
 
+    def kernels(self) -> tuple[str, ...]:
+        """The fused kernels (``nerfexp.kernels``) its training will run where its parameters now are, so that a
+        run builds them before its training clock starts; by default none."""
+        return ()
+
     def set_progress(self, progress: float) -> None:
         """Told before each training step how far training is, ``progress`` = step / steps in [0, 1): for an
         encoding that changes over training (BARF's coarse-to-fine window); by default nothing."""
@@ -391,6 +396,10 @@ class HashGridEncoding(Bounded, Encoding):
         if len(self.hashed):
             parts.append(self._hashed_features(unit).flatten(1))
         return torch.cat(parts, -1).view(*x.shape[:-1], self.out_dim)
+
+    def kernels(self) -> tuple[str, ...]:
+        """hash_encoding where its tables are float32 on a CPU (``_fused_kernel``'s own condition on them)."""
+        return ("hash_encoding",) if self.hashed.device.type == "cpu" and self.hashed.dtype == torch.float32 else ()
 
     def _fused_kernel(self, unit: Tensor):
         """The fused CPU kernel (``nerfexp.kernels``, hash_encoding.cpp) where it computes this forward and its

@@ -12,6 +12,7 @@ from pathlib import Path
 from nerfexp.reading import UnreadableFile
 from nerfexp.report.comparison import Difference, compare_order, tiers
 from nerfexp.report.runs import Run, run_precision
+from nerfexp.report.shared_machines import shared_lines
 from nerfexp.report.variants import PAPER_ABLATION, Variant, difference
 from nerfexp.rundir.layout import PARETO_PLOT, PSNR_PLOT, planned_jobs
 
@@ -157,7 +158,8 @@ def precision_text(variants: list[Variant]) -> tuple[str, bool]:
 
 def markdown(variants: list[Variant], rows: list[dict], runs: list[Run], sources: list[Path],
              reference: Variant | None = None, protocols: str = "") -> str:
-    """report.md: the ``variants`` with their ``rows`` (``table_rows`` against ``reference``), the ranking,
+    """report.md: the ``variants`` with their ``rows`` (``table_rows`` against ``reference``), a line for each
+    comparison by time that holds runs that shared their machine (``shared_lines``), the ranking,
     the paper's order, and the ``runs`` under ``sources`` that did not finish; ``protocols``: which scores these
     are, where it needs saying (the test protocol's, ``nerfexp.report.protocols.compared_runs``; whose LPIPS is left
     out, ``nerfexp.report.lpips_weights.vouched_lpips``)."""
@@ -192,6 +194,7 @@ def markdown(variants: list[Variant], rows: list[dict], runs: list[Run], sources
         f"{', '.join(f'`{s}`' for s in sources)}. Means ± sample standard deviation over each variant's "
         "finished runs. " + machines_text(runs) + (f" {precisions}" if precisions else "")
         + (f" {protocols}" if protocols else ""), "",
+        *(line for text in shared_lines(variants) for line in (text, "")),
         reference_text(reference), "",
         "| " + " | ".join(header) + " |", "|" + "---|" * len(header),
     ]

@@ -39,6 +39,9 @@ PID_LIMIT = 2 ** 31 - 1  # a process id is a C int (pid_t)
 SECONDS = real(0, INTEGER_LIMIT)
 STATES = ("running", "finished", "failed")  # what status.json's state says (nerfexp.rundir.layout.write_status)
 GIVEN, REFINED = "given", "refined"  # results.json's test_cameras (conf/test_cameras/)
+# Other processes' mean busy CPUs (results.json's other_load) above which a run shared its machine: its times are
+# partly its neighbours', and a report says so where it compares them (nerfexp.report.tables.shared_lines)
+SHARED_LOAD = 0.25
 SHA256 = ("64 hexadecimal digits", lambda v: isinstance(v, str) and len(v) == 64
           and all(c in "0123456789abcdef" for c in v))
 
@@ -98,6 +101,11 @@ RESULTS_FIELDS: dict[str, Rule] = {
     "train_time_s": SECONDS,
     "time_per_step_s": SECONDS,
     "rays_per_s": optional(real(0, INTEGER_LIMIT), "not measured"),
+    "kernel_build_s": SECONDS,  # getting the fused kernels, outside train_time_s (nerfexp.kernels)
+    "cpu_time_s": optional(SECONDS, "not recorded"),  # nerfexp.training.machine_share
+    "other_load": optional(real(0, INTEGER_LIMIT), "not measured"),
+    "cpus": NONNEGATIVE_COUNT,
+    "torch_threads": NONNEGATIVE_COUNT,
     "n_params": NONNEGATIVE_COUNT,
     "evaluations_per_ray": real(0, INTEGER_LIMIT),
     "checkpoint.path": TEXT,

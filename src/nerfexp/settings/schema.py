@@ -110,6 +110,7 @@ SCHEMA: dict[str, Rule] = {
     "notes": NOTES,
     "hierarchical": HIERARCHY,
     "resume": optional(PATH, "train from scratch"),
+    "threads": optional(COUNT, "auto: the CPUs this process may use over the jobs run at once"),
     # scale: the sizes the groups read (each checked again where it lands)
     "scale.steps": COUNT,
     "scale.lr": LEARNING_RATE,

@@ -21,6 +21,7 @@ from nerfexp.nerf.schedules import warmup_exponential_decay
 from nerfexp.nerf.volume_renderer import VolumeRenderer, final_output
 from nerfexp.training.collapse import contrast
 from nerfexp.training.metrics import psnr, ssim
+from nerfexp.training.optimizers import update_kernels
 from nerfexp.training.perceptual import LPIPS_NAMES, NOT_SCORED, ImageTooSmall, LpipsScorer, lpips_scorer
 from nerfexp.training.scoring import ScoringProtocols, check_scored
 
@@ -153,6 +154,16 @@ class NeRFModule(ScoringProtocols, L.LightningModule):
             if self.global_rank == 0:
                 log.warning("%d processes: the hash tables' gradients are dense (DDP all-reduces dense gradients); "
                          "encoding.position.sparse_gradients=true applies to one process", self.trainer.world_size)
+
+    def kernels(self) -> list[str]:
+        """The fused kernels (``nerfexp.kernels``) this module's training runs where its parameters now are, each
+        once: its encodings' own (``Encoding.kernels``), and the sparse update of the parameters of those whose
+        gradients are sparse (``nerfexp.training.optimizers.update_kernels``); ``RunRecorder`` builds them before
+        its training clock starts."""
+        encodings = [m for m in self.renderer.modules() if isinstance(m, Encoding)]
+        sparse = [p for encoding in encodings if encoding.sparse_gradients for p in encoding.parameters()]
+        return list(dict.fromkeys([*(name for encoding in encodings for name in encoding.kernels()),
+                                   *update_kernels(sparse)]))
 
     def setup(self, stage: str) -> None:
         """Build the LPIPS scorer (``nerfexp.training.perceptual.lpips_scorer``), once per process: before

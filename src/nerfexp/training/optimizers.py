@@ -40,13 +40,23 @@ def summed_rows(grad: Tensor) -> tuple[Tensor, Tensor]:
     return flat_rows(grad.indices(), sizes), grad.values()
 
 
+SPARSE_UPDATE_KERNEL = "lazy_adam"  # the fused kernel of ``lazy_adam_update``
+
+
+def update_kernels(params: list[Tensor]) -> tuple[str, ...]:
+    """The fused kernels a sparse gradient of ``params`` is updated with (``fused_kernel``'s condition on them):
+    ``SPARSE_UPDATE_KERNEL`` where one is a contiguous float32 parameter on a CPU."""
+    fused = any(p.device.type == "cpu" and p.dtype == torch.float32 and p.is_contiguous() for p in params)
+    return (SPARSE_UPDATE_KERNEL,) if fused else ()
+
+
 def fused_kernel(param: Tensor, values: Tensor):
     """The fused lazy update (``nerfexp.kernels``, lazy_adam.cpp) where it computes ``lazy_adam_update``: a
     contiguous float32 parameter and gradient on a CPU; else None, the torch path (the reference)."""
     if param.device.type != "cpu" or param.dtype != torch.float32 or values.dtype != torch.float32 \
             or not param.is_contiguous():
         return None
-    return kernel("lazy_adam")
+    return kernel(SPARSE_UPDATE_KERNEL)
 
 
 def lazy_adam_update(param: Tensor, grad: Tensor, exp_avg: Tensor, exp_avg_sq: Tensor, step: float, lr: float,

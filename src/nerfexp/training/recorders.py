@@ -20,6 +20,7 @@ from nerfexp import manifest
 from nerfexp.data.views import SPLIT_NAMES
 from nerfexp.errors import NonFiniteError
 from nerfexp.files import atomic_write
+from nerfexp.kernels import prepare, seconds_spent
 from nerfexp.pixels import depth_image, png_bytes, to_uint8
 from nerfexp.rundir.labels import NO_LABELS
 from nerfexp.rundir.layout import (
@@ -35,6 +36,7 @@ from nerfexp.rundir.layout import (
 )
 from nerfexp.training.collapse import blank_views
 from nerfexp.training.loggers import log_hyperparams, log_image, log_labels
+from nerfexp.training.machine_share import Sample, available_cpus, others_cpu_s, sample, share_record
 from nerfexp.training.perceptual import CUSTOM, LPIPS_NAMES, PUBLISHED
 from nerfexp.training.resume import RESUMES, SETTINGS
 
@@ -153,7 +155,8 @@ def keep_metrics_through(output_dir: Path, step: int) -> None:
 
 
 class RunRecorder(L.Callback):
-    """Writes a run's metrics, results and test renders; times the training in wall-clock seconds;
+    """Writes a run's metrics, results and test renders; times the training in wall-clock seconds (and its CPU
+    time, and how busy other processes kept the machine meanwhile: ``nerfexp.training.machine_share``);
     logs ``val/psnr``, ``val/ssim``, ``test/psnr``, ``test/ssim`` (means over the images), and
     ``val/lpips``, ``test/lpips`` where LPIPS is scored.
 
@@ -164,7 +167,14 @@ class RunRecorder(L.Callback):
     file it writes is recorded in the run's manifest as it is written (``nerfexp.manifest``). Where every test
     view rendered nothing, ``results.json``'s ``collapse`` says so (``collapse_record``), whatever the guard did.
 
-    The elapsed time and the last validation PSNR are part of the checkpoint, so a resumed run keeps
+    The fused kernels the module's training runs (``NeRFModule.kernels``) are built, or read from the cache, as
+    training starts and before its clock does (``nerfexp.kernels.prepare``), logged once; a kernel first asked
+    for inside the clock is taken out of it all the same (``nerfexp.kernels.seconds_spent``). ``results.json``
+    records those seconds apart, ``kernel_build_s``, never in ``train_time_s``; beside them ``cpu_time_s``,
+    ``other_load``, ``cpus`` (``nerfexp.training.machine_share.share_record``) and ``torch_threads``.
+
+    The elapsed time (and CPU time, others' CPU time and kernel seconds) and the last validation PSNR are part of
+    the checkpoint, so a resumed run keeps
     counting from where it stopped, and a test in processes that did not train (``trainer=ddp`` spawns
     new ones for ``trainer.test``) reports the step, time and validation of the checkpoint it tests. At
     the end of training the last checkpoint is written again, after the last validation: Lightning's
@@ -190,15 +200,35 @@ class RunRecorder(L.Callback):
         self.labels = {**NO_LABELS, **(labels or {})}  # {"tags": [...], "notes": text or None}
         self.last_val_psnr: float | None = None
         self.elapsed_s, self._started, self.steps, self.trained = 0.0, None, 0, False
+        self.cpu_s: float | None = 0.0  # the training's CPU seconds (None: a resumed checkpoint did not record them)
+        self.others_s: float | None = 0.0  # other processes' busy CPU seconds meanwhile (None: not measured)
+        self.kernel_build_s = 0.0  # seconds spent getting kernels, outside the clock
+        self._start: Sample | None = None  # the clock's start (``nerfexp.training.machine_share.sample``)
+        self._spent_at_start = self._spent_at_fit = 0.0  # ``nerfexp.kernels.seconds_spent`` then
+        self.torch_threads = torch.get_num_threads()
         self._scores: dict[int, dict[str, float]] = {}  # image index -> its measures (MEASURES)
 
     def wall_time_s(self) -> float:
-        return self.elapsed_s + (time.perf_counter() - self._started if self._started is not None else 0.0)
+        """The training's wall-clock seconds so far, those spent getting kernels inside the clock taken out."""
+        if self._started is None:
+            return self.elapsed_s
+        return self.elapsed_s + time.perf_counter() - self._started - (seconds_spent() - self._spent_at_start)
+
+    def totals(self) -> tuple[float, float | None, float | None]:
+        """The training's wall seconds (``wall_time_s``), CPU seconds and other processes' busy CPU seconds so far
+        (``nerfexp.training.machine_share.others_cpu_s``; None where not measured)."""
+        if self._start is None:
+            return self.elapsed_s, self.cpu_s, self.others_s
+        now = sample()
+        others = others_cpu_s(self._start, now)
+        return (self.wall_time_s(), None if self.cpu_s is None else self.cpu_s + now.cpu_s - self._start.cpu_s,
+                None if self.others_s is None or others is None else self.others_s + others)
 
     def on_fit_start(self, trainer, pl_module):
         """Declare the run's hyper-parameters (its choices, overrides and the labels it has) to each logger
         (``nerfexp.training.loggers``: TensorBoard's HPARAMS view, MLflow's parameters, ...), and its labels
         where a logger keeps them apart (W&B's tags and notes, MLflow's run tags)."""
+        self._spent_at_fit = seconds_spent()
         if trainer.is_global_zero:
             params = {**self.choices, **dict(o.lstrip("+~").split("=", 1) for o in self.overrides if "=" in o),
                       **{key: value for key, value in self.labels.items() if value}}
@@ -207,7 +237,17 @@ class RunRecorder(L.Callback):
                 log_labels(logger, **self.labels)
 
     def on_train_start(self, trainer, pl_module):
-        self._started = time.perf_counter()
+        """The kernels the training runs, built or read now, then the clock started."""
+        names = pl_module.kernels()
+        if names:
+            prepare(names)  # a build is said by its own line, with its seconds (nerfexp.kernels)
+            if trainer.is_global_zero:
+                log.info("kernels %s ready before the training clock started (the seconds: results.json's "
+                         "kernel_build_s)", ", ".join(names))
+        self.torch_threads = torch.get_num_threads()
+        self._spent_at_start = seconds_spent()
+        self._start = sample()
+        self._started = self._start.wall_s
 
     def on_train_batch_end(self, trainer, pl_module, outputs, batch, batch_idx):
         self.steps = trainer.global_step  # the step of the weights that the evaluations score
@@ -218,18 +258,35 @@ class RunRecorder(L.Callback):
             trainer.should_stop = True
 
     def on_train_end(self, trainer, pl_module):
-        self.elapsed_s, self._started, self.steps = self.wall_time_s(), None, trainer.global_step
+        wall, cpu, others = self.totals()
+        if trainer.world_size > 1 and cpu is not None:  # the run's CPU time is all its processes'
+            own = cpu
+            cpu = float(trainer.strategy.reduce(torch.tensor(cpu, dtype=torch.float64, device=pl_module.device),
+                                                reduce_op="sum"))
+            if others is not None and trainer.num_nodes == 1:  # this machine's counters hold the others' too
+                others = max(0.0, others - (cpu - own))
+        self.kernel_build_s += seconds_spent() - self._spent_at_fit
+        self.elapsed_s, self.cpu_s, self.others_s = wall, cpu, others
+        self._started, self._start, self.steps = None, None, trainer.global_step
         self.trained = True
         checkpoint = trainer.checkpoint_callback
         if checkpoint is not None and checkpoint.last_model_path:  # none yet: ModelCheckpoint saves it next
             trainer.save_checkpoint(checkpoint.last_model_path)
 
     def state_dict(self) -> dict:
-        return {"elapsed_s": self.wall_time_s(), "last_val_psnr": self.last_val_psnr}
+        wall, cpu, others = self.totals()
+        kernels = self.kernel_build_s + (seconds_spent() - self._spent_at_fit if not self.trained else 0.0)
+        return {"elapsed_s": wall, "last_val_psnr": self.last_val_psnr, "cpu_time_s": cpu, "others_cpu_s": others,
+                "kernel_build_s": kernels, "torch_threads": self.torch_threads}
 
     def load_state_dict(self, state_dict: dict) -> None:
+        """What a checkpoint recorded of the training so far; of an earlier nerfexp's, which recorded no CPU
+        times, those are unknown (None) and stay so."""
         if not self.trained:  # a test after training in this process keeps what it measured
             self.elapsed_s, self.last_val_psnr = state_dict["elapsed_s"], state_dict.get("last_val_psnr")
+            self.cpu_s, self.others_s = state_dict.get("cpu_time_s"), state_dict.get("others_cpu_s")
+            self.kernel_build_s = state_dict.get("kernel_build_s", 0.0)
+            self.torch_threads = state_dict.get("torch_threads", self.torch_threads)
 
     def on_save_checkpoint(self, trainer, pl_module, checkpoint: dict) -> None:
         if self.settings is not None:
@@ -305,7 +362,9 @@ class RunRecorder(L.Callback):
         results = {
             **test_scores, **pl_module.lpips_record(test_scores), **collapse_record(scores),
             "val_psnr": self.last_val_psnr,
-            "train_time_s": self.elapsed_s, "steps": steps,
+            "train_time_s": self.elapsed_s, "steps": steps, "kernel_build_s": self.kernel_build_s,
+            **share_record(self.elapsed_s, self.cpu_s, self.others_s, available_cpus()),
+            "torch_threads": self.torch_threads,
             "time_per_step_s": self.elapsed_s / max(steps, 1),
             "rays_per_s": batch_rays * steps / self.elapsed_s if batch_rays and self.elapsed_s > 0 else None,
             "batch_rays": batch_rays, "processes": trainer.world_size, "precision": str(trainer.precision),

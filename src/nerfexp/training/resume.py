@@ -48,6 +48,7 @@ MAY_DIFFER = (
     "data.root",  # where the scene lies, not what it is
     # where it runs: the processes share each global batch, the same objective (nerfexp.data.rays.RandomRays)
     "trainer.accelerator", "trainer.devices", "trainer.num_nodes", "trainer.strategy",
+    "threads",  # torch's threads: how fast, not what is trained
     "model.compile",  # the same networks, compiled
     "model.optimizer.fused",  # the same update, by one kernel or a loop
     "trainer.plugins",  # how checkpoints are written (nerfexp.training.checkpoints), not what is trained

@@ -1,0 +1,134 @@
+"""The machine a run shares: CPU counters read from /proc/stat texts written by hand, the others' load from known
+counter values, and the thread count from the CPUs and the jobs at once."""
+
+import pytest
+import torch
+
+from nerfexp.training import machine_share
+from nerfexp.training.machine_share import (
+    BUSY_LOAD,
+    Sample,
+    busy_line,
+    busy_ticks,
+    intra_op_threads,
+    other_load,
+    others_cpu_s,
+    parallel_jobs,
+    read_busy_s,
+    requested_threads,
+    share_record,
+    start_threads,
+)
+
+# user nice system idle iowait irq softirq steal guest guest_nice
+STAT = """cpu  100 100 100 100 100 100 100 100 100 100
+cpu0 10 1 5 100 7 2 3 4 50 60
+cpu1 20 0 10 300 0 0 0 0 0 0
+cpu2 1 1 1 1 1 1 1 1 1 1
+intr 123 4 5
+ctxt 999
+"""
+# busy = user + nice + system + irq + softirq + steal (idle and iowait left out; guest counted in user already):
+# cpu0 10+1+5+2+3+4 = 25, cpu1 20+0+10 = 30, cpu2 1+1+1+1+1+1 = 6
+JOBLIB = "hydra_plugins.hydra_joblib_launcher.joblib_launcher.JoblibLauncher"
+
+
+@pytest.mark.parametrize(("cpus", "expected"), [(None, 61), ({0}, 25), ({1}, 30), ({0, 2}, 31), ({2, 7}, 6)])
+def test_busy_ticks_sum_the_allowed_cpus_lines_but_idle_iowait_and_guest(cpus, expected):
+    assert busy_ticks(STAT, cpus) == expected
+
+
+def test_a_text_without_the_allowed_cpus_lines_gives_no_count_never_a_guess():
+    assert busy_ticks(STAT, {5}) is None
+    assert busy_ticks("cpu  1 2 3 4\nintr 5\n") is None  # the total line alone is not a CPU's
+
+
+def test_a_system_without_counters_records_none(tmp_path):
+    assert read_busy_s(tmp_path / "no such file") is None
+    (tmp_path / "stat").write_text("intr 1 2\n")
+    assert read_busy_s(tmp_path / "stat") is None
+
+
+def test_the_others_cpu_seconds_are_the_systems_busy_seconds_less_the_runs_own():
+    # 10 s of wall time; the allowed CPUs busy for 35 s of CPU time, 15 of them this process's: 20 s others', 2 CPUs
+    start, end = Sample(5.0, 2.0, 1000.0), Sample(15.0, 17.0, 1035.0)
+    assert others_cpu_s(start, end) == 20.0
+    assert other_load(others_cpu_s(start, end), end.wall_s - start.wall_s) == 2.0
+
+
+def test_others_are_never_negative_and_unknown_where_either_sample_has_no_counters():
+    assert others_cpu_s(Sample(0.0, 0.0, 10.0), Sample(1.0, 1.02, 11.0)) == 0.0  # ticks of 1/100 s: 1.0 < 1.02
+    assert others_cpu_s(Sample(0.0, 0.0, None), Sample(1.0, 1.0, 5.0)) is None
+    assert others_cpu_s(Sample(0.0, 0.0, 5.0), Sample(1.0, 1.0, None)) is None
+    assert other_load(None, 10.0) is None
+    assert other_load(3.0, 0.0) is None
+
+
+def test_results_record_the_cpu_time_the_others_load_and_the_cpus():
+    assert share_record(8.0, 6.5, 2.0, 2) == {"cpu_time_s": 6.5, "other_load": 0.25, "cpus": 2}
+    assert share_record(8.0, 6.5, None, 2)["other_load"] is None
+
+
+def test_a_busy_machine_is_said_in_one_line_from_two_samples():
+    # 0.4 s apart: 1.0 s of busy CPU time, 0.2 of it this process's: others keep 0.8 / 0.4 = 2 CPUs busy
+    line = busy_line(Sample(0.0, 0.0, 50.0), Sample(0.4, 0.2, 51.0), 2)
+    assert line is not None and "\n" not in line
+    assert "2.0 of the 2 CPUs" in line and "slower" in line and "shared" in line
+
+
+def test_a_quiet_machine_or_one_without_counters_says_nothing():
+    wall = 0.5  # values exact in binary: others' CPU seconds 0.25 over 0.5 s, exactly the threshold: not above it
+    assert busy_line(Sample(0.0, 0.0, 50.0), Sample(wall, 0.25, 50.25 + BUSY_LOAD * wall), 2) is None
+    assert busy_line(Sample(0.0, 0.0, 50.0), Sample(wall, 0.25, 50.5 + 0.125), 2) is not None  # 0.75 CPUs
+    assert busy_line(Sample(0.0, 0.0, None), Sample(wall, 0.1, None), 2) is None
+
+
+@pytest.mark.parametrize(("cpus", "jobs", "requested", "expected"), [
+    (2, 1, None, 2),  # alone: every CPU it may use
+    (2, 2, None, 1),  # two runs at once on 2 CPUs: one thread each
+    (2, 3, None, 1),  # more jobs than CPUs: still one, never 0
+    (16, 3, None, 5),  # 16 // 3
+    (2, 2, 4, 4),  # the user's number stands
+    (1, 1, None, 1),
+])
+def test_threads_are_the_cpus_over_the_jobs_at_once_unless_asked_for(cpus, jobs, requested, expected):
+    assert intra_op_threads(cpus, jobs, requested) == expected
+
+
+@pytest.mark.parametrize(("launcher", "cpus", "expected"), [
+    (None, 8, 1),  # a single run
+    ({"_target_": "hydra._internal.core_plugins.basic_launcher.BasicLauncher"}, 8, 1),  # one job after another
+    ({"_target_": JOBLIB, "n_jobs": 3}, 8, 3),
+    ({"_target_": JOBLIB, "n_jobs": -1}, 8, 8),  # joblib's -1: one per CPU
+    ({"_target_": JOBLIB, "n_jobs": -2}, 8, 7),  # all but one
+    ({"_target_": JOBLIB, "n_jobs": -20}, 8, 1),
+    ({"_target_": "hydra_plugins.hydra_submitit_launcher.submitit_launcher.SlurmLauncher"}, 8, 1),
+])
+def test_the_jobs_a_multirun_starts_at_once(launcher, cpus, expected):
+    assert parallel_jobs(launcher, cpus) == expected
+
+
+def test_the_setting_wins_over_omp_num_threads_which_wins_over_auto():
+    assert requested_threads(3, {"OMP_NUM_THREADS": "1"}) == 3
+    assert requested_threads(None, {"OMP_NUM_THREADS": "2"}) == 2
+    assert requested_threads(None, {"OMP_NUM_THREADS": "0"}) is None  # not a thread count
+    assert requested_threads(None, {"OMP_NUM_THREADS": "two"}) is None
+    assert requested_threads(None, {}) is None
+
+
+@pytest.fixture
+def torch_threads():
+    saved = torch.get_num_threads()
+    yield
+    torch.set_num_threads(saved)
+
+
+def test_a_joblib_multirun_on_four_cpus_with_two_jobs_gives_each_two_threads(monkeypatch, torch_threads):
+    monkeypatch.delenv("OMP_NUM_THREADS", raising=False)
+    monkeypatch.setattr(machine_share, "available_cpus", lambda: 4)
+    monkeypatch.setattr(machine_share, "BUSY_SAMPLE_S", 0.0)
+    line, _ = start_threads(None, {"_target_": JOBLIB, "n_jobs": 2})
+    assert torch.get_num_threads() == 2
+    assert line == "torch threads: 2 (auto: 4 CPUs this process may use, 2 jobs at once; threads=N sets it)"
+    line, _ = start_threads(1, {"_target_": JOBLIB, "n_jobs": 2})
+    assert torch.get_num_threads() == 1 and "asked for" in line

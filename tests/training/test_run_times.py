@@ -1,0 +1,93 @@
+"""A run's times as results.json records them: a fused kernel's one-off build is never training time (a fake
+build moves the clock on by ``JUMP`` seconds, far more than a tiny run trains, so no timing is needed), and the
+run records its CPU time, the others' load, the CPUs and the torch threads beside its wall time."""
+
+import json
+import time
+
+import pytest
+import torch
+from hydra.utils import instantiate
+
+from nerfexp import kernels
+from nerfexp.training.machine_share import available_cpus
+from nerfexp.training.module import NeRFModule
+from tests.helpers import run_nerfexp, tiny_config
+
+JUMP = 1000.0  # seconds a fake build moves the clock on
+SHORT = ["scale.steps=4", "scale.val_every=2"]
+
+
+@pytest.fixture
+def slow_builds(monkeypatch):
+    """Every kernel "built" by a fake whose build moves ``time.perf_counter`` on by ``JUMP``; the names built, in
+    order. Kernels are asked for afresh (the process's cache of them cleared before and after)."""
+    offset, real, built = [0.0], time.perf_counter, []
+
+    def build(name: str, source: bytes):
+        built.append(name)
+        offset[0] += JUMP
+        return object(), True, None  # a module nothing calls: the default run encodes positions with posenc
+
+    monkeypatch.setattr(time, "perf_counter", lambda: real() + offset[0])
+    monkeypatch.setattr(kernels, "cached_kernel", build)
+    monkeypatch.setattr(kernels, "_SPENT", {})
+    monkeypatch.delenv(kernels.SWITCH, raising=False)
+    kernels._built.cache_clear()
+    yield built
+    kernels._built.cache_clear()
+
+
+def train(tmp_path, tiny, *overrides: str) -> tuple[dict, list[dict], str]:
+    result = run_nerfexp(*tiny, *SHORT, *overrides, f"hydra.run.dir={tmp_path}", cwd=tmp_path)
+    assert result.returncode == 0, result.stderr[-3000:]
+    metrics = [json.loads(line) for line in (tmp_path / "metrics.jsonl").read_text().splitlines()]
+    return json.loads((tmp_path / "results.json").read_text()), metrics, result.stdout + result.stderr
+
+
+def test_the_kernels_a_run_uses_are_built_before_its_clock_starts_and_recorded_apart(
+        tmp_path, tiny, slow_builds, monkeypatch):
+    monkeypatch.setattr(NeRFModule, "kernels", lambda self: ["hash_encoding"])
+    results, metrics, output = train(tmp_path, tiny)
+    assert slow_builds == ["hash_encoding"]  # once, before training
+    assert results["kernel_build_s"] >= JUMP
+    assert results["train_time_s"] < JUMP and all(m["wall_time_s"] < JUMP for m in metrics)
+    assert "kernel hash_encoding built in 1000 s" in output  # the build said once, with its seconds
+    assert "kernels hash_encoding ready before the training clock started" in output
+
+
+def test_a_kernel_first_asked_for_inside_the_clock_is_taken_out_of_it(tmp_path, tiny, slow_builds, monkeypatch):
+    started = NeRFModule.on_train_batch_start
+
+    def first_step_asks(self, batch, batch_idx):
+        kernels.kernel("lazy_adam")  # a kernel no component declared, asked for at the first step
+        return started(self, batch, batch_idx)
+
+    monkeypatch.setattr(NeRFModule, "kernels", lambda self: [])
+    monkeypatch.setattr(NeRFModule, "on_train_batch_start", first_step_asks)
+    results, metrics, _ = train(tmp_path, tiny)
+    assert slow_builds == ["lazy_adam"]
+    assert results["kernel_build_s"] >= JUMP
+    assert results["train_time_s"] < JUMP and all(m["wall_time_s"] < JUMP for m in metrics)
+
+
+def test_a_run_records_its_cpu_time_the_others_load_its_cpus_and_threads(tmp_path, tiny, monkeypatch):
+    monkeypatch.setenv("OMP_NUM_THREADS", "1")
+    results, _, output = train(tmp_path, tiny, "threads=2")  # the setting wins over OMP_NUM_THREADS
+    assert results["torch_threads"] == 2 and "torch threads: 2 (asked for" in output
+    assert results["cpu_time_s"] > 0 and results["cpus"] == available_cpus()
+    assert results["other_load"] is None or results["other_load"] >= 0  # None only without /proc/stat
+    assert results["kernel_build_s"] == 0.0  # the default model runs no fused kernel
+
+
+@pytest.mark.parametrize(("overrides", "expected"), [
+    ([], []),  # the positional encoding runs no fused kernel
+    (["encoding=hashgrid"], ["hash_encoding"]),
+    (["encoding=hashgrid", "encoding.position.sparse_gradients=true",
+      "model.optimizer._target_=nerfexp.training.optimizers.LazyAdam"], ["hash_encoding", "lazy_adam"]),
+])
+def test_a_model_names_the_kernels_its_training_runs_on_a_cpu(overrides, expected):
+    model = instantiate(tiny_config(*overrides).model)
+    assert model.kernels() == expected
+    model.to(torch.float64)  # tables no longer float32: the fused kernels would not run
+    assert model.kernels() == []
