@@ -52,7 +52,9 @@ def run(preset: list[str], seed: int, scene: list[str], run_dir: Path) -> dict:
     result = json.loads((run_dir / "results.json").read_text())
     return {"seed": seed, "psnr": result["test_psnr"], "ssim": result["test_ssim"], "train_s": result["train_time_s"],
             "steps": result["steps"], "s_per_step": result["time_per_step_s"],
-            "evaluations_per_ray": result["evaluations_per_ray"], "precision": result["precision"],
+            "evaluations_per_ray": result["evaluations_per_ray"],
+            "colour_evaluations_per_ray": result.get("colour_evaluations_per_ray"),  # recorded by later nerfexp
+            "precision": result["precision"],
             "device": result["machine"]["device"], "choices": result["choices"]}
 
 

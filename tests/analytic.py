@@ -31,7 +31,7 @@ import numpy as np
 import torch
 from torch import Tensor, nn
 
-from nerfexp.nerf.fields import FieldOutputs
+from nerfexp.nerf.fields import FieldOutputs, PositionalOutputs
 
 
 def segments_truth(starts: Tensor, ends: Tensor, density: float, near: float, far: float) -> tuple[Tensor, Tensor]:
@@ -116,9 +116,16 @@ class AnalyticField(nn.Module, abc.ABC):
 
     def forward(self, positions: Tensor, directions: Tensor) -> FieldOutputs:
         """positions [..., S, 3], directions [..., S or 1, 3] (unused) -> rgb [..., S, 3], sigma [..., S]."""
-        sigma = self.density(positions)
-        rgb = positions.new_tensor(self.colour).expand(*sigma.shape, 3)
-        return FieldOutputs(rgb=rgb, sigma=sigma)
+        return self.coloured(self.positional(positions), directions)
+
+    def positional(self, positions: Tensor) -> PositionalOutputs:
+        """The density at positions [..., 3], the positions themselves as the features (``NeRFField``'s stages)."""
+        return PositionalOutputs(sigma=self.density(positions), features=positions)
+
+    def coloured(self, positional: PositionalOutputs, directions: Tensor) -> FieldOutputs:
+        """The field's outputs from its ``positional`` ones; ``directions`` unused."""
+        rgb = positional.features.new_tensor(self.colour).expand(*positional.sigma.shape, 3)
+        return FieldOutputs(rgb=rgb, sigma=positional.sigma)
 
     def truth(self, origins: Tensor, directions: Tensor, near: float, far: float,
               background: tuple[float, float, float] = (1.0, 1.0, 1.0)) -> dict[str, Tensor]:

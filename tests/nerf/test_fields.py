@@ -4,9 +4,10 @@ import math
 import pytest
 import torch
 
-from nerfexp.nerf.encodings import IdentityEncoding, PositionalEncoding
+from nerfexp.nerf.encodings import HashGridEncoding, IdentityEncoding, PositionalEncoding
 from nerfexp.nerf.fields import DiffuseHead, NeRFField, SphericalHarmonicsHead, ViewMLPHead, sh_basis
 from nerfexp.nerf.reflection import ReflectionHead, normal_penalties
+from nerfexp.nerf.volume_renderer import query_packed, query_thresholded
 
 
 def paper_field(view_head=None):
@@ -134,3 +135,37 @@ def test_the_reflection_penalties_train_the_density_and_are_left_out_without_gra
     with torch.no_grad():  # rendering for evaluation: colour and density only, no second pass
         rgb, sigma, penalties = field(x, d)
     assert rgb.shape == (50, 3) and ((rgb >= 0) & (rgb <= 1)).all() and sigma.shape == (50,) and penalties is None
+
+
+@pytest.mark.parametrize("threshold", [1e-30, 0.03])
+def test_an_alpha_threshold_asks_the_colour_of_a_real_field_only_where_it_renders_and_changes_nothing_else(threshold):
+    # A real field (the hash grid's NGP field): with a threshold below every alpha, the two-stage query equals the
+    # one-stage one, values and gradients; with a threshold, the samples it keeps answer as before and the
+    # others zeros, and the gradient reaches the tables only through the samples kept.
+    torch.manual_seed(0)
+    encoding = HashGridEncoding(n_levels=4, features_per_level=2, log2_table_size=10, coarsest=4, finest=32,
+                                aabb=[[-1.0] * 3, [1.0] * 3])
+    for table in encoding.parameters():  # a trained-looking field: densities that differ from place to place
+        torch.nn.init.uniform_(table, -1.0, 1.0)
+    field = NeRFField(encoding, lambda width: DiffuseHead(width), depth=1, width=16, skips=(),
+                      density_activation="softplus", density_bias=-1.0)
+    points = torch.rand(4, 20, 3) * 2 - 1
+    viewdirs = torch.nn.functional.normalize(torch.randn(4, 3), dim=-1)
+    keep = torch.rand(4, 20) < 0.7
+    lengths = torch.full((4, 20), 0.1)
+    plain = query_packed(field, points, viewdirs, keep)
+    (plain.rgb.sum() + plain.sigma.sum()).backward()
+    plain_grad = [p.grad.clone() for p in field.parameters()]
+    field.zero_grad()
+    thresholded, coloured = query_thresholded(field, points, viewdirs, keep, lengths, threshold)
+    (thresholded.rgb.sum() + thresholded.sigma.sum()).backward()
+    chosen = keep & (-torch.expm1(-plain.sigma.detach() * 0.1) >= threshold)
+    assert coloured == chosen.sum() > 0
+    torch.testing.assert_close(thresholded.sigma, torch.where(chosen, plain.sigma, 0))
+    torch.testing.assert_close(thresholded.rgb, torch.where(chosen[..., None], plain.rgb, 0))
+    if threshold < 1e-20:  # below every alpha: the same query
+        assert chosen.equal(keep)
+        for p, g in zip(field.parameters(), plain_grad, strict=True):
+            torch.testing.assert_close(p.grad, g)
+    else:
+        assert 0 < chosen.sum() < keep.sum()

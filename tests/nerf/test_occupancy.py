@@ -9,7 +9,7 @@ import torch
 
 from nerfexp.nerf.fields import FieldOutputs
 from nerfexp.nerf.occupancy import OccupancyGrid, cell_corners, cell_indices, density_threshold
-from nerfexp.nerf.volume_renderer import VolumeRenderer, padded_size, query_packed
+from nerfexp.nerf.volume_renderer import VolumeRenderer, padded_size, query_packed, query_thresholded
 from tests.analytic import GaussianBlob, Slab, aimed_rays
 
 BOX = [[-1.0, -1.0, -1.0], [1.0, 1.0, 1.0]]
@@ -218,3 +218,105 @@ def test_a_packed_batch_is_padded_with_kept_points_and_gives_each_kept_sample_it
     torch.testing.assert_close(rgb, torch.where(keep[..., None], points * 2, 0), rtol=0, atol=0)
     torch.testing.assert_close(sigma, torch.where(keep, points[..., 0], 0), rtol=0, atol=0)
     assert penalties is None  # none answered, none made up
+
+
+def blob_alphas(blob, origins, directions, out):
+    """The alpha 1 - exp(-sigma delta) [B, S] of each sample of a render ``out`` of rays ``origins``,
+    ``directions`` [B, 3] through ``blob``, from its density at the samples (float64: independent of the
+    renderer's arithmetic)."""
+    t_starts, t_ends = out["t_starts"].double(), out["t_ends"].double()
+    points = origins.double()[:, None] + directions.double()[:, None] * t_starts[..., None]
+    lengths = torch.linalg.vector_norm(directions.double(), dim=-1)[:, None]
+    return -torch.expm1(-blob.density(points) * (t_ends - t_starts) * lengths)
+
+
+@pytest.mark.parametrize("threshold", [1e-3, 1e-2, 0.05])
+def test_an_alpha_threshold_colours_exactly_the_samples_above_it_and_moves_a_pixel_by_no_more_than_it_implies(
+        threshold):
+    # Every cell occupied (a new grid, no update), no early termination: the threshold alone leaves samples out.
+    # A sample left out absorbs nothing, so the render moves by at most the share of light the left-out samples
+    # absorbed in the full render (the sum of their weights): the light they took now goes on to later
+    # samples or the background, and a colour in [0, 1] moves by at most that share. Each left-out sample has
+    # alpha below the threshold, so the share is also at most 1 - (1 - threshold)^(number left out).
+    blob = GaussianBlob(peak=5.0, radius=0.3)
+    box = [[-4.0] * 3, [4.0] * 3]
+    plain, thresholded, stats = render_pair(blob, OccupancyGrid(resolution=4, early_stop_transmittance=0.0, aabb=box))
+    _, thresholded, stats = render_pair(blob, OccupancyGrid(resolution=4, early_stop_transmittance=0.0, aabb=box,
+                                                            alpha_threshold=threshold))
+    origins, directions = aimed_rays(2048, torch.Generator().manual_seed(1), impact=1.2, distance=(3.5, 4.5))
+    alpha = blob_alphas(blob, origins, directions, plain["coarse"])
+    left_out = alpha < threshold
+    assert stats["samples_per_ray"] == 128  # every density evaluated
+    expected = (~left_out).sum().item() / 2048  # the colour head: exactly the samples at or above the threshold
+    assert stats["colour_samples_per_ray"] == pytest.approx(expected, abs=1.5 / 2048)  # float32 ties: a sample
+    share = (plain["coarse"]["weights"].double() * left_out).sum(-1)  # [B]
+    moved = (plain["coarse"]["rgb"] - thresholded["coarse"]["rgb"]).abs().amax(-1).double()
+    assert (moved <= share + 1e-6).all()
+    assert (share <= 1 - (1 - threshold) ** left_out.sum(-1) + 1e-9).all()
+    assert moved.max() > 0  # something was left out: the test can fail
+    # the samples left out absorb nothing: the weights there are exactly 0
+    assert (thresholded["coarse"]["weights"][alpha < threshold * 0.99] == 0).all()
+
+
+def test_alpha_threshold_query_colours_the_samples_at_or_above_it_and_zeroes_the_others():
+    # query_thresholded alone, against alphas computed here: the slab's density 3 over intervals of 0.1 and
+    # 0.001 gives alpha 0.259 and 0.003; threshold 0.01 keeps exactly the long intervals inside the slab
+    slab = Slab(normal=(0.0, 0.0, 1.0), lower=-0.5, upper=0.5, density=3.0, colour=(0.1, 0.2, 0.9))
+    generator = torch.Generator().manual_seed(0)
+    points = torch.rand(6, 30, 3, generator=generator, dtype=torch.float64) * 2 - 1  # half in the slab
+    long = torch.rand(6, 30, generator=generator) < 0.5
+    lengths = torch.where(long, 0.1, 0.001).double()
+    keep = torch.rand(6, 30, generator=generator) < 0.8
+    outputs, coloured = query_thresholded(slab, points, torch.zeros(6, 3, dtype=torch.float64), keep, lengths, 0.01)
+    inside = slab.density(points) > 0
+    chosen = keep & inside & long
+    assert coloured == chosen.sum() > 0 and (keep & inside & ~long).any()
+    torch.testing.assert_close(outputs.sigma, torch.where(chosen, 3.0, 0.0).double(), rtol=0, atol=0)
+    torch.testing.assert_close(outputs.rgb, torch.where(chosen[..., None], torch.tensor([0.1, 0.2, 0.9], dtype=torch.float64),
+                                                        0.0), rtol=0, atol=0)
+
+
+def test_march_steps_measure_the_threshold_over_a_step_of_the_box_diagonal():
+    # BOX's diagonal 2 sqrt(3) = 3.464 over 64 steps: 0.05413; sigma_t = -log(0.99) / 0.05413 = 0.18568, against
+    # 0.04642 over the diagonal of a cell 2/16 wide. A slab of density 0.1 lies between the two: occupied over
+    # the cell's diagonal, empty over a step.
+    grid = OccupancyGrid(resolution=16, aabb=BOX, march_steps=64)
+    assert grid.cell_thresholds() == pytest.approx(0.18568, rel=1e-4)
+    assert OccupancyGrid(resolution=16, aabb=BOX).cell_thresholds() == pytest.approx(0.046421, rel=1e-4)
+    # A small dense blob far from the slab's cells at x < -0.5 keeps the mean estimate (0.4: its mass
+    # 200 (2 pi)^1.5 0.1^3 = 3.1 over the box's volume 8) above both sigma_t, so sigma_t decides.
+    faint = Slab(normal=(0.0, 0.0, 1.0), lower=-0.25, upper=0.25, density=0.1)
+    blob = GaussianBlob(centre=(0.7, 0.7, 0.7), peak=200.0, radius=0.1)
+    field = SimpleNamespace(density=lambda x: faint.density(x) + blob.density(x))
+    z_lower = -1 + cell_corners(16)[:, 2] * 2 / 16
+    x_upper = -1 + (cell_corners(16)[:, 0] + 1) * 2 / 16
+    slab_cells = (z_lower >= -0.25) & (z_lower + 2 / 16 <= 0.25) & (x_upper <= -0.5)
+    assert slab_cells.sum() == 4 * 16 * 4  # 4 layers in z, 16 in y, 4 in x
+    assert trained_grid(field).occupied[slab_cells].all()
+    stepped = trained_grid(field, march_steps=64)
+    assert stepped.density.mean() > stepped.cell_thresholds()
+    assert not stepped.occupied[slab_cells].any() and stepped.occupied.any()
+
+
+def test_update_occupied_re_evaluates_the_occupied_cells_besides_a_random_quarter():
+    # Four occupied cells of 512 (a cube 0.5 wide at a corner of 4 cells 0.25 wide, R = 8 over BOX): after the
+    # warm-up, a quarter (128) at random and 128 draws from the 4 occupied cells. Each occupied cell escapes
+    # both with probability 0.75 (3/4)^128 < 1e-16: the density gone, all four halve at once.
+    cube = SimpleNamespace(density=lambda x: torch.where((x > 0.5).all(-1), 5.0, 0.0))
+    grid = OccupancyGrid(resolution=8, update_every=1, warmup_steps=1, decay=0.5, aabb=BOX, update_occupied=True)
+    torch.manual_seed(0)
+    grid.update(0, [cube.density])
+    occupied = grid.occupied.clone()
+    assert occupied.sum() == 8  # x, y, z > 0.5: 2 cells per axis of 0.25
+    before = grid.density.clone()
+    grid.update(1, [lambda x: torch.zeros(len(x))])
+    assert torch.equal(grid.density[occupied], before[occupied] / 2)
+    cells = grid.cells_to_update(2)
+    assert len(cells) == len(torch.unique(cells)) <= 128 + 128
+    # without it, the 8 occupied cells are among a random quarter only: some keep their density
+    plain = OccupancyGrid(resolution=8, update_every=1, warmup_steps=1, decay=0.5, aabb=BOX)
+    torch.manual_seed(0)
+    plain.update(0, [cube.density])
+    plain.update(1, [lambda x: torch.zeros(len(x))])
+    assert (plain.density[occupied] == before[occupied]).any()
+    assert len(plain.cells_to_update(2)) == 128

@@ -79,3 +79,20 @@ def test_hierarchical_rendering_reaches_back_to_near(device):
         out = renderer(*(x.to(device) for x in rays_down_z(1)), deterministic=True)["fine"]
         errors.append(abs(out["opacity"].item() - exact))
     assert errors[0] < 5e-3 and errors[1] < 3e-4 and errors[2] < 2e-5, errors
+
+
+def test_the_sparsity_regularizer_is_the_optical_depth_of_the_samples_worked_by_hand():
+    # 40 samples at the midpoints of bins 0.1 wide over [2, 6]: t = 2.05, 2.15, ..., 5.95, each standing for
+    # [t_i, t_{i+1}] (0.1; the last [5.95, 6]: 0.05). A ray down z from z = 4 is at z = 4 - t: the slab |z| < 0.5
+    # holds the 10 samples t = 3.55, ..., 4.45, each 0.1 long: sum sigma delta = 3 * 10 * 0.1 = 3. A ray along
+    # x at z = 2 never enters it: 0. The regularizer: weight times the mean over the rays, 0.01 * 1.5.
+    renderer = VolumeRenderer(slab, hierarchical=False, n_coarse=8, n_fine=8, n_single=40, near=2.0, far=6.0,
+                              sparsity_weight=0.01)
+    origins = torch.tensor([[0.0, 0.0, 4.0], [-4.0, 0.0, 2.0]], dtype=torch.float64)
+    directions = torch.tensor([[0.0, 0.0, -1.0], [1.0, 0.0, 0.0]], dtype=torch.float64)
+    out = renderer(origins, directions, deterministic=True)["coarse"]
+    assert out["regularizers"]["sparsity"].item() == pytest.approx(0.01 * (3.0 + 0.0) / 2, rel=1e-12)
+    with torch.no_grad():  # a regularizer of training: not computed without gradients
+        assert "regularizers" not in renderer(origins, directions, deterministic=True)["coarse"]
+    off = VolumeRenderer(slab, hierarchical=False, n_coarse=8, n_fine=8, n_single=40, near=2.0, far=6.0)
+    assert "regularizers" not in off(origins, directions, deterministic=True)["coarse"]

@@ -54,6 +54,14 @@ class FieldOutputs(NamedTuple):
     penalties: Tensor | None = None  # [..., S, P]: the colour head's weighted penalties (``penalty_names``), or None
 
 
+class PositionalOutputs(NamedTuple):
+    """What a colour field computes of positions alone, before its colour head (``NeRFField.positional``)."""
+
+    sigma: Tensor  # [...] >= 0, as the field answers it (with training noise in training)
+    features: Tensor  # [..., F]: the trunk's output, which the colour head reads
+    gradient: Tensor | None = None  # [..., 3]: d raw / dx, where the head predicts normals in training; else None
+
+
 class ColourHead(nn.Module):
     """The view-dependence axis's component: the field's trunk features h [..., S, F] and unit view directions
     [..., S or 1, 3] (one per ray broadcasts over its samples) -> rgb [..., S, 3] in [0, 1].
@@ -185,25 +193,41 @@ class NeRFField(DensityField):
         gets, while gradients are enabled (training), the density's gradient d raw / dx, and the field answers
         ``penalties`` too: the head's weighted penalties per sample [..., S, P] (``penalty_names``), which the
         renderer composites. The gradient is taken with ``create_graph`` so the penalties train the density
-        too; it costs a second pass back through the trunk for every sample (docs/components.md)."""
+        too; it costs a second pass back through the trunk for every sample (docs/components.md).
+
+        In two stages, which a renderer may call apart to colour only some of the samples whose density it
+        asked (``acceleration.grid.alpha_threshold``): ``positional`` then ``coloured``."""
+        return self.coloured(self.positional(positions), directions, appearance)
+
+    def positional(self, positions: Tensor) -> "PositionalOutputs":
+        """What the field computes of positions [..., 3] alone (``PositionalOutputs``): the density, with training
+        noise as ``forward`` has it, the trunk's features, and where the colour head predicts normals in training
+        the density's gradient. Rows of its tensors may be selected before ``coloured``."""
         with_normals = self.uses_normals and torch.is_grad_enabled()
         if with_normals:  # positions from rays never carry a gradient of their own: a leaf to differentiate
             positions = positions.detach().requires_grad_()
         h = self._trunk(positions)
         raw = self.sigma(h).squeeze(-1) + self.density_bias
+        gradient = None
         if with_normals:
             (gradient,) = torch.autograd.grad(raw.sum(), positions, create_graph=True)  # [..., S, 3]
         if self.training and self.density_noise_std > 0:
             raw = raw + self.density_noise_std * torch.randn_like(raw)
-        sigma = self.activation(raw)
-        h = self._with_appearance(h, appearance)
+        return PositionalOutputs(sigma=self.activation(raw), features=h, gradient=gradient)
+
+    def coloured(self, positional: "PositionalOutputs", directions: Tensor,
+                 appearance: Tensor | None = None) -> FieldOutputs:
+        """The field's outputs (see ``forward``) from its ``positional`` outputs at samples [..., S] and their unit
+        ``directions`` [..., S or 1, 3] (and ``appearance`` codes, as ``forward`` takes them)."""
+        h = self._with_appearance(positional.features, appearance)
+        sigma = positional.sigma
         if not self.uses_normals:
             return FieldOutputs(rgb=self.view_head(h, directions), sigma=sigma)
         rgb, normals = self.view_head(h, directions)
-        if not with_normals:
+        if positional.gradient is None:
             return FieldOutputs(rgb=rgb, sigma=sigma)
         head = self.view_head
-        penalties = head.penalties(normals, gradient, directions) * head.penalty_weights.to(rgb.dtype)
+        penalties = head.penalties(normals, positional.gradient, directions) * head.penalty_weights.to(rgb.dtype)
         return FieldOutputs(rgb=rgb, sigma=sigma, penalties=penalties)
 
     @property

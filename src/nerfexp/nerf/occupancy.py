@@ -17,7 +17,7 @@ from typing import ClassVar
 import torch
 from torch import Tensor
 
-from nerfexp.domains import COUNT, FRACTION, NONNEGATIVE_COUNT, Applies, Rule, real
+from nerfexp.domains import BOOLEAN, COUNT, FRACTION, NONNEGATIVE_COUNT, Applies, Rule, optional, real
 from nerfexp.nerf.bounds import Bounded
 
 log = logging.getLogger(__name__)
@@ -53,7 +53,9 @@ class OccupancyGrid(Bounded):
 
     Every ``update_every`` training steps (``update``), the density of the networks is evaluated at one
     uniformly jittered point in each of a set of cells: all cells during the first ``warmup_steps``
-    steps, afterwards a random quarter of them (each cell on average every fourth update). During the
+    steps, afterwards a random quarter of them (each cell on average every fourth update) and, with
+    ``update_occupied``, as many again drawn from the occupied cells (nerfacc's and Instant-NGP's rule: a cell
+    that holds density is looked at about twice as often, so it forgets a density that went away sooner). During the
     warm-up a cell's estimate is its latest evaluation; afterwards it becomes max(decay * old, new): it
     remembers a density it has seen (a jittered point can miss a thin surface once) and forgets it at rate
     ``decay`` per evaluation when the density goes away. The warm-up keeps no memory because what it would
@@ -63,7 +65,14 @@ class OccupancyGrid(Bounded):
     cell is occupied when its estimate exceeds min(sigma_t, mean of all estimates), where sigma_t is the
     density at which light crossing the cell along its diagonal loses the fraction ``threshold``
     (``density_threshold``); the mean guards the first updates, when the whole field is faint.
-    Until the first update every cell is occupied.
+    Until the first update every cell is occupied. With ``march_steps`` = n, the length light crosses is not
+    the cell's diagonal but a step of 1/n of the box's diagonal (Instant-NGP and nerfacc: 1024 steps; their
+    grids hold the optical thickness over one marching step): a cell is occupied only where one sample's
+    interval of that length would absorb ``threshold``, so sigma_t is resolution / n times the diagonal's.
+
+    ``alpha_threshold`` (nerfacc's ``alpha_thre``) is read by the renderer: a sample in an occupied cell whose
+    alpha = 1 - exp(-sigma delta) over its own interval is below it gets no colour evaluation and absorbs
+    nothing, as a sample in an empty cell; 0 keeps every sample the grid keeps.
 
     Rays stop at ``early_stop_transmittance``: the renderer marches them in ``segments`` runs of
     samples and evaluates a run only for rays that let through at least that much light in front of
@@ -85,27 +94,40 @@ class OccupancyGrid(Bounded):
         "update_every": COUNT,
         "early_stop_transmittance": real(0, 1),
         "segments": COUNT,
+        "alpha_threshold": real(0, 1),
+        "march_steps": optional(COUNT, "the cell's diagonal"),
+        "update_occupied": BOOLEAN,
     }
     APPLIES: ClassVar[dict[str, Applies]] = {}
 
     def __init__(self, resolution: int = 32, threshold: float = 0.01, decay: float = 0.95, warmup_steps: int = 256,
                  update_every: int = 16, early_stop_transmittance: float = 1e-4, segments: int = 4,
-                 aabb: Sequence[Sequence[float]] | None = None):
+                 aabb: Sequence[Sequence[float]] | None = None, alpha_threshold: float = 0.0,
+                 march_steps: int | None = None, update_occupied: bool = False):
         super().__init__(aabb)
         checks = {"resolution": resolution >= 1, "threshold": 0 < threshold < 1, "decay": 0 <= decay <= 1,
                   "warmup_steps": warmup_steps >= 0, "update_every": update_every >= 1,
-                  "early_stop_transmittance": 0 <= early_stop_transmittance < 1, "segments": segments >= 1}
+                  "early_stop_transmittance": 0 <= early_stop_transmittance < 1, "segments": segments >= 1,
+                  "alpha_threshold": 0 <= alpha_threshold < 1, "march_steps": march_steps is None or march_steps >= 1}
         bad = [key for key, ok in checks.items() if not ok]
         if bad:
             values = {"resolution": resolution, "threshold": threshold, "decay": decay, "warmup_steps": warmup_steps,
                       "update_every": update_every, "early_stop_transmittance": early_stop_transmittance,
-                      "segments": segments}
+                      "segments": segments, "alpha_threshold": alpha_threshold, "march_steps": march_steps}
             raise ValueError(f"acceleration.grid.{bad[0]}: expected resolution >= 1, 0 < threshold < 1, "
                              f"0 <= decay <= 1, warmup_steps >= 0, update_every >= 1, 0 <= early_stop_transmittance "
-                             f"< 1, segments >= 1; got {bad[0]}={values[bad[0]]}")
-        self.resolution, self.threshold, self.decay = resolution, threshold, decay
-        self.warmup_steps, self.update_every = warmup_steps, update_every
-        self.early_stop_transmittance, self.segments = early_stop_transmittance, segments
+                             f"< 1, segments >= 1, 0 <= alpha_threshold < 1, march_steps >= 1 or null; "
+                             f"got {bad[0]}={values[bad[0]]}")
+        self.resolution = resolution
+        self.threshold = threshold
+        self.decay = decay
+        self.warmup_steps = warmup_steps
+        self.update_every = update_every
+        self.early_stop_transmittance = early_stop_transmittance
+        self.segments = segments
+        self.alpha_threshold = alpha_threshold
+        self.march_steps = march_steps
+        self.update_occupied = update_occupied
         # contracted positions -> world units per unit there (``SceneContraction.stretch``), set by the renderer
         # of a contracted scene: the cells' thresholds then follow the world lengths they span; None: the box's
         self.world_scale: Callable[[Tensor], Tensor] | None = None
@@ -136,11 +158,7 @@ class OccupancyGrid(Bounded):
         Draws its jitter and its choice of cells from torch's global random numbers."""
         if not self.due(step):
             return
-        n_cells = self.density.numel()
-        if step < self.warmup_steps:
-            cells = torch.arange(n_cells, device=self.density.device)
-        else:
-            cells = torch.randperm(n_cells, device=self.density.device)[: max(n_cells // 4, 1)]
+        cells = self.cells_to_update(step)
         corners = cell_corners(self.resolution, self.density.device)[cells]
         jitter = torch.rand(corners.shape, device=corners.device)
         points = self.aabb[0] + (corners + jitter) * self.cell_size  # [N, 3]
@@ -152,16 +170,41 @@ class OccupancyGrid(Bounded):
         limit = torch.clamp(self.density.mean(), max=self.cell_thresholds())
         self.occupied.copy_(self.density > limit)
 
+    def cells_to_update(self, step: int) -> Tensor:
+        """The flat indices [N] of the cells an update at ``step`` re-evaluates: all of them during the warm-up,
+        afterwards a random quarter and, with ``update_occupied``, as many drawn (with repetition) from the occupied
+        ones, without duplicates: a cell drawn twice is evaluated once. Draws from torch's global random numbers."""
+        n_cells = self.density.numel()
+        device = self.density.device
+        if step < self.warmup_steps:
+            return torch.arange(n_cells, device=device)
+        quarter = max(n_cells // 4, 1)
+        cells = torch.randperm(n_cells, device=device)[:quarter]
+        occupied = self.occupied.nonzero().squeeze(-1)
+        if not self.update_occupied or len(occupied) == 0:
+            return cells
+        drawn = occupied[torch.randint(len(occupied), (quarter,), device=device)]
+        return torch.unique(torch.cat([cells, drawn]))
+
     def cell_thresholds(self) -> Tensor | float:
-        """The density above which a cell is occupied (``density_threshold`` of its diagonal): one number for
-        the box's cells, or, with a ``world_scale``, one per cell [R^3] of its diagonal in world units, taken at
-        its corner farthest from the origin (the most stretched: a contracted scene's outer cells span long
-        stretches of the world, so they are occupied at densities far below the inner cells'; those on the
+        """The density above which a cell is occupied (``density_threshold`` of the ``threshold_length``): one
+        number for the box's cells, or, with a ``world_scale``, one per cell [R^3] of that length in world units,
+        taken at its corner farthest from the origin (the most stretched: a contracted scene's outer cells span
+        long stretches of the world, so they are occupied at densities far below the inner cells'; those on the
         contraction's shell, of infinite extent, at any density)."""
-        diagonal = torch.linalg.vector_norm(self.cell_size)
+        length = self.threshold_length
         if self.world_scale is None:
-            return density_threshold(self.threshold, float(diagonal))
+            return density_threshold(self.threshold, length)
         lower = self.aabb[0] + cell_corners(self.resolution, self.aabb.device) * self.cell_size  # [R^3, 3]
         farthest = torch.where(lower.abs() > (lower + self.cell_size).abs(), lower, lower + self.cell_size)
-        world_diagonal = diagonal * self.world_scale(farthest)
-        return -math.log1p(-self.threshold) / world_diagonal  # density_threshold per cell; 0 where infinite
+        world_length = length * self.world_scale(farthest)
+        return -math.log1p(-self.threshold) / world_length  # density_threshold per cell; 0 where infinite
+
+    @property
+    def threshold_length(self) -> float:
+        """The length (box units) over which light crossing an occupied cell loses at least ``threshold``: the
+        cell's diagonal, or with ``march_steps`` = n one step of n along the box's diagonal."""
+        diagonal = torch.linalg.vector_norm(self.cell_size)
+        if self.march_steps is None:
+            return float(diagonal)
+        return float(diagonal) * self.resolution / self.march_steps

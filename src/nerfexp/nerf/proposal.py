@@ -122,6 +122,10 @@ class ProposalSampler(Sampler):
     def samples_per_ray(self) -> int:
         return sum(self.n_samples) + self.n_final
 
+    @property
+    def colour_samples_per_ray(self) -> int:
+        return self.n_final  # the proposal networks have no colour
+
     def render(self, renderer: "VolumeRenderer", rays: Rays, deterministic: bool) -> dict[str, dict[str, Tensor]]:
         """{"coarse": the field's output}; in training (with gradients enabled) the output's ``regularizers``
         hold the proposal losses."""

@@ -86,9 +86,16 @@ class Sampler(nn.Module):
     def samples_per_ray(self) -> int:
         raise NotImplementedError
 
+    @property
+    def colour_samples_per_ray(self) -> int:
+        """The samples per ray of the colour networks (``field_names``), before any are skipped: all of them,
+        unless the sampler has networks without colour."""
+        return self.samples_per_ray
+
     def render(self, renderer: "VolumeRenderer", rays: Rays, deterministic: bool) -> dict[str, dict[str, Tensor]]:
         """{name: the renderer's output} for each of ``field_names`` (see ``VolumeRenderer.forward``), each
-        still holding ``evaluated``, the samples its networks evaluated (the renderer counts them).
+        still holding ``evaluated`` and ``coloured``, the samples its networks evaluated, of the density and of the
+        colour (the renderer counts them).
         ``deterministic``: evenly spaced samples instead of jittered ones."""
         raise NotImplementedError
 

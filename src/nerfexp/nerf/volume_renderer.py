@@ -6,11 +6,11 @@ from typing import ClassVar
 import torch
 from torch import Tensor, nn
 
-from nerfexp.domains import COUNT, FAR, NEAR, Applies, Rule, choice, optional
+from nerfexp.domains import COUNT, FAR, LOSS_WEIGHT, NEAR, Applies, Rule, choice, optional
 from nerfexp.nerf.appearance import AppearanceEmbedding
 from nerfexp.nerf.backgrounds import BACKGROUNDS
 from nerfexp.nerf.contraction import SceneContraction
-from nerfexp.nerf.fields import FieldOutputs
+from nerfexp.nerf.fields import FieldOutputs, PositionalOutputs
 from nerfexp.nerf.occupancy import OccupancyGrid
 from nerfexp.nerf.proposal import ProposalSampler
 from nerfexp.nerf.quadrature import composite, optical_depths, render_weights
@@ -63,11 +63,19 @@ def each_output(outputs: FieldOutputs, function: Callable[[Tensor], Tensor]) -> 
     return FieldOutputs(*(None if out is None else function(out) for out in outputs))
 
 
-def ask(field: Callable[..., FieldOutputs], points: Tensor, directions: Tensor | None,
+def ask(field: Callable[..., FieldOutputs], points: Tensor | PositionalOutputs, directions: Tensor | None,
         codes: Tensor | None) -> FieldOutputs:
-    """``field`` at ``points`` [N, 3] with ``directions`` [N, 3] and, where there are any, appearance ``codes``
-    [N, D] (``nerfexp.nerf.appearance``); a field is asked with codes only where the rays have them."""
+    """``field`` at ``points`` [N, 3] (or, for a field's ``coloured`` stage, its ``PositionalOutputs`` there) with
+    ``directions`` [N, 3] and, where there are any, appearance ``codes`` [N, D] (``nerfexp.nerf.appearance``); a
+    field is asked with codes only where the rays have them."""
     return field(points, directions) if codes is None else field(points, directions, codes)
+
+
+def padded_rows(index: tuple[Tensor, ...]) -> tuple[Tensor, ...]:
+    """The index tensors [N] of a packed batch made ``padded_size(N)`` long: the first rows again fill the rest
+    (``padded_size``: few batch sizes for oneDNN's cache). [P] each."""
+    n = len(index[0])
+    return tuple(torch.cat([i, i[: padded_size(n) - n]]) for i in index)
 
 
 def query_packed(field: Callable[..., FieldOutputs], points: Tensor,
@@ -85,17 +93,63 @@ def query_packed(field: Callable[..., FieldOutputs], points: Tensor,
     """
     index = keep.nonzero(as_tuple=True)  # (ray [N], sample [N])
     n = len(index[0])
-    rays, samples = (torch.cat([i, i[: padded_size(n) - n]]) for i in index)  # [P]: the kept, then again
+    rays, samples = padded_rows(index)  # [P]: the kept, then again
     outputs = ask(field, points[rays, samples], None if viewdirs is None else viewdirs[rays],
                   None if codes is None else codes[rays])  # each [P, ...]
-    B, S = keep.shape  # rays, samples
+    return scattered(outputs, index, n, keep.shape)
+
+
+def scattered(outputs: FieldOutputs, index: tuple[Tensor, Tensor], n: int, shape: torch.Size) -> FieldOutputs:
+    """The first ``n`` rows of packed ``outputs`` (each [P, ...]) put at ``index`` (ray [n], sample [n]) of
+    zeros [B, S, ...] (``shape`` = (B, S))."""
+    B, S = shape  # rays, samples
     return each_output(outputs, lambda out: out.new_zeros(B, S, *out.shape[1:]).index_put(index, out[:n]))
+
+
+def query_thresholded(field: nn.Module, points: Tensor, viewdirs: Tensor, keep: Tensor, lengths: Tensor,
+                      alpha_threshold: float, codes: Tensor | None = None) -> tuple[FieldOutputs, Tensor]:
+    """``query_packed`` in two stages (nerfacc's ``alpha_thre``): the field's ``positional`` outputs (its density
+    and trunk features, ``NeRFField.positional``) at the samples ``keep`` [B, S], then its colour head
+    (``coloured``) only at those whose alpha = 1 - exp(-sigma delta) over their interval ``lengths`` [B, S]
+    (delta, in distance units) is at least ``alpha_threshold``. The others, like the samples not kept, answer
+    zeros: they absorb nothing and their colour reaches no pixel. Each stage's batch is padded as
+    ``query_packed``'s (``padded_rows``).
+
+    A sample left out changes a ray's colour and opacity by at most its alpha: below ``alpha_threshold`` each,
+    and in all at most 1 - prod(1 - alpha_i) over the samples left out.
+
+    Returns the outputs, each [B, S, ...], and how many samples the colour head evaluated.
+    """
+    index = keep.nonzero(as_tuple=True)  # (ray [N], sample [N])
+    n = len(index[0])
+    rays, samples = padded_rows(index)
+    positional = field.positional(points[rays, samples])  # each [P, ...]
+    sigma = positional.sigma[:n].detach().to(lengths.dtype)
+    alpha = -torch.expm1(-sigma * lengths[index])  # [N]
+    (chosen,) = (alpha >= alpha_threshold).nonzero(as_tuple=True)  # [M] rows of the packed batch
+    m = len(chosen)
+    (rows,) = padded_rows((chosen,))  # [Q]
+    selected = PositionalOutputs(*(None if out is None else out[rows] for out in positional))
+    outputs = ask(field.coloured, selected, viewdirs[rays[rows]], None if codes is None else codes[rays[rows]])
+    return scattered(outputs, (index[0][chosen], index[1][chosen]), m, keep.shape), m
 
 
 def density_query(net: nn.Module) -> Callable[[Tensor, Tensor | None], FieldOutputs]:
     """A density-only network (``DensityField``) as a field the renderer queries: (positions, None)
     -> its ``sigma`` alone; it is queried without directions."""
     return lambda positions, directions: FieldOutputs(rgb=None, sigma=net.density(positions))
+
+
+def sparsity_loss(sigmas: Tensor, starts: Tensor, ends: Tensor) -> Tensor:
+    """An L1 sparsity prior on the densities of a ray's samples, per ray: sum_i sigma_i (end_i - start_i) [B],
+    the optical depth the samples [B, S] account for (the quadrature of the integral of sigma along the ray;
+    in the spirit of Plenoxels' and SNeRG's sparsity losses on sampled points, L1 rather than their Cauchy
+    log(1 + 2 sigma^2), whose gradient vanishes for the faint densities it is to remove).
+
+    Its gradient is the same at every density: it pushes free space's faint floaters to zero as hard as it
+    pushes a surface, which the colour loss holds up. Samples not evaluated (sigma 0) add nothing.
+    """
+    return (sigmas * (ends - starts)).sum(-1)
 
 
 class VolumeRenderer(nn.Module):
@@ -116,8 +170,14 @@ class VolumeRenderer(nn.Module):
     the rays are also marched in ``grid.segments`` consecutive runs of samples: a run is evaluated
     only for the rays that still let through at least eps of the light after the runs before it, so
     the colour a stopped ray loses is at most eps (what could still reach the samples left out), and
-    no sample is evaluated twice. Whichever sampler runs, its networks are queried through the grid.
-    ``stats`` holds the last call's samples per ray evaluated.
+    no sample is evaluated twice. With ``grid.alpha_threshold`` > 0, a colour network's samples in
+    occupied cells are evaluated in two stages (``query_thresholded``): the density first, then the colour
+    head only where the sample's alpha reaches the threshold; the others absorb nothing, as if in an empty
+    cell. Whichever sampler runs, its networks are queried through the grid. ``stats`` holds the last call's
+    samples per ray evaluated: ``samples_per_ray`` (densities) and ``colour_samples_per_ray`` (colour heads).
+
+    ``sparsity_weight`` > 0 adds, in training, the regularizer ``sparsity``: that weight times the mean over
+    the rays of each colour network's ``sparsity_loss`` (an L1 prior on the densities of its samples).
 
     Args:
         field: builds a field (called once per network of the sampler's ``field_names``), e.g. a partial
@@ -135,6 +195,7 @@ class VolumeRenderer(nn.Module):
             by the world lengths they span), and every sampler spaces its samples evenly in t up to where each
             ray leaves the inner region and evenly in disparity beyond it (``Rays.split``). Densities are still
             integrated over world distances, and rays end at the contraction's own far distance.
+        sparsity_weight: the weight of the ``sparsity`` regularizer (0: off).
     """
 
     DOMAINS: ClassVar[dict[str, Rule]] = {
@@ -145,6 +206,7 @@ class VolumeRenderer(nn.Module):
         "near": optional(NEAR, "from the scene"),
         "far": optional(FAR, "from the scene"),
         "background": choice(*BACKGROUNDS),
+        "sparsity_weight": LOSS_WEIGHT,
     }
     APPLIES: ClassVar[dict[str, Applies]] = {
         "n_coarse": hierarchy_reads(True),
@@ -156,8 +218,12 @@ class VolumeRenderer(nn.Module):
     def __init__(self, field: Callable[[], nn.Module], hierarchical: bool | str, n_coarse: int, n_fine: int,
                  n_single: int, near: float, far: float, background: str = "white",
                  grid: OccupancyGrid | None = None, proposal: Callable[[], ProposalSampler] | None = None,
-                 contraction: SceneContraction | None = None, appearance: AppearanceEmbedding | None = None):
+                 contraction: SceneContraction | None = None, appearance: AppearanceEmbedding | None = None,
+                 sparsity_weight: float = 0.0):
         super().__init__()
+        if not sparsity_weight >= 0:
+            raise ValueError(f"model.renderer.sparsity_weight: expected a weight >= 0, got {sparsity_weight}")
+        self.sparsity_weight = sparsity_weight
         if background not in BACKGROUNDS:
             raise ValueError(f"data.background: expected one of {sorted(BACKGROUNDS)}, got {background!r}")
         if hierarchical not in HIERARCHIES:
@@ -180,7 +246,8 @@ class VolumeRenderer(nn.Module):
         if grid is not None and contraction is not None:
             grid.world_scale = contraction.stretch
         self.stats: dict[str, Tensor | float] = {}
-        self._trained = {"rays": 0, "evaluations": 0.0}  # training totals, for evaluations_per_ray
+        # training totals, for evaluations_per_ray and colour_evaluations_per_ray
+        self._trained = {"rays": 0, "evaluations": 0.0, "colour_evaluations": 0.0}
 
     @property
     def ray_far(self) -> float:
@@ -200,11 +267,22 @@ class VolumeRenderer(nn.Module):
 
     @property
     def evaluations_per_ray(self) -> float:
-        """Network evaluations per ray: ``samples_per_ray`` without a grid; with one, the mean over the
-        training rays so far of the samples evaluated."""
+        """Network evaluations per ray (each a density, the position's encoding and the trunk, all networks):
+        ``samples_per_ray`` without a grid; with one, the mean over the training rays so far of the samples
+        evaluated."""
         if self.grid is None or self._trained["rays"] == 0:
             return self.samples_per_ray
         return float(self._trained["evaluations"]) / self._trained["rays"]
+
+    @property
+    def colour_evaluations_per_ray(self) -> float:
+        """Colour-head evaluations per ray (the colour networks' samples: not the proposal networks', which have
+        no colour): with a grid the mean over the training rays so far, below the density evaluations where
+        ``grid.alpha_threshold`` leaves faint samples out; without one, or before training, every colour
+        network's samples."""
+        if self.grid is None or self._trained["rays"] == 0:
+            return self.sampler.colour_samples_per_ray
+        return float(self._trained["colour_evaluations"]) / self._trained["rays"]
 
     def density_fns(self) -> list[Callable[[Tensor], Tensor]]:
         """Each colour network's density (positions [N, 3] -> sigma [N]), for ``OccupancyGrid.update``."""
@@ -212,34 +290,52 @@ class VolumeRenderer(nn.Module):
 
     def _query(self, field: Callable[..., FieldOutputs], points: Tensor,
                viewdirs: Tensor | None, starts: Tensor, ends: Tensor,
-               codes: Tensor | None = None) -> tuple[FieldOutputs, Tensor | float]:
+               codes: Tensor | None = None) -> tuple[FieldOutputs, Tensor | float, Tensor | float]:
         """The field's outputs (each [B, S, ...]; ``sigma`` alone for a density query, whose ``viewdirs`` are
         None) at the points [B, S, 3], ``starts``, ``ends`` [B, S] their intervals in distance units, and the
-        samples evaluated: all of them without a grid, else those the grid keeps, marched in segments for
-        early termination (see the class docstring). ``codes`` [B, D]: the rays' appearance codes, or None."""
+        samples evaluated, of the density and of the colour (0 for a density query): all of them without a grid,
+        else those the grid keeps, marched in segments for early termination, and of those the colour only where
+        their alpha reaches ``grid.alpha_threshold`` (see the class docstring). ``codes`` [B, D]: the rays'
+        appearance codes, or None."""
         B, S, _ = points.shape  # rays, samples, xyz
+        colour = viewdirs is not None
         if self.grid is None:  # one flat batch [B S, 3]: 2-D matrix products, no copies of 3-D activations
             flat_dirs = None if viewdirs is None else viewdirs[:, None, :].expand(B, S, 3).reshape(B * S, 3)
             flat_codes = None if codes is None else codes[:, None, :].expand(B, S, -1).reshape(B * S, -1)
             outputs = ask(field, points.reshape(B * S, 3), flat_dirs, flat_codes)
-            return each_output(outputs, lambda out: out.reshape(B, S, *out.shape[1:])), float(B * S)
+            return (each_output(outputs, lambda out: out.reshape(B, S, *out.shape[1:])), float(B * S),
+                    float(B * S) if colour else 0.0)
         keep = self.grid.occupied_at(points)
         eps = self.grid.early_stop_transmittance
-        if eps == 0:
-            return query_packed(field, points, viewdirs, keep, codes), keep.sum()
-        parts, evaluated = [], 0
+        n_segments = 1 if eps == 0 else min(self.grid.segments, S)
+        parts, evaluated, coloured = [], 0, 0
         depth_before = starts.new_zeros(B)  # optical depth in front of the segment, no gradient
-        n_segments = min(self.grid.segments, S)
         for k in range(n_segments):
             segment = slice(k * S // n_segments, (k + 1) * S // n_segments)
-            alive = keep[:, segment] & (torch.exp(-depth_before) >= eps)[:, None]
-            outputs = query_packed(field, points[:, segment], viewdirs, alive, codes)
-            depth_before = depth_before + optical_depths(outputs.sigma.detach().to(starts.dtype),
-                                                         starts[:, segment], ends[:, segment]).sum(-1)
+            alive = keep[:, segment]
+            if eps > 0:
+                alive = alive & (torch.exp(-depth_before) >= eps)[:, None]
+            outputs, coloured_here = self._query_kept(field, points[:, segment], viewdirs, alive, codes,
+                                                      ends[:, segment] - starts[:, segment])
+            if k + 1 < n_segments:
+                depth_before = depth_before + optical_depths(outputs.sigma.detach().to(starts.dtype),
+                                                             starts[:, segment], ends[:, segment]).sum(-1)
             parts.append(outputs)
             evaluated = evaluated + alive.sum()
+            coloured = coloured + coloured_here
+        if n_segments == 1:
+            return parts[0], evaluated, coloured
         joined = (None if column[0] is None else torch.cat(column, 1) for column in zip(*parts))
-        return FieldOutputs(*joined), evaluated
+        return FieldOutputs(*joined), evaluated, coloured
+
+    def _query_kept(self, field: Callable[..., FieldOutputs], points: Tensor, viewdirs: Tensor | None,
+                    keep: Tensor, codes: Tensor | None, lengths: Tensor) -> tuple[FieldOutputs, Tensor | int]:
+        """The field's outputs [B, S, ...] at the samples ``keep`` [B, S] of ``points`` [B, S, 3] (intervals
+        ``lengths`` [B, S] long), and how many the colour head evaluated: ``query_packed``, or for a colour query
+        with a positive ``grid.alpha_threshold`` ``query_thresholded``."""
+        if viewdirs is None or self.grid.alpha_threshold == 0:
+            return query_packed(field, points, viewdirs, keep, codes), (0 if viewdirs is None else keep.sum())
+        return query_thresholded(field, points, viewdirs, keep, lengths, self.grid.alpha_threshold, codes)
 
     def field_positions(self, points: Tensor) -> Tensor:
         """World positions [..., 3] as the networks and the grid take them: contracted where the renderer has a
@@ -260,7 +356,7 @@ class VolumeRenderer(nn.Module):
         """A density-only network's interval weights [B, S] at samples t [B, S] of ``rays``, and the samples
         it evaluated."""
         points, _, _, starts, ends = self._samples(rays, t)
-        outputs, evaluated = self._query(density_query(net), points, None, starts, ends)
+        outputs, evaluated, _ = self._query(density_query(net), points, None, starts, ends)
         weights, _ = render_weights(outputs.sigma.to(t.dtype), starts, ends)
         return weights, evaluated
 
@@ -273,16 +369,21 @@ class VolumeRenderer(nn.Module):
         with the rendering weights and averaged over the rays into ``regularizers`` {name: value}.
         """
         points, t_starts, t_ends, starts, ends = self._samples(rays, t)
-        outputs, evaluated = self._query(field, points, rays.viewdirs, starts, ends, rays.appearance)
+        outputs, evaluated, coloured = self._query(field, points, rays.viewdirs, starts, ends, rays.appearance)
         # Rendering runs in the rays' precision whatever the network's: under bf16 autocast the field
         # answers in bf16 (8 significant bits), too coarse for exp/cumsum of optical depths.
         rgbs, sigmas = outputs.rgb.to(t.dtype), outputs.sigma.to(t.dtype)
         weights, _ = render_weights(sigmas, starts, ends)
         out = composite(weights, rgbs, t, self.background, self.ray_far)
-        out.update(weights=weights, t_starts=t_starts, t_ends=t_ends, evaluated=evaluated)
+        out.update(weights=weights, t_starts=t_starts, t_ends=t_ends, evaluated=evaluated, coloured=coloured)
+        regularizers = {}
         if outputs.penalties is not None:
             per_ray = (weights[..., None] * outputs.penalties.to(t.dtype)).sum(-2).mean(0)  # [P]
-            out["regularizers"] = dict(zip(field.penalty_names, per_ray.unbind(), strict=True))
+            regularizers.update(zip(field.penalty_names, per_ray.unbind(), strict=True))
+        if self.sparsity_weight > 0 and torch.is_grad_enabled():
+            regularizers["sparsity"] = self.sparsity_weight * sparsity_loss(sigmas, starts, ends).mean()
+        if regularizers:
+            out["regularizers"] = regularizers
         return out
 
     def forward(self, origins: Tensor, directions: Tensor, deterministic: bool,
@@ -318,10 +419,13 @@ class VolumeRenderer(nn.Module):
         return outputs
 
     def _count(self, outputs: dict[str, dict], n_rays: int) -> None:
-        """``stats`` of the call (samples per ray evaluated, all networks), pulled out of ``outputs`` (left
-        on the device: no host copy), and the training totals."""
+        """``stats`` of the call (samples per ray evaluated, all networks: ``samples_per_ray`` of the density,
+        ``colour_samples_per_ray`` of the colour heads), pulled out of ``outputs`` (left on the device: no host
+        copy), and the training totals."""
         evaluated = sum(out.pop("evaluated") for out in outputs.values()) / n_rays
-        self.stats = {"samples_per_ray": evaluated}
+        coloured = sum(out.pop("coloured") for out in outputs.values()) / n_rays
+        self.stats = {"samples_per_ray": evaluated, "colour_samples_per_ray": coloured}
         if self.training and self.grid is not None:
             self._trained["rays"] += n_rays
             self._trained["evaluations"] = self._trained["evaluations"] + evaluated * n_rays
+            self._trained["colour_evaluations"] = self._trained["colour_evaluations"] + coloured * n_rays

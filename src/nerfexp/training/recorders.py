@@ -370,6 +370,7 @@ class RunRecorder(L.Callback):
             "batch_rays": batch_rays, "processes": trainer.world_size, "precision": str(trainer.precision),
             "n_params": sum(p.numel() for p in pl_module.parameters()), "test_protocol": pl_module.test_protocol,
             "test_cameras": pl_module.test_cameras, "evaluations_per_ray": renderer.evaluations_per_ray,
+            "colour_evaluations_per_ray": renderer.colour_evaluations_per_ray,
             "machine": machine(), "choices": self.choices, "overrides": self.overrides, **self.labels,
             "config": self.run_config, "resumes": self.resumes,
         }
