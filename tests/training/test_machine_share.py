@@ -95,6 +95,32 @@ def test_threads_are_the_cpus_over_the_jobs_at_once_unless_asked_for(cpus, jobs,
     assert intra_op_threads(cpus, jobs, requested) == expected
 
 
+@pytest.mark.parametrize(("cpus", "jobs", "requested", "busy", "expected"), [
+    (2, 1, None, 2.0, 1),  # beside two single-threaded processes on 2 CPUs: one thread, never 0
+    (2, 1, None, 0.6, 1),  # 0.6 of a CPU busy rounds to one
+    (2, 1, None, 0.4, 2),  # less than half a CPU: not a CPU taken
+    (16, 1, None, 5.8, 10),
+    (4, 2, None, 2.0, 2),  # a multirun's siblings may be what is busy: its division stands
+    (2, 1, 2, 2.0, 2),  # the user's number stands
+])
+def test_a_single_run_leaves_out_the_cpus_others_keep_busy(cpus, jobs, requested, busy, expected):
+    assert intra_op_threads(cpus, jobs, requested, busy) == expected
+
+
+def test_a_busy_start_sets_fewer_threads_and_says_why(monkeypatch, torch_threads):
+    """Two samples 0.5 s apart, 1 CPU second of others' work: one CPU of two is busy, so one thread."""
+    monkeypatch.delenv("OMP_NUM_THREADS", raising=False)
+    monkeypatch.setattr(machine_share, "available_cpus", lambda: 2)
+    monkeypatch.setattr(machine_share, "BUSY_SAMPLE_S", 0.0)
+    samples = iter([Sample(10.0, 1.0, 100.0), Sample(10.5, 1.0, 101.0)])
+    monkeypatch.setattr(machine_share, "sample", lambda: next(samples))
+    line, busy = start_threads(None, None)
+    assert torch.get_num_threads() == 1
+    assert line == ("torch threads: 1 (auto: 2 CPUs this process may use, 2.0 of them busy with other processes; "
+                    "threads=N sets it)")
+    assert busy is not None and "2.0 of the 2 CPUs" in busy
+
+
 @pytest.mark.parametrize(("launcher", "cpus", "expected"), [
     (None, 8, 1),  # a single run
     ({"_target_": "hydra._internal.core_plugins.basic_launcher.BasicLauncher"}, 8, 1),  # one job after another

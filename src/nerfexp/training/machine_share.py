@@ -123,14 +123,21 @@ def busy_line(start: Sample, end: Sample, cpus: int) -> str | None:
             f"its times will be slower than the components' and results.json records them as shared (other_load)")
 
 
-def intra_op_threads(available_cpus: int, parallel_jobs: int, requested: int | None) -> int:
+def intra_op_threads(available_cpus: int, parallel_jobs: int, requested: int | None, busy_cpus: float = 0.0) -> int:
     """Torch's intra-op threads: ``requested`` where the user gave a number, else the CPUs this process may use
-    shared among the jobs that run at once, at least 1 (threads beyond the cores wait on each other).
+    shared among the jobs that run at once, at least 1 (threads beyond the cores wait on each other). A single
+    job also leaves out the CPUs other processes kept busy when it started (``busy_cpus``, rounded to the
+    nearest whole CPU); jobs of one multirun start together, so their division is theirs alone.
 
     >>> intra_op_threads(16, 3, None), intra_op_threads(2, 4, None), intra_op_threads(2, 1, 6)
     (5, 1, 6)
+    >>> intra_op_threads(2, 1, None, busy_cpus=1.97), intra_op_threads(8, 1, None, busy_cpus=0.4)
+    (1, 8)
     """
-    return requested if requested is not None else max(1, available_cpus // max(1, parallel_jobs))
+    if requested is not None:
+        return requested
+    free = available_cpus - math.floor(busy_cpus + 0.5) if parallel_jobs == 1 else available_cpus
+    return max(1, free // max(1, parallel_jobs))
 
 
 def parallel_jobs(launcher: dict | None, available_cpus: int) -> int:
@@ -159,29 +166,36 @@ def requested_threads(setting: int | None, environment: dict) -> int | None:
     return int(value) if value.isdigit() and int(value) >= 1 else None
 
 
-def threads_line(threads: int, requested: int | None, cpus: int, jobs: int) -> str:
+def threads_line(threads: int, requested: int | None, cpus: int, jobs: int, busy_cpus: float | None = None) -> str:
     """The line a run logs at its start of the torch threads it runs with, and why that many.
 
     >>> threads_line(1, None, 2, 2)
     'torch threads: 1 (auto: 2 CPUs this process may use, 2 jobs at once; threads=N sets it)'
+    >>> threads_line(1, None, 2, 1, 1.6)
+    'torch threads: 1 (auto: 2 CPUs this process may use, 1.6 of them busy with other processes; threads=N sets it)'
     """
-    why = ("asked for: threads or OMP_NUM_THREADS" if requested is not None
-           else f"auto: {cpus} CPUs this process may use, {jobs} job{'s' if jobs > 1 else ''} at once; threads=N sets it")
-    return f"torch threads: {threads} ({why})"
+    if requested is not None:
+        return f"torch threads: {threads} (asked for: threads or OMP_NUM_THREADS)"
+    others = (f"{jobs} jobs at once" if jobs > 1 else
+              f"{busy_cpus:.1f} of them busy with other processes" if busy_cpus and busy_cpus >= 0.5 else "1 job at once")
+    return f"torch threads: {threads} (auto: {cpus} CPUs this process may use, {others}; threads=N sets it)"
 
 
 def start_threads(setting: int | None, launcher: dict | None) -> tuple[str, str | None]:
-    """Set torch's intra-op threads for this run (``intra_op_threads``: the ``threads`` setting, else
-    ``OMP_NUM_THREADS``, else the CPUs this process may use over the ``launcher``'s jobs at once), then look at the
-    machine for ``BUSY_SAMPLE_S``: the line saying the threads (``threads_line``), and ``busy_line``'s."""
+    """Look at the machine for ``BUSY_SAMPLE_S``, then set torch's intra-op threads for this run
+    (``intra_op_threads``: the ``threads`` setting, else ``OMP_NUM_THREADS``, else the CPUs this process may use,
+    less those other processes kept busy, over the ``launcher``'s jobs at once): the line saying the threads
+    (``threads_line``), and ``busy_line``'s."""
     cpus = available_cpus()
     jobs = parallel_jobs(launcher, cpus)
     requested = requested_threads(setting, dict(os.environ))
-    threads = intra_op_threads(cpus, jobs, requested)
-    torch.set_num_threads(threads)
     start = sample()
     time.sleep(BUSY_SAMPLE_S)
-    return threads_line(threads, requested, cpus, jobs), busy_line(start, sample(), cpus)
+    end = sample()
+    busy = other_load(others_cpu_s(start, end), end.wall_s - start.wall_s)
+    threads = intra_op_threads(cpus, jobs, requested, busy or 0.0)
+    torch.set_num_threads(threads)
+    return threads_line(threads, requested, cpus, jobs, busy), busy_line(start, end, cpus)
 
 
 def share_record(wall_s: float, cpu_s: float | None, others_s: float | None, cpus: int) -> dict:
