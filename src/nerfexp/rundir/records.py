@@ -101,11 +101,7 @@ RESULTS_FIELDS: dict[str, Rule] = {
     "train_time_s": SECONDS,
     "time_per_step_s": SECONDS,
     "rays_per_s": optional(real(0, INTEGER_LIMIT), "not measured"),
-    "kernel_build_s": SECONDS,  # getting the fused kernels, outside train_time_s (nerfexp.kernels)
-    "cpu_time_s": optional(SECONDS, "not recorded"),  # nerfexp.training.machine_share
-    "other_load": optional(real(0, INTEGER_LIMIT), "not measured"),
-    "cpus": NONNEGATIVE_COUNT,
-    "torch_threads": NONNEGATIVE_COUNT,
+    "other_load": optional(real(0, INTEGER_LIMIT), "not measured"),  # nerfexp.training.machine_share
     "n_params": NONNEGATIVE_COUNT,
     "evaluations_per_ray": real(0, INTEGER_LIMIT),
     "checkpoint.path": TEXT,
