@@ -1,7 +1,8 @@
 // The hash encoding's forward and backward (nerfexp.nerf.encodings.HashGridEncoding) as fused CPU loops: each
 // position's 8 corners per level found, weighted and summed in one pass (forward, parallel over positions), and
 // each level's table gradient accumulated in one pass over the positions (backward, parallel over levels: a
-// level's entries are its own, so no two threads add to one entry, without atomics or per-thread copies).
+// level's entries are its own, so no two threads add to one entry, without atomics or per-thread copies), into new
+// zero tensors or (``backward_into``) into the sums of earlier calls of the same backward pass.
 //
 // Inputs: unit positions [N, 3] in [0, 1] (float32, contiguous); dense levels as [F, n+1, n+1, n+1] volumes
 // (vertex (i, j, k) of feature f at f (n+1)^3 + (i (n+1) + j) (n+1) + k), the hashed levels' table [Lh, T, F];
@@ -24,6 +25,14 @@ struct Corners {
   float weight[8];
 };
 
+// floor(x) for a finite x of float32 below 2^63 in magnitude: a conversion to an integer (which rounds toward zero)
+// and back, one lower where that rounded up; equal to std::floor, which the baseline x86-64 (no SSE4.1 round) makes a
+// call of the maths library's.
+inline float floor_of(float x) {
+  const float truncated = static_cast<float>(static_cast<int64_t>(x));
+  return truncated > x ? truncated - 1 : truncated;
+}
+
 // The cell of ``u`` at ``n`` cells per side (the last cell for u = 1), as the torch path computes it:
 // scaled = u n, lower = min(floor(scaled), n - 1), frac = scaled - lower.
 inline void corners_of(const float* u, int64_t n, bool hashed, int64_t table_size, int64_t stride,
@@ -32,19 +41,30 @@ inline void corners_of(const float* u, int64_t n, bool hashed, int64_t table_siz
   float frac[3];
   for (int a = 0; a < 3; ++a) {
     const float scaled = u[a] * static_cast<float>(n);
-    float floor = std::floor(scaled);
+    float floor = floor_of(scaled);
     if (floor > static_cast<float>(n - 1)) floor = static_cast<float>(n - 1);
     lower[a] = static_cast<int64_t>(floor);
     frac[a] = scaled - floor;
   }
+  // each axis's two vertex terms (lower, upper): the hash's products, or the dense volume's strides
+  int64_t x[2], y[2], z[2];
+  for (int b = 0; b < 2; ++b) {
+    if (hashed) {
+      x[b] = (lower[0] + b) * PRIME_X;
+      y[b] = (lower[1] + b) * PRIME_Y;
+      z[b] = (lower[2] + b) * PRIME_Z;
+    } else {
+      x[b] = (lower[0] + b) * (n + 1) * (n + 1);
+      y[b] = (lower[1] + b) * (n + 1);
+      z[b] = lower[2] + b;
+    }
+  }
+  const float wx[2] = {1 - frac[0], frac[0]}, wy[2] = {1 - frac[1], frac[1]}, wz[2] = {1 - frac[2], frac[2]};
   for (int k = 0; k < 8; ++k) {
-    const int64_t bx = (k >> 2) & 1, by = (k >> 1) & 1, bz = k & 1;
-    const int64_t i = lower[0] + bx, j = lower[1] + by, l = lower[2] + bz;
-    const int64_t row = hashed ? (((i * PRIME_X) ^ (j * PRIME_Y) ^ (l * PRIME_Z)) & (table_size - 1))
-                               : (i * (n + 1) + j) * (n + 1) + l;
+    const int bx = (k >> 2) & 1, by = (k >> 1) & 1, bz = k & 1;
+    const int64_t row = hashed ? ((x[bx] ^ y[by] ^ z[bz]) & (table_size - 1)) : x[bx] + y[by] + z[bz];
     c.offset[k] = row * stride;
-    const float wx = bx ? frac[0] : 1 - frac[0], wy = by ? frac[1] : 1 - frac[1], wz = bz ? frac[2] : 1 - frac[2];
-    c.weight[k] = wx * wy * wz;
+    c.weight[k] = wx[bx] * wy[by] * wz[bz];
   }
 }
 
@@ -114,10 +134,12 @@ torch::Tensor hash_encoding_forward(torch::Tensor unit, std::vector<torch::Tenso
   auto out = torch::empty({N, L * F}, unit.options());
   const float* u = unit.data_ptr<float>();
   float* o = out.data_ptr<float>();
+  // level by level within a thread's positions: one level's storage (a hashed level's T F floats) stays in the
+  // core's cache while its positions read it, where all the levels' would not
   at::parallel_for(0, N, 256, [&](int64_t begin, int64_t end) {
     Corners c;
-    for (int64_t p = begin; p < end; ++p)
-      for (int64_t l = 0; l < L; ++l) {
+    for (int64_t l = 0; l < L; ++l)
+      for (int64_t p = begin; p < end; ++p) {
         const Level& level = levels[l];
         corners_of(u + 3 * p, level.n, level.hashed, T, level.row_stride, c);
         for (int64_t f = 0; f < F; ++f) {
@@ -177,6 +199,18 @@ std::vector<torch::Tensor> hash_encoding_backward(torch::Tensor unit, torch::Ten
   return grads;
 }
 
+// As ``hash_encoding_backward``, but summed into the given gradients (of the dense volumes' and the hashed table's
+// shapes, contiguous float32, zeros or the sums of earlier calls), in place: the gradients of several calls of one
+// backward pass accumulated in one set of tensors, none allocated or zero-filled per call.
+void hash_encoding_backward_into(torch::Tensor unit, torch::Tensor grad, std::vector<torch::Tensor> dense_grads,
+                                 torch::Tensor hashed_grad, std::vector<int64_t> dense_res,
+                                 std::vector<int64_t> hashed_res, int64_t features) {
+  check_inputs(unit, dense_grads, hashed_grad, dense_res, hashed_res, features, &grad);
+  const std::vector<Level> levels = levels_of(dense_grads, hashed_grad, dense_res, hashed_res);
+  accumulate(unit.data_ptr<float>(), grad.data_ptr<float>(), unit.size(0), hashed_grad.size(1), features, levels,
+             static_cast<int64_t>(dense_grads.size()), nullptr);
+}
+
 // As ``hash_encoding_backward``, but the hashed table's gradient as the rows the positions read, each once:
 // their indices [2, U] (level, row; ascending, level first) and summed values [U, F], the parts of a coalesced
 // sparse COO tensor of the table's shape. Returns the dense volumes' gradients, then indices, then values.
@@ -230,6 +264,8 @@ std::vector<torch::Tensor> hash_encoding_backward_rows(torch::Tensor unit, torch
 PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
   m.def("forward", &hash_encoding_forward, "the hash encoding's features of unit positions");
   m.def("backward", &hash_encoding_backward, "the gradients of the dense volumes and the hashed table");
+  m.def("backward_into", &hash_encoding_backward_into,
+        "the gradients of the dense volumes and the hashed table summed into the given ones, in place");
   m.def("backward_rows", &hash_encoding_backward_rows,
         "the dense volumes' gradients, and the hashed table's as the rows read: indices [2, U] and values [U, F]");
 }
