@@ -254,3 +254,15 @@ def test_summing_into_gradients_of_another_shape_is_a_one_line_error():
     with pytest.raises(RuntimeError, match=r"hash_encoding: hashed must be \["):
         FUSED.backward_into(torch.rand(5, 3), torch.rand(5, enc.out_dim), volumes, torch.zeros(1, 4, 2),
                             *enc.kernel_shape())
+
+
+@needs_kernel
+def test_the_kernel_clamps_positions_outside_the_unit_box_never_reading_outside_its_tables():
+    # the encoding clamps before it calls the kernel; the kernel clamps again, so that a wrong call (a position
+    # outside [0, 1], a NaN) reads its tables' edges, not memory beyond them: NaN as 0
+    enc = small_encoding()
+    volumes = [volume[0] for volume in enc.dense]
+    outside = torch.tensor([[-0.5, 1.5, 0.25], [3.0, -2.0, 1.0], [float("nan"), 0.5, 1.0]])
+    inside = torch.tensor([[0.0, 1.0, 0.25], [1.0, 0.0, 1.0], [0.0, 0.5, 1.0]])
+    features = FUSED.forward(outside, volumes, enc.hashed.detach(), *enc.kernel_shape())
+    assert torch.equal(features, FUSED.forward(inside, volumes, enc.hashed.detach(), *enc.kernel_shape()))

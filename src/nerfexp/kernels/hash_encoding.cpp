@@ -12,59 +12,62 @@
 #include <torch/extension.h>
 #include <ATen/Parallel.h>
 
+#include <algorithm>
 #include <cmath>
 #include <vector>
 
 namespace {
 
-const int64_t PRIME_X = 1, PRIME_Y = 2654435761LL, PRIME_Z = 805459861LL;  // HASH_PRIMES
+const uint32_t PRIME_X = 1, PRIME_Y = 2654435761u, PRIME_Z = 805459861u;  // HASH_PRIMES
 
-// One level's 8 corners of one position: their offsets into the level's storage and trilinear weights.
+const int64_t BLOCK = 64;  // positions whose corners are found together, in loops the compiler vectorizes
+
+// One level's 8 corners of ``BLOCK`` positions (at most): their offsets into the level's storage and trilinear
+// weights, corner-major.
 struct Corners {
-  int64_t offset[8];
-  float weight[8];
+  int64_t offset[8][BLOCK];
+  float weight[8][BLOCK];
 };
 
-// floor(x) for a finite x of float32 below 2^63 in magnitude: a conversion to an integer (which rounds toward zero)
-// and back, one lower where that rounded up; equal to std::floor, which the baseline x86-64 (no SSE4.1 round) makes a
-// call of the maths library's.
-inline float floor_of(float x) {
-  const float truncated = static_cast<float>(static_cast<int64_t>(x));
-  return truncated > x ? truncated - 1 : truncated;
-}
-
-// The cell of ``u`` at ``n`` cells per side (the last cell for u = 1), as the torch path computes it:
-// scaled = u n, lower = min(floor(scaled), n - 1), frac = scaled - lower.
-inline void corners_of(const float* u, int64_t n, bool hashed, int64_t table_size, int64_t stride,
+// The cells of ``count`` positions ``u`` [count, 3] at ``n`` cells per side (the last cell for u = 1), as the torch
+// path computes them: scaled = u n, lower = min(floor(scaled), n - 1), frac = scaled - lower; then each corner's
+// row, hashed ((i p_x xor j p_y xor k p_z) mod T: T is a power of two at most 2^32, so the products' low 32 bits
+// decide it and the arithmetic is in uint32) or indexed ((i (n+1) + j) (n+1) + k, below 2^32: ``check_inputs``),
+// times ``stride``, and weight (w_x w_y w_z). A position outside [0, 1] (or NaN) is clamped, never read outside the
+// storage. floor(x) for 0 <= x < 2^31 is x converted to an integer (rounded toward zero) and back: the baseline x86-64 (no SSE4.1 round) makes std::floor a call of the maths library.
+inline void corners_of(const float* u, int64_t count, int64_t n, bool hashed, int64_t table_size, int64_t stride,
                        Corners& c) {
-  int64_t lower[3];
-  float frac[3];
-  for (int a = 0; a < 3; ++a) {
-    const float scaled = u[a] * static_cast<float>(n);
-    float floor = floor_of(scaled);
-    if (floor > static_cast<float>(n - 1)) floor = static_cast<float>(n - 1);
-    lower[a] = static_cast<int64_t>(floor);
-    frac[a] = scaled - floor;
-  }
-  // each axis's two vertex terms (lower, upper): the hash's products, or the dense volume's strides
-  int64_t x[2], y[2], z[2];
-  for (int b = 0; b < 2; ++b) {
-    if (hashed) {
-      x[b] = (lower[0] + b) * PRIME_X;
-      y[b] = (lower[1] + b) * PRIME_Y;
-      z[b] = (lower[2] + b) * PRIME_Z;
-    } else {
-      x[b] = (lower[0] + b) * (n + 1) * (n + 1);
-      y[b] = (lower[1] + b) * (n + 1);
-      z[b] = lower[2] + b;
+  uint32_t lower[3][BLOCK];
+  float frac[3][BLOCK];
+  const float cells = static_cast<float>(n), last = static_cast<float>(n - 1);
+  for (int a = 0; a < 3; ++a)
+    for (int64_t i = 0; i < count; ++i) {
+      float scaled = u[3 * i + a] * cells;
+      scaled = scaled > 0 ? scaled : 0;  // in [0, n] for u in [0, 1]; any other u (NaN too) clamped into the box
+      scaled = scaled < cells ? scaled : cells;
+      float floor = static_cast<float>(static_cast<int32_t>(scaled));
+      if (floor > last) floor = last;
+      lower[a][i] = static_cast<uint32_t>(static_cast<int32_t>(floor));
+      frac[a][i] = scaled - floor;
     }
-  }
-  const float wx[2] = {1 - frac[0], frac[0]}, wy[2] = {1 - frac[1], frac[1]}, wz[2] = {1 - frac[2], frac[2]};
+  const uint32_t mask = static_cast<uint32_t>(table_size - 1), side = static_cast<uint32_t>(n + 1);
   for (int k = 0; k < 8; ++k) {
-    const int bx = (k >> 2) & 1, by = (k >> 1) & 1, bz = k & 1;
-    const int64_t row = hashed ? ((x[bx] ^ y[by] ^ z[bz]) & (table_size - 1)) : x[bx] + y[by] + z[bz];
-    c.offset[k] = row * stride;
-    c.weight[k] = wx[bx] * wy[by] * wz[bz];
+    const uint32_t bx = (k >> 2) & 1, by = (k >> 1) & 1, bz = k & 1;
+    int64_t* offset = c.offset[k];
+    float* weight = c.weight[k];
+    if (hashed)
+      for (int64_t i = 0; i < count; ++i)
+        offset[i] = static_cast<int64_t>(((lower[0][i] + bx) * PRIME_X ^ (lower[1][i] + by) * PRIME_Y ^
+                                          (lower[2][i] + bz) * PRIME_Z) & mask) * stride;
+    else
+      for (int64_t i = 0; i < count; ++i)
+        offset[i] = static_cast<int64_t>(((lower[0][i] + bx) * side + lower[1][i] + by) * side + lower[2][i] + bz) *
+                    stride;
+    for (int64_t i = 0; i < count; ++i) {
+      const float wx = bx ? frac[0][i] : 1 - frac[0][i], wy = by ? frac[1][i] : 1 - frac[1][i];
+      const float wz = bz ? frac[2][i] : 1 - frac[2][i];
+      weight[i] = wx * wy * wz;
+    }
   }
 }
 
@@ -138,17 +141,20 @@ torch::Tensor hash_encoding_forward(torch::Tensor unit, std::vector<torch::Tenso
   // core's cache while its positions read it, where all the levels' would not
   at::parallel_for(0, N, 256, [&](int64_t begin, int64_t end) {
     Corners c;
-    for (int64_t l = 0; l < L; ++l)
-      for (int64_t p = begin; p < end; ++p) {
-        const Level& level = levels[l];
-        corners_of(u + 3 * p, level.n, level.hashed, T, level.row_stride, c);
-        for (int64_t f = 0; f < F; ++f) {
-          const float* values = level.data + f * level.feature_stride;
-          float sum = 0;
-          for (int k = 0; k < 8; ++k) sum += c.weight[k] * values[c.offset[k]];
-          o[(p * L + l) * F + f] = sum;
-        }
+    for (int64_t l = 0; l < L; ++l) {
+      const Level& level = levels[l];
+      for (int64_t first = begin; first < end; first += BLOCK) {
+        const int64_t count = std::min(BLOCK, end - first);
+        corners_of(u + 3 * first, count, level.n, level.hashed, T, level.row_stride, c);
+        for (int64_t i = 0; i < count; ++i)
+          for (int64_t f = 0; f < F; ++f) {
+            const float* values = level.data + f * level.feature_stride;
+            float sum = 0;
+            for (int k = 0; k < 8; ++k) sum += c.weight[k][i] * values[c.offset[k][i]];
+            o[((first + i) * L + l) * F + f] = sum;
+          }
       }
+    }
   });
   return out;
 }
@@ -165,15 +171,18 @@ void accumulate(const float* u, const float* g, int64_t N, int64_t T, int64_t F,
     for (int64_t l = begin; l < end; ++l) {
       const Level& level = levels[l];
       uint8_t* marks = (touched != nullptr && level.hashed) ? touched + (l - n_dense) * T : nullptr;
-      for (int64_t p = 0; p < N; ++p) {
-        corners_of(u + 3 * p, level.n, level.hashed, T, level.row_stride, c);
-        for (int64_t f = 0; f < F; ++f) {
-          const float gradient = g[(p * L + l) * F + f];
-          float* values = level.data + f * level.feature_stride;
-          for (int k = 0; k < 8; ++k) values[c.offset[k]] += c.weight[k] * gradient;
-        }
+      for (int64_t first = 0; first < N; first += BLOCK) {
+        const int64_t count = std::min(BLOCK, N - first);
+        corners_of(u + 3 * first, count, level.n, level.hashed, T, level.row_stride, c);
+        for (int64_t i = 0; i < count; ++i)
+          for (int64_t f = 0; f < F; ++f) {
+            const float gradient = g[((first + i) * L + l) * F + f];
+            float* values = level.data + f * level.feature_stride;
+            for (int k = 0; k < 8; ++k) values[c.offset[k][i]] += c.weight[k][i] * gradient;
+          }
         if (marks != nullptr)
-          for (int k = 0; k < 8; ++k) marks[c.offset[k] / F] = 1;
+          for (int k = 0; k < 8; ++k)
+            for (int64_t i = 0; i < count; ++i) marks[c.offset[k][i] / F] = 1;
       }
     }
   });
