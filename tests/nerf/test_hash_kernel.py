@@ -266,3 +266,24 @@ def test_the_kernel_clamps_positions_outside_the_unit_box_never_reading_outside_
     inside = torch.tensor([[0.0, 1.0, 0.25], [1.0, 0.0, 1.0], [0.0, 0.5, 1.0]])
     features = FUSED.forward(outside, volumes, enc.hashed.detach(), *enc.kernel_shape())
     assert torch.equal(features, FUSED.forward(inside, volumes, enc.hashed.detach(), *enc.kernel_shape()))
+
+
+@needs_kernel
+def test_a_pass_mixing_the_kernel_and_the_torch_path_sums_every_calls_gradient(monkeypatch):
+    # positions that need a gradient take the torch path: its dense gradient meets the kernel's in autograd's sum,
+    # whichever comes first; every call's gradient reaches the table (the torch path throughout as the reference)
+    enc = small_encoding(log2_table_size=10)
+    points = edge_points(enc)
+    generator = torch.Generator().manual_seed(8)
+    probes = [torch.randn(n, enc.out_dim, generator=generator) for n in (60, 80, 50, 70)]
+    parts = [points[:60], points[60:140].clone().requires_grad_(), points[140:190], points[190:260]]
+
+    def gradients() -> list[torch.Tensor]:
+        for p in enc.parameters():
+            p.grad = None
+        sum((enc(x) * probe).sum() for x, probe in zip(parts, probes, strict=True)).backward()
+        return [p.grad.clone() for p in enc.parameters()]
+    mixed = gradients()
+    monkeypatch.setenv(kernels.SWITCH, "off")
+    for mine, theirs in zip(mixed, gradients(), strict=True):
+        torch.testing.assert_close(mine, theirs, atol=1e-5, rtol=1e-5)
