@@ -287,3 +287,22 @@ def test_a_pass_mixing_the_kernel_and_the_torch_path_sums_every_calls_gradient(m
     monkeypatch.setenv(kernels.SWITCH, "off")
     for mine, theirs in zip(mixed, gradients(), strict=True):
         torch.testing.assert_close(mine, theirs, atol=1e-5, rtol=1e-5)
+
+
+@needs_kernel
+def test_with_a_frozen_table_the_others_get_the_torch_paths_gradients(monkeypatch):
+    # the hashed table frozen (no gradient): each call's own gradients, no shared sums; the dense volumes' equal
+    # the torch path's and the frozen table gets none
+    enc = small_encoding(log2_table_size=10)
+    enc.hashed.requires_grad_(False)
+    points = edge_points(enc)
+    grads = {}
+    for switch in ("on", "off"):
+        monkeypatch.setenv(kernels.SWITCH, switch)
+        for p in enc.dense:
+            p.grad = None
+        (enc(points[:100]).square().sum() + enc(points[100:]).sum()).backward()
+        grads[switch] = [p.grad.clone() for p in enc.dense]
+        assert enc.hashed.grad is None
+    for mine, theirs in zip(grads["on"], grads["off"], strict=True):
+        torch.testing.assert_close(mine, theirs, atol=1e-5, rtol=1e-5)

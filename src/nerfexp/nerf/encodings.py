@@ -197,6 +197,9 @@ class _FusedHashEncoding(torch.autograd.Function):
             hashed_grad = torch.sparse_coo_tensor(indices, values, hashed.shape, is_coalesced=True,
                                                   check_invariants=False)
             return None, None, None, None, None, hashed_grad, *(g[None] for g in dense_grads)
+        if not all(ctx.needs_input_grad[5:]):  # a table without a gradient: no shared sums, a gradient of its own
+            *dense_grads, hashed_grad = ctx.fused.backward(unit, grad.contiguous(), volumes, hashed, *ctx.shape)
+            return None, None, None, None, None, hashed_grad, *(g[None] for g in dense_grads)
         (hashed_grad, *dense_grads), first = ctx.sums.of([hashed, *dense])
         ctx.fused.backward_into(unit, grad.contiguous(), [g[0] for g in dense_grads], hashed_grad, *ctx.shape)
         if not first:  # summed into the gradients an earlier call of this pass handed autograd
