@@ -6,7 +6,10 @@ precision, its optimizer, the grid's updates; no validation, no checkpoints, no 
 steps. Seconds per step: the wall-clock mean over the last ``--window`` steps (after the warm-up, the
 occupancy grid's included); then ``--profile`` more steps under ``torch.profiler``, whose operators by
 self time are listed (the profiler's own cost makes those steps slower: compare operators, not totals).
-The variants run one after the other in this process, so that they share the machine's state.
+The variants run one after the other in this process, so that they share the machine's state. Each window also
+records how many CPUs other processes kept busy meanwhile (``nerfexp.training.machine_share``: the system's CPU
+counters against this process's own), and the record names the CPU (its model and timing units): a time says what
+else ran and where.
 On a GPU (the config's ``trainer.accelerator``: auto takes one where there is one; ``trainer.accelerator=gpu``
 requires it) the clock waits for the GPU's queued work at both ends of the window, and the operators are
 ranked by their kernels' device time.
@@ -39,6 +42,8 @@ from torch.profiler import ProfilerActivity, profile
 
 import nerfexp
 from nerfexp.files import atomic_write
+from nerfexp.rundir.layout import machine as machine_record
+from nerfexp.training import machine_share
 from nerfexp.training.callbacks import FlushDenormals
 from nerfexp.training.precision import fill_precision
 
@@ -62,6 +67,8 @@ class StepClock(L.Callback):
     def __init__(self, start: int, stop: int, profiled: int):
         self.start, self.stop, self.profiled = start, stop, profiled
         self.step_s: float | None = None
+        self.other_load: float | None = None  # CPUs other processes kept busy during the window, on average
+        self._window_start: machine_share.Sample | None = None
         self.top_ops_ms: dict[str, float] = {}
         self._began = 0.0
         self._profiler = None
@@ -70,6 +77,8 @@ class StepClock(L.Callback):
         if trainer.global_step in (self.start, self.stop):
             synchronize(pl_module.device)
             self._began = time.perf_counter()
+        if trainer.global_step == self.start:
+            self._window_start = machine_share.sample()
         if trainer.global_step == self.stop:
             cuda = pl_module.device.type == "cuda"
             self._profiler = profile(activities=[ProfilerActivity.CPU] + ([ProfilerActivity.CUDA] if cuda else []))
@@ -79,6 +88,9 @@ class StepClock(L.Callback):
         if trainer.global_step == self.stop:
             synchronize(pl_module.device)
             self.step_s = (time.perf_counter() - self._began) / (self.stop - self.start)
+            end = machine_share.sample()
+            self.other_load = machine_share.other_load(machine_share.others_cpu_s(self._window_start, end),
+                                                       end.wall_s - self._window_start.wall_s)
         elif trainer.global_step == self.stop + self.profiled:
             synchronize(pl_module.device)
             self._profiler.__exit__(None, None, None)
@@ -101,16 +113,17 @@ def measure(overrides: list[str], args) -> dict:
                         num_sanity_val_steps=0, callbacks=[FlushDenormals(), clock])
     trainer.fit(model, datamodule=datamodule)
     return {"overrides": overrides, "device": str(model.device), "precision": cfg.trainer.precision,
-            "step_s": clock.step_s, "evaluations_per_ray": float(model.renderer.evaluations_per_ray),
+            "step_s": clock.step_s, "other_load": clock.other_load, "evaluations_per_ray": float(model.renderer.evaluations_per_ray),
             "top_ops_ms": clock.top_ops_ms}
 
 
 def markdown(rows: dict, meta: dict) -> str:
     lines = [f"Seconds per training step (Lightning's loop, mean of steps {meta['steps'] - meta['window']} to "
              f"{meta['steps']}), then the operators by self time in {meta['profile']} profiled steps.", "",
-             "| variant | device | precision | s / step | evaluations / ray |", "|---|---|---|---|---|"]
+             "| variant | device | precision | s / step | evaluations / ray | other processes' CPUs |",
+             "|---|---|---|---|---|---|"]
     lines += [f"| {name} | {row['device']} | {row['precision']} | {row['step_s']:.4f} | "
-              f"{row['evaluations_per_ray']:.1f} |" for name, row in rows.items()]
+              f"{row['evaluations_per_ray']:.1f} | {other_cpus(row.get('other_load'))} |" for name, row in rows.items()]
     for name, row in rows.items():
         lines += ["", f"{name} (`{' '.join(row['overrides'])}`), ms per profiled step "
                   f"({'device' if row['device'].startswith('cuda') else 'CPU'} self time):", "",
@@ -118,6 +131,11 @@ def markdown(rows: dict, meta: dict) -> str:
     lines += ["", f"Command: `{meta['command']}`, the code measured (``nerfexp``) at commit {meta['commit']}.", "",
               f"Machine: {meta['machine']}."]
     return "\n".join(lines) + "\n"
+
+
+def other_cpus(load: float | None) -> str:
+    """How many CPUs other processes kept busy during a window, on average (``machine_share.other_load``)."""
+    return "not measured" if load is None else f"{load:.2f}"
 
 
 def main() -> None:
@@ -141,7 +159,7 @@ def main() -> None:
                             cwd=Path(nerfexp.__file__).parent).stdout.strip() if shutil.which("git") else ""
     meta = {"steps": args.steps, "window": args.window, "profile": args.profile, "commit": commit,
             "command": "python benchmarks/step_profile.py " + " ".join(sys.argv[1:]),
-            "machine": {"cpu_count": os.cpu_count(), "torch_threads": torch.get_num_threads(),
+            "machine": {"device": machine_record()["device"], "cpu_count": os.cpu_count(), "torch_threads": torch.get_num_threads(),
                         "processor": platform.processor() or platform.machine(), "torch": torch.__version__,
                         "cuda": torch.version.cuda,
                         "gpu": torch.cuda.get_device_name() if torch.cuda.is_available() else None}}

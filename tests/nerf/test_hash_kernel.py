@@ -4,6 +4,7 @@ gradients against the torch path's (NERFEXP_KERNELS=off) to float32 rounding, wi
 cell faces and the box's edges and outside it, empty and one-element batches, non-contiguous inputs and
 gradients, bf16 autocast around it; and the fallback where no compiler builds it."""
 
+import copy
 import json
 import subprocess
 import sys
@@ -183,4 +184,125 @@ def test_with_sparse_gradients_the_kernel_gives_the_torch_paths_rows_read(monkey
     assert torch.equal(fused._indices(), reference.indices())
     torch.testing.assert_close(fused._values(), reference.values(), atol=1e-5, rtol=1e-5)
     for mine, theirs in zip(fused_dense, torch_dense, strict=True):
+        torch.testing.assert_close(mine, theirs, atol=1e-5, rtol=1e-5)
+
+
+def segments_loss(encodings_and_points, probes) -> torch.Tensor:
+    """One loss over several calls of the encodings (as the renderer's segments and networks call them)."""
+    return sum((enc(points) * probe).sum() for (enc, points), probe in zip(encodings_and_points, probes, strict=True))
+
+
+@needs_kernel
+def test_the_calls_of_one_backward_pass_sum_into_one_gradient_equal_to_the_torch_paths(monkeypatch):
+    # the renderer calls each network's encoding once per segment: the fused kernel sums every call's gradient into
+    # the tensors the pass's first call handed autograd; the sum equals the torch path's (autograd's sum of a
+    # dense gradient per call) to float32 rounding, for the hashed table and every dense volume, for two copies
+    # of the encoding (the coarse and the fine network's) in one loss
+    enc = small_encoding(log2_table_size=10)
+    other = copy.deepcopy(enc)
+    points = edge_points(enc)
+    calls = [(enc, points[:40]), (other, points[40:90]), (enc, points[90:]), (enc, points[:7]), (other, points[3:])]
+    generator = torch.Generator().manual_seed(7)
+    probes = [torch.randn(len(p), enc.out_dim, generator=generator) for _, p in calls]
+    grads = {}
+    for switch in ("on", "off"):
+        monkeypatch.setenv(kernels.SWITCH, switch)
+        for p in [*enc.parameters(), *other.parameters()]:
+            p.grad = None
+        segments_loss(calls, probes).backward()
+        grads[switch] = [p.grad.clone() for p in [*enc.parameters(), *other.parameters()]]
+    for mine, theirs in zip(grads["on"], grads["off"], strict=True):
+        torch.testing.assert_close(mine, theirs, atol=1e-5, rtol=1e-5)
+
+
+@needs_kernel
+def test_backward_passes_accumulate_as_autograd_does_and_autograd_keeps_the_summed_tensor(monkeypatch):
+    # each pass starts its own sums; a second pass (retain_graph) adds to the gradient as autograd always does, and
+    # the gradient autograd stores is the tensor the calls summed into (no copy), made once per pass
+    enc = small_encoding(log2_table_size=10)
+    made = []  # per call: (whether it made the pass's tensors, the hashed table's tensor's storage)
+    sums_of = enc.pass_gradients.of
+
+    def recorded(tables):
+        sums, new = sums_of(tables)
+        made.append((new, sums[0].data_ptr()))
+        return sums, new
+    monkeypatch.setattr(enc.pass_gradients, "of", recorded)
+    points = edge_points(enc)
+    calls = [(enc, points[:100]), (enc, points[100:])]
+    probes = [torch.ones(len(p), enc.out_dim) for _, p in calls]
+    loss = segments_loss(calls, probes)
+    loss.backward(retain_graph=True)
+    once = [p.grad.clone() for p in enc.parameters()]
+    assert [new for new, _ in made] == [True, False] and enc.hashed.grad.data_ptr() == made[0][1]
+    loss.backward()
+    assert [new for new, _ in made] == [True, False, True, False]
+    for twice, single in zip((p.grad for p in enc.parameters()), once, strict=True):
+        torch.testing.assert_close(twice, 2 * single)
+    # the whole batch in one call: the same gradient as the two calls' sum
+    for p in enc.parameters():
+        p.grad = None
+    enc(points).sum().backward()
+    for whole, single in zip((p.grad for p in enc.parameters()), once, strict=True):
+        torch.testing.assert_close(whole, single, atol=1e-5, rtol=1e-5)
+
+
+@needs_kernel
+def test_summing_into_gradients_of_another_shape_is_a_one_line_error():
+    enc = small_encoding()
+    volumes = [torch.zeros_like(volume[0]) for volume in enc.dense]
+    with pytest.raises(RuntimeError, match=r"hash_encoding: hashed must be \["):
+        FUSED.backward_into(torch.rand(5, 3), torch.rand(5, enc.out_dim), volumes, torch.zeros(1, 4, 2),
+                            *enc.kernel_shape())
+
+
+@needs_kernel
+def test_the_kernel_clamps_positions_outside_the_unit_box_never_reading_outside_its_tables():
+    # the encoding clamps before it calls the kernel; the kernel clamps again, so that a wrong call (a position
+    # outside [0, 1], a NaN) reads its tables' edges, not memory beyond them: NaN as 0
+    enc = small_encoding()
+    volumes = [volume[0] for volume in enc.dense]
+    outside = torch.tensor([[-0.5, 1.5, 0.25], [3.0, -2.0, 1.0], [float("nan"), 0.5, 1.0]])
+    inside = torch.tensor([[0.0, 1.0, 0.25], [1.0, 0.0, 1.0], [0.0, 0.5, 1.0]])
+    features = FUSED.forward(outside, volumes, enc.hashed.detach(), *enc.kernel_shape())
+    assert torch.equal(features, FUSED.forward(inside, volumes, enc.hashed.detach(), *enc.kernel_shape()))
+
+
+@needs_kernel
+def test_a_pass_mixing_the_kernel_and_the_torch_path_sums_every_calls_gradient(monkeypatch):
+    # positions that need a gradient take the torch path: its dense gradient meets the kernel's in autograd's sum,
+    # whichever comes first; every call's gradient reaches the table (the torch path throughout as the reference)
+    enc = small_encoding(log2_table_size=10)
+    points = edge_points(enc)
+    generator = torch.Generator().manual_seed(8)
+    probes = [torch.randn(n, enc.out_dim, generator=generator) for n in (60, 80, 50, 70)]
+    parts = [points[:60], points[60:140].clone().requires_grad_(), points[140:190], points[190:260]]
+
+    def gradients() -> list[torch.Tensor]:
+        for p in enc.parameters():
+            p.grad = None
+        sum((enc(x) * probe).sum() for x, probe in zip(parts, probes, strict=True)).backward()
+        return [p.grad.clone() for p in enc.parameters()]
+    mixed = gradients()
+    monkeypatch.setenv(kernels.SWITCH, "off")
+    for mine, theirs in zip(mixed, gradients(), strict=True):
+        torch.testing.assert_close(mine, theirs, atol=1e-5, rtol=1e-5)
+
+
+@needs_kernel
+def test_with_a_frozen_table_the_others_get_the_torch_paths_gradients(monkeypatch):
+    # the hashed table frozen (no gradient): each call's own gradients, no shared sums; the dense volumes' equal
+    # the torch path's and the frozen table gets none
+    enc = small_encoding(log2_table_size=10)
+    enc.hashed.requires_grad_(False)
+    points = edge_points(enc)
+    grads = {}
+    for switch in ("on", "off"):
+        monkeypatch.setenv(kernels.SWITCH, switch)
+        for p in enc.dense:
+            p.grad = None
+        (enc(points[:100]).square().sum() + enc(points[100:]).sum()).backward()
+        grads[switch] = [p.grad.clone() for p in enc.dense]
+        assert enc.hashed.grad is None
+    for mine, theirs in zip(grads["on"], grads["off"], strict=True):
         torch.testing.assert_close(mine, theirs, atol=1e-5, rtol=1e-5)

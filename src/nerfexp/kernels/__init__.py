@@ -11,8 +11,8 @@ A build takes about a minute, once per machine and source: it is no part of a ru
 called by ``nerfexp.training.recorders.RunRecorder``), and ``seconds_spent`` says how long this process spent
 getting kernels, so that a kernel first asked for inside the clock is taken out of it all the same.
 
-Each kernel is compiled -O3 for the architecture's baseline (no -march=native), with OpenMP, as ATen's
-``at::parallel_for`` uses it.
+Each kernel is compiled -O3 with OpenMP, as ATen's ``at::parallel_for`` uses it, and on x86-64 for this CPU's vector
+instructions without fused multiply-adds (``nerfexp.kernels.cache.NATIVE``: the baseline build's results, bit for bit).
 """
 
 import functools

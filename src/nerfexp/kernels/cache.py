@@ -47,7 +47,11 @@ from nerfexp.reading import UnreadableFile, read_json, sha256
 CACHE_FOLDER = "nerfexp"  # under the cache root: nerfexp's builds, one folder per kernel and what it is built from
 RECORD = "record.json"  # beside the library: what it was built from, its SHA-256, inode and change time
 RECORD_BYTES = 64 << 10  # a record is a few hundred bytes
-CFLAGS = ("-O3", "-fopenmp")  # the architecture's baseline (no -march=native): the CPU is in the key all the same
+# On x86-64, the vector instructions of the CPU it is built on (the CPU is in the key: a build runs only where it was
+# made) without fused multiply-adds (which round once where the C++ rounds twice): the results of the baseline
+# architecture's build, bit for bit, in loops over blocks of positions that its vector units run several at a time
+NATIVE = ("-march=native", "-ffp-contract=off") if platform.machine() in ("x86_64", "AMD64") else ()
+CFLAGS = ("-O3", "-fopenmp", *NATIVE)
 LDFLAGS = ("-fopenmp",)
 LIBRARY_SUFFIX = ".so"  # torch's name for the library it builds, NAME.so, on every POSIX system
 BUILD_LIMIT = 20 * 60  # seconds: a build takes about a minute on 2 cores; a lock held 20 times that is not a build

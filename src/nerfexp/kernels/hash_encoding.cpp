@@ -1,7 +1,8 @@
 // The hash encoding's forward and backward (nerfexp.nerf.encodings.HashGridEncoding) as fused CPU loops: each
 // position's 8 corners per level found, weighted and summed in one pass (forward, parallel over positions), and
 // each level's table gradient accumulated in one pass over the positions (backward, parallel over levels: a
-// level's entries are its own, so no two threads add to one entry, without atomics or per-thread copies).
+// level's entries are its own, so no two threads add to one entry, without atomics or per-thread copies), into new
+// zero tensors or (``backward_into``) into the sums of earlier calls of the same backward pass.
 //
 // Inputs: unit positions [N, 3] in [0, 1] (float32, contiguous); dense levels as [F, n+1, n+1, n+1] volumes
 // (vertex (i, j, k) of feature f at f (n+1)^3 + (i (n+1) + j) (n+1) + k), the hashed levels' table [Lh, T, F];
@@ -11,40 +12,62 @@
 #include <torch/extension.h>
 #include <ATen/Parallel.h>
 
+#include <algorithm>
 #include <cmath>
 #include <vector>
 
 namespace {
 
-const int64_t PRIME_X = 1, PRIME_Y = 2654435761LL, PRIME_Z = 805459861LL;  // HASH_PRIMES
+const uint32_t PRIME_X = 1, PRIME_Y = 2654435761u, PRIME_Z = 805459861u;  // HASH_PRIMES
 
-// One level's 8 corners of one position: their offsets into the level's storage and trilinear weights.
+const int64_t BLOCK = 64;  // positions whose corners are found together, in loops the compiler vectorizes
+
+// One level's 8 corners of ``BLOCK`` positions (at most): their offsets into the level's storage and trilinear
+// weights, corner-major.
 struct Corners {
-  int64_t offset[8];
-  float weight[8];
+  int64_t offset[8][BLOCK];
+  float weight[8][BLOCK];
 };
 
-// The cell of ``u`` at ``n`` cells per side (the last cell for u = 1), as the torch path computes it:
-// scaled = u n, lower = min(floor(scaled), n - 1), frac = scaled - lower.
-inline void corners_of(const float* u, int64_t n, bool hashed, int64_t table_size, int64_t stride,
+// The cells of ``count`` positions ``u`` [count, 3] at ``n`` cells per side (the last cell for u = 1), as the torch
+// path computes them: scaled = u n, lower = min(floor(scaled), n - 1), frac = scaled - lower; then each corner's
+// row, hashed ((i p_x xor j p_y xor k p_z) mod T: T is a power of two at most 2^32, so the products' low 32 bits
+// decide it and the arithmetic is in uint32) or indexed ((i (n+1) + j) (n+1) + k, below 2^32: ``check_inputs``),
+// times ``stride``, and weight (w_x w_y w_z). A position outside [0, 1] (or NaN) is clamped, never read outside the
+// storage. floor(x) for 0 <= x < 2^31 is x converted to an integer (rounded toward zero) and back: the baseline x86-64 (no SSE4.1 round) makes std::floor a call of the maths library.
+inline void corners_of(const float* u, int64_t count, int64_t n, bool hashed, int64_t table_size, int64_t stride,
                        Corners& c) {
-  int64_t lower[3];
-  float frac[3];
-  for (int a = 0; a < 3; ++a) {
-    const float scaled = u[a] * static_cast<float>(n);
-    float floor = std::floor(scaled);
-    if (floor > static_cast<float>(n - 1)) floor = static_cast<float>(n - 1);
-    lower[a] = static_cast<int64_t>(floor);
-    frac[a] = scaled - floor;
-  }
+  uint32_t lower[3][BLOCK];
+  float frac[3][BLOCK];
+  const float cells = static_cast<float>(n), last = static_cast<float>(n - 1);
+  for (int a = 0; a < 3; ++a)
+    for (int64_t i = 0; i < count; ++i) {
+      float scaled = u[3 * i + a] * cells;
+      scaled = scaled > 0 ? scaled : 0;  // in [0, n] for u in [0, 1]; any other u (NaN too) clamped into the box
+      scaled = scaled < cells ? scaled : cells;
+      float floor = static_cast<float>(static_cast<int32_t>(scaled));
+      if (floor > last) floor = last;
+      lower[a][i] = static_cast<uint32_t>(static_cast<int32_t>(floor));
+      frac[a][i] = scaled - floor;
+    }
+  const uint32_t mask = static_cast<uint32_t>(table_size - 1), side = static_cast<uint32_t>(n + 1);
   for (int k = 0; k < 8; ++k) {
-    const int64_t bx = (k >> 2) & 1, by = (k >> 1) & 1, bz = k & 1;
-    const int64_t i = lower[0] + bx, j = lower[1] + by, l = lower[2] + bz;
-    const int64_t row = hashed ? (((i * PRIME_X) ^ (j * PRIME_Y) ^ (l * PRIME_Z)) & (table_size - 1))
-                               : (i * (n + 1) + j) * (n + 1) + l;
-    c.offset[k] = row * stride;
-    const float wx = bx ? frac[0] : 1 - frac[0], wy = by ? frac[1] : 1 - frac[1], wz = bz ? frac[2] : 1 - frac[2];
-    c.weight[k] = wx * wy * wz;
+    const uint32_t bx = (k >> 2) & 1, by = (k >> 1) & 1, bz = k & 1;
+    int64_t* offset = c.offset[k];
+    float* weight = c.weight[k];
+    if (hashed)
+      for (int64_t i = 0; i < count; ++i)
+        offset[i] = static_cast<int64_t>(((lower[0][i] + bx) * PRIME_X ^ (lower[1][i] + by) * PRIME_Y ^
+                                          (lower[2][i] + bz) * PRIME_Z) & mask) * stride;
+    else
+      for (int64_t i = 0; i < count; ++i)
+        offset[i] = static_cast<int64_t>(((lower[0][i] + bx) * side + lower[1][i] + by) * side + lower[2][i] + bz) *
+                    stride;
+    for (int64_t i = 0; i < count; ++i) {
+      const float wx = bx ? frac[0][i] : 1 - frac[0][i], wy = by ? frac[1][i] : 1 - frac[1][i];
+      const float wz = bz ? frac[2][i] : 1 - frac[2][i];
+      weight[i] = wx * wy * wz;
+    }
   }
 }
 
@@ -114,19 +137,24 @@ torch::Tensor hash_encoding_forward(torch::Tensor unit, std::vector<torch::Tenso
   auto out = torch::empty({N, L * F}, unit.options());
   const float* u = unit.data_ptr<float>();
   float* o = out.data_ptr<float>();
+  // level by level within a thread's positions: one level's storage (a hashed level's T F floats) stays in the
+  // core's cache while its positions read it, where all the levels' would not
   at::parallel_for(0, N, 256, [&](int64_t begin, int64_t end) {
     Corners c;
-    for (int64_t p = begin; p < end; ++p)
-      for (int64_t l = 0; l < L; ++l) {
-        const Level& level = levels[l];
-        corners_of(u + 3 * p, level.n, level.hashed, T, level.row_stride, c);
-        for (int64_t f = 0; f < F; ++f) {
-          const float* values = level.data + f * level.feature_stride;
-          float sum = 0;
-          for (int k = 0; k < 8; ++k) sum += c.weight[k] * values[c.offset[k]];
-          o[(p * L + l) * F + f] = sum;
-        }
+    for (int64_t l = 0; l < L; ++l) {
+      const Level& level = levels[l];
+      for (int64_t first = begin; first < end; first += BLOCK) {
+        const int64_t count = std::min(BLOCK, end - first);
+        corners_of(u + 3 * first, count, level.n, level.hashed, T, level.row_stride, c);
+        for (int64_t i = 0; i < count; ++i)
+          for (int64_t f = 0; f < F; ++f) {
+            const float* values = level.data + f * level.feature_stride;
+            float sum = 0;
+            for (int k = 0; k < 8; ++k) sum += c.weight[k][i] * values[c.offset[k][i]];
+            o[((first + i) * L + l) * F + f] = sum;
+          }
       }
+    }
   });
   return out;
 }
@@ -143,15 +171,18 @@ void accumulate(const float* u, const float* g, int64_t N, int64_t T, int64_t F,
     for (int64_t l = begin; l < end; ++l) {
       const Level& level = levels[l];
       uint8_t* marks = (touched != nullptr && level.hashed) ? touched + (l - n_dense) * T : nullptr;
-      for (int64_t p = 0; p < N; ++p) {
-        corners_of(u + 3 * p, level.n, level.hashed, T, level.row_stride, c);
-        for (int64_t f = 0; f < F; ++f) {
-          const float gradient = g[(p * L + l) * F + f];
-          float* values = level.data + f * level.feature_stride;
-          for (int k = 0; k < 8; ++k) values[c.offset[k]] += c.weight[k] * gradient;
-        }
+      for (int64_t first = 0; first < N; first += BLOCK) {
+        const int64_t count = std::min(BLOCK, N - first);
+        corners_of(u + 3 * first, count, level.n, level.hashed, T, level.row_stride, c);
+        for (int64_t i = 0; i < count; ++i)
+          for (int64_t f = 0; f < F; ++f) {
+            const float gradient = g[((first + i) * L + l) * F + f];
+            float* values = level.data + f * level.feature_stride;
+            for (int k = 0; k < 8; ++k) values[c.offset[k][i]] += c.weight[k][i] * gradient;
+          }
         if (marks != nullptr)
-          for (int k = 0; k < 8; ++k) marks[c.offset[k] / F] = 1;
+          for (int k = 0; k < 8; ++k)
+            for (int64_t i = 0; i < count; ++i) marks[c.offset[k][i] / F] = 1;
       }
     }
   });
@@ -175,6 +206,18 @@ std::vector<torch::Tensor> hash_encoding_backward(torch::Tensor unit, torch::Ten
              static_cast<int64_t>(dense.size()), nullptr);
   grads.push_back(hashed_grad);
   return grads;
+}
+
+// As ``hash_encoding_backward``, but summed into the given gradients (of the dense volumes' and the hashed table's
+// shapes, contiguous float32, zeros or the sums of earlier calls), in place: the gradients of several calls of one
+// backward pass accumulated in one set of tensors, none allocated or zero-filled per call.
+void hash_encoding_backward_into(torch::Tensor unit, torch::Tensor grad, std::vector<torch::Tensor> dense_grads,
+                                 torch::Tensor hashed_grad, std::vector<int64_t> dense_res,
+                                 std::vector<int64_t> hashed_res, int64_t features) {
+  check_inputs(unit, dense_grads, hashed_grad, dense_res, hashed_res, features, &grad);
+  const std::vector<Level> levels = levels_of(dense_grads, hashed_grad, dense_res, hashed_res);
+  accumulate(unit.data_ptr<float>(), grad.data_ptr<float>(), unit.size(0), hashed_grad.size(1), features, levels,
+             static_cast<int64_t>(dense_grads.size()), nullptr);
 }
 
 // As ``hash_encoding_backward``, but the hashed table's gradient as the rows the positions read, each once:
@@ -230,6 +273,8 @@ std::vector<torch::Tensor> hash_encoding_backward_rows(torch::Tensor unit, torch
 PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
   m.def("forward", &hash_encoding_forward, "the hash encoding's features of unit positions");
   m.def("backward", &hash_encoding_backward, "the gradients of the dense volumes and the hashed table");
+  m.def("backward_into", &hash_encoding_backward_into,
+        "the gradients of the dense volumes and the hashed table summed into the given ones, in place");
   m.def("backward_rows", &hash_encoding_backward_rows,
         "the dense volumes' gradients, and the hashed table's as the rows read: indices [2, U] and values [U, F]");
 }

@@ -2,6 +2,7 @@
 ``out_dim``."""
 
 import math
+import weakref
 from collections.abc import Sequence
 from typing import ClassVar
 
@@ -175,13 +176,15 @@ class _InterpolateRows(torch.autograd.Function):
 class _FusedHashEncoding(torch.autograd.Function):
     """``HashGridEncoding``'s features of unit positions [N, 3] by the fused kernel (``nerfexp.kernels``,
     hash_encoding.cpp): forward [N, L F]; backward the gradients of each dense volume [1, F, n+1, n+1, n+1] (dense)
-    and of the hashed table [L_h, T, F]: dense, or with ``sparse`` the coalesced sparse COO tensor of the rows read
-    (as ``touched_row_sums`` makes it); none to the positions."""
+    and of the hashed table [L_h, T, F]: dense, summed over the calls of one backward pass in one set of tensors
+    (``PassGradients``), or with ``sparse`` the coalesced sparse COO tensor of the rows read (as
+    ``touched_row_sums`` makes it); none to the positions."""
 
     @staticmethod
-    def forward(ctx, unit: Tensor, fused, shape: tuple, sparse: bool, hashed: Tensor, *dense: Tensor) -> Tensor:
+    def forward(ctx, unit: Tensor, fused, shape: tuple, sparse: bool, sums: "PassGradients", hashed: Tensor,
+                *dense: Tensor) -> Tensor:
         ctx.save_for_backward(unit, hashed, *dense)
-        ctx.fused, ctx.shape, ctx.sparse = fused, shape, sparse  # shape: HashGridEncoding.kernel_shape()
+        ctx.fused, ctx.shape, ctx.sparse, ctx.sums = fused, shape, sparse, sums  # shape: HashGridEncoding.kernel_shape()
         return fused.forward(unit, [volume[0] for volume in dense], hashed, *ctx.shape)
 
     @staticmethod
@@ -193,9 +196,48 @@ class _FusedHashEncoding(torch.autograd.Function):
                                                                     *ctx.shape)
             hashed_grad = torch.sparse_coo_tensor(indices, values, hashed.shape, is_coalesced=True,
                                                   check_invariants=False)
-        else:
+            return None, None, None, None, None, hashed_grad, *(g[None] for g in dense_grads)
+        if not all(ctx.needs_input_grad[5:]):  # a table without a gradient: no shared sums, a gradient of its own
             *dense_grads, hashed_grad = ctx.fused.backward(unit, grad.contiguous(), volumes, hashed, *ctx.shape)
-        return None, None, None, None, hashed_grad, *(g[None] for g in dense_grads)
+            return None, None, None, None, None, hashed_grad, *(g[None] for g in dense_grads)
+        (hashed_grad, *dense_grads), first = ctx.sums.of([hashed, *dense])
+        ctx.fused.backward_into(unit, grad.contiguous(), [g[0] for g in dense_grads], hashed_grad, *ctx.shape)
+        if not first:  # summed into the gradients an earlier call of this pass handed autograd
+            return None, None, None, None, None, None, *(None for _ in dense)
+        return None, None, None, None, None, hashed_grad, *dense_grads
+
+
+class PassGradients:
+    """Where one encoding's fused calls (``_FusedHashEncoding``) sum their tables' dense gradients in a backward
+    pass: the pass's first call makes zero tensors and hands them to autograd as its gradients; the pass's later
+    calls sum theirs into the same tensors and hand autograd none. Autograd reads a parameter's gradient once every
+    node of the pass that feeds it has run, so it reads the sum of all the calls: one zero fill of the tables per
+    pass, where one per call and autograd's sums of them took a large share of a small step (the renderer queries
+    a network several times per step: ``VolumeRenderer._query``'s segments).
+
+    A pass is autograd's graph task (``torch._C._current_graph_task_id``, as ``torch.autograd.graph.
+    register_multi_grad_hook`` tells passes apart). The tensors are held weakly: they are autograd's, which takes
+    them as the parameters' gradients without a copy where it holds the only reference; where they are gone, or
+    in another pass, a call starts new ones (always correct: autograd then sums what each hands it). A copy or a
+    pickle of the encoding starts empty."""
+
+    def __init__(self):
+        self._pass = None
+        self._sums: list[weakref.ref] = []
+
+    def of(self, tables: list[Tensor]) -> tuple[list[Tensor], bool]:
+        """Gradient tensors for ``tables`` (each of its table's shape) in this backward pass, and whether they are
+        new (zeros, to be handed to autograd) rather than an earlier call's."""
+        current = torch._C._current_graph_task_id()
+        sums = [ref() for ref in self._sums]
+        if current == self._pass and len(sums) == len(tables) and all(s is not None for s in sums):
+            return sums, False
+        sums = [torch.zeros_like(table, memory_format=torch.contiguous_format) for table in tables]
+        self._pass, self._sums = current, [weakref.ref(s) for s in sums]
+        return sums, True
+
+    def __reduce__(self):
+        return PassGradients, ()
 
 
 def flat_indices(rows: Tensor, n_rows: int, n_features: int) -> Tensor:
@@ -357,6 +399,7 @@ class HashGridEncoding(Bounded, Encoding):
         row_dtype = torch.int32 if len(hashed) * self.table_size <= 2**31 else torch.int64
         first_rows = self.table_size * torch.arange(len(hashed), dtype=row_dtype)[:, None]
         self.register_buffer("level_offsets", first_rows, persistent=False)  # [L_h, 1]: each level's first row
+        self.pass_gradients = PassGradients()  # the fused kernel's dense gradients, summed per backward pass
 
     def kernel_shape(self) -> tuple[list[int], list[int], int]:
         """What the fused kernel needs besides the tables: the dense and the hashed levels' cells per side, and
@@ -388,7 +431,7 @@ class HashGridEncoding(Bounded, Encoding):
         fused = self._fused_kernel(unit)
         if fused is not None:
             parts.append(_FusedHashEncoding.apply(unit.contiguous(), fused, self.kernel_shape(), self.sparse_gradients,
-                                                  self.hashed, *self.dense))
+                                                  self.pass_gradients, self.hashed, *self.dense))
             return torch.cat(parts, -1).view(*x.shape[:-1], self.out_dim)
         grid = (2 * unit - 1).view(1, -1, 1, 1, 3).flip(-1)  # grid_sample reads (x, y, z) as (k, j, i)
         for volume in self.dense:  # [1, F, N+1, N+1, N+1], indexed [i, j, k]
