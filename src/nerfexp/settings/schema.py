@@ -156,6 +156,7 @@ SCHEMA: dict[str, Rule] = {
     "appearance.test_protocol": choice(*PROTOCOLS),
     "camera_opt.correction": NULL,  # camera_opt=off
     "camera_opt.coarse_to_fine": FRACTION,  # the window it asks of the positional encoding (encoding.position)
+    "encoding.grid_march_steps": optional(COUNT, "the cell's diagonal"),  # what it asks of acceleration=occupancy
     "test_cameras.fit": NULL,  # test_cameras=given
     "datamodule.pose_noise": optional(POSE_NOISE, "the poses as the data gives them"),
     "contraction.function": NULL,  # contraction=none
