@@ -133,7 +133,7 @@ def test_a_colmap_model_beside_the_frames_gives_its_points_bounds_in_the_frames_
     are RING_BOUNDS there) beside frames posed at half its scale: the bounds are RING_BOUNDS halved, and a
     model matching fewer than two frames by file name gives none."""
     from nerfexp.data.nerfstudio import Frame, colmap_point_bounds
-    from tests.data.test_colmap import RING, RING_BOUNDS, hand_made_model
+    from tests.data.photographs import RING, RING_BOUNDS, hand_made_model
 
     model = tmp_path / "sparse" / "0"
     model.mkdir(parents=True)

@@ -2,7 +2,6 @@
 cameras, models written as text (today's and COLMAP 3's layout) and binary, the conventions against
 hand-worked poses, the ray bounds, and the errors."""
 
-import math
 import time
 
 import numpy as np
@@ -24,10 +23,14 @@ from tests.data.photographs import (
     FOCAL,
     HEIGHT,
     N_VIEWS,
+    POINTS,
+    RING,
+    RING_BOUNDS,
     SIZE,
     UP,
     WIDTH,
     digest,
+    hand_made_model,
     render_photographs,
     rotation_degrees,
     true_cameras,
@@ -118,45 +121,6 @@ def test_pipeline_recovers_the_true_cameras_up_to_a_similarity(tmp_path, capfd):
 
 
 # ---------------------------------------------------------------- reading existing models
-
-RING = [(4.0, 0.0, 0.0), (0.0, 4.0, 0.0), (-4.0, 0.0, 0.0), (0.0, -4.0, 0.0)]  # cameras looking at the origin
-POINTS = [(0.0, 0.0, 0.0), (0.0, 0.0, 1.0)]  # seen by every camera, at distances 4 and sqrt(17)
-# near and far of RING and POINTS: each image sees distances {4, sqrt(17)}, and a percentile q of two values
-# interpolates linearly, 4 + q (sqrt(17) - 4); near = 0.9 x the 0.1th, far = 1.1 x the 99.9th
-RING_BOUNDS = (0.9 * (4 + 0.001 * (math.sqrt(17) - 4)), 1.1 * (4 + 0.999 * (math.sqrt(17) - 4)))
-
-
-def colmap_pose(eye, target=(0.0, 0.0, 0.0), up=(0.0, 0.0, 1.0)) -> pycolmap.Rigid3d:
-    """COLMAP's cam_from_world of a camera at ``eye`` looking at ``target``, written from COLMAP's own
-    definition (x_cam = R x + t; rows of R: x right, y down, z forward), not from nerfexp's."""
-    eye, target, up = (np.array(v, dtype=np.float64) for v in (eye, target, up))
-    z = (target - eye) / np.linalg.norm(target - eye)
-    x = np.cross(z, up)
-    x /= np.linalg.norm(x)
-    R = np.stack([x, np.cross(z, x), z])
-    return pycolmap.Rigid3d(pycolmap.Rotation3d(R), -R @ eye)
-
-
-def hand_made_model(principal_point=(WIDTH / 2, HEIGHT / 2), ring=RING, model="SIMPLE_PINHOLE",
-                    distortion=()) -> pycolmap.Reconstruction:
-    """Cameras on ``ring`` sharing one lens (COLMAP's ``model``: f, the principal point, then ``distortion``'s
-    coefficients), and the two POINTS, each point observed by every camera where COLMAP projects it."""
-    reconstruction = pycolmap.Reconstruction()
-    reconstruction.add_camera_with_trivial_rig(pycolmap.Camera(
-        model=model, width=WIDTH, height=HEIGHT, params=[FOCAL, *principal_point, *distortion], camera_id=1))
-    camera = reconstruction.cameras[1]
-    for i, eye in enumerate(ring, start=1):
-        pose = colmap_pose(eye)
-        keypoints = np.array([camera.img_from_cam(pose * np.array(p)) for p in POINTS])
-        image = pycolmap.Image(name=f"view_{i}.png", keypoints=keypoints, camera_id=1, image_id=i)
-        reconstruction.add_image_with_trivial_frame(image, pose)
-    for k, point in enumerate(POINTS):
-        track = pycolmap.Track([pycolmap.TrackElement(i, k) for i in range(1, len(ring) + 1)])
-        reconstruction.add_point3D(np.array(point), track)
-    return reconstruction
-
-
-
 
 @pytest.mark.parametrize("form", ["text", "binary"])
 def test_reads_a_model_written_as_text_or_binary(tmp_path, form):

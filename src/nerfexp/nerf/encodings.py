@@ -350,8 +350,8 @@ class HashGridEncoding(Bounded, Encoding):
     """
 
     # Read by trainer.precision=auto (nerfexp.training.precision): its lookups and interpolation stay float32
-    CPU_AUTOCAST_SLOWER: ClassVar[str] = ("bf16 autocast made a hash-grid step with the grid 1.65x slower on a 2-core "
-                                          "CPU (benchmarks/results/step_profile_kernel.md, field=ngp)")
+    CPU_AUTOCAST_SLOWER: ClassVar[str] = ("bf16 autocast made a hash-grid step with the grid slower on a CPU "
+                                          "(docs/precision.md)")
 
     DOMAINS = {
         "n_levels": COUNT,
