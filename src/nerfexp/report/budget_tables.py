@@ -111,7 +111,7 @@ def per_budget_text(variants: list[Variant], reference: Variant | None, words: d
         cells = [variant.label, *(cell(steps[variant.label].get(step)) for step in columns),
                  *(cell(at_times[variant.label].get(t)) for t in times), end_cell(at_times[variant.label],
                                                                                    ends[variant.label]),
-                 words.get(variant.label) or "steady"]
+                 words.get(variant.label) or ("steady" if len(steps[variant.label]) > 1 else "–")]
         lines.append("| " + " | ".join(cells) + " |")
     return lines
 
@@ -139,6 +139,8 @@ def equal_time_text(variants: list[Variant]) -> list[str]:
               "not resolved from the first of the line (paired by seed, 95% interval).", ""]
     if (line := by_step_only_line(variants, None)) is not None:
         lines += [line, ""]
+    if not times:
+        return lines + ["No time to rank at: the fastest variant's runs share no test step."]
     for time_s in times:
         table = equal_time(variants, time_s)
         means = {label: (mean, n) for label, mean, n in table.ranked}
