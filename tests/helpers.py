@@ -366,11 +366,17 @@ def one_error_line(result, prog: str = "nerfexp") -> str:
 def make_run(root: Path, name: str, overrides: list[str], state: str = "finished", psnr: float = 20.0,
              ssim: float = 0.8, time_s: float = 100.0, choices: dict | None = None, pid: int | None = None,
              error: str = "", host: str | None = None, curve=((50.0, 15.0), (100.0, 18.0)),
-             precision: str = "32-true", lpips: float | None = None) -> Path:
+             precision: str = "32-true", lpips: float | None = None,
+             test_budgets: list[tuple[int, float, float, float]] | None = None) -> Path:
     """A run directory ``root/name`` as nerfexp leaves it, with known numbers: its status, its validation
     ``curve`` (wall seconds, PSNR), and where ``state`` is finished its test scores and results.json (with
     ``lpips`` its test LPIPS too, as a run that scored it with the published weights, whose SHA-256 it records;
-    without, none, as one that did not)."""
+    without, none, as one that did not). ``test_budgets``: (step, training seconds, test PSNR, test SSIM) of each
+    budget, the last the end (its step, time and scores the run's ``steps``, ``train_time_s`` and test scores, in
+    place of ``time_s``, ``psnr`` and ``ssim``); without, none (as an earlier nerfexp's run, of 20 steps)."""
+    steps = 20
+    if test_budgets is not None:
+        steps, time_s, psnr, ssim = test_budgets[-1]
     run = root / name
     run.mkdir(parents=True)
     status = {"state": state, "overrides": overrides, "host": host or socket.gethostname(),
@@ -381,14 +387,21 @@ def make_run(root: Path, name: str, overrides: list[str], state: str = "finished
     lines = [{"step": 10 * (i + 1), "wall_time_s": t, "split": "val", "psnr": p, "ssim": 0.5}
              for i, (t, p) in enumerate(curve)]
     if state == "finished":
-        lines.append({"step": 20, "wall_time_s": time_s, "split": "test", "psnr": psnr, "ssim": ssim,
+        lines += [{"step": step, "wall_time_s": seconds, "split": "test", "psnr": p, "ssim": s}
+                  for step, seconds, p, s in (test_budgets or [])[:-1]]
+        lines.append({"step": steps, "wall_time_s": time_s, "split": "test", "psnr": psnr, "ssim": ssim,
                       **({} if lpips is None else {"lpips": lpips})})
         results = {"test_psnr": psnr, "test_ssim": ssim, "val_psnr": curve[-1][1], "train_time_s": time_s,
-                   "steps": 20, "time_per_step_s": time_s / 20, "rays_per_s": 256 * 20 / time_s,
+                   "steps": steps, "time_per_step_s": time_s / steps, "rays_per_s": 256 * steps / time_s,
                    "batch_rays": 256, "n_params": 1000, "evaluations_per_ray": 96,
                    "machine": {"host": host or "lab-pc", "device": "CPU (2 cores, 2 torch threads)"},
                    "choices": choices or {}, "overrides": overrides, "precision": precision,
                    **({} if lpips is None else {"test_lpips": lpips, "lpips_weights_sha256": ALEXNET_SHA256})}
+        if test_budgets is not None:
+            results["test_budgets"] = [{"step": step, "train_time_s": seconds, "evaluations": 96.0 * 256 * step,
+                                        "test_psnr": p, "test_ssim": s, "score_s": 0.5}
+                                       for step, seconds, p, s in test_budgets]
+            results["budget_scoring_s"] = 0.5 * (len(test_budgets) - 1)
         (run / "results.json").write_text(json.dumps(results))
     (run / "metrics.jsonl").write_text("".join(json.dumps(line) + "\n" for line in lines))
     return run

@@ -102,7 +102,7 @@ def test_an_earlier_nerfexps_run_has_its_precision_read_from_its_config():
 
 def test_plots_are_pngs_of_the_stated_size(sweep):
     write_report([sweep], sweep)
-    for name in ("psnr_vs_time.png", "pareto.png"):
+    for name in ("psnr_vs_time.png", "pareto.png", "difference_vs_time.png"):
         image = iio.imread(sweep / name)
         assert image.shape[:2] == (500, 800) and image.std() > 0  # 8 x 5 inches at 100 dpi, not blank
 
@@ -275,8 +275,9 @@ def test_averaging_over_scenes_and_machines_are_named(tmp_path):
 def test_the_command_line(tmp_path, sweep):
     out = tmp_path / "out"
     main([str(sweep), "--out", str(out)])
-    assert {p.name for p in out.iterdir()} == {"report.md", "report.csv", "psnr_vs_time.png", "pareto.png",
-                                              "report.html", "report_images", *manifest.BOOKKEEPING}
+    assert {p.name for p in out.iterdir()} == {"report.md", "report.csv", "report_budgets.csv", "psnr_vs_time.png",
+                                              "pareto.png", "difference_vs_time.png", "report.html", "report_images",
+                                              *manifest.BOOKKEEPING}
     empty = tmp_path / "empty"
     empty.mkdir()
     with pytest.raises(SystemExit, match="no runs"):
@@ -424,7 +425,8 @@ def test_a_report_writes_over_its_own_files_and_beside_a_users(tiny_run, tmp_pat
     (out / "0" / "status.json").write_text("{}")
     (out / "notes.txt").write_text("mine")  # of a name the report does not write: left beside it
     main([str(tiny_run), "--out", str(out)])
-    pages = ["report.md", "report.csv", "report.html", "psnr_vs_time.png", "pareto.png"]
+    pages = ["report.md", "report.csv", "report_budgets.csv", "report.html", "psnr_vs_time.png", "pareto.png",
+             "difference_vs_time.png"]
     images = manifest.folder_files(out, "report_images")
     assert "report_images/view0/truth.png" in images and manifest.unproven(out, [*pages, *images]) == []
     (out / images[0]).unlink()  # gone since: nothing to lose

@@ -129,7 +129,8 @@ def test_every_field_a_reader_uses_has_a_rule():
             "test_psnr_per_view", "test_ssim_per_view", "test_lpips_per_view", "test_protocol", "test_cameras",
             "test_lpips_custom", "test_lpips_custom_per_view", "lpips_weights_sha256", "collapse", "choices", "overrides", "precision", "config.seed", "config.trainer.precision",
             "machine", "train_time_s", "time_per_step_s", "rays_per_s", "n_params", "other_load",
-            "evaluations_per_ray", "checkpoint.path", "checkpoint.sha256"}
+            "evaluations_per_ray", "checkpoint.path", "checkpoint.sha256", "steps", "test_budgets",
+            "budget_scoring_s"}
     assert read == set(RESULTS_FIELDS)
 
 

@@ -9,15 +9,24 @@ Reads every run under the given directories (a run is a folder holding ``status.
   paired by seed with its 95% interval and verdict (``nerfexp.report.comparison``), training time, time per
   step, rays/s, parameters, network evaluations per ray, and for rows of the paper's ablation table
   the paper's numbers beside ours; then the ranking in groups the seeds cannot tell apart, and which
-  pairs of ablation rows agree with the paper's order, are reversed, or are not resolved; then every
+  pairs of ablation rows agree with the paper's order, are reversed, or are not resolved (at the end of training,
+  the step named); then "Per budget": each variant against the reference at each step their runs were all tested
+  at and at matched training times (``nerfexp.report.budgets``), the verdict column saying where the verdict
+  depends on the budget or is still moving; then "At equal training time": the variants ranked at the fastest
+  variant's budgets' times; then every
   job that did not finish (failed, or running / killed) with its reason, every finished run without a test
   score (collapsed, with its message; not scored: a score missing, null, NaN or infinite), and every run whose
   files cannot be read as nerfexp writes them (damaged: the file, the key and why,
   ``nerfexp.rundir.records``), none of whose numbers is used;
+- ``report_budgets.csv``: the per-budget differences, one per line (variant, reference, metric, step or time,
+  budget, seed pairs, difference, 95% interval, verdict); times compared only between runs that had their machine
+  to themselves (``nerfexp.report.shared_machines``);
 - ``psnr_vs_time.png``: validation PSNR against training wall-clock seconds: each variant's mean over
   seeds with a band from the lowest to the highest seed, single runs faint;
 - ``pareto.png``: final test PSNR against total training time (bars: one standard deviation over
-  seeds), the Pareto front drawn through the means;
+  seeds), the Pareto front drawn through the means, each variant's test budgets as small points on a thin line;
+- ``difference_vs_time.png``: each variant's test PSNR difference to the reference against training time at
+  the matched times, its 95% interval a band;
 - ``report.html``: all of the above as a page that opens from disk (``nerfexp.report.page``), and a few
   test views (``--views``) rendered by each variant beside the ground truth, with the render's error
   image and its PSNR and SSIM (and LPIPS); its pictures in ``report_images/``, decoded from the runs' ``test/``

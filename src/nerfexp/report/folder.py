@@ -7,17 +7,20 @@ from pathlib import Path
 
 from nerfexp import manifest
 from nerfexp.files import atomic_directory
+from nerfexp.report.budget_tables import budget_rows, budgets_csv_text
 from nerfexp.report.lpips_weights import vouched_lpips
 from nerfexp.report.page import page_html
 from nerfexp.report.pictures import PLOTS, VIEWS_NOTE, check_views, view_tiles
-from nerfexp.report.plots import pareto_png, psnr_vs_time_png
+from nerfexp.report.plots import difference_vs_time_png, pareto_png, psnr_vs_time_png
 from nerfexp.report.protocols import compared_runs
 from nerfexp.report.runs import find_runs
-from nerfexp.report.tables import csv_text, markdown, table_rows
+from nerfexp.report.tables import csv_cell, csv_text, markdown, table_rows
 from nerfexp.report.variants import Variant, group_variants, reference_variant
 from nerfexp.rundir.layout import (
+    DIFFERENCE_PLOT,
     PARETO_PLOT,
     PSNR_PLOT,
+    REPORT_BUDGETS_CSV,
     REPORT_CSV,
     REPORT_FILES,
     REPORT_HTML,
@@ -49,8 +52,10 @@ def write_report(directories: list[Path], out: Path, over: tuple[str, ...] = ("s
     report_md = markdown(variants, rows, runs, directories, base, " ".join(filter(None, (protocols, weights))))
     manifest.write(out, REPORT_MD, report_md.encode())
     manifest.write(out, REPORT_CSV, csv_text(rows).encode())
+    manifest.write(out, REPORT_BUDGETS_CSV, budgets_csv_text(budget_rows(variants, base), csv_cell).encode())
     manifest.write(out, PSNR_PLOT, psnr_vs_time_png(variants))
     manifest.write(out, PARETO_PLOT, pareto_png(variants))
+    manifest.write(out, DIFFERENCE_PLOT, difference_vs_time_png(variants, base))
     with atomic_directory(out / REPORT_IMAGES, replace=True) as folder:
         tiles = view_tiles(variants, views, folder)
     manifest.record_folder(out, REPORT_IMAGES)

@@ -16,11 +16,12 @@ from nerfexp.pixels import png_bytes
 from nerfexp.report.page import Picture, Tile
 from nerfexp.report.runs import Run
 from nerfexp.report.variants import Variant
-from nerfexp.rundir.layout import PARETO_PLOT, PSNR_PLOT, REPORT_IMAGES
+from nerfexp.rundir.layout import DIFFERENCE_PLOT, PARETO_PLOT, PSNR_PLOT, REPORT_IMAGES
 
 VIEWS_SHOWN = 3  # test views on the page by default: the first, the middle and the last
 PLOTS = [(PSNR_PLOT, "validation PSNR against training seconds"),
-         (PARETO_PLOT, "test PSNR against total training time")]
+         (PARETO_PLOT, "test PSNR against training time, at the end and at each budget"),
+         (DIFFERENCE_PLOT, "test PSNR difference to the reference against training time")]
 
 
 def default_views(n_views: int, count: int = VIEWS_SHOWN) -> list[int]:

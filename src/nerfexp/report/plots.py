@@ -1,5 +1,5 @@
-"""The report's plots: validation PSNR against training time, and the Pareto plot of final quality
-against total training time."""
+"""The report's plots: validation PSNR against training time, the Pareto plot of final quality (and each
+budget's) against training time, and each variant's test PSNR difference to the reference against training time."""
 
 
 import io
@@ -8,6 +8,7 @@ import statistics
 
 from matplotlib.figure import Figure
 
+from nerfexp.report.budgets import budget_points, difference_curve, timed
 from nerfexp.report.comparison import seeds
 from nerfexp.report.runs import Run
 from nerfexp.report.variants import Variant
@@ -85,7 +86,8 @@ def psnr_vs_time_png(variants: list[Variant]) -> bytes:
 
 def pareto_png(variants: list[Variant]) -> bytes:
     """Mean test PSNR against mean training time (bars: one sample standard deviation over seeds, none
-    for one seed), the Pareto front of the means dashed."""
+    for one seed), the Pareto front of the means dashed; a variant's earlier budgets (``budget_points``: mean time
+    and test PSNR of its runs at each step they share) as small points joined to its end by a thin line."""
     figure = Figure(figsize=FIGSIZE, layout="constrained")
     axes = figure.add_subplot()
     points = []
@@ -97,6 +99,10 @@ def pareto_png(variants: list[Variant]) -> bytes:
         colour, marker = variant_style(i)
         axes.errorbar(x, y, xerr=xerr, yerr=yerr, fmt=marker, color=colour, label=variant.label, capsize=3)
         points.append((x, y))
+        budgets = budget_points(variant)
+        if len(budgets) > 1:
+            _, times, psnrs = zip(*budgets)
+            axes.plot(times, psnrs, color=colour, marker=marker, markersize=3, linewidth=0.7, alpha=0.6)
     front, best = [], -math.inf
     for x, y in sorted(points, key=lambda p: (p[0], -p[1])):  # faster first; keep each new best PSNR
         if y > best:
@@ -105,8 +111,45 @@ def pareto_png(variants: list[Variant]) -> bytes:
     if len(front) > 1:
         axes.plot(*zip(*front), "k--", linewidth=1, label="Pareto front")
     axes.set(xlabel="training wall-clock time (s)", ylabel="test PSNR (dB)",
-             title="Final quality against total training time\npoints: means over seeds; bars: ± 1 sample "
-                   "standard deviation over seeds")
+             title="Quality against training time\npoints: means over seeds; bars: ± 1 sample standard "
+                   "deviation over seeds\nsmall points on a thin line: the variant's test budgets on the way")
+    axes.grid(alpha=0.3)
+    legend(figure, axes)
+    return _save(figure)
+
+
+def difference_vs_time_png(variants: list[Variant], reference: Variant | None) -> bytes:
+    """Each variant's test PSNR - the reference's against training time, paired by seed at the matched times
+    (``difference_curve``: each run's score interpolated between its budgets, where every run of both has one), the
+    mean a line and its 95% interval a band, zero a black line; only variants whose times, and the reference's,
+    may be compared (``timed``). A plot without curves says why in its title."""
+    figure = Figure(figsize=FIGSIZE, layout="constrained")
+    axes = figure.add_subplot()
+    drawn = False
+    for i, variant in enumerate(variants):
+        if reference is None or variant is reference or not (timed(variant) and timed(reference)):
+            continue
+        curve = [(t, d) for t, d in difference_curve(variant, reference) if d.n > 0]
+        if not curve:
+            continue
+        colour, marker = variant_style(i)
+        times = [t for t, _ in curve]
+        axes.plot(times, [d.mean for _, d in curve], color=colour, linewidth=1.6, marker=marker, markevery=[-1],
+                  markersize=4, label=f"{variant.label} ({seeds(max(d.n for _, d in curve))})")
+        band = [(t, *d.interval) for t, d in curve if d.interval is not None]
+        if band:
+            axes.fill_between(*zip(*band), color=colour, alpha=0.15, linewidth=0)
+        drawn = True
+    axes.axhline(0.0, color="k", linewidth=0.8)
+    if drawn:
+        title = (f"Test PSNR - reference ({reference.label}) against training time\nline: mean of the differences "
+                 "paired by seed; band: its 95% interval")
+    elif reference is None:
+        title = "No difference against time: the report has no reference variant"
+    else:
+        title = ("No difference against time: no variant's runs and the reference's share a training time\n"
+                 "(or their runs shared their machine)")
+    axes.set(xlabel="training wall-clock time (s)", ylabel="test PSNR difference (dB)", title=title)
     axes.grid(alpha=0.3)
     legend(figure, axes)
     return _save(figure)

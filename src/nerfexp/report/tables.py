@@ -10,11 +10,13 @@ import math
 from pathlib import Path
 
 from nerfexp.reading import UnreadableFile
+from nerfexp.report.budget_tables import end_budget_text, equal_time_text, per_budget_text
+from nerfexp.report.budgets import budget_words, step_differences
 from nerfexp.report.comparison import Difference, compare_order, tiers
 from nerfexp.report.runs import Run, run_precision
 from nerfexp.report.shared_machines import shared_lines
 from nerfexp.report.variants import PAPER_ABLATION, Variant, difference
-from nerfexp.rundir.layout import PARETO_PLOT, PSNR_PLOT, planned_jobs
+from nerfexp.rundir.layout import DIFFERENCE_PLOT, PARETO_PLOT, PSNR_PLOT, planned_jobs
 
 
 def _fmt(value: float, digits: int) -> str:
@@ -30,6 +32,7 @@ COLUMNS = ("variant", "runs", "finished", "test_psnr_mean", "test_psnr_std", "te
            "test_lpips_mean", "test_lpips_std",
            "reference", "paired_seeds", "psnr_diff", "psnr_diff_low", "psnr_diff_high",
            "ssim_diff", "ssim_diff_low", "ssim_diff_high", "lpips_diff", "lpips_diff_low", "lpips_diff_high", "verdict",
+           "budget_verdict",
            "train_time_s", "time_per_step_s", "rays_per_s", "n_params", "evaluations_per_ray",
            "paper_row", "paper_psnr", "paper_ssim", "psnr_minus_paper", "precision", "tags", "notes")
 
@@ -53,6 +56,7 @@ def reference_columns(differences: dict[str, Difference], reference: Variant | N
     none where a side has no LPIPS) and the PSNR verdict."""
     if not differences:
         return {"reference": "" if reference is None else "reference", "paired_seeds": "", "verdict": "",
+                "budget_verdict": "",
                 **{f"{m}_diff{end}": math.nan for m in METRICS for end in ("", "_low", "_high")}}
     columns = {"reference": reference.label}
     for metric, d in differences.items():
@@ -61,6 +65,14 @@ def reference_columns(differences: dict[str, Difference], reference: Variant | N
         if metric == "psnr":
             columns.update(paired_seeds=d.n, verdict=d.verdict_text())
     return columns
+
+
+def budget_verdict(variant: Variant, reference: Variant | None) -> str:
+    """What ``variant``'s PSNR verdict against ``reference`` needs said of its budgets (``budget_words`` of its
+    differences at each shared step); "" where nothing, and for the reference itself or without one."""
+    if reference is None or variant is reference or not variant.finished:
+        return ""
+    return budget_words(step_differences(variant, reference))
 
 
 def table_rows(variants: list[Variant], reference: Variant | None = None) -> list[dict]:
@@ -75,7 +87,7 @@ def table_rows(variants: list[Variant], reference: Variant | None = None) -> lis
                "test_psnr_mean": v.mean("test_psnr"), "test_psnr_std": v.std("test_psnr"),
                "test_ssim_mean": v.mean("test_ssim"), "test_ssim_std": v.std("test_ssim"),
                "test_lpips_mean": v.mean("test_lpips"), "test_lpips_std": v.std("test_lpips"),
-               **reference_columns(differences, reference),
+               **reference_columns(differences, reference), "budget_verdict": budget_verdict(v, reference),
                "train_time_s": v.mean("train_time_s"), "time_per_step_s": v.mean("time_per_step_s"),
                "rays_per_s": v.mean("rays_per_s"), "n_params": v.mean("n_params"),
                "evaluations_per_ray": v.mean("evaluations_per_ray"),
@@ -118,7 +130,9 @@ def paper_order_text(ranked: list[Variant]) -> list[str]:
 
     order = compare_order(paper_order, measured)
     n_pairs = len(rows) * (len(rows) - 1) // 2
+    at = end_budget_text([run for v in rows.values() for run in v.finished])
     lines = [f"## Against the paper's order ({len(rows)} ablation rows, {n_pairs} pairs)", "",
+             f"Compared at the end of training, {at} (the \"Per budget\" section has the earlier budgets). "
              f"Of the {n_pairs} pairs the paper orders: {len(order.agree)} resolved in the paper's order, "
              f"{len(order.reversed)} resolved in the other order, {len(order.unresolved)} not resolved by "
              "these seeds. Each pair: the paper's higher row first, then our mean difference (higher - lower) "
@@ -211,7 +225,7 @@ def markdown(variants: list[Variant], rows: list[dict], runs: list[Run], sources
                 cells += [differences["psnr"].describe(2), differences["ssim"].describe(3)]
                 lpips = differences["lpips"]  # none where either side has no LPIPS
                 cells += [lpips.describe(3) if lpips.n else "–"] if has_lpips else []
-                cells += [row["verdict"]]
+                cells += [row["verdict"] + (f" ({row['budget_verdict']})" if row["budget_verdict"] else "")]
         cells += [_fmt(row["train_time_s"], 0), _fmt(row["time_per_step_s"], 4), _fmt(row["rays_per_s"], 0),
                  _fmt(row["n_params"], 0), _fmt(row["evaluations_per_ray"], 0)]
         if has_paper:
@@ -228,6 +242,8 @@ def markdown(variants: list[Variant], rows: list[dict], runs: list[Run], sources
         lines += ["", "Notes of the variants' runs:", ""]
         lines += [f"- {v.label}: {markdown_text(note)}" for v in variants for note in v.notes]
     lines += [""] + ranking_text(variants)
+    lines += [""] + per_budget_text(variants, reference, {row["variant"]: row["budget_verdict"] for row in rows})
+    lines += [""] + equal_time_text(variants)
     unfinished = [run for run in runs if run.state != "finished"]
     lines += ["", "## Jobs that did not finish, collapsed or have no test score, or whose files are damaged "
               "(not counted)", ""]
@@ -239,7 +255,9 @@ def markdown(variants: list[Variant], rows: list[dict], runs: list[Run], sources
         lines.append("None.")
     lines += ["", f"Plots: `{PSNR_PLOT}` (validation PSNR against training seconds: each variant's mean "
               f"over seeds, its band from the lowest to the highest seed, single runs faint), `{PARETO_PLOT}` "
-              "(test PSNR against total training time, bars one standard deviation over seeds)."]
+              "(test PSNR against total training time, bars one standard deviation over seeds; each variant's "
+              f"budgets as small points joined by a thin line), `{DIFFERENCE_PLOT}` (each variant's test PSNR - the "
+              "reference's against training time at the matched times, its 95% interval as a band)."]
     return "\n".join(lines) + "\n"
 
 

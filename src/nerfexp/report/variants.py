@@ -49,10 +49,13 @@ class Variant:
         values = self.values(key)
         return statistics.stdev(values) if len(values) > 1 else math.nan
 
+    def seed_of(self, run: Run) -> tuple[str, ...]:
+        """The key that pairs ``run`` with another variant's runs: its overrides of the ``over`` keys."""
+        return tuple(sorted(o for o in run.overrides if _key(o) in self.over))
+
     def by_seed(self, key: str) -> dict[tuple[str, ...], float]:
-        """``results[key]`` of each finished run, keyed by the run's overrides of the ``over`` keys."""
-        return {tuple(sorted(o for o in run.overrides if _key(o) in self.over)): run.results[key]
-                for run in self.finished if run.results.get(key) is not None}
+        """``results[key]`` of each finished run, keyed by ``seed_of`` the run."""
+        return {self.seed_of(run): run.results[key] for run in self.finished if run.results.get(key) is not None}
 
     def choice(self, key: str):
         """The variant's choice of a config group, where all its finished runs agree."""

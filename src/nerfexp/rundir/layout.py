@@ -34,9 +34,11 @@ REFINED_POSES = Path("cameras", "train_poses.json")
 # what nerfexp-report writes into its folder (a sweep's or a run's, by default): its pages, its plots, and the
 # folder of the page's pictures (the only place these names are spelled)
 REPORT_MD, REPORT_CSV, REPORT_HTML = "report.md", "report.csv", "report.html"
-PSNR_PLOT, PARETO_PLOT = "psnr_vs_time.png", "pareto.png"
+REPORT_BUDGETS_CSV = "report_budgets.csv"
+PSNR_PLOT, PARETO_PLOT, DIFFERENCE_PLOT = "psnr_vs_time.png", "pareto.png", "difference_vs_time.png"
 REPORT_IMAGES = "report_images"
-REPORT_FILES = (REPORT_MD, REPORT_CSV, REPORT_HTML, PSNR_PLOT, PARETO_PLOT)  # and the folder REPORT_IMAGES
+REPORT_FILES = (REPORT_MD, REPORT_CSV, REPORT_BUDGETS_CSV, REPORT_HTML, PSNR_PLOT, PARETO_PLOT,
+                DIFFERENCE_PLOT)  # and the folder REPORT_IMAGES
 # What a run's libraries and guards write into its directory under names nerfexp gives them (``nerfexp.files.
 # is_made`` patterns; the run's log, ``hydra.job.name``.log, aside): Hydra's config, the checkpoints, the
 # guards' debug files, each logger's (conf/logger/, and the images of a logger without a folder of its own).

@@ -16,6 +16,7 @@ a render that was not finite or, a PSNR, an image rendered exactly (``is_scored`
 import math
 
 from nerfexp.domains import (
+    COUNT,
     INTEGER_LIMIT,
     NONNEGATIVE_COUNT,
     TEXT,
@@ -99,6 +100,7 @@ RESULTS_FIELDS: dict[str, Rule] = {
     "machine": ("a mapping of texts host and device",
                 lambda v: isinstance(v, dict) and TEXT[1](v.get("host")) and TEXT[1](v.get("device"))),
     "train_time_s": SECONDS,
+    "steps": NONNEGATIVE_COUNT,
     "time_per_step_s": SECONDS,
     "rays_per_s": optional(real(0, INTEGER_LIMIT), "not measured"),
     "other_load": optional(real(0, INTEGER_LIMIT), "not measured"),  # nerfexp.training.machine_share
@@ -106,7 +108,23 @@ RESULTS_FIELDS: dict[str, Rule] = {
     "evaluations_per_ray": real(0, INTEGER_LIMIT),
     "checkpoint.path": TEXT,
     "checkpoint.sha256": SHA256,
+    "test_budgets": ("a list of one or more mappings, one per budget", lambda v: isinstance(v, list) and v != []
+                     and all(isinstance(budget, dict) for budget in v)),  # each: BUDGET_FIELDS (budgets_problem)
+    "budget_scoring_s": SECONDS,
 }
+# The fields of each of results.json's test_budgets, the test scores at one budget as the final test scores them
+# (a score NaN or infinite as the top-level scores may be: not scored); LPIPS only where it was scored
+BUDGET_FIELDS: dict[str, Rule] = {
+    "step": COUNT,
+    "train_time_s": SECONDS,
+    "evaluations": real(0, INTEGER_LIMIT),
+    "test_psnr": PSNR,
+    "test_ssim": SSIM,
+    "test_lpips": LPIPS,
+    "test_lpips_custom": LPIPS,
+    "score_s": SECONDS,
+}
+BUDGET_REQUIRED = ("step", "train_time_s", "evaluations", "test_psnr", "test_ssim", "score_s")
 CHECKPOINT_FIELDS = ("checkpoint.path", "checkpoint.sha256")  # the checkpoint a run's test scored
 PER_VIEW = ("test_psnr_per_view", "test_ssim_per_view", "test_lpips_per_view",  # one item per test view
             "test_lpips_custom_per_view")
@@ -170,6 +188,21 @@ def results_problem(results: object, required: tuple[str, ...] = ()) -> str | No
         if key in results and (views is None or len(results[key]) != len(views)):
             count = "no test_views" if views is None else f"{len(views)} test_views"
             return f"key '{key}' has {len(results[key])} items for {count}: expected one per test view"
+    return budgets_problem(results.get("test_budgets", []))
+
+
+def budgets_problem(budgets: list[dict]) -> str | None:
+    """Why a ``results.json``'s ``test_budgets`` (a list of mappings) are not as nerfexp writes them, naming the
+    budget, its key and value, or None: each keeps ``BUDGET_FIELDS`` and has ``BUDGET_REQUIRED``; their steps
+    increase and their training clock never goes back."""
+    for i, budget in enumerate(budgets):
+        if (problem := record_problem(budget, BUDGET_FIELDS, BUDGET_REQUIRED)) is not None:
+            return f"key 'test_budgets', item {i}: {problem}"
+    for i, (before, after) in enumerate(zip(budgets, budgets[1:]), 1):
+        if after["step"] <= before["step"] or after["train_time_s"] < before["train_time_s"]:
+            return (f"key 'test_budgets', item {i}: step {after['step']} at {after['train_time_s']!r} s after step "
+                    f"{before['step']} at {before['train_time_s']!r} s: expected steps increasing and training "
+                    "times never decreasing")
     return None
 
 
