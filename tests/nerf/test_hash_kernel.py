@@ -248,6 +248,35 @@ def test_backward_passes_accumulate_as_autograd_does_and_autograd_keeps_the_summ
 
 
 @needs_kernel
+def test_passes_of_autograd_grad_are_told_apart_while_an_earlier_ones_gradients_are_held(monkeypatch):
+    # torch.autograd.grad stores no gradient: the tensors a pass summed into are handed back and held here, alive,
+    # while the next pass runs; each pass still starts its own (the tables' hooks end a pass whether autograd
+    # stores or returns the gradient), and both equal the torch path's
+    enc = small_encoding(log2_table_size=10)
+    made = []
+    sums_of = enc.pass_gradients.of
+
+    def recorded(tables):
+        sums, new = sums_of(tables)
+        made.append(new)
+        return sums, new
+    monkeypatch.setattr(enc.pass_gradients, "of", recorded)
+    points = edge_points(enc)
+    calls = [(enc, points[:100]), (enc, points[100:200]), (enc, points[200:])]
+    generator = torch.Generator().manual_seed(9)
+    probes = [torch.randn(len(p), enc.out_dim, generator=generator) for _, p in calls]
+    first = torch.autograd.grad(segments_loss(calls, probes), list(enc.parameters()))
+    second = torch.autograd.grad(segments_loss(calls, [2 * probe for probe in probes]), list(enc.parameters()))
+    assert made == [True, False, False, True, False, False]
+    assert all(p.grad is None for p in enc.parameters())
+    monkeypatch.setenv(kernels.SWITCH, "off")
+    reference = torch.autograd.grad(segments_loss(calls, probes), list(enc.parameters()))
+    for mine, twice, theirs in zip(first, second, reference, strict=True):
+        torch.testing.assert_close(mine, theirs, atol=1e-5, rtol=1e-5)
+        torch.testing.assert_close(twice, 2 * theirs, atol=2e-5, rtol=1e-5)
+
+
+@needs_kernel
 def test_summing_into_gradients_of_another_shape_is_a_one_line_error():
     enc = small_encoding()
     volumes = [torch.zeros_like(volume[0]) for volume in enc.dense]

@@ -30,13 +30,14 @@ def test_flat_rows_count_row_major():
     assert flat_rows(torch.tensor([[4, 2]]), torch.Size([7])).tolist() == [4, 2]
 
 
-@pytest.mark.parametrize("options", [dict(weight_decay=0.1), dict(amsgrad=True), dict(maximize=True),
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+@pytest.mark.parametrize("options", [dict(), dict(weight_decay=0.1), dict(amsgrad=True), dict(maximize=True),
                                      dict(weight_decay=0.01, decoupled_weight_decay=True),
                                      dict(fused=True), dict(fused=True, weight_decay=0.1)])
-def test_dense_gradients_get_torch_adams_update_bit_for_bit(options):
+def test_dense_gradients_get_torch_adams_update_bit_for_bit(options, dtype):
     generator = torch.Generator().manual_seed(0)
-    start = [torch.randn(4, 3, generator=generator), torch.randn(5, generator=generator),
-             torch.randn(2, 3, 2, generator=generator)]
+    start = [torch.randn(4, 3, generator=generator, dtype=dtype), torch.randn(5, generator=generator, dtype=dtype),
+             torch.randn(2, 3, 2, generator=generator, dtype=dtype)]
     runs = []
     for optimizer_class in (torch.optim.Adam, LazyAdam):
         params = [torch.nn.Parameter(p.clone()) for p in start]
@@ -45,7 +46,7 @@ def test_dense_gradients_get_torch_adams_update_bit_for_bit(options):
         grads = torch.Generator().manual_seed(1)
         for step in range(6):
             for i, p in enumerate(params):  # parameter 1 has no gradient on odd steps: Adam skips it
-                p.grad = None if (i == 1 and step % 2) else torch.randn(p.shape, generator=grads)
+                p.grad = None if (i == 1 and step % 2) else torch.randn(p.shape, generator=grads, dtype=dtype)
             optimizer.step()
         runs.append((params, optimizer.state_dict()))
     (adam_params, adam_state), (lazy_params, lazy_state) = runs
@@ -128,6 +129,79 @@ def test_the_lazy_update_matches_a_float64_reference_row_by_row(dtype, device):
                                    rtol=tolerance, atol=0)
         torch.testing.assert_close(state["exp_avg_sq"][row].double(), torch.tensor(v, dtype=torch.float64),
                                    rtol=tolerance, atol=0)
+
+
+@pytest.mark.parametrize("dtype", [torch.float64, torch.float32])
+def test_the_lazy_update_is_torch_adams_on_the_rows_touched_bit_for_bit(dtype, monkeypatch):
+    # the torch path (kernels off) against an independent computation: each step, the rows a gradient touches
+    # (summed where repeated) taken out as a parameter of their own with their moments and the table's step
+    # count, and updated by torch.optim.Adam itself; every other row left as it is. Bit for bit in either dtype
+    monkeypatch.setenv(kernels.SWITCH, "off")
+    shape = (2, 5, 3)
+    generator = torch.Generator().manual_seed(2)
+    start = torch.randn(shape, generator=generator, dtype=dtype)
+    table = torch.nn.Parameter(start.clone())
+    optimizer = LazyAdam([table], **SETTINGS)
+    expected, m, v = start.clone().view(10, 3), torch.zeros(10, 3, dtype=dtype), torch.zeros(10, 3, dtype=dtype)
+    touched = [[(0, 1), (1, 4), (0, 1)], [(1, 0), (0, 1)], None, [(1, 4), (1, 2), (1, 2), (0, 0)], [(0, 3)]]
+    step = 0
+    for rows in touched:
+        if rows is None:
+            table.grad = None
+            optimizer.step()
+            continue
+        values = torch.randn(len(rows), 3, generator=generator, dtype=dtype)
+        table.grad = sparse([[r for r, _ in rows], [c for _, c in rows]], values, shape)
+        optimizer.step()
+        step += 1
+        flat = torch.tensor([5 * r + c for r, c in rows])
+        summed = torch.zeros(10, 3, dtype=dtype).index_add_(0, flat, values)
+        held = flat.unique()  # ascending, each once
+        part = torch.nn.Parameter(expected[held].clone())
+        reference = torch.optim.Adam([part], **SETTINGS)
+        reference.state[part].update(step=torch.tensor(float(step - 1)), exp_avg=m[held].clone(),
+                                     exp_avg_sq=v[held].clone())
+        part.grad = summed[held]
+        reference.step()
+        expected[held], m[held], v[held] = part.detach(), reference.state[part]["exp_avg"], \
+            reference.state[part]["exp_avg_sq"]
+    state = optimizer.state[table]
+    assert state["step"] == step == 4
+    assert torch.equal(table.detach().view(10, 3), expected)
+    assert torch.equal(state["exp_avg"].view(10, 3), m) and torch.equal(state["exp_avg_sq"].view(10, 3), v)
+    untouched = [1 * 5 + 1, 1 * 5 + 3, 0 * 5 + 2, 0 * 5 + 4]  # rows (1, 1), (1, 3), (0, 2), (0, 4): never read
+    assert torch.equal(expected[untouched], start.view(10, 3)[untouched])
+
+
+def test_a_step_with_a_closure_uses_its_gradients_and_leaves_the_gradients_in_place(monkeypatch):
+    # as Lightning steps: the closure computes the loss and the gradients (a sparse one from an embedding's
+    # lookup, a dense one) inside step, which returns the loss; after it each parameter holds the gradient it
+    # was updated by, sparse included (set aside during Adam's dense step only)
+    monkeypatch.setenv(kernels.SWITCH, "off")
+    generator = torch.Generator().manual_seed(3)
+    table_start, weight_start = torch.randn(6, 2, generator=generator), torch.randn(2, generator=generator)
+    rows = torch.tensor([4, 1, 4])
+    runs = []
+    for closure_step in (True, False):
+        table, weight = torch.nn.Parameter(table_start.clone()), torch.nn.Parameter(weight_start.clone())
+        optimizer = LazyAdam([table, weight], **SETTINGS)
+
+        def closure():
+            optimizer.zero_grad()
+            loss = (torch.nn.functional.embedding(rows, table, sparse=True) @ weight).square().sum()
+            loss.backward()
+            return loss
+        if closure_step:
+            loss = optimizer.step(closure)
+        else:
+            loss = closure()
+            assert optimizer.step() is None
+        runs.append((loss.detach(), table.detach().clone(), weight.detach().clone(), table.grad, weight.grad))
+    (loss, table, weight, table_grad, weight_grad), (loss_after, table_after, weight_after, *_) = runs
+    assert torch.equal(loss, loss_after) and torch.equal(table, table_after) and torch.equal(weight, weight_after)
+    assert table_grad.is_sparse and weight_grad is not None  # put back after the step
+    assert torch.equal(table[[0, 2, 3, 5]], table_start[[0, 2, 3, 5]]) and not torch.equal(table[1], table_start[1])
+    assert not torch.equal(weight, weight_start)
 
 
 def test_on_any_device_but_the_cpu_the_torch_path_runs(monkeypatch):

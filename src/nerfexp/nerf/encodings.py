@@ -215,26 +215,36 @@ class PassGradients:
     pass, where one per call and autograd's sums of them took a large share of a small step (the renderer queries
     a network several times per step: ``VolumeRenderer._query``'s segments).
 
-    A pass is autograd's graph task (``torch._C._current_graph_task_id``, as ``torch.autograd.graph.
-    register_multi_grad_hook`` tells passes apart). The tensors are held weakly: they are autograd's, which takes
-    them as the parameters' gradients without a copy where it holds the only reference; where they are gone, or
-    in another pass, a call starts new ones (always correct: autograd then sums what each hands it). A copy or a
-    pickle of the encoding starts empty."""
+    A pass ends when autograd has a table's gradient, which it has only once every call of the pass has run: the
+    pass's first call puts a hook on each table (``Tensor.register_hook``, which autograd runs in ``backward`` and
+    ``torch.autograd.grad`` alike, before it stores or returns the gradient), and the first of them to run ends the
+    pass; the next call starts new tensors (and takes the old hooks off). Every call of the encoding feeds every
+    table that needs a gradient, so a pass that runs a call ends with a hook. The tensors are held weakly: they are
+    autograd's, which takes them as the parameters' gradients without a copy where it holds the only reference;
+    where they are gone, a call starts new ones (always correct: autograd then sums what each hands it). A copy or
+    a pickle of the encoding starts empty. Two backward passes through one encoding at once (two threads) are not
+    told apart."""
 
     def __init__(self):
-        self._pass = None
-        self._sums: list[weakref.ref] = []
+        self._sums: list[weakref.ref] = []  # the pass in progress' tensors; empty between passes
+        self._ends: list[torch.utils.hooks.RemovableHandle] = []  # the hooks its first call put on the tables
 
     def of(self, tables: list[Tensor]) -> tuple[list[Tensor], bool]:
         """Gradient tensors for ``tables`` (each of its table's shape) in this backward pass, and whether they are
         new (zeros, to be handed to autograd) rather than an earlier call's."""
-        current = torch._C._current_graph_task_id()
         sums = [ref() for ref in self._sums]
-        if current == self._pass and len(sums) == len(tables) and all(s is not None for s in sums):
+        if len(sums) == len(tables) and all(s is not None for s in sums):
             return sums, False
+        for handle in self._ends:  # an earlier pass's (a hook does not take itself off while autograd runs it)
+            handle.remove()
         sums = [torch.zeros_like(table, memory_format=torch.contiguous_format) for table in tables]
-        self._pass, self._sums = current, [weakref.ref(s) for s in sums]
+        self._sums = [weakref.ref(s) for s in sums]
+        self._ends = [table.register_hook(self._end) for table in tables]
         return sums, True
+
+    def _end(self, grad: Tensor) -> None:
+        """A table's gradient is complete: the pass's calls are done; the next call starts a new pass."""
+        self._sums = []
 
     def __reduce__(self):
         return PassGradients, ()

@@ -7,8 +7,8 @@ be dropped. It reads the module's ``diagnostics`` (per network, the batch's deta
 and opacity [B], see ``NeRFModule``) and the gradients.
 
 A healthy step costs one device-to-host copy of a few numbers: the losses, each network's largest
-opacity in the batch and the total gradient norm (one fused ``torch._foreach_norm``, the kernel
-``clip_grad_norm_`` uses; a NaN or inf in any entry makes the norm non-finite). Parameters are walked
+opacity in the batch and the total gradient norm (``torch.nn.utils.get_total_norm``, the fused norms
+``clip_grad_norm_`` takes; a NaN or inf in any entry makes the norm non-finite). Parameters are walked
 by name only when that norm is not finite (finite gradients whose norm overflowed pass that walk).
 A sparse gradient (a hash table's, ``HashGridEncoding(sparse_gradients=True)``) is checked by the entries
 it holds (``held_entries``), its rows the batch touched.
@@ -129,7 +129,7 @@ class TrainingGuard(L.Callback):
                  if p.grad is not None]
         if not self._check_gradients:
             grads = []
-        grad_norm = torch.linalg.vector_norm(torch.stack(torch._foreach_norm(grads))) if grads else losses.new_zeros(())
+        grad_norm = torch.nn.utils.get_total_norm(grads) if grads else losses.new_zeros(())
         summary = torch.cat([losses, opacities, grad_norm[None]]).tolist()  # the step's one device-to-host copy
         loss_values = dict(zip(names, summary[:len(names)]))
         max_opacities = dict(zip(names, summary[len(names):-1]))

@@ -99,41 +99,69 @@ class LazyAdam(torch.optim.Adam):
     """torch.optim.Adam, which also takes sparse gradients (like torch.optim.SparseAdam and TensorFlow
     Addons' LazyAdam, in one optimizer with the dense parameters).
 
-    A parameter with a dense gradient gets torch.optim.Adam's update, run by Adam's own code with the
-    group's settings. A parameter with a sparse gradient gets the lazy update (``lazy_adam_update``): the
-    rows in the gradient have their moments and values updated; the other rows keep theirs and do not
-    move (dense Adam would go on moving a row by its decaying first moment after its last gradient). The
-    bias correction uses the parameter's step count (the steps it had a gradient), as SparseAdam does.
+    A parameter with a dense gradient gets torch.optim.Adam's update, run by Adam's own ``step`` with the
+    group's settings (fused, foreach, amsgrad, maximize, weight decay: whatever the group chose, bit for bit).
+    A parameter with a sparse gradient gets the lazy update (``lazy_adam_update``): the rows in the gradient
+    have their moments and values updated; the other rows keep theirs and do not move (dense Adam would go on
+    moving a row by its decaying first moment after its last gradient). The bias correction uses the
+    parameter's step count (the steps it had a gradient), as SparseAdam does.
+
+    ``step`` uses torch's public API only: the lazy updates first, then ``torch.optim.Adam.step`` with the
+    sparse gradients set aside (a parameter without a gradient is one Adam skips), then put back. Step hooks
+    (``register_step_pre_hook``, ``register_step_post_hook``) run around the whole step, and once more around
+    Adam's dense part where torch has wrapped ``torch.optim.Adam.step`` too (it does once an Adam is made).
 
     State: Adam's keys (``step``, ``exp_avg``, ``exp_avg_sq``; moments of the parameter's full shape), so
     a checkpoint of torch.optim.Adam loads into it and continues, and back. A sparse gradient in a
-    group with ``weight_decay`` != 0 (decay changes every row) or ``amsgrad`` is refused (ConfigError).
+    group with ``weight_decay`` != 0 (decay changes every row) or ``amsgrad`` is refused (ConfigError), before
+    any parameter moves.
     """
 
-    def _init_group(self, group: dict, *lists) -> bool:
-        """Adam's ``_init_group`` over the group's parameters with dense gradients (``Adam.step`` updates
-        those next, as Adam does); the parameters with sparse gradients are updated here, lazily."""
-        sparse = [p for p in group["params"] if p.grad is not None and p.grad.is_sparse]
-        for param in sparse:
-            self._lazy_step(group, param)
-        dense = [p for p in group["params"] if p.grad is None or not p.grad.is_sparse]
-        return super()._init_group({**group, "params": dense}, *lists)
+    def step(self, closure=None):
+        """One step of every parameter with a gradient; ``closure`` (which recomputes the loss and the gradients)
+        evaluated first, as Adam does. Returns the closure's loss (None without one)."""
+        loss = None
+        if closure is not None:
+            with torch.enable_grad():
+                loss = closure()
+        sparse = [(group, p) for group in self.param_groups for p in group["params"]
+                  if p.grad is not None and p.grad.is_sparse]
+        for group, param in sparse:
+            refuse_lazy_settings(group, param)
+        grads = [param.grad for _, param in sparse]
+        try:
+            with torch.no_grad():
+                for group, param in sparse:
+                    lazy_step(self.state[param], group, param)
+                    param.grad = None  # Adam's step skips it
+            super().step()
+        finally:
+            for (_, param), grad in zip(sparse, grads, strict=True):
+                param.grad = grad
+        return loss
 
-    def _lazy_step(self, group: dict, param: Tensor) -> None:
-        """One lazy update of ``param`` by its sparse gradient, with ``group``'s settings."""
-        for key, off in (("weight_decay", 0), ("amsgrad", False)):
-            if group[key] != off:
-                raise ConfigError(f"LazyAdam: a sparse gradient (a parameter of shape {list(param.shape)}) in a "
-                                  f"parameter group with {key}={group[key]}: the lazy update has none; set "
-                                  f"{key}={off} for that group")
-        state = self.state[param]
-        if not state:  # as Adam's: the step count a float tensor, the moments zeros of the parameter's shape
-            scalar = torch.float64 if torch.get_default_dtype() == torch.float64 else torch.float32
-            state["step"] = torch.tensor(0.0, dtype=scalar, device=param.device if group["capturable"] else "cpu")
-            state["exp_avg"] = torch.zeros_like(param, memory_format=torch.contiguous_format)
-            state["exp_avg_sq"] = torch.zeros_like(param, memory_format=torch.contiguous_format)
-        state["step"] += 1
-        beta1, beta2 = group["betas"]
-        grad = -param.grad if group["maximize"] else param.grad
-        lazy_adam_update(param, grad, state["exp_avg"], state["exp_avg_sq"], float(state["step"]), float(group["lr"]),
-                         float(beta1), float(beta2), group["eps"])
+
+def refuse_lazy_settings(group: dict, param: Tensor) -> None:
+    """A ConfigError where ``group`` sets what the lazy update has not (weight decay, amsgrad) for ``param``'s
+    sparse gradient."""
+    for key, off in (("weight_decay", 0), ("amsgrad", False)):
+        if group[key] != off:
+            raise ConfigError(f"LazyAdam: a sparse gradient (a parameter of shape {list(param.shape)}) in a "
+                              f"parameter group with {key}={group[key]}: the lazy update has none; set "
+                              f"{key}={off} for that group")
+
+
+def lazy_step(state: dict, group: dict, param: Tensor) -> None:
+    """One lazy update of ``param`` by its sparse gradient, with ``group``'s settings; ``state`` (the optimizer's
+    for ``param``) made on the first, as Adam's: the step count a float tensor, the moments zeros of the
+    parameter's shape."""
+    if not state:
+        scalar = torch.float64 if torch.get_default_dtype() == torch.float64 else torch.float32
+        state["step"] = torch.tensor(0.0, dtype=scalar, device=param.device if group["capturable"] else "cpu")
+        state["exp_avg"] = torch.zeros_like(param, memory_format=torch.contiguous_format)
+        state["exp_avg_sq"] = torch.zeros_like(param, memory_format=torch.contiguous_format)
+    state["step"] += 1
+    beta1, beta2 = group["betas"]
+    grad = -param.grad if group["maximize"] else param.grad
+    lazy_adam_update(param, grad, state["exp_avg"], state["exp_avg_sq"], float(state["step"]), float(group["lr"]),
+                     float(beta1), float(beta2), group["eps"])
