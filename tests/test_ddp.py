@@ -125,8 +125,12 @@ def test_two_cpu_processes_train_and_record_once(ddp_sweep):
         f"r_{i}{suffix}.png" for i in range(3) for suffix in ("", "_depth", "_error", "_target"))
     # each evaluation recorded once, by rank 0, with the step of the weights it scored
     records = [json.loads(line) for line in (run_dir / "metrics.jsonl").read_text().splitlines()]
-    assert [(r["split"], r["step"]) for r in records] == [("val", 10), ("val", 20), ("test", 20)]
-    assert results["val_psnr"] == records[1]["psnr"] and results["test_psnr"] == records[2]["psnr"]
+    # the test views scored at the default budgets (a quarter and a half: steps 5 and 10) by every process, once
+    assert [(r["split"], r["step"]) for r in records] == [("test", 5), ("test", 10), ("val", 10), ("val", 20),
+                                                          ("test", 20)]
+    assert results["val_psnr"] == records[3]["psnr"] and results["test_psnr"] == records[4]["psnr"]
+    assert [(b["step"], b["test_psnr"]) for b in results["test_budgets"]] == [
+        (r["step"], r["psnr"]) for r in records if r["split"] == "test"]
 
 
 @pytest.mark.slow

@@ -55,7 +55,8 @@ def test_every_commands_help_reads_cleanly(module):
 
 def test_a_run_prints_its_own_lines_only(tmp_path):
     """Warnings on (the tests' helpers turn them off), standard output a pipe as in a SLURM log: no
-    Lightning notices, no model summary, no dependency warning; one line per validation and the result."""
+    Lightning notices, no model summary, no dependency warning; one line per test budget, per validation and the
+    result."""
     argv, env = command("nerfexp", *[o for o in TINY if "progress_bar" not in o], f"hydra.run.dir={tmp_path / 'run'}")
     del env["PYTHONWARNINGS"]
     done = subprocess.run(argv, cwd=tmp_path, capture_output=True, text=True, env=env, timeout=600)
@@ -67,8 +68,11 @@ def test_a_run_prints_its_own_lines_only(tmp_path):
     assert re.search(r"trainer.precision=auto: (bf16-mixed|32-true) \(.+\)$", lines[0])  # chosen at start-up
     assert re.search(r"torch threads: \d+ \(.+\)$", lines[1])  # and the threads it runs with
     assert "LPIPS not scored: " in lines[2]  # TINY's images are below AlexNet's 31 pixels, and its weights absent
-    assert [re.search(r"step \d+/60: validation", line)[0] for line in lines[3:-1]] == [
-        "step 30/60: validation", "step 60/60: validation"]
+    # a line per test budget (the default 1/4 and 1/2: steps 15 and 30) and per validation
+    assert [re.search(r"step \d+/60: (validation|test)", line)[0] for line in lines[3:-1]] == [
+        "step 15/60: test", "step 30/60: test", "step 30/60: validation", "step 60/60: validation"]
+    assert re.search(r"step 15/60: test PSNR \d+\.\d\d dB, SSIM \d\.\d{4} at a budget of 1/4 \(\d+\.\d s of scoring, "
+                     r"outside the training clock\)$", lines[3])
     assert "test PSNR" in lines[-1]
 
 

@@ -49,7 +49,9 @@ def test_a_short_run_learns_the_scene_and_writes_every_output(tmp_path):
     assert results["checkpoint"] == {"path": "checkpoints/last.ckpt",
                                      "sha256": hashlib.sha256(written.read_bytes()).hexdigest()}
     records = [json.loads(line) for line in (tmp_path / "metrics.jsonl").read_text().splitlines()]
-    assert [(r["split"], r["step"]) for r in records] == [("val", 200), ("val", 400), ("test", 400)]
+    # the test views scored at the default budgets too, a quarter and a half of the steps (test_budgets)
+    assert [(r["split"], r["step"]) for r in records] == [("test", 100), ("test", 200), ("val", 200), ("val", 400),
+                                                          ("test", 400)]
     assert all(math.isfinite(r["psnr"]) and math.isfinite(r["ssim"]) and r["wall_time_s"] > 0 for r in records)
     assert records[1]["wall_time_s"] > records[0]["wall_time_s"]
     for name in ("r_0.png", "r_0_depth.png", "r_0_target.png", "r_0_error.png", "r_1.png"):
@@ -63,6 +65,7 @@ def test_the_last_step_is_validated_and_each_test_view_is_saved_with_its_target_
     result = run_nerfexp(*tiny, "scale.steps=40", "scale.val_every=30", f"hydra.run.dir={tmp_path}", cwd=tmp_path)
     assert result.returncode == 0, result.stderr[-3000:]
     records = [json.loads(line) for line in (tmp_path / "metrics.jsonl").read_text().splitlines()]
+    records = [r for r in records if r["step"] > 20]  # the test lines of the default budgets (10, 20) aside
     assert [(r["split"], r["step"]) for r in records] == [("val", 30), ("val", 40), ("test", 40)]
     results = read_json(tmp_path / "results.json")
     assert results["val_psnr"] == records[1]["psnr"] and results["steps"] == 40
@@ -202,7 +205,11 @@ def test_lpips_is_recorded_in_every_file_where_alexnets_weights_are_given(tmp_pa
     assert result.returncode == 0, result.stderr[-3000:]
     results = read_json(run / "results.json")
     records = [json.loads(line) for line in (run / "metrics.jsonl").read_text().splitlines()]
-    assert [r["split"] for r in records] == ["val", "val", "test"] and all(r["lpips"] > 0 for r in records)
+    # the default budgets (steps 15 and 30) score LPIPS as the final test does
+    assert [r["split"] for r in records] == ["test", "test", "val", "val", "test"]
+    assert all(r["lpips"] > 0 for r in records)
+    assert [b["test_lpips"] for b in results["test_budgets"]] == [records[0]["lpips"], records[1]["lpips"],
+                                                                  results["test_lpips"]]
     assert records[-1]["lpips"] == results["test_lpips"] == pytest.approx(np.mean(results["test_lpips_per_view"]))
     # each view's score is LPIPS of the saved 8-bit render against its saved target
     scorer = LpipsScorer(lpips_network(weights))
@@ -211,7 +218,7 @@ def test_lpips_is_recorded_in_every_file_where_alexnets_weights_are_given(tmp_pa
                                                       dtype=np.float32) / 255) for suffix in ("", "_target"))
         assert scorer(render, target) == pytest.approx(score, rel=1e-4)
     log = (run / "nerfexp.log").read_text()
-    assert f"LPIPS {records[1]['lpips']:.4f} after" in log and f"LPIPS {results['test_lpips']:.4f} after 60" in log
+    assert f"LPIPS {records[2]['lpips']:.4f} after" in log and f"LPIPS {results['test_lpips']:.4f} after 60" in log
     assert results["lpips_weights_sha256"] == published
     # nerfexp-eval scores the checkpoint with the run's config, the LPIPS weights the evaluating user's: none of
     # the run's (an empty hub cache, offline) ...

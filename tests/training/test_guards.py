@@ -454,7 +454,8 @@ def test_a_run_that_renders_a_fog_stops_at_its_first_validation_in_one_line(tmp_
     status = read_json(tmp_path / "status.json")
     assert status["state"] == "failed" and status["error"] == f"FieldCollapseError: {last[len('nerfexp: error: '):]}"
     validations = [json.loads(line) for line in (tmp_path / "metrics.jsonl").read_text().splitlines()]
-    assert [(r["step"], r["split"]) for r in validations] == [(30, "val")]  # recorded before the run stopped
+    # recorded before the run stopped, after the test views' scores at the default budgets (steps 15 and 30)
+    assert [(r["step"], r["split"]) for r in validations] == [(15, "test"), (30, "test"), (30, "val")]
     assert not (tmp_path / "results.json").exists()
 
 

@@ -39,7 +39,11 @@ def test_a_killed_run_resumed_ends_as_the_uninterrupted_run(tiny_run, tmp_path, 
     # bit-identical, not merely close (the weights after the last step are compared too).
     assert (again["test_psnr"], again["test_ssim"], again["val_psnr"]) == (
         alone["test_psnr"], alone["test_ssim"], alone["val_psnr"])
-    assert records(tmp_path) == records(tiny_run)  # val 30, val 60, test 60
+    assert records(tmp_path) == records(tiny_run)  # test 15, test 30, val 30, val 60, test 60
+    # the budgets scored before the kill (1/4 and 1/2: steps 15 and 30) came back with the checkpoint, once each
+    assert [(b["step"], b["test_psnr"], b["test_ssim"]) for b in again["test_budgets"]] == [
+        (b["step"], b["test_psnr"], b["test_ssim"]) for b in alone["test_budgets"]]
+    assert [b["step"] for b in again["test_budgets"]] == [15, 30, 60]
     state, expected = final_state(tmp_path), final_state(tiny_run)
     assert state["lr"] == expected["lr"] and state["step"] == expected["step"] == 60
     assert state["weights"].keys() == expected["weights"].keys()
@@ -210,7 +214,9 @@ def test_a_finished_run_trained_further_records_what_changed(tiny_run, tmp_path,
     assert resume["step"] == 60 and resume["checkpoint"] == str((run_dir / "checkpoints" / "last.ckpt").resolve())
     # the learning-rate decay spans scale.steps: raised at step 60, it is recorded
     assert resume["changed"]["scale.steps"] == [60, 90] and resume["changed"]["model.chunk"] == [8192, 100]
+    # the budgets of 1/4 and 1/2 of 60 steps (15, 30) kept; those of 90 (22, 45) lie before the checkpoint's step
     assert [(split, step) for split, step, *_ in records(run_dir)] == [
-        ("val", 30), ("val", 60), ("test", 60), ("val", 90), ("test", 90)]
-    assert records(run_dir)[:3] == records(tiny_run)  # the first 60 steps' lines as they were
+        ("test", 15), ("test", 30), ("val", 30), ("val", 60), ("test", 60), ("val", 90), ("test", 90)]
+    assert records(run_dir)[:5] == records(tiny_run)  # the first 60 steps' lines as they were
+    assert [budget["step"] for budget in results["test_budgets"]] == [15, 30, 90]
     assert torch.load(run_dir / "checkpoints" / "last.ckpt", weights_only=True)["nerfexp_resumes"] == [resume]

@@ -113,7 +113,7 @@ def train(cfg: DictConfig) -> dict | None:
     overrides = list(HydraConfig.get().overrides.task)
     recorded = without_unused(cfg, resolved, [override for override, _ in unused])
     recorder = RunRecorder(runtime.output_dir, choices, recorded, overrides, settings, resumes, run_labels(cfg),
-                           bounds)
+                           bounds, test_budgets=list(cfg.test_budgets))
     callbacks = [instantiate(c) for c in cfg.callbacks.values()] + [recorder] + progress_bars(cfg.trainer)
     if cfg.model.get("camera_opt") is not None:  # camera_opt=so3xr3: the refined training cameras into the run
         callbacks.append(RefinedPoses(runtime.output_dir))

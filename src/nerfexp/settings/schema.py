@@ -101,6 +101,13 @@ HIERARCHY = choice(*HIERARCHIES)
 POSE_NOISE = ("[degrees, fraction], two finite numbers >= 0",
               lambda v: isinstance(v, list) and len(v) == 2 and all(is_real(x) and x >= 0 for x in v))
 
+# The fractions of training's steps at which the test views are scored too (nerfexp.training.budgets): each strictly
+# inside (0, 1), the end being the final test's, in increasing order, so that each names one point of training once
+TEST_BUDGETS = ("a list of fractions of the steps, each a finite number > 0 and < 1, strictly increasing (e.g. "
+                "[0.25, 0.5]; [] scores the end alone)",
+                lambda v: isinstance(v, list) and all(is_real(f) and 0 < f < 1 for f in v)
+                and all(a < b for a, b in zip(v, v[1:])))
+
 # Every key of the composed config (fnmatch patterns, the first that matches rules), hydra.* aside.
 SCHEMA: dict[str, Rule] = {
     "*._target_": TARGET,
@@ -111,6 +118,7 @@ SCHEMA: dict[str, Rule] = {
     "hierarchical": HIERARCHY,
     "resume": optional(PATH, "train from scratch"),
     "threads": optional(COUNT, "auto: the CPUs this process may use over the jobs run at once"),
+    "test_budgets": TEST_BUDGETS,
     # scale: the sizes the groups read (each checked again where it lands)
     "scale.steps": COUNT,
     "scale.lr": LEARNING_RATE,

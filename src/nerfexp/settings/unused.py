@@ -21,7 +21,8 @@ from nerfexp.config_keys import entries, reference
 from nerfexp.errors import ConfigError
 from nerfexp.settings.schema import component_class, matching
 
-ROOTS = ("model", "datamodule", "trainer", "callbacks", "logger", "seed", "threads", "resume", "tags", "notes")
+ROOTS = ("model", "datamodule", "trainer", "callbacks", "logger", "seed", "threads", "test_budgets", "resume", "tags",
+         "notes")
 
 
 def lpips_scored(cfg: DictConfig) -> str | None:

@@ -10,15 +10,13 @@ import json
 import logging
 import math
 import time
+from collections.abc import Callable
 from pathlib import Path
 
 import lightning as L
-import numpy as np
 import torch
 
 from nerfexp import manifest
-from nerfexp.data.views import SPLIT_NAMES
-from nerfexp.errors import NonFiniteError
 from nerfexp.files import atomic_write
 from nerfexp.kernels import prepare, seconds_spent
 from nerfexp.pixels import depth_image, png_bytes, to_uint8
@@ -34,27 +32,17 @@ from nerfexp.rundir.layout import (
     read_metrics,
     write_json,
 )
+from nerfexp.training.budgets import budget_entry, budget_fractions, budget_text, score_test_views, scoring_seconds
 from nerfexp.training.collapse import blank_views
 from nerfexp.training.loggers import log_hyperparams, log_image, log_labels
 from nerfexp.training.machine_share import Sample, available_cpus, others_cpu_s, sample, share_record
-from nerfexp.training.perceptual import CUSTOM, LPIPS_NAMES, PUBLISHED
+from nerfexp.training.measures import MEASURES, image_means, image_scores
+from nerfexp.training.perceptual import CUSTOM, PUBLISHED
 from nerfexp.training.resume import RESUMES, SETTINGS
 
 log = logging.getLogger("nerfexp")
 
 IMAGES = ("rgb", "depth", "opacity", "target")  # what an evaluation step returns per image, besides its scores
-
-
-# each image's scores; lpips (the published weights') or lpips_custom (the user's own), NaN where not scored
-# (nerfexp.training.perceptual); then each protocol's own, which only a test scores (NaN in a validation:
-# ``NeRFModule._test``, docs/metrics.md)
-PROTOCOL_SCORES = ("psnr_full_image", "ssim_full_image", "psnr_right_half", "ssim_right_half")
-CAMERA_FIT = ("camera_fit_deg", "camera_fit_shift")  # the test cameras' corrections (test_cameras=refined)
-SCORES = ("psnr", "ssim", *LPIPS_NAMES, *PROTOCOL_SCORES, *CAMERA_FIT)
-ALWAYS_SCORED = ("psnr", "ssim")
-# what each image's evaluation measures: its SCORES, and its render's contrast against its target's, which is no
-# score (never averaged or logged) but says whether the view rendered anything (nerfexp.training.collapse)
-MEASURES = (*SCORES, "contrast")
 
 
 def gather_evaluations(trainer: L.Trainer, outputs: dict) -> list[dict]:
@@ -73,35 +61,6 @@ def gather_evaluations(trainer: L.Trainer, outputs: dict) -> list[dict]:
     numbers = trainer.strategy.all_gather(numbers)  # [world size, 1 + len(MEASURES)]
     return [{"index": int(numbers[r, 0]), **{name: float(numbers[r, 1 + i]) for i, name in enumerate(MEASURES)},
              **{key: gathered[key][r] for key in IMAGES}} for r in range(trainer.world_size)]
-
-
-def image_scores(item: dict, split: str, step: int) -> dict[str, float]:
-    """The ``MEASURES`` of one evaluated image (``gather_evaluations``) of ``split`` at ``step``, NaN for those it
-    was not scored by; a NonFiniteError where its PSNR or SSIM (``ALWAYS_SCORED``) is NaN, so that no mean over
-    it is recorded. Every view scored was checked to have pixels to score before the first step
-    (``nerfexp.training.scoring.check_scored``), so such a score comes from the render: weights or an appearance
-    code that render NaN. Every process raises it alike: the items are every process's."""
-    scores = {name: item.get(name, math.nan) for name in MEASURES}
-    if missing := [name for name in ALWAYS_SCORED if math.isnan(scores[name])]:
-        raise NonFiniteError(f"step {step}: the {SPLIT_NAMES[split]} view {item['index']} scored "
-                             f"{' and '.join(missing)} NaN (its render holds NaN pixels): no score is recorded")
-    return scores
-
-
-def scored(scores: dict[int, dict[str, float]]) -> tuple[str, ...]:
-    """The scores that the images ``{index: {"psnr": ..., "ssim": ..., "lpips": ...}}`` have: PSNR and SSIM,
-    and each other of ``SCORES`` where every image has it (none is NaN or missing: not scored, as LPIPS without
-    AlexNet's weights, or the protocols' own scores in a validation)."""
-    def every_image_has(name: str) -> bool:
-        return bool(scores) and not any(math.isnan(s.get(name, math.nan)) for s in scores.values())
-    return (*ALWAYS_SCORED, *(name for name in SCORES if name not in ALWAYS_SCORED and every_image_has(name)))
-
-
-def image_means(scores: dict[int, dict[str, float]]) -> dict[str, float]:
-    """Means of per-image scores ``{index: {"psnr": ..., "ssim": ..., "lpips": ...}}``, in image order, of
-    those ``scored``: LPIPS left out where it is not."""
-    ordered = [scores[index] for index in sorted(scores)]
-    return {name: float(np.mean([s[name] for s in ordered])) for name in scored(scores)}
 
 
 def scores_record(scores: dict[int, dict[str, float]]) -> dict:
@@ -145,8 +104,13 @@ def scores_text(results: dict) -> str:
 def keep_metrics_through(output_dir: Path, step: int) -> None:
     """Rewrite ``metrics.jsonl`` in ``output_dir`` without its lines of steps after ``step`` (and a last line
     cut short), where it has any; otherwise leave it untouched."""
-    records = read_metrics(output_dir)
-    kept = [record for record in records if record["step"] <= step]
+    keep_metrics(output_dir, lambda record: record["step"] <= step)
+
+
+def keep_metrics(output_dir: Path, keep: Callable[[dict], bool]) -> None:
+    """Rewrite ``metrics.jsonl`` in ``output_dir`` with only the lines (read whole: a last line cut short is
+    left out) that ``keep`` keeps, where that changes it; otherwise leave it untouched."""
+    kept = [record for record in read_metrics(output_dir) if keep(record)]
     path = Path(output_dir) / METRICS
     text = "".join(json.dumps(record) + "\n" for record in kept).encode()
     if path.exists() and path.read_bytes() != text:
@@ -187,11 +151,20 @@ class RunRecorder(L.Callback):
     notes, ``nerfexp.rundir.labels``) go to ``results.json`` and to each logger. A resumed run's
     ``metrics.jsonl`` keeps the lines of the steps up to its checkpoint's: later ones came from training
     that the resumed run does again, and would stand twice for the same steps.
+
+    ``test_budgets`` (fractions of ``trainer.max_steps``, ``nerfexp.training.budgets``): after each budget's step
+    the clock stops, the test views are scored with the weights then, exactly as the final test scores them
+    (``score_test_views``: no images written), and the clock goes on; each budget's scores go to ``metrics.jsonl``
+    (split test) and to each logger (``test/psnr``, ...) at its step, with one line in the log. ``results.json``'s
+    ``test_budgets`` lists them with the final test's last (``budget_entry``), and ``budget_scoring_s`` the
+    seconds their scoring took, never in ``train_time_s``. The budgets scored are part of the checkpoint; a run
+    resumed at a budget's step whose checkpoint does not hold it (saved before it was scored, or a finished run
+    trained further) scores it before its first step.
     """
 
     def __init__(self, output_dir: str, choices: dict, run_config: dict | None = None,
                  overrides: list[str] = (), settings: dict | None = None, resumes: list[dict] = (),
-                 labels: dict | None = None, bounds: str | None = None):
+                 labels: dict | None = None, bounds: str | None = None, test_budgets: list[float] = ()):
         self.output_dir = Path(output_dir)
         self.bounds = bounds  # where the scene's near and far came from (``Scene.bounds_rule``), or None
         self.choices, self.run_config, self.overrides = dict(choices), run_config, list(overrides)
@@ -207,6 +180,9 @@ class RunRecorder(L.Callback):
         self._spent_at_start = self._spent_at_fit = 0.0  # ``nerfexp.kernels.seconds_spent`` then
         self.torch_threads = torch.get_num_threads()
         self._scores: dict[int, dict[str, float]] = {}  # image index -> its measures (MEASURES)
+        self.test_budgets = list(test_budgets)  # fractions of trainer.max_steps at which the test views are scored
+        self.budgets: list[dict] = []  # the budgets scored so far (budget_entry), in step order
+        self._test_started: float | None = None  # the final test's start (time.perf_counter)
 
     def wall_time_s(self) -> float:
         """The training's wall-clock seconds so far, those spent getting kernels inside the clock taken out."""
@@ -245,9 +221,29 @@ class RunRecorder(L.Callback):
                 log.info("kernels %s ready before the training clock started (the seconds: results.json's "
                          "kernel_build_s)", ", ".join(names))
         self.torch_threads = torch.get_num_threads()
+        self._start_clock()
+
+    def _start_clock(self) -> None:
+        """The training clock started (or started again after a pause, ``_stop_clock``)."""
         self._spent_at_start = seconds_spent()
         self._start = sample()
         self._started = self._start.wall_s
+
+    def _stop_clock(self) -> None:
+        """The training clock stopped: its wall, CPU and other processes' CPU seconds so far (``totals``) kept, and
+        nothing counted until ``_start_clock``."""
+        self.elapsed_s, self.cpu_s, self.others_s = self.totals()
+        self._started, self._start = None, None
+
+    def on_train_batch_start(self, trainer, pl_module, batch, batch_idx):
+        """A run resumed at a budget's step whose checkpoint does not hold it scores it before its next step; the
+        test line of that step in ``metrics.jsonl`` (a scoring of the same weights that the checkpoint does not
+        hold: a finished run's final test, a budget scored after the checkpoint was saved) is replaced."""
+        if self._unscored_budget(trainer):
+            if trainer.is_global_zero:
+                step = trainer.global_step
+                keep_metrics(self.output_dir, lambda record: (record["step"], record["split"]) != (step, "test"))
+            self._score_budget(trainer, pl_module)
 
     def on_train_batch_end(self, trainer, pl_module, outputs, batch, batch_idx):
         self.steps = trainer.global_step  # the step of the weights that the evaluations score
@@ -256,6 +252,38 @@ class RunRecorder(L.Callback):
             # loop to stop: so the last weights are validated whatever scale.val_every is (once, where
             # it is also a multiple of val_every)
             trainer.should_stop = True
+        elif not trainer.should_stop and self._unscored_budget(trainer):  # (stopping here: the end's test scores it)
+            self._score_budget(trainer, pl_module)
+
+    def _unscored_budget(self, trainer) -> bool:
+        """Whether the weights now are those of a budget's step (``budget_fractions``) not scored yet."""
+        step = trainer.global_step
+        return (step in budget_fractions(self.test_budgets, trainer.max_steps)
+                and all(entry["step"] != step for entry in self.budgets))
+
+    def _evaluations(self, trainer, pl_module, step: int) -> float | None:
+        """The network evaluations of training's first ``step`` steps: evaluations per ray x the rays of a step (all
+        processes') x ``step``; None where the data module does not say its batch's rays."""
+        batch_rays = getattr(trainer.datamodule, "batch_rays", None)
+        return float(pl_module.renderer.evaluations_per_ray * batch_rays * step) if batch_rays else None
+
+    def _score_budget(self, trainer, pl_module) -> None:
+        """The test views scored now (``score_test_views``), outside the training clock: the budget recorded
+        (``budget_entry``) by every process (each scored every view), and by rank 0 appended to ``metrics.jsonl``,
+        logged to each logger at its step and said in one line."""
+        step = trainer.global_step
+        self._stop_clock()
+        started = time.perf_counter()
+        scores = score_test_views(trainer, pl_module)
+        score_s = time.perf_counter() - started
+        entry = budget_entry(step, self.elapsed_s, self._evaluations(trainer, pl_module, step), scores, score_s)
+        self.budgets.append(entry)
+        if trainer.is_global_zero:
+            self._record_means(trainer, "test", image_means(scores), step, self.elapsed_s)
+            fraction = budget_fractions(self.test_budgets, trainer.max_steps)[step]
+            log.info("step %d/%d: %s at a budget of %s (%.1f s of scoring, outside the training clock)", step,
+                     trainer.max_steps, scores_text(entry), budget_text(fraction), score_s)
+        self._start_clock()
 
     def on_train_end(self, trainer, pl_module):
         wall, cpu, others = self.totals()
@@ -277,16 +305,18 @@ class RunRecorder(L.Callback):
         wall, cpu, others = self.totals()
         kernels = self.kernel_build_s + (seconds_spent() - self._spent_at_fit if not self.trained else 0.0)
         return {"elapsed_s": wall, "last_val_psnr": self.last_val_psnr, "cpu_time_s": cpu, "others_cpu_s": others,
-                "kernel_build_s": kernels, "torch_threads": self.torch_threads}
+                "kernel_build_s": kernels, "torch_threads": self.torch_threads,
+                "test_budgets": [dict(entry) for entry in self.budgets]}
 
     def load_state_dict(self, state_dict: dict) -> None:
         """What a checkpoint recorded of the training so far; of an earlier nerfexp's, which recorded no CPU
-        times, those are unknown (None) and stay so."""
+        times, those are unknown (None) and stay so, and no budget was scored."""
         if not self.trained:  # a test after training in this process keeps what it measured
             self.elapsed_s, self.last_val_psnr = state_dict["elapsed_s"], state_dict.get("last_val_psnr")
             self.cpu_s, self.others_s = state_dict.get("cpu_time_s"), state_dict.get("others_cpu_s")
             self.kernel_build_s = state_dict.get("kernel_build_s", 0.0)
             self.torch_threads = state_dict.get("torch_threads", self.torch_threads)
+            self.budgets = [dict(entry) for entry in state_dict.get("test_budgets", [])]
 
     def on_save_checkpoint(self, trainer, pl_module, checkpoint: dict) -> None:
         if self.settings is not None:
@@ -333,14 +363,19 @@ class RunRecorder(L.Callback):
         if split == "val":
             self.last_val_psnr = means["psnr"]
         if trainer.is_global_zero:
-            record = {"step": self.steps, "wall_time_s": self.wall_time_s(), "split": split, **means}
-            append_metrics(self.output_dir, record)
+            wall_time_s = self.wall_time_s()
+            self._record_means(trainer, split, means, self.steps, wall_time_s)
             if split == "val":
                 log.info("step %d/%d: validation PSNR %.2f dB, SSIM %.4f%s after %.0f s of training", self.steps,
-                         trainer.max_steps, means["psnr"], means["ssim"], lpips_text(means), record["wall_time_s"])
-            for logger in trainer.loggers:
-                logger.log_metrics({f"{split}/{name}": value for name, value in means.items()}, self.steps)
+                         trainer.max_steps, means["psnr"], means["ssim"], lpips_text(means), wall_time_s)
         return scores
+
+    def _record_means(self, trainer, split: str, means: dict[str, float], step: int, wall_time_s: float) -> None:
+        """The means over the images of ``split`` scored at ``step`` appended to ``metrics.jsonl``, with the
+        training's seconds then, and logged to each logger as ``{split}/{name}`` at ``step``."""
+        append_metrics(self.output_dir, {"step": step, "wall_time_s": wall_time_s, "split": split, **means})
+        for logger in trainer.loggers:
+            logger.log_metrics({f"{split}/{name}": value for name, value in means.items()}, step)
 
     def on_validation_batch_end(self, trainer, pl_module, outputs, batch, batch_idx, dataloader_idx=0):
         if not trainer.sanity_checking:
@@ -350,15 +385,23 @@ class RunRecorder(L.Callback):
         if not trainer.sanity_checking:
             self._flush(trainer, "val")
 
+    def on_test_start(self, trainer, pl_module):
+        self._test_started = time.perf_counter()
+
     def on_test_batch_end(self, trainer, pl_module, outputs, batch, batch_idx, dataloader_idx=0):
         self._collect(trainer, pl_module, outputs, "test")
 
     def on_test_epoch_end(self, trainer, pl_module):
+        """``results.json``; its ``test_budgets`` end with this test's scores, at the step it scores (the step the
+        run stopped at), and keep the budgets scored before that step."""
+        test_s = time.perf_counter() - self._test_started if self._test_started is not None else 0.0
         scores, steps = self._flush(trainer, "test"), self.steps
         if not trainer.is_global_zero:
             return
         renderer, batch_rays = pl_module.renderer, getattr(trainer.datamodule, "batch_rays", None)
         test_scores = scores_record(scores)
+        end = budget_entry(steps, self.elapsed_s, self._evaluations(trainer, pl_module, steps), scores, test_s)
+        budgets = [*(entry for entry in self.budgets if entry["step"] < steps), end]
         results = {
             **test_scores, **pl_module.lpips_record(test_scores), **collapse_record(scores),
             "val_psnr": self.last_val_psnr,
@@ -373,6 +416,7 @@ class RunRecorder(L.Callback):
             "colour_evaluations_per_ray": renderer.colour_evaluations_per_ray,
             "machine": machine(), "choices": self.choices, "overrides": self.overrides, **self.labels,
             "config": self.run_config, "resumes": self.resumes,
+            "test_budgets": budgets, "budget_scoring_s": scoring_seconds(budgets),
         }
         rule = trainer.datamodule.scene.split_rule() if trainer.datamodule is not None else None
         if rule is not None:  # how the views were split, where a rule made the split

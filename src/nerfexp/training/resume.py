@@ -49,6 +49,7 @@ MAY_DIFFER = (
     # where it runs: the processes share each global batch, the same objective (nerfexp.data.rays.RandomRays)
     "trainer.accelerator", "trainer.devices", "trainer.num_nodes", "trainer.strategy",
     "threads",  # torch's threads: how fast, not what is trained
+    "test_budgets",  # when the test views are scored during training, not what is trained (nerfexp.training.budgets)
     "model.compile",  # the same networks, compiled
     "model.optimizer.fused",  # the same update, by one kernel or a loop
     "trainer.plugins",  # how checkpoints are written (nerfexp.training.checkpoints), not what is trained
