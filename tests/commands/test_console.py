@@ -71,7 +71,7 @@ def test_a_run_prints_its_own_lines_only(tmp_path):
     # a line per test budget (the default 1/4 and 1/2: steps 15 and 30) and per validation
     assert [re.search(r"step \d+/60: (validation|test)", line)[0] for line in lines[3:-1]] == [
         "step 15/60: test", "step 30/60: test", "step 30/60: validation", "step 60/60: validation"]
-    assert re.search(r"step 15/60: test PSNR \d+\.\d\d dB, SSIM \d\.\d{4} at a budget of 1/4 \(\d+\.\d s of scoring, "
+    assert re.search(r"step 15/60: test PSNR \d+\.\d\d dB, SSIM \d\.\d{4} at a budget of 1/4 \(\d+\.\d\d s of scoring, "
                      r"outside the training clock\)$", lines[3])
     assert "test PSNR" in lines[-1]
 

@@ -516,6 +516,15 @@ def test_runs_that_differ_only_in_tags_and_notes_are_one_variant_that_shows_them
     assert "<td>baseline, x|y, late</td>" in html and "<li>hierarchical=true: first try</li>" in html
 
 
+def test_runs_that_differ_only_in_their_test_budgets_are_one_variant(tmp_path):
+    # test_budgets says when the test views are scored, not what trains: runs scored at other budgets pair by seed
+    make_run(tmp_path, "0", ["hierarchical=true", "seed=0", "test_budgets=[0.5]"], psnr=20.0)
+    make_run(tmp_path, "1", ["hierarchical=true", "seed=1"], psnr=22.0)
+    make_run(tmp_path, "2", ["hierarchical=false", "seed=0", "test_budgets=[]"], psnr=25.0)
+    variants = group_variants(find_runs([tmp_path]))
+    assert [(v.label, len(v.runs)) for v in variants] == [("hierarchical=false", 1), ("hierarchical=true", 2)]
+
+
 def test_a_run_whose_labels_are_not_as_nerfexp_writes_them_is_damaged(tmp_path):
     labelled(make_run(tmp_path, "0", ["seed=0"]), "baseline")  # a text, not a list
     (run,) = find_runs([tmp_path])

@@ -14,6 +14,7 @@ from nerfexp.report.budgets import (
     equal_times,
     last_steps,
     scoring_seconds,
+    seconds_text,
     step_differences,
     time_differences,
     time_window,
@@ -70,10 +71,6 @@ def budgets_csv_text(rows: list[dict], safe: Callable[[object], object]) -> str:
     writer.writeheader()
     writer.writerows({column: safe(row[column]) for column in BUDGET_COLUMNS} for row in rows)
     return out.getvalue()
-
-
-def seconds_text(time_s: float) -> str:
-    return f"{time_s:,.0f} s" if time_s >= 10 else f"{time_s:.3g} s"
 
 
 def per_budget_text(variants: list[Variant], reference: Variant | None, words: dict[str, str]) -> list[str]:

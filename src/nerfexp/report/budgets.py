@@ -201,14 +201,21 @@ class EqualTime:
     uncovered: list[tuple[str, str]]
 
 
+def seconds_text(time_s: float) -> str:
+    """A training time as the report writes it: whole seconds from 10 s on ("1,234 s"), else 3 significant
+    digits ("0.646 s")."""
+    return f"{time_s:,.0f} s" if time_s >= 10 else f"{time_s:.3g} s"
+
+
 def uncovered_reason(variant: Variant, time_s: float) -> str:
     """Why no run of ``variant`` has a test score at ``time_s``: each tested first after it, or ended before it."""
     budgets = [b for run in variant.finished if (b := run_budgets(run))]
     if budgets and all(b[0].train_time_s > time_s for b in budgets):
-        return f"first test after {time_s:,.0f} s (at {min(b[0].train_time_s for b in budgets):,.0f} s)"
+        first = min(b[0].train_time_s for b in budgets)
+        return f"first test after {seconds_text(time_s)} (at {seconds_text(first)})"
     if budgets and all(b[-1].train_time_s < time_s for b in budgets):
-        return f"training ended before {time_s:,.0f} s"
-    return f"no run has a test score at {time_s:,.0f} s"
+        return f"training ended before {seconds_text(time_s)}"
+    return f"no run has a test score at {seconds_text(time_s)}"
 
 
 def equal_time(variants: list[Variant], time_s: float) -> EqualTime:

@@ -1,4 +1,4 @@
-"""Runs grouped into variants (the same overrides, apart from the seeds, tags and notes), the reference
+"""Runs grouped into variants (the same overrides, apart from the seeds, tags, notes and test budgets), the reference
 variant, and their differences paired by seed (``nerfexp.report.comparison``)."""
 
 
@@ -10,6 +10,9 @@ from dataclasses import dataclass
 from nerfexp.report.comparison import Difference, paired_difference
 from nerfexp.report.runs import Run, run_precision
 from nerfexp.rundir.labels import LABELS
+
+# Keys that change how a run is scored or labelled, never what it trains: never part of a variant
+NOT_TRAINED = (*LABELS, "test_budgets")
 
 PAPER_ABLATION = {
     "no_pe_vd_h": ("No PE, VD, H", 26.67, 0.906),
@@ -90,11 +93,11 @@ def _key(override: str) -> str:
 
 
 def group_variants(runs: list[Run], over: tuple[str, ...] = ("seed",)) -> list[Variant]:
-    """Runs with the same overrides, apart from the keys in ``over`` and the tags and notes
+    """Runs with the same overrides, apart from the keys in ``over``, ``test_budgets`` and the tags and notes
     (``nerfexp.rundir.labels``: what a run is for, not what it is), form a variant: every job started,
     damaged, failed or still running included, so that a variant counts its finished runs against all of
     them. Overrides that every run shares are left out of the labels. Variants are ranked by mean test PSNR."""
-    kept = [tuple(o for o in run.overrides if _key(o) not in (*over, *LABELS)) for run in runs]
+    kept = [tuple(o for o in run.overrides if _key(o) not in (*over, *NOT_TRAINED)) for run in runs]
     shared = set.intersection(*(set(k) for k in kept)) if kept else set()
     groups: dict[frozenset, tuple[tuple, list[Run]]] = {}  # the order of overrides does not matter
     for key, run in zip(kept, runs):

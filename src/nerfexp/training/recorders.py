@@ -281,7 +281,7 @@ class RunRecorder(L.Callback):
         if trainer.is_global_zero:
             self._record_means(trainer, "test", image_means(scores), step, self.elapsed_s)
             fraction = budget_fractions(self.test_budgets, trainer.max_steps)[step]
-            log.info("step %d/%d: %s at a budget of %s (%.1f s of scoring, outside the training clock)", step,
+            log.info("step %d/%d: %s at a budget of %s (%.2f s of scoring, outside the training clock)", step,
                      trainer.max_steps, scores_text(entry), budget_text(fraction), score_s)
         self._start_clock()
 
