@@ -16,6 +16,7 @@ from nerfexp.report.budgets import (
     Budget,
     budget_words,
     equal_time,
+    equal_times,
     run_budgets,
     score_at_time,
     step_differences,
@@ -209,6 +210,18 @@ def test_equal_time_ranks_at_the_fastest_variants_times(tmp_path):
     assert "**At 30 s, ranked:**\n\n1. encoding=mid (23.08 dB, 3 runs)\n2. encoding=fast (23.00 dB, 3 runs)\n" \
            "- encoding=slow: first test after 30 s (at 70 s)" in report
     assert "at the fastest variant's (`encoding=fast`) total training time" in report
+
+
+def test_equal_times_are_where_every_run_of_the_fastest_variant_has_a_score(tmp_path):
+    # fast's seeds tested at 10/20/40, 14/30/50 and 12/25/45 s: mean budget times 12, 25 and 45 s; a time before
+    # the slowest seed's first test (14 s) or past the quickest seed's end (40 s) would leave a seed of its own out
+    for seed, seconds in enumerate([(10.0, 20.0, 40.0), (14.0, 30.0, 50.0), (12.0, 25.0, 45.0)]):
+        make_run(tmp_path, f"fast{seed}", ["encoding=fast", f"seed={seed}"],
+                 test_budgets=[(100 * (i + 1), t, 20.0 + 0.1 * t, 0.8) for i, t in enumerate(seconds)])
+    linear_runs(tmp_path, "slow", 20.0, 0.1, [15.0, 60.0, 120.0])
+    fastest, times = equal_times(group_variants(find_runs([tmp_path])))
+    assert fastest.label == "encoding=fast" and times == pytest.approx([14.0, 25.0, 40.0])
+    assert [n for _, _, n in equal_time([fastest], 14.0).ranked] == [3]
 
 
 def test_variants_the_seeds_cannot_tell_apart_at_a_time_share_a_line(tmp_path):

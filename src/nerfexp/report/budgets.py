@@ -180,13 +180,18 @@ def budget_points(variant: Variant) -> list[tuple[int, float, float]]:
 
 def equal_times(variants: list[Variant]) -> tuple[Variant | None, list[float]]:
     """The times the equal-time tables rank at: of the fastest timed variant (the lowest mean training time of
-    those with finished runs, ``timed``), the mean time of each of its budgets, its total the last; (None, [])
-    where no variant is timed."""
+    those with finished runs, ``timed``), the mean time of each of its budgets, each brought into the times at
+    which every one of its runs has a score (``time_window``: a mean first budget before a slower seed's first,
+    or a mean total past a faster seed's end, would leave some of its own runs out), its total the last, each
+    time once; (None, []) where no variant is timed."""
     candidates = [v for v in variants if v.finished and timed(v) and math.isfinite(v.mean("train_time_s"))]
     if not candidates:
         return None, []
     fastest = min(candidates, key=lambda v: v.mean("train_time_s"))
-    return fastest, budget_times(fastest)
+    window = time_window([fastest])
+    if window is None:
+        return fastest, []
+    return fastest, list(dict.fromkeys(min(max(t, window[0]), window[1]) for t in budget_times(fastest)))
 
 
 @dataclass(frozen=True)
