@@ -122,6 +122,9 @@ NEAR = real(0, POSITION_LIMIT)  # distances along rays, in scene units
 FAR = real(0, POSITION_LIMIT, above=True)
 RAW_OFFSET = real(-RAW_LIMIT, RAW_LIMIT)
 LOSS_WEIGHT = real(0, LOSS_WEIGHT_LIMIT)
+# Adam moves each weight by about the learning rate per step: above 1 a step outweighs the weights themselves
+# (initialised within +-1)
+LEARNING_RATE = real(0, 1, above=True)
 
 
 def is_position(value) -> bool:

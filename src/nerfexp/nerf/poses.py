@@ -14,11 +14,9 @@ from typing import ClassVar
 import torch
 from torch import Tensor, nn
 
-from nerfexp.domains import COUNT, NONNEGATIVE_COUNT, Rule, real
+from nerfexp.domains import COUNT, LEARNING_RATE, NONNEGATIVE_COUNT, Rule
 from nerfexp.nerf.frozen_fit import fit_frozen
 from nerfexp.nerf.schedules import warmup_exponential_decay
-
-LEARNING_RATE = real(0, 1, above=True)
 
 
 def taylor_threshold(dtype: torch.dtype) -> float:

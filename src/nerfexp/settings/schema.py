@@ -26,6 +26,7 @@ from nerfexp.domains import (
     FLOAT32_TOP_OCTAVE,
     FRACTION,
     INTEGER_LIMIT,
+    LEARNING_RATE,
     NONNEGATIVE_COUNT,
     NULL,
     PATH,
@@ -78,9 +79,8 @@ def lightning_strategies() -> tuple[str, ...]:
     return tuple(StrategyRegistry.available_strategies())
 
 
-# Adam moves each weight by about the learning rate per step: above 1 a step outweighs the weights themselves
-# (initialised within +-1); its eps (added to the gradients' scale) and the weight decay are fractions too
-LEARNING_RATE = real(0, 1, above=True)
+# Adam's eps (added to the gradients' scale) and the weight decay are fractions, as its learning rate
+# (``nerfexp.domains.LEARNING_RATE``)
 ADAM_EPS = real(0, 1, above=True)
 # gamma(s x): a scale above 2^18 puts even the lowest frequency past float32's (and with n_freqs, check_frequencies)
 INPUT_SCALE = real(0, 2.0 ** FLOAT32_TOP_OCTAVE, above=True)
