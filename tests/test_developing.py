@@ -1,8 +1,10 @@
-"""The recipe of docs/developing.md, followed from the tests' own folder: a toy encoding (a class and a
-config file, nothing of nerfexp edited) composes, is checked by its own domains, trains a few steps, sweeps
-beside the paper's positional encoding and reaches the report."""
+"""The recipes of docs/developing.md, followed from the tests' own folder: a toy encoding and a toy colour head
+(each a class and a config file, nothing of nerfexp edited) compose, are checked by their own domains and
+train; the encoding sweeps beside the paper's positional encoding and reaches the report."""
 
 import csv
+import json
+import math
 
 import pytest
 import torch
@@ -11,7 +13,7 @@ from hydra.utils import instantiate
 
 from nerfexp.errors import ConfigError
 from nerfexp.settings.checks import check_settings
-from tests.components.toy import PowerEncoding
+from tests.components.toy import PowerEncoding, TiltHead
 from tests.helpers import REPO, TINY, one_error_line, run_nerfexp
 
 SEARCH = f"hydra.searchpath=[file://{REPO / 'tests' / 'components'}]"  # where encoding/toy.yaml lies
@@ -25,15 +27,15 @@ def test_the_toy_encoding_maps_each_coordinate_to_its_powers():
 
 def composed(*overrides: str):
     with initialize_config_module("nerfexp.conf", version_base=None):
-        return compose("config", overrides=[SEARCH, "encoding=toy", *overrides], return_hydra_config=True)
+        return compose("config", overrides=[SEARCH, *overrides], return_hydra_config=True)
 
 
 def test_it_composes_into_the_field_and_its_own_domains_check_it():
-    cfg = composed()
+    cfg = composed("encoding=toy")
     assert cfg.model.renderer.field.position_encoding._target_ == "tests.components.toy.PowerEncoding"
     check_settings(cfg)  # its keys have rules: the class's DOMAINS, nothing central
     with pytest.raises(ConfigError, match=r"^encoding.position.n_powers=0: expected a whole number in \[1, "):
-        check_settings(composed("encoding.position.n_powers=0"))
+        check_settings(composed("encoding=toy", "encoding.position.n_powers=0"))
     model = instantiate(cfg.model)
     assert model.renderer.coarse.trunk[0].in_features == 9  # 3 coordinates x 3 powers
 
@@ -53,3 +55,32 @@ def test_it_trains_sweeps_beside_posenc_and_reaches_the_report(tmp_path):
     assert set(rows) == {"encoding=posenc", "encoding=toy"}
     assert all(row["finished"] == "1" for row in rows.values())
     assert rows["encoding=toy"]["n_params"] != rows["encoding=posenc"]["n_params"]  # 9 inputs, not 63
+
+
+def test_the_toy_colour_head_is_the_sigmoid_of_its_linear_colour_tilted_by_the_direction():
+    head = TiltHead(in_features=2, tilt=2.0)
+    with torch.no_grad():
+        head.rgb.weight.copy_(torch.tensor([[1.0, 0.0], [0.0, 1.0], [1.0, 1.0]]))
+        head.rgb.bias.zero_()
+    h = torch.tensor([[[1.0, -1.0]]])  # [rays, samples, features]: logits (1, -1, 0) before the tilt
+    d = torch.tensor([[[0.0, 0.0, 1.0]]])  # looking along z: only blue is tilted, by 2
+    expected = torch.tensor([[[1.0, -1.0, 2.0]]]).sigmoid()
+    assert torch.allclose(head(h, d), expected, rtol=0, atol=1e-7)
+
+
+def test_the_toy_colour_head_composes_into_the_field_is_checked_by_its_domains_and_trains(tmp_path):
+    cfg = composed("view_dependence=toy")
+    check_settings(cfg)
+    with pytest.raises(ConfigError, match=r"^view_dependence.tilt=9: expected a finite number >= -8 and <= 8"):
+        check_settings(composed("view_dependence=toy", "view_dependence.tilt=9"))
+    model = instantiate(cfg.model)
+    head = model.renderer.coarse.view_head
+    assert isinstance(head, TiltHead) and head.tilt == 2.0
+    assert head.rgb.in_features == cfg.model.renderer.field.width  # built from the trunk's width
+    run = tmp_path / "run"
+    tiny = [o for o in TINY if not o.startswith("scale.view_hidden=")]  # the toy head has no hidden layer to size
+    done = run_nerfexp(*tiny, SEARCH, "view_dependence=toy", "scale.steps=20", "scale.val_every=20",
+                       f"hydra.run.dir={run}", cwd=tmp_path)
+    assert done.returncode == 0, done.stderr[-3000:]
+    results = json.loads((run / "results.json").read_text())
+    assert results["steps"] == 20 and math.isfinite(results["test_psnr"])

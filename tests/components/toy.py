@@ -1,10 +1,13 @@
-"""A component from outside nerfexp, added by the recipe in docs/developing.md: a toy encoding (the tests'
-own), its config in ``tests/components/encoding/toy.yaml`` found through ``hydra.searchpath``."""
+"""Components from outside nerfexp, each added by its recipe in docs/developing.md: a toy encoding and a toy
+colour head (the tests' own), their configs in ``tests/components/GROUP/toy.yaml`` found through
+``hydra.searchpath``."""
 
-from torch import Tensor
+import torch
+from torch import Tensor, nn
 
 from nerfexp.domains import COUNT, real
 from nerfexp.nerf.encodings import Encoding
+from nerfexp.nerf.fields import ColourHead
 
 
 class PowerEncoding(Encoding):
@@ -20,3 +23,19 @@ class PowerEncoding(Encoding):
     def forward(self, x: Tensor) -> Tensor:
         """x [..., D] -> [..., D * n_powers]."""
         return self.gain * x.unsqueeze(-2).pow(x.new_tensor(range(1, self.n_powers + 1))[:, None]).flatten(-2)
+
+
+class TiltHead(ColourHead):
+    """rgb = sigmoid(W h + b + tilt d): a linear colour of the trunk's features, tilted channel by channel by the
+    view direction's coordinates (red by d_x, green by d_y, blue by d_z): the simplest view-dependent head."""
+
+    DOMAINS = {"tilt": real(-8, 8)}
+
+    def __init__(self, in_features: int, tilt: float = 1.0):
+        super().__init__()
+        self.rgb = nn.Linear(in_features, 3)
+        self.tilt = tilt
+
+    def forward(self, h: Tensor, directions: Tensor) -> Tensor:
+        """h [..., S, F], directions [..., S or 1, 3] -> rgb [..., S, 3]."""
+        return torch.sigmoid(self.rgb(h) + self.tilt * directions)
