@@ -8,7 +8,8 @@ import numpy as np
 import pytest
 import torch
 
-from nerfexp.data.nerfstudio import TRANSFORMS, NerfstudioScene, write_nerfstudio
+from nerfexp.data.nerfstudio import NerfstudioScene
+from nerfexp.data.transforms_file import TRANSFORMS, write_nerfstudio
 from nerfexp.data.procedural import load_procedural
 from nerfexp.data.sparse_points import read_ply_points
 from nerfexp.errors import DatasetError
@@ -80,7 +81,8 @@ def test_points_at_a_known_place_give_their_distances_and_win_over_the_box(scene
     write_points(tmp_path / "sparse_pc.ply", [[0.0, 0.0, 0.0]])  # the still life's centre: every camera sees it
     scene = scene_with(scene_root, tmp_path, ply_file_path="sparse_pc.ply", **BOX_KEYS)
     near, far = scene.ray_bounds()
-    c2w, centre, scale = scene._normalization
+    posed = scene.posed()
+    c2w, centre, scale = posed.c2w, posed.centre, posed.scale
     # one point: each camera's percentiles are its distance; 0.9 x the nearest, 1.1 x the farthest
     distances = torch.linalg.vector_norm((torch.zeros(3, dtype=torch.float64) - centre) * scale - c2w[:, :3, 3], dim=-1)
     assert (near, far) == pytest.approx((0.9 * distances.min().item(), 1.1 * distances.max().item()))
@@ -132,7 +134,8 @@ def test_a_colmap_model_beside_the_frames_gives_its_points_bounds_in_the_frames_
     """The hand-made model of tests/data/test_colmap.py (a ring of cameras 4 from two points, whose near and far
     are RING_BOUNDS there) beside frames posed at half its scale: the bounds are RING_BOUNDS halved, and a
     model matching fewer than two frames by file name gives none."""
-    from nerfexp.data.nerfstudio import Frame, colmap_point_bounds
+    from nerfexp.data.nerfstudio import colmap_point_bounds
+    from nerfexp.data.transforms_file import Frame
     from tests.data.photographs import RING, RING_BOUNDS, hand_made_model
 
     model = tmp_path / "sparse" / "0"

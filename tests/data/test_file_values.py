@@ -16,7 +16,8 @@ from hypothesis import strategies as st
 from nerfexp.data.blender import read_transforms
 from nerfexp.data.colmap import colmap_lens, load_colmap
 from nerfexp.data.llff import read_poses_bounds, write_llff
-from nerfexp.data.nerfstudio import TRANSFORMS, NerfstudioScene, frame_lens_fields, read_capture
+from nerfexp.data.nerfstudio import NerfstudioScene
+from nerfexp.data.transforms_file import TRANSFORMS, frame_lens_fields, read_capture
 from nerfexp.data.procedural import scene_cameras
 from nerfexp.data.video import cached_frames
 from nerfexp.errors import DatasetError, NerfexpError
@@ -73,7 +74,7 @@ def test_any_box_key_gives_the_box_it_means_or_one_line_naming_the_file_and_the_
         side, scale, offset = (keys.get("aabb_scale", 2), keys.get("scale", 0.5), keys.get("offset", [0.5] * 3))
         centre_ngp = torch.tensor([0.5 - offset[2], 0.5 - offset[0], 0.5 - offset[1]], dtype=torch.float64) / scale
         expected = torch.stack([centre_ngp - side / (2 * scale), centre_ngp + side / (2 * scale)])
-        _, mean, factor = scene._normalization
+        mean, factor = scene.posed().centre, scene.posed().scale
         assert torch.allclose(box, ((expected - mean) * factor).float())
         assert torch.isfinite(box).all() and box.abs().max() <= LIMIT and (box[0] < box[1]).all()
 

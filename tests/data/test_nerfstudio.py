@@ -13,7 +13,8 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from nerfexp.data.datamodule import RayDataModule
-from nerfexp.data.nerfstudio import TRANSFORMS, NerfstudioScene, scene_file, spelling, write_nerfstudio
+from nerfexp.data.nerfstudio import NerfstudioScene
+from nerfexp.data.transforms_file import TRANSFORMS, scene_file, spelling, write_nerfstudio
 from nerfexp.data.procedural import load_procedural, occlude, real_lens
 from nerfexp.data.rays import RandomRays, WholeImages
 from nerfexp.data.views import Views
@@ -47,7 +48,7 @@ def edit_transforms(root, change) -> None:
 def test_a_written_scene_reads_back_to_the_same_rays(tmp_path, rendered):
     write(tmp_path, rendered)
     scene = NerfstudioScene(root=str(tmp_path))
-    _, centre, scale = scene.capture() and scene._normalization
+    centre, scale = scene.posed().centre, scene.posed().scale
     for split, views in rendered.items():
         read = scene.views(split)
         assert torch.equal(read.mask, views.mask)
@@ -92,7 +93,7 @@ def test_instant_ngp_files_are_read_with_their_defaults(tmp_path):
     assert torch.equal(train.intrinsics.params, torch.tensor([[focal, focal, SIZE / 2, SIZE / 2]] * 2,
                                                              dtype=torch.float64))
     assert not train.intrinsics.is_distorted().any()
-    _, centre, scale = scene._normalization
+    centre, scale = scene.posed().centre, scene.posed().scale
     assert torch.allclose(scene.bounding_box(), ((torch.tensor([[-2.0] * 3, [2.0] * 3], dtype=torch.float64)
                                                   - centre) * scale).float())
     assert scene.split_rule() == "every 2th frame in file_path order a test view (data.holdout)"

@@ -89,6 +89,36 @@ def test_the_pinhole_rays_are_the_blender_cameras_bit_for_bit():
     assert torch.equal(pixel_rays(pixel_grid(height, width), lens), before)
 
 
+@pytest.mark.parametrize("dtype", [torch.float32, F64])
+def test_a_batch_mixing_lens_types_gives_each_cameras_own_rays_bit_for_bit_and_solves_only_where_needed(
+        dtype, monkeypatch):
+    # every model above, each twice, shuffled: each camera's rays in the batch are those of the camera alone (a
+    # pinhole's the hand-worked formula's, with no solve), and each Newton solve is given the pixels of the
+    # lenses that need it, no others: the distorted perspective lenses' in p, the fisheyes' in theta
+    import nerfexp.geometry.lenses as lenses
+
+    h, w = 8, 6
+    single = [as_lens(model, params).resized((H, W), (h, w)).to(dtype) for model, params in CAMERAS]
+    order = torch.randperm(2 * len(single), generator=torch.Generator().manual_seed(0)) % len(single)
+    grid = pixel_grid(h, w, dtype=dtype)
+    alone = torch.stack([pixel_rays(grid, single[i]) for i in order])  # [N, h, w, 3]
+    calls = []
+
+    def counting(solve):
+        def counted(values, distortion):
+            calls.append((solve.__name__, tuple(values.shape)))
+            return solve(values, distortion)
+        return counted
+    for name in ("undistort_perspective", "undistort_angle"):
+        monkeypatch.setattr(lenses, name, counting(getattr(lenses, name)))
+    together = pixel_rays(grid, Intrinsics.stack([single[i] for i in order]).unsqueeze(2))  # [N, h, w, 3]
+    assert together.dtype == dtype and torch.equal(together, alone)
+    fisheye = sum(model in FISHEYE_MODELS for model, _ in CAMERAS)  # 3
+    perspective = sum(model not in FISHEYE_MODELS and len(PARAMETERS[model]) > 0 for model, _ in CAMERAS)  # 4
+    assert calls == [("undistort_perspective", (2 * perspective * h * w, 2)),
+                     ("undistort_angle", (2 * fisheye * h * w,))]
+
+
 @pytest.mark.parametrize(("model", "params"), CAMERAS[2:6], ids=[model for model, _ in CAMERAS[2:6]])
 def test_undistortion_inverts_distortion_in_float64(model, params):
     lens = as_lens(model, params)

@@ -5,7 +5,7 @@ window."""
 import pytest
 import torch
 
-from nerfexp.data.nerfstudio import write_nerfstudio
+from nerfexp.data.transforms_file import write_nerfstudio
 from nerfexp.data.procedural import load_procedural
 from nerfexp.data.views import Views
 from nerfexp.errors import DatasetError

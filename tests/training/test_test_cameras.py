@@ -1,4 +1,4 @@
-"""Test cameras refined with the networks frozen (``test_cameras=refined``, NeRFModule.refined_test_camera,
+"""Test cameras refined with the networks frozen (``test_cameras=refined``, TestScorer.refined_camera,
 nerfexp.nerf.poses.PoseFit), against a scene whose colour is known in closed form: opaque from the first sample
 on, each ray of the colour 0.5 + 0.4 sin(6 d) of its direction d. A camera turned by a known rotation sees another
 image; the fit must turn it back (translation changes nothing there, so the rotation alone is determined), leave
@@ -76,7 +76,7 @@ def test_a_turned_test_camera_is_turned_back_and_its_image_scores_as_the_true_ca
     before = {key: value.clone() for key, value in m.state_dict().items()}
     with torch.inference_mode():  # as Lightning's test loop runs it (the modules built outside it, as Lightning's)
         given = plain.test_step(batch, 0)
-        refined_batch, sizes = m.refined_test_camera(batch)
+        refined_batch, sizes = m.test_scorer().refined_camera(batch)
         scores = m.test_step(batch, 0)
     # the refined rays are the true camera's: the correction undoes the turn to a tenth of a degree
     correction = torch.linalg.lstsq(batch["directions"].reshape(-1, 3),
@@ -97,10 +97,10 @@ def test_under_nerfws_protocol_the_camera_is_fitted_on_the_left_half_alone():
     fit = PoseFit(steps=20, lr=1e-3, rays=64)
     nerfw, full = module(NERFW_RIGHT_HALF, fit), module(FULL_IMAGE, fit)
     with torch.inference_mode():
-        left = nerfw.refined_test_camera(batch)[0]["directions"]
-        left_spoiled = nerfw.refined_test_camera(spoiled)[0]["directions"]
-        whole = full.refined_test_camera(batch)[0]["directions"]
-        whole_spoiled = full.refined_test_camera(spoiled)[0]["directions"]
+        left = nerfw.test_scorer().refined_camera(batch)[0]["directions"]
+        left_spoiled = nerfw.test_scorer().refined_camera(spoiled)[0]["directions"]
+        whole = full.test_scorer().refined_camera(batch)[0]["directions"]
+        whole_spoiled = full.test_scorer().refined_camera(spoiled)[0]["directions"]
     assert torch.equal(left, left_spoiled)  # the right half never seen by the fit
     assert not torch.equal(whole, whole_spoiled)  # the full-image protocol fits on every pixel
 
@@ -108,7 +108,7 @@ def test_under_nerfws_protocol_the_camera_is_fitted_on_the_left_half_alone():
 def test_given_test_cameras_leave_the_rays_as_they_are():
     batch, _ = turned_batch()
     m = module(FULL_IMAGE, None)
-    assert m.refined_test_camera(batch) == (batch, {})
+    assert m.test_scorer().refined_camera(batch) == (batch, {})
     assert m.test_cameras == "given" and module(FULL_IMAGE, PoseFit()).test_cameras == "refined"
 
 
@@ -117,7 +117,7 @@ def test_a_test_image_whose_mask_keeps_nothing_is_scored_from_its_given_camera()
     batch["mask"] = torch.zeros(H, W, dtype=torch.bool)
     m = module(FULL_IMAGE, PoseFit(steps=3))
     with torch.inference_mode():
-        refined, sizes = m.refined_test_camera(batch)
+        refined, sizes = m.test_scorer().refined_camera(batch)
     assert refined is batch and sizes == {}
 
 
@@ -133,12 +133,12 @@ def test_a_fit_says_its_start_in_the_log_and_draws_its_steps_where_the_trainer_d
     m = module(FULL_IMAGE, PoseFit(steps=7, rays=16))
     monkeypatch.setattr(sys, "stdout", Terminal())
     with caplog.at_level(logging.INFO, logger="nerfexp"), torch.inference_mode():
-        m.refined_test_camera(batch)
+        m.test_scorer().refined_camera(batch)
     assert "test view 5: fitting its camera (7 Adam steps of 16 rays)" in caplog.messages
     assert sys.stdout.getvalue() == ""  # no trainer drawing bars (a file, a pipe, enable_progress_bar=false)
     monkeypatch.setattr(m, "_draws_bars", lambda: True)  # as under a trainer whose bar is on (a terminal)
     with torch.inference_mode():
-        m.refined_test_camera(batch)
+        m.test_scorer().refined_camera(batch)
     assert "test view 5: its camera:   0%|          | 0/7 " in sys.stdout.getvalue()
 
 

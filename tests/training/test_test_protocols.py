@@ -1,5 +1,5 @@
-"""The test protocols of per-image appearance (NeRFModule._test, nerfexp.nerf.appearance.PROTOCOLS): NeRF-W's fit
-of a test image's code leaves the networks as they were, and the right half is the pixels scored."""
+"""The test protocols of per-image appearance (TestScorer.protocol_scores, nerfexp.nerf.appearance.PROTOCOLS):
+NeRF-W's fit of a test image's code leaves the networks as they were, and the right half is the pixels scored."""
 
 import functools
 import math
@@ -75,7 +75,7 @@ def test_nerfw_protocol_fits_the_code_alone_and_leaves_the_networks_bit_for_bit(
     before = {key: value.clone() for key, value in m.state_dict().items()}
     batch = image_batch(torch.rand(H, W, 3))
     with torch.inference_mode():  # as Lightning's test loop runs it
-        code = m._fitted_code(batch)
+        code = m.test_scorer().fitted_code(batch)
         scores = m.test_step(batch, 0)
     assert not torch.equal(code, m.renderer.appearance.test_code())  # the code moved
     after = m.state_dict()
@@ -83,4 +83,4 @@ def test_nerfw_protocol_fits_the_code_alone_and_leaves_the_networks_bit_for_bit(
     assert all(p.grad is None for p in m.parameters())
     assert scores["psnr"] == scores["psnr_right_half"] and math.isfinite(scores["psnr_full_image"])
     with torch.inference_mode():
-        assert torch.equal(m._fitted_code(batch), code)  # seeded by the image's index: the same fit again
+        assert torch.equal(m.test_scorer().fitted_code(batch), code)  # seeded by the image's index: the same fit again

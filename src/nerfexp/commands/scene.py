@@ -31,7 +31,7 @@ from nerfexp.commands.arguments import command_parser, positive
 from nerfexp.commands.console import run_command
 from nerfexp.data.blender import write_blender
 from nerfexp.data.glossy import load_glossy
-from nerfexp.data.nerfstudio import write_nerfstudio
+from nerfexp.data.transforms_file import write_nerfstudio
 from nerfexp.data.procedural import (
     APPEARANCE_CHANGES,
     APPEARANCE_SEEDS,

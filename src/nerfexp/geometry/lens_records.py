@@ -1,6 +1,6 @@
 """A lens as JSON keys, nerfstudio's (``transforms.json``): ``camera_model``, ``fl_x``, ``fl_y``, ``cx``, ``cy``
 (pixels) and the model's coefficients. nerfexp writes them in its camera files (a render's ``cameras.json``)
-and reads them there and in nerfstudio's data format (``nerfexp.data.nerfstudio``).
+and reads them there and in nerfstudio's data format (``nerfexp.data.transforms_file``).
 
 Models (``RECORD_MODELS``): ``PINHOLE``; ``OPENCV`` (``k1 k2 p1 p2``, and ``k3`` where present);
 ``OPENCV_FISHEYE`` (``k1 k2 k3 k4``); and ``FULL_OPENCV`` (``k1 .. k6 p1 p2``, OpenCV's rational model,

@@ -184,26 +184,45 @@ def normalized_coordinates(pixels: Tensor, intrinsics: Intrinsics) -> Tensor:
     return torch.stack([(pixels[..., 0] - cx) / fx, (pixels[..., 1] - cy) / fy], -1)
 
 
+def pinhole_directions(p: Tensor) -> Tensor:
+    """Unit ray directions [..., 3] in nerfexp's camera convention (x right, y up, looking down -z) through
+    undistorted normalized coordinates ``p`` [..., 2] (x, y): (x, -y, -1) / |(x, -y, -1)|."""
+    x, y = p.unbind(-1)
+    d = torch.stack([x, -y, -torch.ones_like(x)], -1)
+    return d / torch.linalg.vector_norm(d, dim=-1, keepdim=True)
+
+
+def fisheye_directions(p_d: Tensor, distortion: Tensor) -> Tensor:
+    """Unit ray directions [..., 3] in nerfexp's camera convention through a fisheye's distorted normalized
+    coordinates ``p_d`` [..., 2] (``distortion`` [..., 8] broadcast against them): the angle theta from the axis
+    undistorted from theta_d = |p_d| (``undistort_angle``), the direction (sin theta p_d / |p_d|, cos theta)."""
+    theta_d = torch.linalg.vector_norm(p_d, dim=-1)
+    theta = undistort_angle(theta_d, distortion)
+    sideways = torch.where(theta_d > 0, torch.sin(theta) / torch.where(theta_d > 0, theta_d, 1), 1)  # -> 1 at 0
+    return torch.stack([sideways * p_d[..., 0], -sideways * p_d[..., 1], -torch.cos(theta)], -1)
+
+
 def pixel_rays(pixels: Tensor, intrinsics: Intrinsics) -> Tensor:
     """Unit ray directions [..., 3] in nerfexp's camera convention (x right, y up, looking down -z) through
     image coordinates ``pixels`` [..., 2] (u, v) of cameras ``intrinsics`` (broadcast against ``pixels``'s
     leading axes). An ideal pinhole's direction is (x, -y, -1) / |(x, -y, -1)| with
-    (x, y) = ((u - cx) / fx, (v - cy) / fy); distorted lenses are undistorted first (module docstring)."""
-    p_d = normalized_coordinates(pixels, intrinsics)
+    (x, y) = ((u - cx) / fx, (v - cy) / fy); distorted lenses are undistorted first (module docstring), each
+    pixel by its own lens's solve alone: Newton's in p for a distorted perspective lens, in theta for a fisheye,
+    none for a pinhole (whose solve would leave p where it is)."""
+    p_d = normalized_coordinates(pixels, intrinsics)  # [..., 2]
     distorted = intrinsics.is_distorted()
     if not distorted.any():  # every lens an ideal pinhole: nothing to invert
-        x, y = p_d.unbind(-1)
-        d = torch.stack([x, -y, -torch.ones_like(x)], -1)
-        return d / torch.linalg.vector_norm(d, dim=-1, keepdim=True)
-    distortion, fisheye = intrinsics.distortion, intrinsics.fisheye
-    x, y = undistort_perspective(p_d, distortion).unbind(-1)
-    perspective = torch.stack([x, -y, -torch.ones_like(x)], -1)
-    perspective = perspective / torch.linalg.vector_norm(perspective, dim=-1, keepdim=True)
-    theta_d = torch.linalg.vector_norm(p_d, dim=-1)
-    theta = undistort_angle(theta_d, distortion)
-    sideways = torch.where(theta_d > 0, torch.sin(theta) / torch.where(theta_d > 0, theta_d, 1), 1)  # -> 1 at 0
-    wide = torch.stack([sideways * p_d[..., 0], -sideways * p_d[..., 1], -torch.cos(theta)], -1)
-    return torch.where(fisheye[..., None].expand_as(wide), wide, perspective)
+        return pinhole_directions(p_d)
+    shape = p_d.shape[:-1]  # the pixels' and the lenses' leading axes broadcast
+    distortion = intrinsics.distortion.expand(*shape, len(SLOTS))
+    p_d = p_d.to(torch.promote_types(p_d.dtype, distortion.dtype))
+    perspective = (distorted & ~intrinsics.fisheye).expand(shape)  # pixels of a distorted perspective lens
+    fisheye = intrinsics.fisheye.expand(shape)
+    p = p_d.clone()
+    p[perspective] = undistort_perspective(p_d[perspective], distortion[perspective])
+    rays = pinhole_directions(p)
+    rays[fisheye] = fisheye_directions(p_d[fisheye], distortion[fisheye])
+    return rays
 
 
 def pixel_grid(height: int, width: int, dtype=torch.float32, device=None) -> Tensor:

@@ -13,8 +13,8 @@ from typing import ClassVar
 import torch
 from torch import Tensor, nn
 
-from nerfexp.domains import COUNT, Rule, choice, real
-from nerfexp.nerf.frozen_fit import fit_frozen
+from nerfexp.domains import COUNT, Rule, choice
+from nerfexp.nerf.frozen_fit import FrozenFit
 
 # How a test image is scored (``results.json``'s ``test_protocol``): the whole image with the model's code for
 # an unseen image (``AppearanceEmbedding.test_code``), or NeRF-W's: the image's own code fitted on its left half
@@ -88,17 +88,13 @@ class AppearanceEmbedding(nn.Module):
         return self.codes.detach().mean(0)
 
 
-class CodeFit:
-    """NeRF-W's test-time fit of one image's code, the networks frozen: ``steps`` steps of Adam at learning
-    rate ``lr`` on the code alone, each on ``rays`` of the image's fitting pixels drawn with replacement from a
-    generator seeded with the image's index (the same pixels whatever else ran before)."""
-
-    DOMAINS: ClassVar[dict[str, Rule]] = {"steps": COUNT, "lr": real(0, 1, above=True), "rays": COUNT}
+class CodeFit(FrozenFit):
+    """NeRF-W's test-time fit of one image's code, the networks frozen (``FrozenFit``): ``steps`` steps of Adam at
+    learning rate ``lr`` on the code alone, each on ``rays`` of the image's fitting pixels drawn with replacement
+    from a generator seeded with the image's index (the same pixels whatever else ran before)."""
 
     def __init__(self, steps: int = 64, lr: float = 0.05, rays: int = 256):
-        self.steps = steps
-        self.lr = lr
-        self.rays = rays
+        super().__init__(steps, lr, rays)
 
     def __call__(self, loss: Callable[[Tensor, Tensor], Tensor], start: Tensor, n_pixels: int, seed: int,
                  progress: Callable[[int], None] | None = None) -> Tensor:
@@ -106,5 +102,4 @@ class CodeFit:
         fitting pixels ``pixels`` (indices < ``n_pixels``) rendered with ``code`` (``fit_frozen``: only the code
         is differentiated, so no other tensor's gradient or value changes); ``progress(steps done)`` after each
         step, where given."""
-        return fit_frozen(loss, start, n_pixels, seed, steps=self.steps, lr=self.lr, rays=self.rays,
-                          progress=progress)
+        return self.fit(loss, start, n_pixels, seed, progress)

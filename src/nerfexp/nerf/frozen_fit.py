@@ -3,9 +3,12 @@ correction) fitted by Adam to the image's own pixels, as NeRF in the Wild and BA
 differentiated, so no network's weight or gradient changes."""
 
 from collections.abc import Callable
+from typing import ClassVar
 
 import torch
 from torch import Tensor
+
+from nerfexp.domains import COUNT, LEARNING_RATE, Rule
 
 
 def fit_frozen(loss: Callable[[Tensor, Tensor], Tensor], start: Tensor, n_pixels: int, seed: int, *, steps: int,
@@ -29,3 +32,26 @@ def fit_frozen(loss: Callable[[Tensor, Tensor], Tensor], start: Tensor, n_pixels
         if progress is not None:
             progress(done)
     return vector.detach()
+
+
+class FrozenFit:
+    """A test-time fit's settings, the networks frozen (``fit_frozen``): ``steps`` steps of Adam at learning rate
+    ``lr`` on the vector alone, each on ``rays`` of the image's fitting pixels drawn with replacement from a
+    generator seeded with the image's index (the same pixels whatever else ran before). Its subclasses say what
+    the vector is, where it starts, and their defaults (``nerfexp.nerf.appearance.CodeFit``,
+    ``nerfexp.nerf.poses.PoseFit``)."""
+
+    DOMAINS: ClassVar[dict[str, Rule]] = {"steps": COUNT, "lr": LEARNING_RATE, "rays": COUNT}
+
+    def __init__(self, steps: int, lr: float, rays: int):
+        self.steps = steps
+        self.lr = lr
+        self.rays = rays
+
+    def fit(self, loss: Callable[[Tensor, Tensor], Tensor], start: Tensor, n_pixels: int, seed: int,
+            progress: Callable[[int], None] | None = None) -> Tensor:
+        """The vector [D] fitted from ``start`` [D] (``fit_frozen`` with this fit's ``steps``, ``lr`` and
+        ``rays``): ``loss(pixels [R], vector [D])`` is the scalar loss of the fitting pixels ``pixels`` (indices
+        < ``n_pixels``); ``progress(steps done)`` after each step, where given."""
+        return fit_frozen(loss, start, n_pixels, seed, steps=self.steps, lr=self.lr, rays=self.rays,
+                          progress=progress)

@@ -14,8 +14,8 @@ from typing import ClassVar
 import torch
 from torch import Tensor, nn
 
-from nerfexp.domains import COUNT, LEARNING_RATE, NONNEGATIVE_COUNT, Rule
-from nerfexp.nerf.frozen_fit import fit_frozen
+from nerfexp.domains import LEARNING_RATE, NONNEGATIVE_COUNT, Rule
+from nerfexp.nerf.frozen_fit import FrozenFit
 from nerfexp.nerf.schedules import warmup_exponential_decay
 
 
@@ -143,24 +143,18 @@ class PoseCorrection(nn.Module):
         return warmup_exponential_decay(step, max_steps, self.lr_final / self.lr, self.warmup_steps)
 
 
-class PoseFit:
+class PoseFit(FrozenFit):
     """A test camera refined with the networks frozen (``test_cameras=refined``, BARF's evaluation): a correction
     (w, t) [6] of the image's rays (``corrected_rays``, the convention of ``PoseCorrection``), from zero,
     fitted by ``steps`` steps of Adam at ``lr`` (radians and scene units alike), each on ``rays`` of the image's
-    fitting pixels drawn from a generator seeded with the image's index (``nerfexp.nerf.frozen_fit``)."""
-
-    DOMAINS: ClassVar[dict[str, Rule]] = {"steps": COUNT, "lr": LEARNING_RATE, "rays": COUNT}
+    fitting pixels drawn from a generator seeded with the image's index (``nerfexp.nerf.frozen_fit.FrozenFit``)."""
 
     def __init__(self, steps: int = 100, lr: float = 1e-3, rays: int = 1024):
-        self.steps = steps
-        self.lr = lr
-        self.rays = rays
+        super().__init__(steps, lr, rays)
 
     def __call__(self, loss: Callable[[Tensor, Tensor], Tensor], n_pixels: int, seed: int,
                  device: torch.device | None = None, progress: Callable[[int], None] | None = None) -> Tensor:
         """The correction [6] (float32) fitted from zero: ``loss(pixels [R], delta [6])`` is the scalar loss of
         the fitting pixels ``pixels`` (indices < ``n_pixels``) rendered through the rays ``delta`` corrects;
         ``progress(steps done)`` after each step, where given (``fit_frozen``)."""
-        start = torch.zeros(6, device=device)
-        return fit_frozen(loss, start, n_pixels, seed, steps=self.steps, lr=self.lr, rays=self.rays,
-                          progress=progress)
+        return self.fit(loss, torch.zeros(6, device=device), n_pixels, seed, progress)

@@ -14,7 +14,7 @@ from nerfexp.training.perceptual import LPIPS_NAMES
 
 # each image's scores; lpips (the published weights') or lpips_custom (the user's own), NaN where not scored
 # (nerfexp.training.perceptual); then each protocol's own, which only a test scores (NaN in a validation:
-# ``NeRFModule._test``, docs/metrics.md)
+# ``TestScorer.protocol_scores``, docs/metrics.md)
 PROTOCOL_SCORES = ("psnr_full_image", "ssim_full_image", "psnr_right_half", "ssim_right_half")
 CAMERA_FIT = ("camera_fit_deg", "camera_fit_shift")  # the test cameras' corrections (test_cameras=refined)
 SCORES = ("psnr", "ssim", *LPIPS_NAMES, *PROTOCOL_SCORES, *CAMERA_FIT)

@@ -23,12 +23,12 @@ from nerfexp.training.collapse import contrast
 from nerfexp.training.metrics import psnr, ssim
 from nerfexp.training.optimizers import update_kernels
 from nerfexp.training.perceptual import LPIPS_NAMES, NOT_SCORED, ImageTooSmall, LpipsScorer, lpips_scorer
-from nerfexp.training.scoring import ScoringProtocols, check_scored
+from nerfexp.training.scoring import TestScorer, check_scored
 
 log = logging.getLogger(__name__)
 
 
-class NeRFModule(ScoringProtocols, L.LightningModule):
+class NeRFModule(L.LightningModule):
     """Loss = sum over networks of the MSE of their colours (coarse + fine), plus the regularizers the
     renderer's outputs hold (``regularizer_sums``: the proposal networks' losses, Ref-NeRF's normal
     penalties), each logged as ``train/<name>``; Adam whose learning
@@ -71,7 +71,7 @@ class NeRFModule(ScoringProtocols, L.LightningModule):
         super().__init__()
         self.test_camera_fit = test_camera_fit  # each test camera refined, the networks frozen, or None (given)
         self.appearance_fit = appearance_fit  # NeRF-W's fit of a test image's code (appearance=embedding), or None
-        self.test_protocol = test_protocol  # the protocol of the headline test scores (_test)
+        self.test_protocol = test_protocol  # the protocol of the headline test scores (TestScorer.protocol_scores)
         self.pose_correction_of = camera_opt  # n_views -> PoseCorrection, or None (camera_opt=off)
         self.camera_opt: PoseCorrection | None = None  # built with the training views' number (build_camera_opt)
         self.renderer, self.optimizer, self.lr_final, self.chunk = renderer, optimizer, lr_final, chunk
@@ -270,8 +270,31 @@ class NeRFModule(ScoringProtocols, L.LightningModule):
         return self._evaluate(batch)
 
     def test_step(self, batch: dict, batch_idx: int) -> dict:
-        batch, camera_fit = self.refined_test_camera(batch)
-        return {**self._test(self._evaluate(batch), batch), **camera_fit}
+        scorer = self.test_scorer()
+        batch, camera_fit = scorer.refined_camera(batch)
+        return {**scorer.protocol_scores(self._evaluate(batch), batch), **camera_fit}
+
+    def test_scorer(self) -> TestScorer:
+        """How this module scores a test image (``nerfexp.training.scoring``): its renderer, protocol and test-time
+        fits, its whole-image render and LPIPS, and its trainer's bars."""
+        return TestScorer(renderer=self.renderer, protocol=self.test_protocol, appearance_fit=self.appearance_fit,
+                          camera_fit=self.test_camera_fit, render_image=self.render_image, lpips=self._lpips,
+                          draws_bars=self._draws_bars(), device=self.device)
+
+    def _draws_bars(self) -> bool:
+        """Whether the trainer running the test draws progress bars (its bar callback is on: standard output a
+        terminal and ``trainer.enable_progress_bar``); False for a module called without a trainer."""
+        try:
+            bar = self.trainer.progress_bar_callback
+        except RuntimeError:  # Lightning's "not attached to a Trainer": called directly
+            return False
+        return bar is not None and not bar.is_disabled
+
+    @property
+    def test_cameras(self) -> str:
+        """How the test images were seen (``results.json``'s ``test_cameras``): from the cameras as the data gives
+        them ("given"), or from each camera refined on the image's fitting pixels first ("refined")."""
+        return "given" if self.test_camera_fit is None else "refined"
 
     # Per-image appearance (appearance=embedding, nerfexp.nerf.appearance): the codes, and the test protocols
 

@@ -1,4 +1,4 @@
-"""How a test image is scored (the methods ``NeRFModule`` takes from ``ScoringProtocols``): under both test protocols
+"""How a test image is scored (``TestScorer``, which ``NeRFModule.test_step`` makes): under both test protocols
 of per-image appearance (``nerfexp.nerf.appearance.PROTOCOLS``: the whole image, or NeRF-W's right half with the
 image's code fitted on its left half), from its camera as given or refined with the networks frozen first
 (``test_cameras=refined``, ``nerfexp.nerf.poses.PoseFit``)."""
@@ -7,10 +7,11 @@ import contextlib
 import logging
 import math
 from collections.abc import Callable
+from dataclasses import dataclass
 
 import torch
 import torch.nn.functional as F
-from torch import Tensor
+from torch import Tensor, nn
 
 from nerfexp.data.views import SPLIT_NAMES, Views
 from nerfexp.errors import DatasetError
@@ -23,16 +24,32 @@ from nerfexp.training.progress import fit_progress
 log = logging.getLogger(__name__)
 
 
-class ScoringProtocols:
-    """The test-time scoring of ``NeRFModule`` (a mixin: it reads the module's ``renderer``, ``test_protocol``,
-    ``appearance_fit``, ``test_camera_fit``, ``render_image``, ``_lpips`` and its trainer's progress bar)."""
+@dataclass(frozen=True)
+class TestScorer:
+    """What scoring a test image takes, each named: the ``renderer`` (its fields and its appearance codes,
+    ``renderer.appearance``, or None), the headline ``protocol`` (``test_protocol``), NeRF-W's fit of a test image's
+    code ``appearance_fit`` and the test cameras' fit ``camera_fit`` (None: not fitted), ``render_image`` (rays
+    [H, W, 3], viewdirs [H, W, 3] or None, code [D] -> "rgb" [H, W, 3], ...: a whole image rendered in chunks),
+    ``lpips`` (image, target [H, W, 3] -> the LPIPS scores by name), whether the test's trainer ``draws_bars``
+    (``nerfexp.training.progress.fit_progress``), and the ``device`` a camera's correction is fitted on."""
 
-    def _test(self, scored: dict, batch: dict) -> dict:
+    __test__ = False  # a class pytest should not collect
+
+    renderer: nn.Module
+    protocol: str
+    appearance_fit: CodeFit | None
+    camera_fit: PoseFit | None
+    render_image: Callable[..., dict[str, Tensor]]
+    lpips: Callable[[Tensor, Tensor], dict[str, float]]
+    draws_bars: bool
+    device: torch.device
+
+    def protocol_scores(self, scored: dict, batch: dict) -> dict:
         """A test image's scores under both protocols (``nerfexp.nerf.appearance.PROTOCOLS``), added to
-        ``scored`` (``_evaluate``'s: the whole image, with the test code where there are codes):
+        ``scored`` (``NeRFModule._evaluate``'s: the whole image, with the test code where there are codes):
         "psnr_full_image", "ssim_full_image" (those of ``scored``) and "psnr_right_half", "ssim_right_half" (the
-        right half, ``left_columns``, rendered with the code fitted on the left half, ``_fitted_code``; without
-        codes, the right half of the same render). Under ``test_protocol`` nerfw_right_half, "psnr", "ssim",
+        right half, ``left_columns``, rendered with the code fitted on the left half, ``fitted_code``; without
+        codes, the right half of the same render). Under ``protocol`` nerfw_right_half, "psnr", "ssim",
         "lpips" and "lpips_custom" are the right half's; the render kept ("rgb") is the whole image's either way."""
         H, W, _ = batch["rgb"].shape  # rows, columns, channels
         right = slice(left_columns(W), None)
@@ -44,16 +61,16 @@ class ScoringProtocols:
         else:
             viewdirs = None if batch.get("viewdirs") is None else batch["viewdirs"][:, right]
             rendered = self.render_image(batch["origins"][:, right], batch["directions"][:, right], viewdirs,
-                                         self._fitted_code(batch))["rgb"]
+                                         self.fitted_code(batch))["rgb"]
         protocols = {"psnr_full_image": scored["psnr"], "ssim_full_image": scored["ssim"],
                      "psnr_right_half": psnr(rendered, target, kept), "ssim_right_half": ssim(rendered, target, kept)}
-        if self.test_protocol == FULL_IMAGE:
+        if self.protocol == FULL_IMAGE:
             return {**scored, **protocols}
         shown = rendered if kept is None else torch.where(kept[..., None], rendered, target)
         return {**scored, **protocols, "psnr": protocols["psnr_right_half"], "ssim": protocols["ssim_right_half"],
-                **self._lpips(shown, target)}
+                **self.lpips(shown, target)}
 
-    def _fitted_code(self, batch: dict) -> Tensor:
+    def fitted_code(self, batch: dict) -> Tensor:
         """NeRF-W's protocol: the test image's code [D] fitted on its left half (the pixels its mask keeps there)
         from the renderer's test code, the networks frozen (``appearance_fit``: only the code is differentiated
         and stepped), each step's pixels drawn with the image's "index" as seed. Gradients are enabled for it
@@ -65,72 +82,41 @@ class ScoringProtocols:
                 return start
 
             def loss(pixels: Tensor, code: Tensor) -> Tensor:
-                return self._fitting_loss(rays, pixels, code)
-            with self._fit_progress("its appearance code", self.appearance_fit, batch) as progress:
+                return fitting_loss(self.renderer, rays, pixels, code)
+            with self.fit_progress("its appearance code", self.appearance_fit, batch) as progress:
                 return self.appearance_fit(loss, start.clone(), len(rays["rgb"]), seed=int(batch["index"]),
                                            progress=progress)
 
-    def _fit_progress(self, what: str, fit: CodeFit | PoseFit, batch: dict
-                      ) -> contextlib.AbstractContextManager[Callable[[int], None] | None]:
+    def fit_progress(self, what: str, fit: CodeFit | PoseFit, batch: dict
+                     ) -> contextlib.AbstractContextManager[Callable[[int], None] | None]:
         """A test-time ``fit`` of ``what`` for the test view ``batch``, said as it starts: a line in the log with
         its steps and rays (what a long fit takes its time over) and a bar of its steps where the trainer draws
         bars (``nerfexp.training.progress.fit_progress``). Yields the fit's ``progress`` callback (None: no bar)."""
         index = int(batch["index"])
         log.info("test view %d: fitting %s (%d Adam steps of %d rays)", index, what, fit.steps, fit.rays)
-        return fit_progress(f"test view {index}: {what}", fit.steps, self._draws_bars())
+        return fit_progress(f"test view {index}: {what}", fit.steps, self.draws_bars)
 
-    def _draws_bars(self) -> bool:
-        """Whether the trainer running the test draws progress bars (its bar callback is on: standard output a
-        terminal and ``trainer.enable_progress_bar``); False for a module called without a trainer."""
-        try:
-            bar = self.trainer.progress_bar_callback
-        except RuntimeError:  # Lightning's "not attached to a Trainer": called directly
-            return False
-        return bar is not None and not bar.is_disabled
-
-    def _fitting_loss(self, rays: dict[str, Tensor], pixels: Tensor, code: Tensor | None,
-                      delta: Tensor | None = None) -> Tensor:
-        """The MSE of the fitting pixels ``pixels`` [R] of ``rays`` (``fitting_rays``) rendered with appearance
-        ``code`` [D] (None: no codes), through their camera corrected by ``delta`` [6] where given: the loss both
-        test-time fits minimize, the networks frozen."""
-        pixels = pixels.to(rays["rgb"].device)
-        origins, directions = rays["origins"][pixels], rays["directions"][pixels]
-        viewdirs = rays["viewdirs"][pixels] if "viewdirs" in rays else None
-        if delta is not None:
-            origins, directions, viewdirs = camera_corrected_rays(delta, origins, directions, viewdirs)
-        outputs = self.renderer(origins, directions, deterministic=True, viewdirs=viewdirs,
-                                codes=None if code is None else code.expand(len(pixels), -1))
-        return F.mse_loss(final_output(outputs)["rgb"].float(), rays["rgb"][pixels].float())
-
-    # Test cameras (test_cameras=refined, nerfexp.nerf.poses.PoseFit): refined with the networks frozen
-
-    @property
-    def test_cameras(self) -> str:
-        """How the test images were seen (``results.json``'s ``test_cameras``): from the cameras as the data gives
-        them ("given"), or from each camera refined on the image's fitting pixels first ("refined")."""
-        return "given" if self.test_camera_fit is None else "refined"
-
-    def refined_test_camera(self, batch: dict) -> tuple[dict, dict[str, float]]:
+    def refined_camera(self, batch: dict) -> tuple[dict, dict[str, float]]:
         """A test image's ``batch`` with its rays ("origins", "directions", "viewdirs" [H, W, 3]) those of its camera
-        refined by ``test_camera_fit`` (a correction (w, t), ``nerfexp.nerf.poses``), the networks frozen, on the
+        refined by ``camera_fit`` (a correction (w, t), ``nerfexp.nerf.poses``), the networks frozen, on the
         pixels the headline protocol does not score apart: the left half under NeRF-W's protocol (where the
         appearance code is fitted afterwards, through the refined camera), else the whole image (BARF's); the
         image seen with the renderer's test code. The correction's size: "camera_fit_deg" (the turn, degrees) and
         "camera_fit_shift" (the move, scene units). Unchanged, with no sizes, where cameras are given."""
-        if self.test_camera_fit is None:
+        if self.camera_fit is None:
             return batch, {}
         appearance = self.renderer.appearance
         code = None if appearance is None else appearance.test_code()
         with torch.inference_mode(False), torch.enable_grad():
-            rays = fitting_rays(batch, left_half=self.test_protocol == NERFW_RIGHT_HALF)
+            rays = fitting_rays(batch, left_half=self.protocol == NERFW_RIGHT_HALF)
             if not len(rays["rgb"]):
                 return batch, {}
 
             def loss(pixels: Tensor, delta: Tensor) -> Tensor:
-                return self._fitting_loss(rays, pixels, code, delta)
-            with self._fit_progress("its camera", self.test_camera_fit, batch) as progress:
-                delta = self.test_camera_fit(loss, len(rays["rgb"]), seed=int(batch["index"]), device=self.device,
-                                             progress=progress)
+                return fitting_loss(self.renderer, rays, pixels, code, delta)
+            with self.fit_progress("its camera", self.camera_fit, batch) as progress:
+                delta = self.camera_fit(loss, len(rays["rgb"]), seed=int(batch["index"]), device=self.device,
+                                        progress=progress)
         origins, directions, viewdirs = camera_corrected_rays(delta, batch["origins"], batch["directions"],
                                                               batch.get("viewdirs"))
         refined = {**batch, "origins": origins.to(batch["origins"].dtype),
@@ -139,6 +125,21 @@ class ScoringProtocols:
             refined["viewdirs"] = viewdirs.to(batch["viewdirs"].dtype)
         return refined, {"camera_fit_deg": math.degrees(float(torch.linalg.vector_norm(delta[:3]))),
                          "camera_fit_shift": float(torch.linalg.vector_norm(delta[3:]))}
+
+
+def fitting_loss(renderer: nn.Module, rays: dict[str, Tensor], pixels: Tensor, code: Tensor | None,
+                 delta: Tensor | None = None) -> Tensor:
+    """The MSE of the fitting pixels ``pixels`` [R] of ``rays`` (``fitting_rays``) rendered by ``renderer`` with
+    appearance ``code`` [D] (None: no codes), through their camera corrected by ``delta`` [6] where given: the loss
+    both test-time fits minimize, the networks frozen."""
+    pixels = pixels.to(rays["rgb"].device)
+    origins, directions = rays["origins"][pixels], rays["directions"][pixels]
+    viewdirs = rays["viewdirs"][pixels] if "viewdirs" in rays else None
+    if delta is not None:
+        origins, directions, viewdirs = camera_corrected_rays(delta, origins, directions, viewdirs)
+    outputs = renderer(origins, directions, deterministic=True, viewdirs=viewdirs,
+                       codes=None if code is None else code.expand(len(pixels), -1))
+    return F.mse_loss(final_output(outputs)["rgb"].float(), rays["rgb"][pixels].float())
 
 
 def fitting_rays(batch: dict[str, Tensor], left_half: bool) -> dict[str, Tensor]:
