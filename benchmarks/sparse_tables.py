@@ -55,7 +55,7 @@ RUNS = ("for seed in 0 1 2; do  # alternating, so that the machine's drifts touc
 def model_and_optimizer(log2_table_size: int, variant: str, rays: int):
     """The real config's model (one network of SAMPLES samples) and its optimizer, for ``variant``."""
     overrides = ["encoding=hashgrid", "hierarchical=false", f"scale.n_single={SAMPLES}", f"scale.batch_rays={rays}",
-                 f"scale.hash_log2_table_size={log2_table_size}", *VARIANTS[variant]]
+                 f"encoding.position.log2_table_size={log2_table_size}", *VARIANTS[variant]]
     with initialize_config_module("nerfexp.conf", version_base=None):
         cfg = compose("config", overrides=overrides)
     torch.manual_seed(0)

@@ -48,8 +48,12 @@ from tests.helpers import one_error_line, run_nerfexp
     (["encoding=bogus"], "encoding=bogus: no such option (choose from hashgrid, none, posenc)"),
     (["scale.lrr=1"], "scale.lrr=1: no such key (scale has steps, lr, lr_final, lr_warmup_steps, batch_rays, depth, "
                       "width, skips, view_hidden, n_coarse, n_fine, n_single, chunk, val_every, image_size, "
-                      "position_input_scale, max_side, test_stride, hash_log2_table_size, hash_finest; the closest: "
-                      "scale.lr)"),
+                      "position_input_scale, max_side, test_stride; the closest: scale.lr)"),
+    (["encoding=hashgrid", "scale.hash_finest=64"], "scale.hash_finest=64: no such key (scale has steps, lr, "
+                                                    "lr_final, lr_warmup_steps, batch_rays, depth, width, skips, "
+                                                    "view_hidden, n_coarse, n_fine, n_single, chunk, val_every, "
+                                                    "image_size, position_input_scale, max_side, test_stride; it "
+                                                    "moved to encoding.position.finest)"),
     (["encoding=hashgrid", "encoding.position.sparse_gradients=true"],
      "encoding.position.sparse_gradients=true and model.optimizer._target_=torch.optim.Adam: expected an optimizer "
      "that takes sparse gradients (nerfexp.training.optimizers.LazyAdam), or set "

@@ -61,7 +61,7 @@ def test_hashgrid_has_instant_ngps_field_and_optimizer_and_no_decay_on_its_table
     cfg, model = build("encoding=hashgrid")
     enc = model.renderer.coarse.position_encoding
     assert (len(enc.resolutions), enc.features_per_level, enc.table_size) == (16, 2, 2**16)
-    assert enc.resolutions[0] == 16 and enc.resolutions[-1] == cfg.scale.hash_finest == 256
+    assert enc.resolutions[0] == 16 and enc.resolutions[-1] == cfg.encoding.position.finest == 256
     assert len(model.renderer.coarse.trunk) == 1 and model.renderer.coarse.trunk[0].out_features == 64
     model.trainer = L.Trainer(max_steps=10, logger=False, enable_checkpointing=False, enable_progress_bar=False)
     optimizer = model.configure_optimizers()["optimizer"]
@@ -75,6 +75,23 @@ def test_hashgrid_has_instant_ngps_field_and_optimizer_and_no_decay_on_its_table
     _, paper = build("encoding=hashgrid", "scale=paper")  # Instant-NGP's sizes for the Blender scenes
     enc = paper.renderer.coarse.position_encoding
     assert (enc.table_size, enc.resolutions[-1]) == (2**19, 2048)
+
+
+@pytest.mark.parametrize(("scale", "log2_table_size", "finest"), [("cpu", 16, 256), ("paper", 19, 2048)])
+def test_the_hash_grids_sizes_follow_the_scale_and_the_command_line_wins(scale, log2_table_size, finest):
+    # the encoding as it was built when the scale group held these sizes (scale.hash_log2_table_size, hash_finest)
+    expected = {"_target_": "nerfexp.nerf.encodings.HashGridEncoding", "n_levels": 16, "features_per_level": 2,
+                "log2_table_size": log2_table_size, "coarsest": 16, "finest": finest, "include_input": False,
+                "sparse_gradients": False}
+    for order in ([f"scale={scale}", "encoding=hashgrid"], ["encoding=hashgrid", f"scale={scale}"],
+                  ["experiment=fast", f"scale={scale}"]):
+        cfg, _ = build(*order)
+        assert OmegaConf.to_container(cfg.model.renderer.field.position_encoding, resolve=True) == expected
+        assert not any(key.startswith("hash_") for key in cfg.scale)  # one owner: the encoding's config
+    cfg, model = build("encoding=hashgrid", f"scale={scale}", "encoding.position.log2_table_size=12",
+                       "encoding.position.finest=64")
+    enc = model.renderer.coarse.position_encoding
+    assert (enc.table_size, enc.resolutions[-1]) == (2 ** 12, 64)
 
 
 def test_the_fast_preset_is_the_hash_grid_with_the_occupancy_grid_in_float32_and_the_command_line_wins():

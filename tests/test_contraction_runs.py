@@ -24,7 +24,8 @@ def test_every_sampler_and_encoding_trains_contracted_through_the_grid(hierarchi
         cfg = compose("config", overrides=["contraction=mipnerf360", "acceleration=occupancy", f"encoding={encoding}",
                                            f"hierarchical={hierarchical}", "scale.depth=2",
                                            "scale.width=16", "scale.skips=[1]", "scale.view_hidden=8",
-                                           "scale.hash_log2_table_size=10"])
+                                           *(["encoding.position.log2_table_size=10"] if encoding == "hashgrid"
+                                             else [])])
     torch.manual_seed(0)
     renderer = instantiate(cfg.model.renderer)
     renderer.contraction.set_inner(torch.zeros(3, dtype=torch.float64), 1.5)
@@ -46,7 +47,7 @@ def test_every_sampler_and_encoding_trains_contracted_through_the_grid(hierarchi
 def test_a_contracted_run_fits_its_inner_region_to_the_cameras_and_keeps_it(tmp_path):
     run_dir = tmp_path / "run"
     result = run_nerfexp(*TINY, "contraction=mipnerf360", "encoding=hashgrid", "field=nerf", "acceleration=occupancy",
-                         "scale.hash_log2_table_size=10", "model.lpips=false",
+                         "encoding.position.log2_table_size=10", "model.lpips=false",
                          f"hydra.run.dir={run_dir}", cwd=tmp_path)
     assert result.returncode == 0, result.stderr[-3000:]
     assert read_json(run_dir / "results.json")["choices"]["contraction"] == "mipnerf360"

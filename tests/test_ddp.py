@@ -162,7 +162,7 @@ def test_hash_tables_train_with_dense_gradients_under_ddp(tmp_path):
     # field=nerf: the tiny run's scale.depth, width and skips, which hashgrid's own field=ngp would leave unused
     done = run_nerfexp(*TINY, *DDP, "encoding=hashgrid", "field=nerf", "encoding.position.sparse_gradients=true",
                        "model.optimizer._target_=nerfexp.training.optimizers.LazyAdam",
-                       "scale.hash_log2_table_size=12", "scale.hash_finest=64", "scale.steps=10", "scale.val_every=10",
+                       "encoding.position.log2_table_size=12", "encoding.position.finest=64", "scale.steps=10", "scale.val_every=10",
                        f"hydra.run.dir={tmp_path}", new_process=True, cwd=tmp_path)
     assert done.returncode == 0, done.stderr[-3000:]
     results = read_json(tmp_path / "results.json")

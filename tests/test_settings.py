@@ -103,8 +103,7 @@ def composed(*overrides):
     (["hierarchical=proposal", "proposal.network.width=2000000"], "proposal.network.width=2000000, "
                                                                  "proposal.network.depth=2: training a proposal "),
     (["encoding=hashgrid", "encoding.position.n_levels=100000000"], "encoding.position.n_levels=100000000, "
-                                                                    "scale.hash_log2_table_size=16 (which sets "
-                                                                    "encoding.position.log2_table_size), "
+                                                                    "encoding.position.log2_table_size=16, "
                                                                     "encoding.position.features_per_level=2: a hash "
                                                                     "encoding of 100000000 levels needs about"),
     (["acceleration=occupancy", "acceleration.grid.resolution=100000"], "acceleration.grid.resolution=100000: an "
@@ -128,12 +127,10 @@ def composed(*overrides):
     (["scale.image_size=" + "9" * 400], f"scale.image_size={'9' * 400} (which sets data.image_size): expected a "
                                         "whole number in [1, 2^63 - 1]"),
     # every number has an upper bound where it stops meaning anything (issue 39 section 4)
-    (["encoding=hashgrid", "scale.hash_log2_table_size=40"], "scale.hash_log2_table_size=40 (which sets "
-                                                             "encoding.position.log2_table_size): expected a whole "
-                                                             "number in [1, 30]"),
-    (["encoding=hashgrid", "scale.hash_finest=18446744073709551616"], "scale.hash_finest=18446744073709551616 "
-                                                                      "(which sets encoding.position.finest): "
-                                                                      "expected a whole number in [1, 1048575]"),
+    (["encoding=hashgrid", "encoding.position.log2_table_size=40"], "encoding.position.log2_table_size=40: "
+                                                                    "expected a whole number in [1, 30]"),
+    (["encoding=hashgrid", "scale=paper", "encoding.position.finest=18446744073709551616"],
+     "encoding.position.finest=18446744073709551616: expected a whole number in [1, 1048575]"),
     (["encoding=hashgrid", "encoding.position.coarsest=100", "encoding.position.finest=50"],
      "encoding.position.coarsest=100, encoding.position.finest=50: expected coarsest <= finest"),
     (["data.far=1e308"], "data.far=1e+308 (which sets model.renderer.far): expected a finite number > 0 and <= 2^24"),

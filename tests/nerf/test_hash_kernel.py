@@ -6,6 +6,7 @@ gradients, bf16 autocast around it; and the fallback where no compiler builds it
 
 import copy
 import json
+import re
 import subprocess
 import sys
 
@@ -134,6 +135,48 @@ def test_the_kernel_refuses_tensors_off_the_cpu_or_of_another_shape_in_one_line(
         FUSED.forward(torch.rand(5, 3), volumes, enc.hashed.detach().transpose(0, 1), *shape)
     with pytest.raises(RuntimeError, match=r"hash_encoding: grad must be \[5, 8\], got \[5, 7\]"):
         FUSED.backward(torch.rand(5, 3), torch.rand(5, 7), volumes, enc.hashed.detach(), *shape)
+
+
+@needs_kernel
+def test_the_kernel_refuses_other_dtypes_and_sizes_that_would_index_outside_its_tables_in_one_line():
+    enc = small_encoding()
+    volumes, hashed = [volume[0].detach() for volume in enc.dense], enc.hashed.detach()
+    (dense_res, hashed_res, features), unit = enc.kernel_shape(), torch.rand(5, 3)
+    grad = torch.rand(5, enc.out_dim)
+    assert dense_res and hashed_res and hashed.shape[1] > 1  # both kinds of level, each checked
+    refused = [  # (the call's arguments after the positions, the message)
+        ((volumes, hashed.double(), dense_res, hashed_res, features), "hash_encoding: hashed is Double, not float32"),
+        (([volumes[0].half(), *volumes[1:]], hashed, dense_res, hashed_res, features),
+         "hash_encoding: a dense volume is Half, not float32"),
+        ((volumes, hashed, dense_res, hashed_res, 0), "hash_encoding: features per level must be >= 1, got 0"),
+        ((volumes, hashed[:, :-1].contiguous(), dense_res, hashed_res, features),
+         f"hash_encoding: the hashed table's T = {hashed.shape[1] - 1} rows must be a power of two in [1, 2^32]"),
+        ((volumes, hashed, dense_res, [0, *hashed_res[1:]], features),
+         "hash_encoding: hashed level 0 has 0 cells per side: expected 1 to 2^24"),
+        ((volumes, hashed, dense_res, [*hashed_res[:-1], 2 ** 24 + 1], features),
+         f"hash_encoding: hashed level {len(hashed_res) - 1} has {2 ** 24 + 1} cells per side: expected 1 to 2^24"),
+        ((volumes, hashed, [0, *dense_res[1:]], hashed_res, features),
+         "hash_encoding: dense level 0 has 0 cells per side: expected 1 to 1624"),
+        ((volumes, hashed, [2 ** 40, *dense_res[1:]], hashed_res, features),  # (n+1)^3 past int64 and uint32
+         f"hash_encoding: dense level 0 has {2 ** 40} cells per side: expected 1 to 1624"),
+        ((volumes, hashed, [dense_res[0] + 1, *dense_res[1:]], hashed_res, features),  # more cells than stored
+         f"hash_encoding: dense level 0 must be [{features}, {dense_res[0] + 2}, "),
+        ((volumes[::-1], hashed, dense_res, hashed_res, features), "hash_encoding: dense level 0 must be ["),
+    ]
+    for arguments, message in refused:  # each message as written (re.escape: no pattern)
+        with pytest.raises(RuntimeError, match=re.escape(message)):
+            FUSED.forward(unit, *arguments)
+        with pytest.raises(RuntimeError, match=re.escape(message)):
+            FUSED.backward_rows(unit, grad, *arguments)
+    with pytest.raises(RuntimeError, match="hash_encoding: unit is Double, not float32"):
+        FUSED.forward(unit.double(), volumes, hashed, dense_res, hashed_res, features)
+    with pytest.raises(RuntimeError, match="hash_encoding: grad is Double, not float32"):
+        FUSED.backward(unit, grad.double(), volumes, hashed, dense_res, hashed_res, features)
+    sums = [torch.zeros_like(volume) for volume in volumes]
+    with pytest.raises(RuntimeError, match="hash_encoding: hashed is Long, not float32"):
+        FUSED.backward_into(unit, grad, sums, torch.zeros_like(hashed, dtype=torch.long), dense_res, hashed_res,
+                            features)
+    assert not any(s.any() for s in sums)  # nothing was written
 
 
 HIDDEN_COMPILER = """

@@ -14,6 +14,7 @@ from pathlib import Path
 import pytest
 import tomllib
 import torch
+from hydra import compose, initialize_config_module
 from hydra.utils import get_class, instantiate
 from omegaconf import OmegaConf
 
@@ -32,6 +33,7 @@ from nerfexp.rundir.layout import (
     read_metrics,
 )
 from nerfexp.rundir.trained import SHIMS_UNTIL, find_run, run_config
+from nerfexp.settings.checks import check_run_settings
 from tests.helpers import REPO, digests, one_error_line, run_nerfexp
 
 PYPROJECT = tomllib.loads((REPO / "pyproject.toml").read_text())
@@ -98,6 +100,24 @@ def test_a_run_made_before_the_layers_is_read_with_the_current_classes(tmp_path)
     model = instantiate(cfg.model)
     assert model.renderer.coarse.density_noise_std == 1.0 and model.renderer.grid is not None
     assert "callbacks" not in cfg  # only training builds them (nerfexp.rundir.saved_configs.TRAINING_ONLY)
+
+
+@pytest.mark.parametrize(("scale", "sizes"), [("cpu", (16, 256)), ("paper", (19, 2048))])
+def test_a_hash_grid_run_saved_with_its_sizes_in_the_scale_group_is_read_with_those_sizes(tmp_path, scale, sizes):
+    # a run saved when scale.hash_log2_table_size and scale.hash_finest held the hash grid's sizes (the
+    # encoding read them by interpolation), here with other values than either scale's own
+    with initialize_config_module("nerfexp.conf", version_base=None):
+        plain = OmegaConf.to_container(compose("config", overrides=["encoding=hashgrid", f"scale={scale}"]))
+    assert (plain["encoding"]["position"]["log2_table_size"], plain["encoding"]["position"]["finest"]) == sizes
+    plain["scale"] |= {"hash_log2_table_size": 12, "hash_finest": 64}
+    plain["encoding"]["position"] |= {"log2_table_size": "${scale.hash_log2_table_size}",
+                                      "finest": "${scale.hash_finest}"}
+    (tmp_path / RUN_CONFIG).parent.mkdir()
+    OmegaConf.save(OmegaConf.create(plain), tmp_path / RUN_CONFIG)
+    cfg = run_config(tmp_path)
+    check_run_settings(cfg)  # the run's own keys, which this version no longer has, are not refused
+    encoding = instantiate(cfg.model.renderer.field.position_encoding)
+    assert (encoding.table_size, encoding.resolutions[-1]) == (2 ** 12, 64)
 
 
 def test_the_shims_for_runs_made_before_the_layers_go_by_the_version_they_name():

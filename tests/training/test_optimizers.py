@@ -228,6 +228,29 @@ def test_the_kernel_refuses_tensors_off_the_cpu_or_of_another_shape_in_one_line(
     assert not param.any()  # nothing was written
 
 
+@needs_kernel
+@pytest.mark.parametrize(("change", "message"), [
+    ({"param": torch.zeros(4, 3, dtype=torch.float64)}, "lazy_adam: param is Double, not float32"),
+    ({"values": torch.ones(2, 3, dtype=torch.bfloat16)}, "lazy_adam: values is BFloat16, not float32"),
+    ({"rows": torch.tensor([0, 2], dtype=torch.int32)}, "lazy_adam: rows is Int, not int64"),
+    ({"rows": torch.tensor([0, 4])}, r"lazy_adam: row 4 \(rows\[1\]\) is outside the parameter's 4 rows"),
+    ({"rows": torch.tensor([-1, 2])}, r"lazy_adam: row -1 \(rows\[0\]\) is outside the parameter's 4 rows"),
+    ({"rows": torch.tensor([2, 2])}, r"lazy_adam: rows must be ascending, each once: rows\[1\] = 2 follows 2"),
+    ({"rows": torch.tensor([2, 0])}, r"lazy_adam: rows must be ascending, each once: rows\[1\] = 0 follows 2"),
+    ({"step": 0.0}, "lazy_adam: expected step >= 1, lr >= 0, beta1 and beta2 in"),
+    ({"beta2": 1.0}, "lazy_adam: expected step >= 1, lr >= 0, beta1 and beta2 in"),
+    ({"eps": -1e-8}, "lazy_adam: expected step >= 1, lr >= 0, beta1 and beta2 in"),
+])
+def test_the_kernel_refuses_other_dtypes_rows_outside_or_out_of_order_and_bad_scalars_writing_nothing(change,
+                                                                                                     message):
+    call = {"param": torch.zeros(4, 3), "exp_avg": torch.zeros(4, 3), "exp_avg_sq": torch.zeros(4, 3),
+            "rows": torch.tensor([0, 2]), "values": torch.ones(2, 3), "step": 1.0, "lr": 0.1, "beta1": 0.9,
+            "beta2": 0.99, "eps": 1e-8} | change
+    with pytest.raises(RuntimeError, match=message):
+        FUSED.rows(*call.values())
+    assert not any(call[key].any() for key in ("param", "exp_avg", "exp_avg_sq"))  # nothing was written
+
+
 def test_a_row_left_alone_keeps_its_value_and_moments_where_dense_adam_moves_it(monkeypatch):
     monkeypatch.setenv(kernels.SWITCH, "off")  # the torch path, Adam's own operations: bit for bit
     param = torch.nn.Parameter(torch.zeros(3, 2))

@@ -242,6 +242,12 @@ def lightning_sigterm(error: BaseException) -> bool:
     return exceptions is not None and isinstance(error, exceptions.SIGTERMException)
 
 
+# Keys that moved to the component that reads them ({old key: the key now}), named when an old one is set
+MOVED_KEYS = {
+    "scale.hash_log2_table_size": "encoding.position.log2_table_size",  # conf/encoding/hashgrid_sizes/
+    "scale.hash_finest": "encoding.position.finest",
+}
+
 # hydra/launcher=slurm (conf/hydra/launcher/slurm.yaml) and the plugin's own submitit_slurm, submitit_local
 SUBMITIT_LAUNCHER = re.compile(r"\+*hydra/launcher=(slurm|submitit_\w+)")
 
@@ -348,6 +354,8 @@ def hydra_error_line(error: Exception) -> str:
         section, _, leaf = key.rpartition(".")
         close = difflib.get_close_matches(leaf, known, n=1)
         advice = [f"the closest: {section + '.' if section else ''}{close[0]}"] if close else []
+        if key in MOVED_KEYS:  # a key an earlier nerfexp had: where its setting is now
+            advice = [f"it moved to {MOVED_KEYS[key]}"]
         if matching(PASSED_ON, key):  # a keyword argument nerfexp's config does not set: its class checks it
             advice.append(f"+{override} adds one")
         return (f"{override}: no such key ({section or 'the config'} has {', '.join(known)}"

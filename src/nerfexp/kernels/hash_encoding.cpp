@@ -7,8 +7,9 @@
 // Inputs: unit positions [N, 3] in [0, 1] (float32, contiguous); dense levels as [F, n+1, n+1, n+1] volumes
 // (vertex (i, j, k) of feature f at f (n+1)^3 + (i (n+1) + j) (n+1) + k), the hashed levels' table [Lh, T, F];
 // the levels' cells per side. Output features [N, (Ld + Lh) F], level-major, as the torch path's. A tensor on
-// another device (a GPU's: the torch path runs there), not contiguous or of another shape is a one-line error
-// (``check_inputs``), never a read through a pointer these loops cannot follow (the dtypes: data_ptr<float>).
+// another device (a GPU's: the torch path runs there), not contiguous, not float32 or of another shape, and a size
+// that would index outside the storage (cells per side, table rows, features) is a one-line error
+// (``check_inputs``), never a read through a pointer these loops cannot follow.
 #include <torch/extension.h>
 #include <ATen/Parallel.h>
 
@@ -80,29 +81,48 @@ struct Level {
   int64_t feature_stride;  // 1 for the hashed table, (n+1)^3 for a dense volume
 };
 
+// The largest cells per side of a dense level: its (n+1)^3 vertices indexed in uint32 (``corners_of``).
+const int64_t DENSE_MAX_CELLS = 1624;  // 1625^3 < 2^32 <= 1626^3
+// The largest cells per side of a hashed level: float32 holds every cell's index exactly (``corners_of``).
+const int64_t HASHED_MAX_CELLS = int64_t{1} << 24;
+// The largest hashed table: its rows masked in uint32 (``corners_of``).
+const int64_t MAX_TABLE_SIZE = int64_t{1} << 32;
+
+// A float32 tensor on the CPU, contiguous: what data_ptr<float> and the loops' flat indices read.
 void check_cpu_contiguous(const torch::Tensor& t, const char* name) {
   TORCH_CHECK(t.device().is_cpu(), "hash_encoding: ", name, " is on ", t.device(), ", not the CPU");
   TORCH_CHECK(t.is_contiguous(), "hash_encoding: ", name, " is not contiguous");
+  TORCH_CHECK(t.scalar_type() == torch::kFloat, "hash_encoding: ", name, " is ", t.scalar_type(), ", not float32");
 }
 
-// The inputs every entry point reads: unit [N, 3]; one [F, n+1, n+1, n+1] volume per dense level; the hashed
-// table [Lh, T, F]; where given, the features' gradient [N, L F].
+// The inputs every entry point reads: unit [N, 3]; one [F, n+1, n+1, n+1] volume per dense level (n in
+// [1, DENSE_MAX_CELLS]); the hashed table [Lh, T, F] (T a power of two at most MAX_TABLE_SIZE, each level's n in
+// [1, HASHED_MAX_CELLS]); F >= 1; where given, the features' gradient [N, L F]; all float32.
 void check_inputs(const torch::Tensor& unit, const std::vector<torch::Tensor>& dense, const torch::Tensor& hashed,
                   const std::vector<int64_t>& dense_res, const std::vector<int64_t>& hashed_res, int64_t features,
                   const torch::Tensor* grad) {
   check_cpu_contiguous(unit, "unit");
   check_cpu_contiguous(hashed, "hashed");
   TORCH_CHECK(unit.dim() == 2 && unit.size(1) == 3, "hash_encoding: unit must be [N, 3], got ", unit.sizes());
+  TORCH_CHECK(features >= 1, "hash_encoding: features per level must be >= 1, got ", features);
   TORCH_CHECK(dense.size() == dense_res.size(), "hash_encoding: ", dense.size(), " dense volumes for ",
               dense_res.size(), " dense resolutions");
   TORCH_CHECK(hashed.dim() == 3 && hashed.size(0) == static_cast<int64_t>(hashed_res.size()) &&
                   hashed.size(2) == features,
               "hash_encoding: hashed must be [", hashed_res.size(), ", T, ", features, "], got ", hashed.sizes());
+  const int64_t T = hashed.size(1);
+  TORCH_CHECK(hashed_res.empty() || (T >= 1 && T <= MAX_TABLE_SIZE && (T & (T - 1)) == 0),
+              "hash_encoding: the hashed table's T = ", T, " rows must be a power of two in [1, 2^32]");
+  for (size_t h = 0; h < hashed_res.size(); ++h)
+    TORCH_CHECK(hashed_res[h] >= 1 && hashed_res[h] <= HASHED_MAX_CELLS, "hash_encoding: hashed level ", h, " has ",
+                hashed_res[h], " cells per side: expected 1 to 2^24");
   for (size_t d = 0; d < dense.size(); ++d) {
     check_cpu_contiguous(dense[d], "a dense volume");
+    TORCH_CHECK(dense_res[d] >= 1 && dense_res[d] <= DENSE_MAX_CELLS, "hash_encoding: dense level ", d, " has ",
+                dense_res[d], " cells per side: expected 1 to ", DENSE_MAX_CELLS);
     const int64_t side = dense_res[d] + 1;
-    TORCH_CHECK(dense[d].numel() == features * side * side * side, "hash_encoding: dense level ", d, " holds ",
-                dense[d].numel(), " values, not ", features, " x ", side, "^3");
+    TORCH_CHECK(dense[d].sizes() == torch::IntArrayRef({features, side, side, side}), "hash_encoding: dense level ",
+                d, " must be [", features, ", ", side, ", ", side, ", ", side, "], got ", dense[d].sizes());
   }
   if (grad != nullptr) {
     check_cpu_contiguous(*grad, "grad");

@@ -5,9 +5,11 @@
 // within float32 rounding (ATen's vectorized loops may fuse a multiply and an add where this one rounds twice).
 //
 // Inputs: the parameter, its first and second moments, each [R, D] (contiguous float32, R rows of D values);
-// rows [U] (int64, distinct) and their summed gradients values [U, D]; the step's scalars. A tensor on another
-// device (a GPU's: the torch path runs there), not contiguous or of another shape is a one-line error, never a read
-// through a pointer this loop cannot follow (the dtypes are checked by data_ptr<T>).
+// rows [U] (int64, ascending, each in [0, R): distinct, so that no two threads write one row) and their summed
+// gradients values [U, D] (float32); the step's scalars (step >= 1, lr >= 0, betas in [0, 1), eps >= 0). A tensor
+// on another device (a GPU's: the torch path runs there), not contiguous, of another dtype or shape, a row outside
+// the parameter or out of order, and a scalar outside its range are one-line errors, checked before anything is
+// written, never a write through a pointer this loop cannot follow.
 #include <torch/extension.h>
 #include <ATen/Parallel.h>
 
@@ -15,9 +17,22 @@
 
 namespace {
 
-void check_cpu_contiguous(const torch::Tensor& t, const char* name) {
+// A tensor on the CPU, contiguous, of ``dtype``: what data_ptr and the loop's flat indices read.
+void check_cpu_contiguous(const torch::Tensor& t, const char* name, torch::ScalarType dtype = torch::kFloat) {
   TORCH_CHECK(t.device().is_cpu(), "lazy_adam: ", name, " is on ", t.device(), ", not the CPU");
   TORCH_CHECK(t.is_contiguous(), "lazy_adam: ", name, " is not contiguous");
+  TORCH_CHECK(t.scalar_type() == dtype, "lazy_adam: ", name, " is ", t.scalar_type(), ", not ",
+              dtype == torch::kLong ? "int64" : "float32");
+}
+
+// Rows [U] ascending, each in [0, R): one pass over them.
+void check_rows(const int64_t* r, int64_t U, int64_t R) {
+  for (int64_t i = 0; i < U; ++i) {
+    TORCH_CHECK(r[i] >= 0 && r[i] < R, "lazy_adam: row ", r[i], " (rows[", i, "]) is outside the parameter's ", R,
+                " rows");
+    TORCH_CHECK(i == 0 || r[i] > r[i - 1], "lazy_adam: rows must be ascending, each once: rows[", i, "] = ", r[i],
+                " follows ", r[i - 1]);
+  }
 }
 
 }  // namespace
@@ -27,8 +42,11 @@ void lazy_adam_rows(torch::Tensor param, torch::Tensor exp_avg, torch::Tensor ex
   check_cpu_contiguous(param, "param");
   check_cpu_contiguous(exp_avg, "exp_avg");
   check_cpu_contiguous(exp_avg_sq, "exp_avg_sq");
-  check_cpu_contiguous(rows, "rows");
+  check_cpu_contiguous(rows, "rows", torch::kLong);
   check_cpu_contiguous(values, "values");
+  TORCH_CHECK(step >= 1 && lr >= 0 && beta1 >= 0 && beta1 < 1 && beta2 >= 0 && beta2 < 1 && eps >= 0,
+              "lazy_adam: expected step >= 1, lr >= 0, beta1 and beta2 in [0, 1) and eps >= 0, got step ", step,
+              ", lr ", lr, ", betas ", beta1, ", ", beta2, ", eps ", eps);
   TORCH_CHECK(param.dim() == 2 && exp_avg.sizes() == param.sizes() && exp_avg_sq.sizes() == param.sizes(),
               "lazy_adam: param, exp_avg and exp_avg_sq must be [R, D] alike, got ", param.sizes(), ", ",
               exp_avg.sizes(), ", ", exp_avg_sq.sizes());
@@ -42,6 +60,7 @@ void lazy_adam_rows(torch::Tensor param, torch::Tensor exp_avg, torch::Tensor ex
   float* v = exp_avg_sq.data_ptr<float>();
   const int64_t* r = rows.data_ptr<int64_t>();
   const float* g = values.data_ptr<float>();
+  check_rows(r, U, param.size(0));
   // the scalars as torch's float32 kernels take them: Python floats converted to the tensors' type
   const float w1 = static_cast<float>(1 - beta1), b2 = static_cast<float>(beta2), w2 = static_cast<float>(1 - beta2);
   const float root_correction2 = static_cast<float>(std::sqrt(1 - std::pow(beta2, step)));

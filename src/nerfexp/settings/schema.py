@@ -41,7 +41,6 @@ from nerfexp.domains import (
     whole_list,
 )
 from nerfexp.nerf.appearance import PROTOCOLS
-from nerfexp.nerf.encodings import HASH_MAX_LOG2_TABLE_SIZE, HASH_RESOLUTION_LIMIT
 from nerfexp.nerf.volume_renderer import HIERARCHIES
 from nerfexp.rundir.labels import NOTES, TAGS
 from nerfexp.training.guard_actions import COLLAPSE_ACTIONS, NONFINITE_ACTIONS
@@ -138,8 +137,6 @@ SCHEMA: dict[str, Rule] = {
     "scale.position_input_scale": INPUT_SCALE,
     "scale.max_side": optional(COUNT, "never shrink"),
     "scale.test_stride": COUNT,
-    "scale.hash_log2_table_size": whole(1, HASH_MAX_LOG2_TABLE_SIZE),
-    "scale.hash_finest": whole(1, HASH_RESOLUTION_LIMIT - 1),
     # the model
     "model.chunk": COUNT,
     "model.compile": BOOLEAN,

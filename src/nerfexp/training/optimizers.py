@@ -31,7 +31,8 @@ def summed_rows(grad: Tensor) -> tuple[Tensor, Tensor]:
     """A sparse gradient [*S, *D] as its touched rows, each once and in ascending order: flat row indices
     [U] (``flat_rows``) and their summed values [U, *D]. Indices already so (``interpolate_rows`` makes them
     that way; autograd's accumulation drops the coalesced flag) are taken as they are, checked in one pass
-    over them; others are coalesced (a sort)."""
+    over them; others are coalesced (a sort). ``_indices()`` and ``_values()`` are what torch's sparse
+    documentation gives for reading an uncoalesced COO tensor (``indices()`` refuses one; ``coalesce()`` sorts)."""
     sizes = grad.shape[:grad.sparse_dim()]
     rows = flat_rows(grad._indices(), sizes)
     if grad.is_coalesced() or bool((rows[1:] > rows[:-1]).all()):
