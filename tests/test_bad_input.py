@@ -14,7 +14,7 @@ from PIL import Image
 
 from nerfexp.commands.train import check_group_choices
 from nerfexp.errors import ConfigError
-from nerfexp.settings.checks import FLOAT32_TOP_OCTAVE
+from nerfexp.domains import FLOAT32_TOP_OCTAVE
 from tests.helpers import one_error_line, run_nerfexp
 
 

@@ -16,6 +16,10 @@ from collections.abc import Callable, Mapping
 Rule = tuple[str | Callable[[], str], Callable[[object], bool]]
 # a component's config (its arguments, resolved, as plain data) -> why an argument does nothing, or None
 Applies = Callable[[Mapping], str | None]
+# a component's config -> what is expected, in words, where some of its arguments do not fit together, or None
+Consistent = Callable[[Mapping], str | None]
+# what building a component holds: (the arguments that size it, what it is in words, its bytes)
+Memory = tuple[tuple[str, ...], str, int]
 
 # Counts (steps, rays, samples, units, views, ...) at most 2^63 - 1: torch and numpy hold whole numbers, and the
 # loggers their steps, in 64-bit integers. Counts that size arrays are bounded by the memory estimates too

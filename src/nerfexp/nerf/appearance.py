@@ -7,14 +7,15 @@ Conventions of this module: a ``code`` is one image's appearance vector [D]; ``c
 ``views`` [B] (long) are the training images' indices the rays come from (``nerfexp.data.rays.RandomRays``).
 """
 
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from typing import ClassVar
 
 import torch
 from torch import Tensor, nn
 
-from nerfexp.domains import COUNT, Rule, choice, real
+from nerfexp.domains import COUNT, Memory, Rule, choice, real
 from nerfexp.nerf.frozen_fit import fit_frozen
+from nerfexp.sizes import codes_bytes
 
 # How a test image is scored (``results.json``'s ``test_protocol``): the whole image with the model's code for
 # an unseen image (``AppearanceEmbedding.test_code``), or NeRF-W's: the image's own code fitted on its left half
@@ -44,6 +45,12 @@ class AppearanceEmbedding(nn.Module):
     """
 
     DOMAINS: ClassVar[dict[str, Rule]] = {"dim": COUNT, "test_code": choice(*TEST_CODES)}
+
+    @staticmethod
+    def MEMORY_PER_VIEW(config: Mapping, views: int) -> list[Memory]:
+        """A code per training view, trained."""
+        return [(("dim",), f"training the appearance codes of {views} views of {config['dim']} numbers",
+                 codes_bytes(views, config["dim"]))]
 
     def __init__(self, dim: int = 48, test_code: str = "mean"):
         super().__init__()
@@ -94,6 +101,11 @@ class CodeFit:
     generator seeded with the image's index (the same pixels whatever else ran before)."""
 
     DOMAINS: ClassVar[dict[str, Rule]] = {"steps": COUNT, "lr": real(0, 1, above=True), "rays": COUNT}
+
+    @staticmethod
+    def RAYS(config: Mapping) -> tuple[int, tuple[str, ...], str]:
+        """A step renders ``rays`` rays, their outputs kept for the backward pass to the code."""
+        return config["rays"], ("rays",), "a step of the test images' appearance fit"
 
     def __init__(self, steps: int = 64, lr: float = 0.05, rays: int = 256):
         self.steps = steps
