@@ -127,11 +127,11 @@ def options_with(test: Callable[[type], bool]) -> dict[str, list[str]]:
 
 def chooser(group: str, option: str, chosen: Mapping) -> str:
     """``, which OTHER=OPTION chooses`` where another chosen option's defaults chose ``group``'s ``option``."""
-    choosing = {other: other_option for other, other_option, content in option_files()
+    choosing = {(other, other_option) for other, other_option, content in option_files()
                 if any(isinstance(entry, dict) and entry.get(f"override /{group}") == option
                        for entry in content.get("defaults", []))}
     for other, other_option in chosen.items():
-        if other != group and choosing.get(other) == other_option:
+        if other != group and (other, other_option) in choosing:
             return f", which {other}={other_option} chooses"
     return ""
 
