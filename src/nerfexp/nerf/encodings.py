@@ -146,7 +146,7 @@ def resolved_frequencies(n_freqs: int, input_scale: float) -> str | None:
     |x| < 10 held in float32, features of frequency 2^k pi with k > ``FLOAT32_TOP_OCTAVE`` are noise. It applies
     to the frequencies the encoding sees, so an ``input_scale`` below 1 (gamma(s x)) allows more of them.
 
-    >>> resolved_frequencies(20, 1.0)[:38]  # 2^19 pi is past the limit: 2^0 pi .. 2^18 pi are
+    >>> resolved_frequencies(20, 1.0)[:41]  # 2^19 pi is past the limit: 2^0 pi .. 2^18 pi are 19
     'at most 19 frequencies with input_scale 1'
     >>> resolved_frequencies(22, 0.125) is None  # 2^21 pi / 8 = 2^18 pi
     True
