@@ -14,7 +14,7 @@ from PIL import Image
 
 from nerfexp.commands.train import check_group_choices
 from nerfexp.errors import ConfigError
-from nerfexp.settings.checks import FLOAT32_TOP_OCTAVE
+from nerfexp.domains import FLOAT32_TOP_OCTAVE
 from tests.helpers import one_error_line, run_nerfexp
 
 
@@ -28,9 +28,10 @@ from tests.helpers import one_error_line, run_nerfexp
     (["scale.n_coarse=0"], "scale.n_coarse=0 (which sets model.renderer.n_coarse): expected a whole number in "
                            "[1, 2^63 - 1]"),
     (["encoding.position.n_freqs=-1"], "encoding.position.n_freqs=-1: expected a whole number in [0, 2^63 - 1]"),
-    (["encoding.position.n_freqs=60"], f"encoding.position.n_freqs=60: frequencies above 2^{FLOAT32_TOP_OCTAVE} pi "
-                                       "are noise for float32 positions (docs/numerics.md); use at most 19 with "
-                                       "input_scale 1"),
+    (["encoding.position.n_freqs=60"], "encoding.position.n_freqs=60, scale.position_input_scale=1.0 (which sets "
+                                       "encoding.position.input_scale): expected at most 19 frequencies with "
+                                       f"input_scale 1: frequencies above 2^{FLOAT32_TOP_OCTAVE} pi are noise for "
+                                       "float32 positions (docs/numerics.md)"),
     (["scale.position_input_scale=0"], "scale.position_input_scale=0 (which sets encoding.position.input_scale): "
                                        "expected a finite number > 0 and <= 262144"),
     (["data.n_train=0"], "data.n_train=0: expected a whole number in [1, 2^63 - 1], or null (all)"),
@@ -83,7 +84,7 @@ def test_eight_times_lower_positions_allow_three_more_octaves(tmp_path):
     # gamma(x / 8): L = 22 puts its top frequency 2^21 pi x / 8 = 2^18 pi x at the limit; L = 23 is past it
     result = run_nerfexp("encoding.position.n_freqs=23", "scale.position_input_scale=0.125",
                          f"hydra.run.dir={tmp_path / 'run'}", cwd=tmp_path)
-    assert "use at most 22 with input_scale 0.125" in one_error_line(result)
+    assert "expected at most 22 frequencies with input_scale 0.125" in one_error_line(result)
 
 
 def blender_scene(tmp_path, tiny) -> tuple:

@@ -74,14 +74,16 @@ def composed(*overrides):
     (["hierarchical=proposal", "proposal.n_samples=[]"], "proposal.n_samples=[]: expected a non-empty list of "),
     (["hierarchical=proposal", "proposal.interlevel_weight=0"], "proposal.interlevel_weight=0: expected a finite "
                                                                 "number > 0"),
-    (["scale.skips=[5]"], "scale.skips=[5] (which sets model.renderer.field.skips): layer indices must be in 1..1"),
-    (["hierarchical=proposal", "proposal.network.skips=[2]"], "proposal.network.skips=[2]: layer indices must be "
-                                                              "in 1..1 for depth 2"),
+    # a component's arguments that do not fit together (its CONSISTENT), each named as the user sets it
+    (["scale.skips=[5]"], "scale.skips=[5] (which sets model.renderer.field.skips), scale.depth=2 (which sets "
+                          "model.renderer.field.depth): expected layer indices in 1..1 for depth 2"),
+    (["hierarchical=proposal", "proposal.network.skips=[2]"], "proposal.network.skips=[2], proposal.network.depth=2: "
+                                                              "expected layer indices in 1..1 for depth 2"),
     (["+foo=1"], "foo=1: not a setting nerfexp reads"),
     (["scale.lr=???"], "missing mandatory value: scale.lr (set it"),  # not model.optimizer.lr, which reads it
-    (["data.near=5", "data.far=2"], "data.near=5 (which sets model.renderer.near) and data.far=2 (which sets "
+    (["data.near=5", "data.far=2"], "data.near=5 (which sets model.renderer.near), data.far=2 (which sets "
                                     "model.renderer.far): expected near < far"),
-    (["data.near=2", "data.far=2"], "data.near=2 (which sets model.renderer.near) and data.far=2"),
+    (["data.near=2", "data.far=2"], "data.near=2 (which sets model.renderer.near), data.far=2"),
     # a memory estimate names every setting it multiplies, so the one the user set among them (issue 39)
     (["scale.image_size=100000"], "scale.image_size=100000 (which sets data.image_size), data.supersample=2, "
                                   "data.n_train=12, data.n_val=1, data.n_test=2: a scene of 15 views of 100000 x "
@@ -111,18 +113,18 @@ def composed(*overrides):
     # a test-time fit's step renders its rays with the outputs kept for its backward pass, as a training batch:
     # 2^40 rays x 48 samples x (8 + 2 x 32) floats x 4 bytes = 2^40 x 13824 bytes = 13.5 PiB
     (["appearance=embedding", "appearance.fit.rays=1099511627776"],
-     "appearance.fit.rays=1099511627776 (which sets model.appearance_fit.rays), scale.n_coarse=16 (which sets "
+     "appearance.fit.rays=1099511627776, scale.n_coarse=16 (which sets "
      "model.renderer.n_coarse), scale.n_fine=16 (which sets model.renderer.n_fine), scale.width=32 (which sets "
      "model.renderer.field.width), scale.depth=2 (which sets model.renderer.field.depth): a step of the test "
      "images' appearance fit of 1099511627776 rays x 48 samples through 2 layers of 32 units needs about 13.5 PiB"),
     (["test_cameras=refined", "test_cameras.fit.rays=1099511627776"],
-     "test_cameras.fit.rays=1099511627776 (which sets model.test_camera_fit.rays), scale.n_coarse=16 (which sets "
+     "test_cameras.fit.rays=1099511627776, scale.n_coarse=16 (which sets "
      "model.renderer.n_coarse), scale.n_fine=16 (which sets model.renderer.n_fine), scale.width=32 (which sets "
      "model.renderer.field.width), scale.depth=2 (which sets model.renderer.field.depth): a step of the test "
      "cameras' fit of 1099511627776 rays x 48 samples through 2 layers of 32 units needs about 13.5 PiB"),
     # 12 codes x 2^40 numbers x 4 copies (the code, its gradient, Adam's two moments) x 4 bytes = 192 TiB
     (["appearance=embedding", "appearance.embedding.dim=1099511627776"],
-     "appearance.embedding.dim=1099511627776 (which sets model.renderer.appearance.dim), data.n_train=12: training "
+     "appearance.embedding.dim=1099511627776, data.n_train=12: training "
      "the appearance codes of 12 views of 1099511627776 numbers needs about 192 TiB"),
     (["scale.image_size=" + "9" * 400], f"scale.image_size={'9' * 400} (which sets data.image_size): expected a "
                                         "whole number in [1, 2^63 - 1]"),

@@ -7,6 +7,33 @@ have theirs in ``nerfexp.settings.schema.SCHEMA``. Pure Python: every layer may 
 A component may also declare when its arguments do nothing (``APPLIES``: argument name -> a function of the
 component's own config, resolved as plain data, giving the reason it is unused, or None where it is used),
 which the unused-settings check (``nerfexp.settings.unused``) reads the same way.
+
+The settings package names no component's key: it walks the components a composed config builds
+(``nerfexp.settings.components``: each once, under the key where it is set, never one its parent's ``APPLIES``
+leaves unused) and asks each class for what it declares, all optional; ``config`` is the component's own
+arguments, resolved, as plain data, and argument names may be dotted to reach into its own sections:
+
+- ``DOMAINS`` (argument -> ``Rule``) and ``APPLIES`` (argument -> ``Applies``): above.
+- ``CONSISTENT`` (a tuple of its arguments -> ``Consistent``): what is expected where those arguments do not fit
+  together, or None; refused as ``KEY=VALUE, ...: expected TEXT``, each key as the user sets it
+  (``PositionalEncoding``'s frequency limit, ``HashGridEncoding``'s coarsest <= finest, a field's skips).
+- ``MEMORY`` (config -> [``Memory``]): what building it holds (a scene's images, a network's weights, a hash table,
+  an occupancy grid), each item refused alone where it exceeds the machine's memory (``nerfexp.sizes`` has the
+  arithmetic); ``MEMORY_PER_VIEW`` ((config, training views) -> [``Memory``]): the same per training view (the
+  appearance codes), the scene's ``TRAINING_VIEWS`` (config -> (views >= 1, arguments)) giving the views.
+- The activation memory of a batch of rays spans components: the sampler's ``SAMPLES_PER_RAY`` (config ->
+  (network evaluations per ray, arguments)) x the widest and deepest ``LAYERS`` (config -> (units, layers, unit
+  arguments, layer arguments): a network every sample passes through) x the rays of the training batch, the
+  evaluation chunk and each component's ``RAYS`` (config -> (rays, arguments, what a step renders): a test-time fit).
+- The scene's box: a scene's ``SERVES`` (its arguments only other components read: ``aabb``) does nothing unless a
+  component built lists it in ``SCENE_FIELDS``; a component's ``REPLACES_SCENE`` (scene argument -> why it does
+  nothing) takes a scene setting's place (a contraction's box and far).
+- ``SPARSE_GRADIENTS`` (config -> its boolean arguments that, true, make its gradients sparse): the optimizer must
+  take them.
+- ``NDC`` (a scene's: config -> (arguments that, true, make its rays NDC, arguments to set instead)) and
+  ``WORLD_RAYS`` (a component's: (the NDC setting, the way back to world rays) -> its refusal in words).
+
+When each is asked: docs/developing.md.
 """
 
 import math
@@ -16,6 +43,10 @@ from collections.abc import Callable, Mapping
 Rule = tuple[str | Callable[[], str], Callable[[object], bool]]
 # a component's config (its arguments, resolved, as plain data) -> why an argument does nothing, or None
 Applies = Callable[[Mapping], str | None]
+# a component's config -> what is expected, in words, where some of its arguments do not fit together, or None
+Consistent = Callable[[Mapping], str | None]
+# what building a component holds: (the arguments that size it, what it is in words, its bytes)
+Memory = tuple[tuple[str, ...], str, int]
 
 # Counts (steps, rays, samples, units, views, ...) at most 2^63 - 1: torch and numpy hold whole numbers, and the
 # loggers their steps, in 64-bit integers. Counts that size arrays are bounded by the memory estimates too

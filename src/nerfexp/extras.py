@@ -13,6 +13,12 @@ EXTRAS = {  # module -> the extra that installs it
     "viser": "view",
 }
 
+# What in a config needs an optional package, here and not beside the component: a component whose module
+# imports the package cannot be asked (its class cannot be imported) without it. A class's module (the prefix of
+# a ``_target_``) -> (module, what the user chose, in words); a setting -> (module) where it is not null.
+TARGETS_NEEDING = {"nerfexp.data.colmap.": ("pycolmap", "data=colmap")}
+SETTINGS_NEEDING = {"data.video": "imageio_ffmpeg"}
+
 
 class MissingExtraError(ConfigError):
     """A feature was asked for whose optional package is not installed; the message names the extra."""

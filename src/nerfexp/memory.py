@@ -9,12 +9,10 @@ size they refuse cannot fit, while one they pass may still be too large or slow.
 import os
 
 from nerfexp.errors import ConfigError
+from nerfexp.sizes import FLOAT
 
-FLOAT = 4  # bytes of a float32
 PIXEL_BYTES = 9 * FLOAT  # a scene's pixel (a traced ray while it is made): its origin, direction and colour
 SAMPLE_BYTES = 8 * FLOAT  # a ray sample's position, direction, density and colour, before the networks
-PARAMETER_COPIES = 4  # a trained parameter (a weight, a hash table's entry), its gradient and Adam's two moments
-VOXEL_BYTES = FLOAT  # export: a density per grid point
 FRAME_PIXEL_BYTES = 5 * FLOAT  # a rendered frame's colour, depth and opacity
 CAMERA_BYTES = 16 * 2 * FLOAT  # a camera path's frame: its 4 x 4 float64 camera-to-world matrix
 
@@ -58,28 +56,6 @@ def network_bytes(rays: int, samples: int, width: int, depth: int, training: boo
     in an evaluation one layer's."""
     points = rays * samples
     return points * (SAMPLE_BYTES + (depth if training else 1) * width * FLOAT)
-
-
-def parameter_bytes(width: int, depth: int) -> int:
-    """The trained weights of a network of ``depth`` hidden layers of ``width`` units, each a ``width`` x
-    ``width`` matrix (its inputs aside), with their gradients and optimizer state (``PARAMETER_COPIES``)."""
-    return depth * width * width * FLOAT * PARAMETER_COPIES
-
-
-def hash_table_bytes(n_levels: int, log2_table_size: int, features_per_level: int) -> int:
-    """A multiresolution hash encoding's tables and their optimizer state, at most ``2^log2_table_size``
-    entries of ``features_per_level`` numbers at each of ``n_levels`` levels."""
-    return n_levels * 2 ** log2_table_size * features_per_level * FLOAT * PARAMETER_COPIES
-
-
-def codes_bytes(n_views: int, dim: int) -> int:
-    """Per-image appearance codes: ``n_views`` codes of ``dim`` numbers, trained (``PARAMETER_COPIES``)."""
-    return n_views * dim * FLOAT * PARAMETER_COPIES
-
-
-def grid_bytes(resolution: int) -> int:
-    """nerfexp-export's grid of ``resolution``^3 densities."""
-    return resolution ** 3 * VOXEL_BYTES
 
 
 def path_bytes(n_frames: int) -> int:

@@ -2,6 +2,8 @@
 colour head (the tests' own), their configs in ``tests/components/GROUP/toy.yaml`` found through
 ``hydra.searchpath``."""
 
+from collections.abc import Mapping
+
 import torch
 from torch import Tensor, nn
 
@@ -14,6 +16,15 @@ class PowerEncoding(Encoding):
     """(x, x^2, ..., x^n_powers) of each coordinate, each times ``gain``: a polynomial feature map."""
 
     DOMAINS = {"n_powers": COUNT, "gain": real(0, 16, above=True)}
+    TOP_POWER = 8  # with a gain above 1, x^n of positions a few units across outgrows the others beyond it
+    # its arguments that must fit together (nerfexp.domains): asked by the settings check, named as the user sets them
+    CONSISTENT = {("n_powers", "gain"): lambda config: None if config["gain"] <= 1 or config["n_powers"] <= PowerEncoding.TOP_POWER
+                  else f"{PowerEncoding.TOP_POWER} powers at most with a gain above 1"}
+
+    @staticmethod
+    def MEMORY(config: Mapping) -> list[tuple[tuple[str, ...], str, int]]:
+        """Its exponents, a float32 each (what building it holds, for the settings' memory check)."""
+        return [(("n_powers",), f"the exponents of {config['n_powers']} powers", 4 * config["n_powers"])]
 
     def __init__(self, n_powers: int = 2, gain: float = 1.0, in_dim: int = 3):
         super().__init__()

@@ -41,7 +41,6 @@ from nerfexp.errors import NerfexpError
 from nerfexp.files import atomic_directory
 from nerfexp.geometry.surfaces import grid_shape
 from nerfexp.manifest import check_ours, folder_files, record_folder
-from nerfexp.memory import grid_bytes
 from nerfexp.pixels import to_uint8
 from nerfexp.products.mesh import (
     THRESHOLD_QUANTILE,
@@ -55,6 +54,7 @@ from nerfexp.products.mesh import (
 from nerfexp.products.ply import face_rows, ply_bytes, vertex_rows
 from nerfexp.products.trained import TrainedRun, load_run, run_scene
 from nerfexp.rundir.layout import EXPORT_DIR
+from nerfexp.sizes import grid_bytes
 
 MESH = "mesh.ply"
 DENSITY_LIMIT = float(torch.finfo(torch.float32).max)  # the field's densities are float32 numbers

@@ -2,6 +2,7 @@
 the rest of nerfexp uses spelled out, with a default where a format may leave it out."""
 
 import abc
+from collections.abc import Mapping
 from typing import ClassVar
 
 from torch import Tensor
@@ -39,6 +40,13 @@ class Scene(abc.ABC):
         "aabb": BOX,
         "density_noise_std": real(0, RAW_LIMIT),
     }
+    # its settings that only other components read (their SCENE_FIELDS): the box, of the grids
+    SERVES: ClassVar[tuple[str, ...]] = ("aabb",)
+
+    @staticmethod
+    def TRAINING_VIEWS(config: Mapping) -> tuple[int, tuple[str, ...]]:
+        """The training views (at least one: null, all of the scene's) and the arguments that set them."""
+        return config.get("n_train") or 1, ("n_train",) if "n_train" in config else ()
 
     background: str
     near: float | None

@@ -22,6 +22,7 @@ images are made ``Views``.
 """
 
 import io
+from collections.abc import Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import ClassVar
@@ -263,6 +264,11 @@ class LLFFScene(Scene):
 
     DOMAINS: ClassVar[dict[str, Rule]] = {**Scene.DOMAINS, "factor": COUNT, "holdout": whole(2, INTEGER_LIMIT),
                                           "ndc": BOOLEAN}
+
+    @staticmethod
+    def NDC(config: Mapping) -> tuple[tuple[str, ...], tuple[str, ...]]:
+        """``ndc`` where set: its rays are NDC rays; world rays need ``near`` and ``far`` instead."""
+        return (("ndc",), ("near", "far")) if config.get("ndc") else ((), ())
 
     root: str
     factor: int = 4

@@ -13,7 +13,7 @@ normal there (zero for a miss).
 """
 
 import math
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 from typing import ClassVar
 
@@ -23,9 +23,10 @@ from tqdm import tqdm
 
 from nerfexp.data.base import Scene
 from nerfexp.data.views import Views
-from nerfexp.domains import COUNT, Rule, choice
+from nerfexp.domains import COUNT, Memory, Rule, choice
 from nerfexp.geometry.cameras import camera_rays, focal_from_fov, look_at
 from nerfexp.geometry.lenses import Intrinsics, distortion_vector
+from nerfexp.memory import scene_bytes
 
 NEAR, FAR = 2.0, 6.0
 OCCLUDER_SIDE = 0.3  # a transient occluder's side, as a fraction of the shorter image side (``occlude``)
@@ -365,6 +366,15 @@ class ProceduralScene(Scene):
 
     DOMAINS: ClassVar[dict[str, Rule]] = {**Scene.DOMAINS, "image_size": COUNT, "n_test": COUNT, "supersample": COUNT,
                                           "appearance_changes": choice(*APPEARANCE_CHANGES)}
+
+    @staticmethod
+    def MEMORY(config: Mapping) -> list[Memory]:
+        """Its views' rays and colours, each pixel traced with ``supersample``^2 rays while it is made."""
+        views = (config["n_train"] or 0) + config["n_val"] + config["n_test"]
+        size = config["image_size"]
+        return [(("image_size", "supersample", "n_train", "n_val", "n_test"),
+                 f"a scene of {views} views of {size} x {size} pixels",
+                 scene_bytes(views, size, size, config["supersample"]))]
 
     image_size: int = 64
     n_train: int | None = TRAIN_VIEWS  # None: the scene's whole training set, TRAIN_VIEWS views

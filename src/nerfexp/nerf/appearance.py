@@ -7,14 +7,20 @@ Conventions of this module: a ``code`` is one image's appearance vector [D]; ``c
 ``views`` [B] (long) are the training images' indices the rays come from (``nerfexp.data.rays.RandomRays``).
 """
 
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from typing import ClassVar
 
 import torch
 from torch import Tensor, nn
 
+<<<<<<< HEAD
 from nerfexp.domains import COUNT, Rule, choice
 from nerfexp.nerf.frozen_fit import FrozenFit
+=======
+from nerfexp.domains import COUNT, Memory, Rule, choice, real
+from nerfexp.nerf.frozen_fit import fit_frozen
+from nerfexp.sizes import codes_bytes
+>>>>>>> i53-settings
 
 # How a test image is scored (``results.json``'s ``test_protocol``): the whole image with the model's code for
 # an unseen image (``AppearanceEmbedding.test_code``), or NeRF-W's: the image's own code fitted on its left half
@@ -44,6 +50,12 @@ class AppearanceEmbedding(nn.Module):
     """
 
     DOMAINS: ClassVar[dict[str, Rule]] = {"dim": COUNT, "test_code": choice(*TEST_CODES)}
+
+    @staticmethod
+    def MEMORY_PER_VIEW(config: Mapping, views: int) -> list[Memory]:
+        """A code per training view, trained."""
+        return [(("dim",), f"training the appearance codes of {views} views of {config['dim']} numbers",
+                 codes_bytes(views, config["dim"]))]
 
     def __init__(self, dim: int = 48, test_code: str = "mean"):
         super().__init__()
@@ -92,6 +104,11 @@ class CodeFit(FrozenFit):
     """NeRF-W's test-time fit of one image's code, the networks frozen (``FrozenFit``): ``steps`` steps of Adam at
     learning rate ``lr`` on the code alone, each on ``rays`` of the image's fitting pixels drawn with replacement
     from a generator seeded with the image's index (the same pixels whatever else ran before)."""
+
+    @staticmethod
+    def RAYS(config: Mapping) -> tuple[int, tuple[str, ...], str]:
+        """A step renders ``rays`` rays, their outputs kept for the backward pass to the code."""
+        return config["rays"], ("rays",), "a step of the test images' appearance fit"
 
     def __init__(self, steps: int = 64, lr: float = 0.05, rays: int = 256):
         super().__init__(steps, lr, rays)

@@ -98,6 +98,17 @@ class SceneContraction(nn.Module):
         "far": real(1, 2 ** 24, above=True),
     }
     APPLIES: ClassVar[dict[str, Applies]] = {}
+    # the scene's settings it takes the place of: the grids work in its box, and rays end at its own far
+    REPLACES_SCENE: ClassVar[dict[str, str]] = {
+        "aabb": "contraction=mipnerf360 (the grids work in the contraction's box, [-2, 2]^3)",
+        "far": "contraction=mipnerf360 (rays end contraction.function.far radii away)",
+    }
+
+    @staticmethod
+    def WORLD_RAYS(ndc: str, world: str) -> str:
+        """It contracts world positions: refused with NDC rays (``ndc``; ``world``: how to have world rays)."""
+        return (f"contraction=mipnerf360 and {ndc}: NDC rays already bound a forward-facing scene's depth; set "
+                f"{world} to contract world positions, or contraction=none")
 
     def __init__(self, norm: str = "l2", centre: Sequence[float] | None = None, radius: float | None = None,
                  far: float = 1000.0):

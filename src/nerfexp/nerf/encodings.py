@@ -3,7 +3,7 @@
 
 import math
 import weakref
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from typing import ClassVar
 
 import torch
@@ -17,18 +17,21 @@ from nerfexp.domains import (
     FRACTION,
     NONNEGATIVE_COUNT,
     Applies,
+    Consistent,
+    Memory,
     Rule,
     real,
     whole,
 )
 from nerfexp.kernels import kernel
 from nerfexp.nerf.bounds import Bounded
+from nerfexp.sizes import hash_table_bytes
 
 HASH_PRIMES = (1, 2654435761, 805459861)  # Instant-NGP's, one per axis; 1 keeps neighbours along x together
 HASH_MAX_LOG2_TABLE_SIZE = 30  # a level's table at most 2^30 rows, the encoding's own limit
 HASH_RESOLUTION_LIMIT = 2 ** 20  # resolutions below it: a cell's integer corner times a prime stays within int64
-# gamma(s x): a scale above 2^18 puts even the lowest frequency past float32's (and with n_freqs, the settings'
-# check_frequencies)
+# gamma(s x): a scale above 2^18 puts even the lowest frequency past float32's (and with n_freqs,
+# PositionalEncoding.CONSISTENT)
 INPUT_SCALE = real(0, 2.0 ** FLOAT32_TOP_OCTAVE, above=True)
 
 
@@ -100,10 +103,14 @@ class PositionalEncoding(Encoding):
     """
 
     DOMAINS = {
-        "n_freqs": NONNEGATIVE_COUNT,  # and the float32 limit (the settings' check_frequencies)
+        "n_freqs": NONNEGATIVE_COUNT,  # and the float32 limit (CONSISTENT)
         "input_scale": INPUT_SCALE,
         "include_input": BOOLEAN,
         "coarse_to_fine": FRACTION,
+    }
+    CONSISTENT: ClassVar[dict[tuple[str, ...], Consistent]] = {
+        ("n_freqs", "input_scale"): lambda config: resolved_frequencies(config.get("n_freqs"),
+                                                                        config.get("input_scale", 1.0)),
     }
 
     def __init__(self, n_freqs: int, in_dim: int = 3, include_input: bool = True, input_scale: float = 1.0,
@@ -129,6 +136,27 @@ class PositionalEncoding(Encoding):
     def set_progress(self, progress: float) -> None:
         if self.coarse_to_fine > 0:
             self.window.copy_(coarse_to_fine_window(self.n_freqs, min(progress / self.coarse_to_fine, 1.0)))
+
+
+def resolved_frequencies(n_freqs: int, input_scale: float) -> str | None:
+    """What is expected of ``n_freqs`` frequencies of positions scaled by ``input_scale`` where the top one is
+    beyond what float32 positions resolve, else None.
+
+    The limit comes from ``benchmarks/encoding_precision.py`` (docs/numerics.md): for points of a scene within
+    |x| < 10 held in float32, features of frequency 2^k pi with k > ``FLOAT32_TOP_OCTAVE`` are noise. It applies
+    to the frequencies the encoding sees, so an ``input_scale`` below 1 (gamma(s x)) allows more of them.
+
+    >>> resolved_frequencies(20, 1.0)[:41]  # 2^19 pi is past the limit: 2^0 pi .. 2^18 pi are 19
+    'at most 19 frequencies with input_scale 1'
+    >>> resolved_frequencies(22, 0.125) is None  # 2^21 pi / 8 = 2^18 pi
+    True
+    """
+    top = n_freqs - 1 + math.log2(input_scale)  # the octave of the highest frequency the encoding sees
+    if n_freqs == 0 or top <= FLOAT32_TOP_OCTAVE:
+        return None
+    most = FLOAT32_TOP_OCTAVE + 1 - math.log2(input_scale)  # >= 1: its domain keeps the scale <= 2^18
+    return (f"at most {math.floor(most)} frequencies with input_scale {input_scale:g}: frequencies above "
+            f"2^{FLOAT32_TOP_OCTAVE} pi are noise for float32 positions (docs/numerics.md)")
 
 
 def coarse_to_fine_window(n_freqs: int, fraction: float) -> Tensor:
@@ -367,11 +395,27 @@ class HashGridEncoding(Bounded, Encoding):
         "n_levels": COUNT,
         "features_per_level": COUNT,
         "log2_table_size": whole(1, HASH_MAX_LOG2_TABLE_SIZE),
-        "coarsest": whole(1, HASH_RESOLUTION_LIMIT - 1),  # and <= finest (the settings' check_hash_levels)
+        "coarsest": whole(1, HASH_RESOLUTION_LIMIT - 1),  # and <= finest (CONSISTENT)
         "finest": whole(1, HASH_RESOLUTION_LIMIT - 1),
         "include_input": BOOLEAN,
-        "sparse_gradients": BOOLEAN,  # and an optimizer that takes them (the settings' check_sparse_gradients)
+        "sparse_gradients": BOOLEAN,  # and an optimizer that takes them (SPARSE_GRADIENTS)
     }
+    CONSISTENT: ClassVar[dict[tuple[str, ...], Consistent]] = {
+        ("coarsest", "finest"): lambda config: (None if config["coarsest"] <= config["finest"] else
+                                                "coarsest <= finest (the levels' resolutions go from one to the other)"),
+    }
+    SCENE_FIELDS: ClassVar[tuple[str, ...]] = ("aabb",)  # its levels span the scene's box
+
+    @staticmethod
+    def MEMORY(config: Mapping) -> list[Memory]:
+        """Its tables and their optimizer state."""
+        return [(("n_levels", "log2_table_size", "features_per_level"), f"a hash encoding of {config['n_levels']} levels",
+                 hash_table_bytes(config["n_levels"], config["log2_table_size"], config["features_per_level"]))]
+
+    @staticmethod
+    def SPARSE_GRADIENTS(config: Mapping) -> list[str]:
+        """``sparse_gradients`` where set: the table's gradients are sparse."""
+        return ["sparse_gradients"] if config.get("sparse_gradients") else []
 
     def __init__(self, n_levels: int = 16, features_per_level: int = 2, log2_table_size: int = 19,
                  coarsest: int = 16, finest: int = 2048, include_input: bool = False, init_range: float = 1e-4,

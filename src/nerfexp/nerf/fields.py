@@ -2,15 +2,28 @@
 ``ColourHead``), answering ``FieldOutputs``."""
 
 import copy
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from typing import ClassVar, NamedTuple
 
 import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
-from nerfexp.domains import COUNT, RAW_LIMIT, RAW_OFFSET, Applies, Rule, choice, real, whole, whole_list
+from nerfexp.domains import (
+    COUNT,
+    RAW_LIMIT,
+    RAW_OFFSET,
+    Applies,
+    Consistent,
+    Memory,
+    Rule,
+    choice,
+    real,
+    whole,
+    whole_list,
+)
 from nerfexp.nerf.encodings import Encoding
+from nerfexp.sizes import parameter_bytes
 
 TRUNC_EXP_GRADIENT_CLAMP = 15.0  # the gradient of trunc_exp is at most e^15 = 3.3e6 per unit of upstream gradient
 
@@ -89,6 +102,12 @@ class ColourHead(nn.Module):
         raise NotImplementedError(f"{type(self).__name__} predicts no normals")
 
 
+def skips_within(skips: list[int], depth: int) -> str | None:
+    """What is expected of skip connections ``skips`` that name a layer a trunk of ``depth`` layers does not join
+    the input to (1..depth-1), else None."""
+    return None if all(0 < s < depth for s in skips) else f"layer indices in 1..{depth - 1} for depth {depth}"
+
+
 class DensityField(nn.Module):
     """sigma from the encoded position alone: a trunk of ReLU layers and one linear density unit.
 
@@ -111,6 +130,15 @@ class DensityField(nn.Module):
         "density_bias": RAW_OFFSET,
     }
     APPLIES: ClassVar[dict[str, Applies]] = {}
+    CONSISTENT: ClassVar[dict[tuple[str, ...], Consistent]] = {("skips", "depth"): lambda config: skips_within(
+        config["skips"], config["depth"])}
+    NAME: ClassVar[str] = "a proposal network"  # what it is, in the memory estimate's words: on its own, one
+
+    @classmethod
+    def MEMORY(cls, config: Mapping) -> list[Memory]:
+        """Its trunk's weights and their optimizer state."""
+        return [(("width", "depth"), f"training {cls.NAME} of {config['depth']} layers of {config['width']} units",
+                 parameter_bytes(config["width"], config["depth"]))]
 
     def __init__(self, position_encoding: Encoding, depth: int = 8, width: int = 256, skips: tuple[int, ...] = (5,),
                  density_activation: str = "relu", density_bias: float = 0.0):
@@ -169,6 +197,12 @@ class NeRFField(DensityField):
     """
 
     DOMAINS = {**DensityField.DOMAINS, "density_noise_std": real(0, RAW_LIMIT)}
+    NAME = "a field"
+
+    @staticmethod
+    def LAYERS(config: Mapping) -> tuple[int, int, tuple[str, ...], tuple[str, ...]]:
+        """Every sample passes through its trunk: ``depth`` layers of ``width`` units."""
+        return config["width"], config["depth"], ("width",), ("depth",)
 
     def __init__(self, position_encoding: Encoding, view_head: Callable[[int], ColourHead], depth: int = 8,
                  width: int = 256, skips: tuple[int, ...] = (5,), density_activation: str = "relu",
@@ -246,10 +280,23 @@ class NeRFField(DensityField):
         return torch.cat([h, appearance.to(h.dtype).expand(*h.shape[:-1], self.appearance_dim)], -1)
 
 
+def hidden_layer(config: Mapping) -> tuple[int, int, tuple[str, ...], tuple[str, ...]]:
+    """``LAYERS`` of a colour head of one hidden layer of ``hidden`` units, which every sample passes through."""
+    return config["hidden"], 1, ("hidden",), ()
+
+
+def hidden_layer_memory(config: Mapping) -> list[Memory]:
+    """``MEMORY`` of a colour head of one hidden layer of ``hidden`` units: its weights, trained."""
+    return [(("hidden",), f"training a view head of 1 layers of {config['hidden']} units",
+             parameter_bytes(config["hidden"], 1))]
+
+
 class ViewMLPHead(ColourHead):
     """The paper's head: a linear feature of the trunk, joined with gamma(d), one ReLU layer, rgb."""
 
     DOMAINS = {"hidden": COUNT}
+    LAYERS = staticmethod(hidden_layer)
+    MEMORY = staticmethod(hidden_layer_memory)
 
     def __init__(self, in_features: int, direction_encoding: Encoding, hidden: int = 128):
         super().__init__()

@@ -11,14 +11,15 @@ Everything outside the box counts as empty: no sample there is evaluated.
 
 import logging
 import math
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from typing import ClassVar
 
 import torch
 from torch import Tensor
 
-from nerfexp.domains import BOOLEAN, COUNT, FRACTION, NONNEGATIVE_COUNT, Applies, Rule, optional, real
+from nerfexp.domains import BOOLEAN, COUNT, FRACTION, NONNEGATIVE_COUNT, Applies, Memory, Rule, optional, real
 from nerfexp.nerf.bounds import Bounded
+from nerfexp.sizes import grid_bytes
 
 log = logging.getLogger(__name__)
 
@@ -99,6 +100,13 @@ class OccupancyGrid(Bounded):
         "update_occupied": BOOLEAN,
     }
     APPLIES: ClassVar[dict[str, Applies]] = {}
+    SCENE_FIELDS: ClassVar[tuple[str, ...]] = ("aabb",)  # its cells divide the scene's box
+
+    @staticmethod
+    def MEMORY(config: Mapping) -> list[Memory]:
+        """Its cells' densities."""
+        return [(("resolution",), f"an occupancy grid of {config['resolution']}^3 cells",
+                 grid_bytes(config["resolution"]))]
 
     def __init__(self, resolution: int = 32, threshold: float = 0.01, decay: float = 0.95, warmup_steps: int = 256,
                  update_every: int = 16, early_stop_transmittance: float = 1e-4, segments: int = 4,

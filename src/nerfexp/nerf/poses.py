@@ -8,7 +8,7 @@ so that the refined camera-to-world matrix is [exp(w) R_c | c + t] for a camera 
 translation are decoupled: a rotation does not move the centre, as it would about the world's origin.
 """
 
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from typing import ClassVar
 
 import torch
@@ -105,6 +105,12 @@ class PoseCorrection(nn.Module):
     }
     GROUP = "camera_opt"  # the optimizer's parameter group
 
+    @staticmethod
+    def WORLD_RAYS(ndc: str, world: str) -> str:
+        """It turns and moves world rays: refused with NDC rays (``ndc``; ``world``: how to have world rays)."""
+        return f"camera_opt=so3xr3: the corrections move world rays, and {ndc} trains on NDC rays; set {world} to " \
+               "refine an LLFF scene's cameras"
+
     def __init__(self, n_views: int, lr: float, lr_final: float, warmup_steps: int = 0):
         super().__init__()
         if n_views < 1:
@@ -148,6 +154,17 @@ class PoseFit(FrozenFit):
     (w, t) [6] of the image's rays (``corrected_rays``, the convention of ``PoseCorrection``), from zero,
     fitted by ``steps`` steps of Adam at ``lr`` (radians and scene units alike), each on ``rays`` of the image's
     fitting pixels drawn from a generator seeded with the image's index (``nerfexp.nerf.frozen_fit.FrozenFit``)."""
+
+    @staticmethod
+    def RAYS(config: Mapping) -> tuple[int, tuple[str, ...], str]:
+        """A step renders ``rays`` rays, their outputs kept for the backward pass to the correction."""
+        return config["rays"], ("rays",), "a step of the test cameras' fit"
+
+    @staticmethod
+    def WORLD_RAYS(ndc: str, world: str) -> str:
+        """It turns and moves world rays: refused with NDC rays (``ndc``; ``world``: how to have world rays)."""
+        return f"test_cameras=refined: the fit turns and moves world rays, and {ndc} scores NDC rays; set {world}, " \
+               "or test_cameras=given"
 
     def __init__(self, steps: int = 100, lr: float = 1e-3, rays: int = 1024):
         super().__init__(steps, lr, rays)

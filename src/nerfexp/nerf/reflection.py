@@ -15,7 +15,7 @@ import torch.nn.functional as F
 from torch import Tensor, nn
 
 from nerfexp.domains import COUNT, LOSS_WEIGHT, RAW_OFFSET, whole
-from nerfexp.nerf.fields import ColourHead
+from nerfexp.nerf.fields import ColourHead, hidden_layer, hidden_layer_memory
 
 
 @functools.cache
@@ -128,6 +128,8 @@ class ReflectionHead(ColourHead):
         "normal_weight": LOSS_WEIGHT,
         "orientation_weight": LOSS_WEIGHT,
     }
+    LAYERS = staticmethod(hidden_layer)
+    MEMORY = staticmethod(hidden_layer_memory)
     uses_normals = True
     penalty_names = ("normals", "orientation")  # the columns of ``normal_penalties``
 

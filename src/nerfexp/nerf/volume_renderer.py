@@ -6,7 +6,7 @@ from typing import ClassVar
 import torch
 from torch import Tensor, nn
 
-from nerfexp.domains import COUNT, FAR, LOSS_WEIGHT, NEAR, Applies, Rule, choice, optional
+from nerfexp.domains import COUNT, FAR, LOSS_WEIGHT, NEAR, Applies, Consistent, Rule, choice, optional
 from nerfexp.nerf.appearance import AppearanceEmbedding
 from nerfexp.nerf.backgrounds import BACKGROUNDS
 from nerfexp.nerf.contraction import SceneContraction
@@ -214,6 +214,23 @@ class VolumeRenderer(nn.Module):
         "n_single": hierarchy_reads(False),
         "proposal": hierarchy_reads("proposal"),
     }
+    CONSISTENT: ClassVar[dict[tuple[str, ...], Consistent]] = {
+        ("near", "far"): lambda config: (None if config["near"] is None or config["far"] is None
+                                         or config["near"] < config["far"]
+                                         else "near < far (the rays are sampled between them)"),
+    }
+
+    @staticmethod
+    def SAMPLES_PER_RAY(config: Mapping) -> tuple[int, tuple[str, ...]]:
+        """The network evaluations per ray of the ``hierarchical`` choice, and the arguments that set them:
+        coarse + (coarse + fine), the single network's, or the proposal rounds' and the field's (counted as the
+        field's, an upper bound on their memory)."""
+        if config["hierarchical"] == "proposal":
+            proposal = config["proposal"]
+            return sum(proposal["n_samples"]) + proposal["n_final"], ("proposal.n_samples", "proposal.n_final")
+        if config["hierarchical"]:
+            return 2 * config["n_coarse"] + config["n_fine"], ("n_coarse", "n_fine")
+        return config["n_single"], ("n_single",)
 
     def __init__(self, field: Callable[[], nn.Module], hierarchical: bool | str, n_coarse: int, n_fine: int,
                  n_single: int, near: float, far: float, background: str = "white",

@@ -4,33 +4,26 @@ and what was expected. Each job is checked once: a single run by the Hydra callb
 before its directory is made; a sweep's job by ``nerfexp.commands.train`` (Hydra calls no run-start
 callback there). Sizes that would not fit in memory are refused with their estimate (``nerfexp.memory``).
 
-The frequency limit comes from ``benchmarks/encoding_precision.py`` (docs/numerics.md): for points of a
-scene within |x| < 10 held in float32, features of frequency 2^k pi with k >= 19 are noise. The limit
-applies to the frequencies the encoding sees, so an ``input_scale`` below 1 (gamma(s x)) allows larger L.
+The checks name no component's key: they walk the components the config builds
+(``nerfexp.settings.components``) and ask each through the attributes it declares beside its class (its domains,
+the rules its arguments keep together, what it holds in memory, ...: the list is ``nerfexp.domains``'
+docstring), so that a new component brings its own rules.
 """
 
-import math
 from collections.abc import Iterator
 
 from hydra.experimental.callback import Callback
 from omegaconf import MISSING, DictConfig, OmegaConf
 
-from nerfexp.config_keys import leaves, reference, source_key
+from nerfexp.config_keys import entries, leaves, reference, source_key
 from nerfexp.domains import breaks
 from nerfexp.errors import ConfigError
-from nerfexp.extras import require
+from nerfexp.extras import SETTINGS_NEEDING, TARGETS_NEEDING, require
 from nerfexp.kernels import enabled
-from nerfexp.memory import (
-    codes_bytes,
-    grid_bytes,
-    hash_table_bytes,
-    network_bytes,
-    parameter_bytes,
-    require_memory,
-    scene_bytes,
-)
+from nerfexp.memory import network_bytes, require_memory
+from nerfexp.settings.components import argument_keys, asked, components
 from nerfexp.settings.rows import check_row
-from nerfexp.settings.schema import FLOAT32_TOP_OCTAVE, PASSED_ON, REFERENCES, matching, rule_of
+from nerfexp.settings.schema import PASSED_ON, REFERENCES, matching, rule_of
 from nerfexp.settings.unused import check_used
 from nerfexp.training.perceptual import check_weights_file
 
@@ -73,57 +66,15 @@ def check_rules(cfg: DictConfig, strict: bool = True) -> None:
             raise ConfigError(f"{named(cfg, key, value)}: expected {wanted}")
 
 
-def check_frequencies(cfg: DictConfig) -> None:
-    """A ConfigError where a positional encoding's top frequency is beyond what float32 positions resolve."""
-    for name in ("position", "direction"):
-        encoding = OmegaConf.select(cfg, f"encoding.{name}")
-        if encoding is None or "n_freqs" not in encoding:
-            continue
-        key, n_freqs, scale = f"encoding.{name}.n_freqs", encoding.n_freqs, encoding.get("input_scale", 1.0)
-        top = n_freqs - 1 + math.log2(scale)  # the octave of the highest frequency the encoding sees
-        if n_freqs > 0 and top > FLOAT32_TOP_OCTAVE:
-            most = FLOAT32_TOP_OCTAVE + 1 - math.log2(scale)  # >= 1: the rule keeps the scale <= 2^18
-            raise ConfigError(f"{key}={n_freqs}: frequencies above 2^{FLOAT32_TOP_OCTAVE} pi are noise for float32 "
-                              f"positions (docs/numerics.md); use at most {math.floor(most)} with input_scale "
-                              f"{scale:g}")
-
-
-def check_ray_bounds(cfg: DictConfig) -> None:
-    """A ConfigError where the rays' bounds, both set, leave no interval to sample: near must lie before far."""
-    near, far = cfg.model.renderer.near, cfg.model.renderer.far
-    if near is not None and far is not None and not near < far:
-        raise ConfigError(f"{named(cfg, 'model.renderer.near', near)} and {named(cfg, 'model.renderer.far', far)}: "
-                          "expected near < far (the rays are sampled between them)")
-
-
-def check_skips(cfg: DictConfig) -> None:
-    """A ConfigError where a network's skip connections name a layer it does not have (1..depth-1): the
-    field's, and with ``hierarchical=proposal`` the proposal networks'."""
-    networks = {"model.renderer.field": cfg.model.renderer.field}
-    if cfg.model.renderer.hierarchical == "proposal":
-        networks["proposal.network"] = cfg.proposal.network
-    for key, network in networks.items():
-        skips = list(network.skips)
-        if not all(1 <= s < network.depth for s in skips):
-            raise ConfigError(f"{named(cfg, f'{key}.skips', skips)}: layer indices must be in "
-                              f"1..{network.depth - 1} for depth {network.depth}")
-
-
-def samples_per_ray(cfg: DictConfig) -> int:
-    """The network evaluations per ray: coarse + (coarse + fine) samples, the single network's, or the
-    proposal rounds' and the field's (counted as the field's, an upper bound on their memory)."""
-    renderer = cfg.model.renderer
-    if renderer.hierarchical == "proposal":
-        return sum(cfg.proposal.n_samples) + cfg.proposal.n_final
-    return 2 * renderer.n_coarse + renderer.n_fine if renderer.hierarchical else renderer.n_single
-
-
-def sample_keys(cfg: DictConfig) -> list[str]:
-    """The keys whose values ``samples_per_ray`` adds up."""
-    hierarchical = cfg.model.renderer.hierarchical
-    if hierarchical == "proposal":
-        return ["proposal.n_samples", "proposal.n_final"]
-    return ["model.renderer.n_coarse", "model.renderer.n_fine"] if hierarchical else ["model.renderer.n_single"]
+def check_consistent(cfg: DictConfig) -> None:
+    """A ConfigError where a component's arguments do not fit together: the first of its ``CONSISTENT`` rules
+    (``nerfexp.domains``: a tuple of its argument names -> what is expected, or None) that says what is expected,
+    naming those of the arguments its config sets as the user sets them."""
+    for component, rules in asked(cfg, "CONSISTENT"):
+        for arguments, rule in rules.items():
+            if (wanted := rule(component.config)) is not None:
+                keys = argument_keys(cfg, component, [a for a in arguments if a in component.config])
+                raise ConfigError(f"{settings_named(cfg, keys)}: expected {wanted}")
 
 
 def settings_named(cfg: DictConfig, keys: list[str]) -> str:
@@ -131,118 +82,127 @@ def settings_named(cfg: DictConfig, keys: list[str]) -> str:
     return ", ".join(named(cfg, key, OmegaConf.select(cfg, key)) for key in keys)
 
 
-TEST_TIME_FITS = (("model.appearance_fit", "a step of the test images' appearance fit"),
-                  ("model.test_camera_fit", "a step of the test cameras' fit"))  # (key, what a step renders)
+# Batches of rays a command renders with every layer's output kept for a backward pass (key, what, training only):
+# a training batch, and an evaluation chunk (one layer's outputs at a time); the components that render batches of
+# their own (a test-time fit's step) declare theirs (``RAYS``)
+BATCHES = (("datamodule.batch_rays", "a training batch", True),  # (key, what, trained: outputs kept; not read back)
+           ("model.chunk", "an evaluation chunk", False))
+
+
+def samples_per_ray(cfg: DictConfig) -> tuple[int, list[str]] | None:
+    """The network evaluations per ray and the keys that set them, as the sampler says (``SAMPLES_PER_RAY``);
+    None where no component says."""
+    for component, samples in asked(cfg, "SAMPLES_PER_RAY"):
+        count, arguments = samples(component.config)
+        return count, argument_keys(cfg, component, arguments)
+    return None
+
+
+def widest(cfg: DictConfig) -> tuple[tuple[int, list[str]], tuple[int, list[str]]] | None:
+    """The most units of a layer and the most layers of the networks every sample passes through (each component
+    that declares ``LAYERS``), each with the keys that set it (the first component's where several tie); None
+    where no component declares them."""
+    layers = [(units, argument_keys(cfg, component, unit_arguments), depth, argument_keys(cfg, component, depth_args))
+              for component, declared in asked(cfg, "LAYERS")
+              for units, depth, unit_arguments, depth_args in [declared(component.config)]]
+    if not layers:
+        return None
+    units = max(layers, key=lambda layer: layer[0])
+    depth = max(layers, key=lambda layer: layer[2])
+    return (units[0], units[1]), (depth[2], depth[3])
+
+
+def check_activations(cfg: DictConfig, training: bool) -> None:
+    """A ConfigError naming every setting the estimate multiplies where a batch of rays (``BATCHES``, and each
+    component's ``RAYS``: a test-time fit's step) through the networks would need more than the machine's
+    memory: rays x samples per ray (the sampler's ``SAMPLES_PER_RAY``) x the widest layer x the most layers
+    (``LAYERS``), every layer's outputs kept where the batch is trained (``nerfexp.memory.network_bytes``)."""
+    samples, layers = samples_per_ray(cfg), widest(cfg)
+    if samples is None or layers is None:
+        return
+    (count, sample_keys), ((width, width_keys), (depth, depth_keys)) = samples, layers
+    batches = [(OmegaConf.select(cfg, key), [key], what, trained) for key, what, trained in BATCHES
+               if training or not trained]
+    batches += [(rays, argument_keys(cfg, component, arguments), what, True)
+                for component, declared in asked(cfg, "RAYS")
+                for rays, arguments, what in [declared(component.config)]]
+    for rays, keys, what, kept in batches:
+        require_memory(settings_named(cfg, [*keys, *sample_keys, *width_keys, *depth_keys]),
+                       f"{what} of {rays} rays x {count} samples through {depth} layers of {width} units",
+                       network_bytes(rays, count, width, depth, kept))
+
+
+def training_views(cfg: DictConfig) -> tuple[int, list[str]]:
+    """The scene's training views (at least one) and the keys that set them (``TRAINING_VIEWS``)."""
+    for component, views in asked(cfg, "TRAINING_VIEWS"):
+        count, arguments = views(component.config)
+        return count, argument_keys(cfg, component, arguments)
+    return 1, []
 
 
 def check_memory(cfg: DictConfig, training: bool = True) -> None:
-    """A ConfigError naming every setting an estimate multiplies (the one a user set among them) where the
-    scene, a training batch (where ``training``), an evaluation chunk, a step of a test-time fit (its rays
-    rendered with every layer's output kept for the backward pass to the fitted vector, as a training batch's),
-    a network's weights, the appearance codes, the hash tables or the occupancy grid would need more than the
-    machine's memory (``nerfexp.memory``)."""
-    data, field = cfg.data, cfg.model.renderer.field
-    if "image_size" in data:
-        views = (data.n_train or 0) + data.n_val + data.n_test
-        keys = ["data.image_size", *(["data.supersample"] if "supersample" in data else []),
-                "data.n_train", "data.n_val", "data.n_test"]
-        needed = scene_bytes(views, data.image_size, data.image_size, data.get("supersample", 1))
-        require_memory(settings_named(cfg, keys), f"a scene of {views} views of {data.image_size} x "
-                       f"{data.image_size} pixels", needed)
-    samples = samples_per_ray(cfg)
-    hidden = cfg.view_dependence.get("hidden", 0)
-    width, width_key = max((field.width, "model.renderer.field.width"), (hidden, "view_dependence.hidden"))
-    batches = [("model.chunk", "an evaluation chunk", False)]
-    if training:
-        batches.insert(0, ("datamodule.batch_rays", "a training batch", True))
-    batches += [(f"{key}.rays", what, True) for key, what in TEST_TIME_FITS  # where a fit is set, with its rays
-                if OmegaConf.select(cfg, f"{key}.rays") is not None]
-    for key, what, kept in batches:
-        rays = OmegaConf.select(cfg, key)
-        needed = network_bytes(rays, samples, width, field.depth, kept)
-        require_memory(settings_named(cfg, [key, *sample_keys(cfg), width_key, "model.renderer.field.depth"]),
-                       f"{what} of {rays} rays x {samples} samples through {field.depth} layers of {width} units",
-                       needed)
-    networks = [("model.renderer.field", "a field"), ("view_dependence", "a view head")]
-    if cfg.model.renderer.hierarchical == "proposal":
-        networks.append(("proposal.network", "a proposal network"))
-    for key, what in networks:
-        network = OmegaConf.select(cfg, key)
-        size, depth = (network.get("width", network.get("hidden")), network.get("depth", 1))
-        if size is not None:
-            size_key = f"{key}.width" if "width" in network else f"{key}.hidden"
-            keys = [size_key, *([f"{key}.depth"] if "depth" in network else [])]
-            require_memory(settings_named(cfg, keys), f"training {what} of {depth} layers of {size} units",
-                           parameter_bytes(size, depth))
-    embedding = OmegaConf.select(cfg, "model.renderer.appearance")
-    if embedding is not None:
-        views = data.get("n_train") or 1  # null: every training view of the scene, at least one
-        keys = ["model.renderer.appearance.dim", *(["data.n_train"] if "n_train" in data else [])]
-        require_memory(settings_named(cfg, keys), f"training the appearance codes of {views} views of "
-                       f"{embedding.dim} numbers", codes_bytes(views, embedding.dim))
-    position = cfg.encoding.position
-    if "log2_table_size" in position:
-        needed = hash_table_bytes(position.n_levels, position.log2_table_size, position.features_per_level)
-        keys = [f"encoding.position.{key}" for key in ("n_levels", "log2_table_size", "features_per_level")]
-        require_memory(settings_named(cfg, keys), f"a hash encoding of {position.n_levels} levels", needed)
-    grid = cfg.acceleration.get("grid")
-    if grid is not None:
-        require_memory(settings_named(cfg, ["acceleration.grid.resolution"]),
-                       f"an occupancy grid of {grid.resolution}^3 cells", grid_bytes(grid.resolution))
-
-
-def check_hash_levels(cfg: DictConfig) -> None:
-    """A ConfigError where a hash grid encoding's coarsest resolution is above its finest."""
-    position = cfg.encoding.position
-    if "coarsest" in position and "finest" in position and position.coarsest > position.finest:
-        raise ConfigError(f"{settings_named(cfg, ['encoding.position.coarsest', 'encoding.position.finest'])}: "
-                          "expected coarsest <= finest (the levels' resolutions go from one to the other)")
+    """A ConfigError naming every setting an estimate multiplies (the one a user set among them) where a batch of
+    rays through the networks (``check_activations``), or what a component holds once built (its ``MEMORY``:
+    a scene's images, a network's weights, the hash tables, the occupancy grid; ``MEMORY_PER_VIEW``: per
+    training view, the appearance codes) would need more than the machine's memory (``nerfexp.memory``).
+    ``training``: False for a run read back, whose training batch is not estimated."""
+    check_activations(cfg, training)
+    views, view_keys = training_views(cfg)
+    for component in components(cfg):
+        items = [(argument_keys(cfg, component, arguments), what, needed)
+                 for arguments, what, needed in getattr(component.cls, "MEMORY", lambda config: [])(component.config)]
+        per_view = getattr(component.cls, "MEMORY_PER_VIEW", None)
+        if per_view is not None:
+            items += [([*argument_keys(cfg, component, arguments), *view_keys], what, needed)
+                      for arguments, what, needed in per_view(component.config, views)]
+        for keys, what, needed in items:
+            require_memory(settings_named(cfg, keys), what, needed)
 
 
 SPARSE_OPTIMIZERS = ("nerfexp.training.optimizers.LazyAdam",)  # take the hash table's sparse gradients
 
 
 def check_sparse_gradients(cfg: DictConfig) -> None:
-    """A ConfigError where the hash table's gradients are sparse and the optimizer is not one of
-    ``SPARSE_OPTIMIZERS`` (torch.optim.Adam stops at the first step on a sparse gradient)."""
-    if not OmegaConf.select(cfg, "encoding.position.sparse_gradients", default=False):
-        return
+    """A ConfigError where a component's gradients are sparse (its ``SPARSE_GRADIENTS``: the boolean arguments
+    that, true, make them so) and the optimizer is not one of ``SPARSE_OPTIMIZERS`` (torch.optim.Adam stops at
+    the first step on a sparse gradient)."""
     target = OmegaConf.select(cfg, "model.optimizer._target_")
-    if target not in SPARSE_OPTIMIZERS:
-        optimizer = named(cfg, "model.optimizer._target_", target)
-        raise ConfigError(f"encoding.position.sparse_gradients=true and {optimizer}: expected an optimizer that "
-                          f"takes sparse gradients ({', '.join(SPARSE_OPTIMIZERS)}), or set "
-                          "encoding.position.sparse_gradients=false")
+    if target in SPARSE_OPTIMIZERS:
+        return
+    for component, sparse in asked(cfg, "SPARSE_GRADIENTS"):
+        for key in argument_keys(cfg, component, sparse(component.config)):
+            raise ConfigError(f"{named(cfg, key, 'true')} and {named(cfg, 'model.optimizer._target_', target)}: "
+                              f"expected an optimizer that takes sparse gradients ({', '.join(SPARSE_OPTIMIZERS)}), "
+                              f"or set {source_key(cfg, key)}=false")
 
 
-def check_contraction(cfg: DictConfig) -> None:
-    """A ConfigError where a contraction meets NDC rays (``data.ndc=true``): NDC already maps a forward-facing
-    scene's unbounded depth into [0, 1], and a contraction of NDC positions would squeeze nothing."""
-    if OmegaConf.select(cfg, "contraction.function") is not None and OmegaConf.select(cfg, "data.ndc", default=False):
-        raise ConfigError("contraction=mipnerf360 and data.ndc=true: NDC rays already bound a forward-facing scene's "
-                          "depth; set data.ndc=false (with data.near and data.far) to contract world positions, or "
-                          "contraction=none")
-
-
-def check_camera_opt(cfg: DictConfig) -> None:
-    """A ConfigError where camera refinement (``model.camera_opt``, or the test cameras' ``model.test_camera_fit``)
-    meets NDC rays (``data.ndc=true``): its corrections turn and move world rays, and the loader has made NDC rays
-    of them before the module sees them."""
-    if OmegaConf.select(cfg, "model.camera_opt") is not None and OmegaConf.select(cfg, "data.ndc", default=False):
-        raise ConfigError("camera_opt=so3xr3: the corrections move world rays, and data.ndc=true trains on NDC rays; "
-                          "set data.ndc=false (with data.near and data.far) to refine an LLFF scene's cameras")
-    if OmegaConf.select(cfg, "model.test_camera_fit") is not None and OmegaConf.select(cfg, "data.ndc", default=False):
-        raise ConfigError("test_cameras=refined: the fit turns and moves world rays, and data.ndc=true scores NDC "
-                          "rays; set data.ndc=false (with data.near and data.far), or test_cameras=given")
+def check_world_rays(cfg: DictConfig) -> None:
+    """A ConfigError where a component that works on world rays (its ``WORLD_RAYS``: the refusal, in words, given
+    the setting that makes the scene's rays NDC and the way back to world rays) meets a scene whose rays are NDC
+    rays (its ``NDC``: the boolean arguments that, true, make them so, and the ones to set instead)."""
+    ndc = [(argument_keys(cfg, scene, arguments), argument_keys(cfg, scene, instead))
+           for scene, declared in asked(cfg, "NDC") for arguments, instead in [declared(scene.config)] if arguments]
+    if not ndc:
+        return
+    keys, instead = ndc[0]
+    setting = ", ".join(named(cfg, key, "true") for key in keys)
+    back = (f"{', '.join(f'{source_key(cfg, key)}=false' for key in keys)} "
+            f"(with {' and '.join(source_key(cfg, key) for key in instead)})")
+    for _, refusal in asked(cfg, "WORLD_RAYS"):
+        raise ConfigError(refusal(setting, back))
 
 
 def check_extras(cfg: DictConfig) -> None:
     """A MissingExtraError (a ConfigError) where the config asks for a part of nerfexp whose optional
-    package is not installed (``nerfexp.extras``)."""
-    if str(OmegaConf.select(cfg, "data._target_", default="")).startswith("nerfexp.data.colmap."):
-        require("pycolmap", "data=colmap")
-    if OmegaConf.select(cfg, "data.video", default=None, throw_on_missing=False) is not None:
-        require("imageio_ffmpeg", "data.video")
+    package is not installed (``nerfexp.extras``: ``TARGETS_NEEDING``, ``SETTINGS_NEEDING``)."""
+    for key, target in entries(OmegaConf.to_container(cfg, resolve=False)):
+        if key.endswith("._target_") and isinstance(target, str):
+            for prefix, (module, needed_for) in TARGETS_NEEDING.items():
+                if target.startswith(prefix):
+                    require(module, needed_for)
+    for key, module in SETTINGS_NEEDING.items():
+        if OmegaConf.select(cfg, key, default=None, throw_on_missing=False) is not None:
+            require(module, key)
 
 
 def check_lpips(cfg: DictConfig) -> None:
@@ -260,7 +220,8 @@ def check_settings(cfg: DictConfig, training: bool = True, scoring: bool = True)
     optional package (first: a component whose package is missing cannot say what its settings are), then the
     first setting that is out of its domain (``check_rules``), a frequency float32 cannot resolve, a skip
     connection past the field's depth, hash grid levels out of order, ray bounds with near not before far,
-    sparse gradients without an optimizer that takes them, a size that would not fit in memory, or LPIPS weights
+    sparse gradients without an optimizer that takes them, a component that needs world rays with NDC rays, a size
+    that would not fit in memory, or LPIPS weights
     that must be there and are not (where ``scoring``). ``training``: False for a run read back
     (``check_run_settings``)."""
     missing = sorted(key for key, value in checked_settings(cfg) if value is MISSING)
@@ -270,13 +231,9 @@ def check_settings(cfg: DictConfig, training: bool = True, scoring: bool = True)
     enabled()  # the kernels' switch, read now so that a value it does not take stops the run before any work
     check_extras(cfg)  # first: a component whose package is missing cannot say what its settings are
     check_rules(cfg, strict=training)
-    check_frequencies(cfg)
-    check_skips(cfg)
-    check_hash_levels(cfg)
-    check_ray_bounds(cfg)
+    check_consistent(cfg)
     check_sparse_gradients(cfg)
-    check_contraction(cfg)
-    check_camera_opt(cfg)
+    check_world_rays(cfg)
     check_memory(cfg, training)
     if scoring:
         check_lpips(cfg)

@@ -81,7 +81,8 @@ def lightning_strategies() -> tuple[str, ...]:
 # Adam's eps (added to the gradients' scale) and the weight decay are fractions, as its learning rate
 # (``nerfexp.domains.LEARNING_RATE``)
 ADAM_EPS = real(0, 1, above=True)
-# gamma(s x): a scale above 2^18 puts even the lowest frequency past float32's (and with n_freqs, check_frequencies)
+# gamma(s x): a scale above 2^18 puts even the lowest frequency past float32's (and with the frequencies: the
+# encoding's CONSISTENT)
 INPUT_SCALE = real(0, 2.0 ** FLOAT32_TOP_OCTAVE, above=True)
 TARGET = ("a dotted Python name (module.Class)", lambda v: isinstance(v, str) and v != "")
 BETAS = ("[beta1, beta2], each a finite number in [0, 1)",

@@ -2,16 +2,19 @@
 (``ROOTS``: the model, the data module, the trainer, ...) holds it, directly or through the references that
 carry it there (``model.optimizer.lr: ${scale.lr}``, ``datamodule.scene: ${data}``), and no component on the way
 declares it idle: a component's ``APPLIES`` (``nerfexp.domains``) says when one of its arguments does nothing
-(``VolumeRenderer``'s ``n_fine`` without the hierarchy), and ``CROSSING`` holds the few rules that span several
-components. A key nothing reads (``scale.lr`` where ``optimizer=ngp`` sets its own rate) is named with the
-choice that left it unread and the options that read it.
+(``VolumeRenderer``'s ``n_fine`` without the hierarchy). A scene's setting that only other components read (its
+``SERVES``: the box) does nothing unless a component built reads it (their ``SCENE_FIELDS``), and a component built
+may take a scene setting's place (its ``REPLACES_SCENE``: a contraction's box and far); ``CROSSING`` holds the rules
+of the keys no component owns. A key nothing reads (``scale.lr`` where ``optimizer=ngp`` sets its own rate) is
+named with the choice that left it unread and the options that read it, found by reading the options' files.
 
 A user's override of a key that does nothing stops a single run (``check_used``); in a sweep, whose jobs combine
 values, the job runs and its record holds null for it (``without_unused``).
 """
 
 import functools
-from collections.abc import Callable, Mapping
+import io
+from collections.abc import Callable, Iterator, Mapping
 from importlib.resources import files
 
 from hydra.core.hydra_config import HydraConfig
@@ -19,38 +22,37 @@ from omegaconf import DictConfig, OmegaConf
 
 from nerfexp.config_keys import entries, reference
 from nerfexp.errors import ConfigError
+from nerfexp.settings.components import ROOTS, components
 from nerfexp.settings.schema import component_class, matching
-
-ROOTS = ("model", "datamodule", "trainer", "callbacks", "logger", "seed", "threads", "test_budgets", "resume", "tags",
-         "notes")
 
 
 def lpips_scored(cfg: DictConfig) -> str | None:
     return None if cfg.model.lpips is not False else "model.lpips=false (LPIPS is not scored)"
 
 
-def boxed(cfg: DictConfig) -> str | None:
-    if OmegaConf.select(cfg, "contraction.function") is not None:
-        return "contraction=mipnerf360 (the grids work in the contraction's box, [-2, 2]^3)"
-    uses = OmegaConf.select(cfg, "acceleration.grid") is not None or "log2_table_size" in cfg.encoding.position
-    return None if uses else "acceleration=none and encoding other than hashgrid (nothing reads the box)"
-
-
-def far_bounded(cfg: DictConfig) -> str | None:
-    if OmegaConf.select(cfg, "contraction.function") is not None:
-        return "contraction=mipnerf360 (rays end contraction.function.far radii away)"
-    return None
-
-
-# Rules that span components (key pattern -> why it is unused, or None): the box serves the grid or the hash grid,
-# the far bound rays without a contraction (the scene reads it too, for its box), the weights the LPIPS scorer of
+# Rules of keys no component owns (key pattern -> why it is unused, or None): the weights serve the LPIPS scorer of
 # the module.
 CROSSING: dict[str, Callable[[DictConfig], str | None]] = {
-    "data.aabb": boxed,
-    "data.far": far_bounded,
     "model.lpips_weights": lpips_scored,
     "model.lpips_custom": lpips_scored,
 }
+
+
+def scene_reason(cfg: DictConfig, key: str, chosen: Mapping) -> str | None:
+    """Why ``key``, a setting of a scene the config builds, does nothing: a component built takes its place
+    (``REPLACES_SCENE``), or it is one the scene holds for other components (``SERVES``) and none built reads it
+    (``SCENE_FIELDS``); None where neither."""
+    section, _, argument = key.rpartition(".")
+    built = list(components(cfg))
+    if not any(c.key == section and hasattr(c.cls, "SERVES") for c in built):
+        return None
+    for component in built:
+        if (reason := getattr(component.cls, "REPLACES_SCENE", {}).get(argument)) is not None:
+            return reason
+    serves = next(c.cls.SERVES for c in built if c.key == section)
+    if argument not in serves or any(argument in getattr(c.cls, "SCENE_FIELDS", ()) for c in built):
+        return None
+    return described(options_with(lambda cls: argument in getattr(cls, "SCENE_FIELDS", ())), key, chosen)
 
 
 def overridden_key(override: str) -> str:
@@ -84,34 +86,67 @@ def idle_reason(cfg: DictConfig, key: str) -> str | None:
 
 
 @functools.cache
-def options_reading(key: str) -> dict[str, list[str]]:
-    """The options of nerfexp's config groups whose file reads ``key`` (``${key}``): {group: [option, ...]}."""
-    found: dict[str, list[str]] = {}
-    for folder in files("nerfexp.conf").iterdir():
+def option_files() -> tuple[tuple[str, str, dict], ...]:
+    """Every option of nerfexp's config groups, read as YAML, unresolved: (group, option, its plain content)."""
+    found = []
+    for folder in sorted(files("nerfexp.conf").iterdir(), key=lambda path: path.name):
         if folder.is_dir():
             for option in sorted(folder.iterdir(), key=lambda path: path.name):
-                if option.name.endswith(".yaml") and f"${{{key}}}" in option.read_text():
-                    found.setdefault(folder.name, []).append(option.name.removesuffix(".yaml"))
+                if option.name.endswith(".yaml"):
+                    content = OmegaConf.to_container(OmegaConf.load(io.StringIO(option.read_text())), resolve=False)
+                    found.append((folder.name, option.name.removesuffix(".yaml"), content or {}))
+    return tuple(found)
+
+
+def options_where(test: Callable[[dict], bool]) -> dict[str, list[str]]:
+    """The options whose content passes ``test``: {group: [option, ...]}."""
+    found: dict[str, list[str]] = {}
+    for group, option, content in option_files():
+        if test(content):
+            found.setdefault(group, []).append(option)
     return found
 
 
+@functools.cache
+def options_reading(key: str) -> dict[str, list[str]]:
+    """The options of nerfexp's config groups whose file reads ``key`` (a value ``${key}``): {group: [option, ...]}."""
+    return options_where(lambda content: any(reference(value) == key for _, value in entries(content)))
+
+
+def targets(content: dict) -> Iterator[type]:
+    """The classes of the components an option's ``content`` sets (``component_class`` of each ``_target_``)."""
+    for key, value in entries(content):
+        if key.rpartition(".")[2] == "_target_" and (cls := component_class(value)) is not None:
+            yield cls
+
+
+def options_with(test: Callable[[type], bool]) -> dict[str, list[str]]:
+    """The options that set a component whose class passes ``test``: {group: [option, ...]}."""
+    return options_where(lambda content: any(map(test, targets(content))))
+
+
 def chooser(group: str, option: str, chosen: Mapping) -> str:
-    """`` (chosen by GROUP=OPTION)`` where another chosen option's defaults chose ``group``'s ``option``."""
+    """``, which OTHER=OPTION chooses`` where another chosen option's defaults chose ``group``'s ``option``."""
+    choosing = {(other, other_option) for other, other_option, content in option_files()
+                if any(isinstance(entry, dict) and entry.get(f"override /{group}") == option
+                       for entry in content.get("defaults", []))}
     for other, other_option in chosen.items():
-        path = files("nerfexp.conf") / other / f"{other_option}.yaml"
-        if other != group and isinstance(other_option, str) and path.is_file() \
-                and f"override /{group}: {option}" in path.read_text():
+        if other != group and (other, other_option) in choosing:
             return f", which {other}={other_option} chooses"
     return ""
 
 
-def unread_reason(key: str, chosen: Mapping) -> str:
-    """Why nothing reads ``key``: the chosen options of the groups whose other options read it."""
-    reading = options_reading(key)
+def described(reading: dict[str, list[str]], key: str, chosen: Mapping) -> str:
+    """Why ``key`` is unread: the chosen options of the groups whose other options (``reading``) read it."""
     said = [f"{group}={chosen.get(group)}{chooser(group, chosen.get(group), chosen)} ({group}="
             f"{', '.join(options)} read{'s' if len(options) == 1 else ''} {key})" for group, options in reading.items()
             if chosen.get(group) not in options]
     return "; ".join(said) or "this config (nothing in it reads the key)"
+
+
+def unread_reason(key: str, chosen: Mapping) -> str:
+    """Why nothing reads ``key``: the chosen options of the groups whose other options read it."""
+    return described(options_reading(key), key, chosen)
 
 
 def unused_reason(cfg: DictConfig, key: str, chosen: Mapping, plain: dict | None = None,
@@ -119,6 +154,8 @@ def unused_reason(cfg: DictConfig, key: str, chosen: Mapping, plain: dict | None
     """Why ``key`` does nothing in ``cfg`` (its groups' options ``chosen``), or None where it does something
     (see the module's docstring)."""
     if (pattern := matching(CROSSING, key)) is not None and (reason := CROSSING[pattern](cfg)):
+        return reason
+    if reason := scene_reason(cfg, key, chosen):
         return reason
     if key.split(".")[0] in ROOTS:
         return idle_reason(cfg, key)
