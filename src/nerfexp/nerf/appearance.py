@@ -13,14 +13,9 @@ from typing import ClassVar
 import torch
 from torch import Tensor, nn
 
-<<<<<<< HEAD
-from nerfexp.domains import COUNT, Rule, choice
+from nerfexp.domains import COUNT, Memory, Rule, choice
 from nerfexp.nerf.frozen_fit import FrozenFit
-=======
-from nerfexp.domains import COUNT, Memory, Rule, choice, real
-from nerfexp.nerf.frozen_fit import fit_frozen
 from nerfexp.sizes import codes_bytes
->>>>>>> i53-settings
 
 # How a test image is scored (``results.json``'s ``test_protocol``): the whole image with the model's code for
 # an unseen image (``AppearanceEmbedding.test_code``), or NeRF-W's: the image's own code fitted on its left half
