@@ -30,8 +30,8 @@ from nerfexp.memory import (
     scene_bytes,
 )
 from nerfexp.settings.rows import check_row
-from nerfexp.settings.schema import FLOAT32_TOP_OCTAVE, PASSED_ON, REFERENCES, matching, rule_of
-from nerfexp.settings.unused import check_used
+from nerfexp.settings.schema import FLOAT32_TOP_OCTAVE, PASSED_ON, REFERENCES, component_class, matching, rule_of
+from nerfexp.settings.unused import check_used, idle_reason
 from nerfexp.training.perceptual import check_weights_file
 
 
@@ -96,34 +96,42 @@ def check_ray_bounds(cfg: DictConfig) -> None:
                           "expected near < far (the rays are sampled between them)")
 
 
+SAMPLER = "model.renderer.sampler"  # the renderer's sampler (conf/sampler/)
+
+
+def sampler_networks(cfg: DictConfig, key: str = SAMPLER) -> list[str]:
+    """The dotted keys of the networks the renderer's sampler builds (the proposal networks of
+    ``hierarchical=proposal``): the sections below ``key`` that name a class (``_target_``) and have a ``depth``,
+    where no component on the way leaves them idle (its ``APPLIES``: ``nerfexp.settings.unused.idle_reason``)."""
+    node = OmegaConf.select(cfg, key)
+    if not isinstance(node, DictConfig) or (key != SAMPLER and idle_reason(cfg, key) is not None):
+        return []
+    own = [key] if key != SAMPLER and "_target_" in node and "depth" in node else []
+    return own + [found for name in node if isinstance(name, str)
+                  for found in sampler_networks(cfg, f"{key}.{name}")]
+
+
 def check_skips(cfg: DictConfig) -> None:
     """A ConfigError where a network's skip connections name a layer it does not have (1..depth-1): the
-    field's, and with ``hierarchical=proposal`` the proposal networks'."""
-    networks = {"model.renderer.field": cfg.model.renderer.field}
-    if cfg.model.renderer.hierarchical == "proposal":
-        networks["proposal.network"] = cfg.proposal.network
-    for key, network in networks.items():
+    field's, and the sampler's networks' (``sampler_networks``)."""
+    for key in ["model.renderer.field", *(source_key(cfg, k) for k in sampler_networks(cfg))]:
+        network = OmegaConf.select(cfg, key)
         skips = list(network.skips)
         if not all(1 <= s < network.depth for s in skips):
             raise ConfigError(f"{named(cfg, f'{key}.skips', skips)}: layer indices must be in "
                               f"1..{network.depth - 1} for depth {network.depth}")
 
 
-def samples_per_ray(cfg: DictConfig) -> int:
-    """The network evaluations per ray: coarse + (coarse + fine) samples, the single network's, or the
-    proposal rounds' and the field's (counted as the field's, an upper bound on their memory)."""
-    renderer = cfg.model.renderer
-    if renderer.hierarchical == "proposal":
-        return sum(cfg.proposal.n_samples) + cfg.proposal.n_final
-    return 2 * renderer.n_coarse + renderer.n_fine if renderer.hierarchical else renderer.n_single
-
-
-def sample_keys(cfg: DictConfig) -> list[str]:
-    """The keys whose values ``samples_per_ray`` adds up."""
-    hierarchical = cfg.model.renderer.hierarchical
-    if hierarchical == "proposal":
-        return ["proposal.n_samples", "proposal.n_final"]
-    return ["model.renderer.n_coarse", "model.renderer.n_fine"] if hierarchical else ["model.renderer.n_single"]
+def sampler_samples(cfg: DictConfig) -> tuple[int, list[str]] | None:
+    """The network evaluations per ray of the renderer's sampler, and the keys that set them, as its class says
+    (``SAMPLES_PER_RAY``, ``nerfexp.domains``: for the proposals, the rounds' and the field's, counted as the
+    field's, an upper bound on their memory); None where its class says nothing."""
+    sampler = OmegaConf.select(cfg, SAMPLER)
+    counted = getattr(component_class(sampler.get("_target_")), "SAMPLES_PER_RAY", None)
+    if counted is None:
+        return None
+    count, names = counted(OmegaConf.to_container(sampler, resolve=True))
+    return count, [f"{SAMPLER}.{name}" for name in names]
 
 
 def settings_named(cfg: DictConfig, keys: list[str]) -> str:
@@ -149,7 +157,7 @@ def check_memory(cfg: DictConfig, training: bool = True) -> None:
         needed = scene_bytes(views, data.image_size, data.image_size, data.get("supersample", 1))
         require_memory(settings_named(cfg, keys), f"a scene of {views} views of {data.image_size} x "
                        f"{data.image_size} pixels", needed)
-    samples = samples_per_ray(cfg)
+    sampled = sampler_samples(cfg)
     hidden = cfg.view_dependence.get("hidden", 0)
     width, width_key = max((field.width, "model.renderer.field.width"), (hidden, "view_dependence.hidden"))
     batches = [("model.chunk", "an evaluation chunk", False)]
@@ -157,15 +165,15 @@ def check_memory(cfg: DictConfig, training: bool = True) -> None:
         batches.insert(0, ("datamodule.batch_rays", "a training batch", True))
     batches += [(f"{key}.rays", what, True) for key, what in TEST_TIME_FITS  # where a fit is set, with its rays
                 if OmegaConf.select(cfg, f"{key}.rays") is not None]
-    for key, what, kept in batches:
+    samples, sample_keys = sampled if sampled is not None else (0, [])
+    for key, what, kept in batches if sampled is not None else ():
         rays = OmegaConf.select(cfg, key)
         needed = network_bytes(rays, samples, width, field.depth, kept)
-        require_memory(settings_named(cfg, [key, *sample_keys(cfg), width_key, "model.renderer.field.depth"]),
+        require_memory(settings_named(cfg, [key, *sample_keys, width_key, "model.renderer.field.depth"]),
                        f"{what} of {rays} rays x {samples} samples through {field.depth} layers of {width} units",
                        needed)
     networks = [("model.renderer.field", "a field"), ("view_dependence", "a view head")]
-    if cfg.model.renderer.hierarchical == "proposal":
-        networks.append(("proposal.network", "a proposal network"))
+    networks += [(source_key(cfg, key), "a network of the sampler") for key in sampler_networks(cfg)]
     for key, what in networks:
         network = OmegaConf.select(cfg, key)
         size, depth = (network.get("width", network.get("hidden")), network.get("depth", 1))
