@@ -2,7 +2,7 @@
 (``ROOTS``: the model, the data module, the trainer, ...) holds it, directly or through the references that
 carry it there (``model.optimizer.lr: ${scale.lr}``, ``datamodule.scene: ${data}``), and no component on the way
 declares it idle: a component's ``APPLIES`` (``nerfexp.domains``) says when one of its arguments does nothing
-(``VolumeRenderer``'s ``n_fine`` without the hierarchy), and ``CROSSING`` holds the few rules that span several
+(``HierarchyChoice``'s ``n_fine`` without the hierarchy), and ``CROSSING`` holds the few rules that span several
 components. A key nothing reads (``scale.lr`` where ``optimizer=ngp`` sets its own rate) is named with the
 choice that left it unread and the options that read it.
 
@@ -169,7 +169,7 @@ def has_key(plain: dict, key: str) -> bool:
 def without_unused(cfg: DictConfig, resolved: dict, overrides: list[str]) -> dict:
     """``resolved`` (``cfg`` resolved, as a run records it) with null for each key of ``overrides`` (unused
     settings of a sweep's job, ``unused_settings``) and for each key that is a plain interpolation of one
-    (``model.renderer.n_fine: ${scale.n_fine}``): the record says what the run used, not what was asked."""
+    (``sampler.n_fine: ${scale.n_fine}``): the record says what the run used, not what was asked."""
     keys = {overridden_key(o) for o in overrides}
     keys |= {key for key, raw in entries(OmegaConf.to_container(cfg, resolve=False)) if reference(raw) in keys}
     recorded = OmegaConf.create(resolved)
