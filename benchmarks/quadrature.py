@@ -33,6 +33,7 @@ from tests.analytic import GaussianBlob, Shell, Slab, aimed_rays, cost_for_error
 
 from nerfexp.files import atomic_write
 from nerfexp.nerf.backgrounds import BACKGROUNDS
+from nerfexp.nerf.hierarchy import HierarchyChoice
 from nerfexp.nerf.volume_renderer import VolumeRenderer, final_output
 from nerfexp.rundir.layout import machine
 
@@ -55,7 +56,8 @@ TARGETS = (1e-2, 1e-3)
 
 def renderer(field, n_coarse: int, n_fine: int) -> VolumeRenderer:
     hierarchical = n_fine > 0
-    return VolumeRenderer(lambda: field, hierarchical, n_coarse, n_fine, n_coarse, NEAR, FAR, BACKGROUND)
+    return VolumeRenderer(lambda: field, HierarchyChoice(hierarchical, n_coarse, n_fine, n_coarse), NEAR, FAR,
+                          BACKGROUND)
 
 
 def render(model: VolumeRenderer, origins, directions) -> tuple[dict, float]:

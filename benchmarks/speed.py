@@ -36,6 +36,7 @@ from matplotlib.figure import Figure
 from torch.profiler import ProfilerActivity, profile
 
 from nerfexp.files import atomic_write
+from nerfexp.nerf.proposal import ProposalSampler
 from nerfexp.training.callbacks import FlushDenormals
 from nerfexp.training.module import regularizer_sums, seeded_random
 from nerfexp.training.precision import fill_precision
@@ -120,7 +121,8 @@ def train(cfg, datamodule) -> tuple[L.LightningModule, dict]:
         "s_per_step": clock.train_s / steps,
         "evaluations_per_ray": float(model.renderer.evaluations_per_ray),
         # of which by the proposal networks (hierarchical=proposal), small density-only ones
-        "proposal_samples_per_ray": sum(model.renderer.proposal.n_samples) if model.renderer.proposal else 0,
+        "proposal_samples_per_ray": (sum(model.renderer.sampler.n_samples)
+                                     if isinstance(model.renderer.sampler, ProposalSampler) else 0),
         "final_val_psnr": clock.curve[-1][2], "test_psnr": clock.test_psnr,
         "curve": [{"step": s, "train_s": round(t, 2), "val_psnr": round(p, 3)} for s, t, p in clock.curve],
     }

@@ -25,8 +25,7 @@ from tests.helpers import one_error_line, run_nerfexp
     (["trainer.max_steps=0"], "trainer.max_steps=0: expected a whole number in [1, 2^63 - 1]"),
     (["scale.val_every=0"], "scale.val_every=0 (which sets trainer.val_check_interval): expected a whole number in "
                             "[1, 2^63 - 1]"),
-    (["scale.n_coarse=0"], "scale.n_coarse=0 (which sets model.renderer.n_coarse): expected a whole number in "
-                           "[1, 2^63 - 1]"),
+    (["scale.n_coarse=0"], "scale.n_coarse=0 (which sets sampler.n_coarse): expected a whole number in [1, 2^63 - 1]"),
     (["encoding.position.n_freqs=-1"], "encoding.position.n_freqs=-1: expected a whole number in [0, 2^63 - 1]"),
     (["encoding.position.n_freqs=60"], "encoding.position.n_freqs=60, scale.position_input_scale=1.0 (which sets "
                                        "encoding.position.input_scale): expected at most 19 frequencies with "
@@ -45,7 +44,7 @@ from tests.helpers import one_error_line, run_nerfexp
     (["data.far=1e308"], "data.far=1e+308 (which sets model.renderer.far): expected a finite number > 0 and <= 2^24, "
                          "or null (from the scene)"),
     (["hierarchical=false", "scale.n_fine=64"], "scale.n_fine=64: not used with hierarchical=false (one network of "
-                                                "model.renderer.n_single samples; set scale.n_single)"),
+                                                "sampler.n_single samples; set scale.n_single)"),
     (["encoding=bogus"], "encoding=bogus: no such option (choose from hashgrid, none, posenc)"),
     (["scale.lrr=1"], "scale.lrr=1: no such key (scale has steps, lr, lr_final, lr_warmup_steps, batch_rays, depth, "
                       "width, skips, view_hidden, n_coarse, n_fine, n_single, chunk, val_every, image_size, "

@@ -14,6 +14,7 @@ from omegaconf import OmegaConf
 from nerfexp.nerf.bounds import Bounded
 from nerfexp.nerf.encodings import HashGridEncoding, IdentityEncoding, PositionalEncoding
 from nerfexp.nerf.fields import DiffuseHead, SphericalHarmonicsHead, ViewMLPHead
+from nerfexp.nerf.proposal import ProposalSampler
 from nerfexp.nerf.reflection import ReflectionHead
 
 
@@ -30,11 +31,12 @@ def test_every_combination_builds_and_renders(encoding, view, hierarchical):
     cfg, model = build(f"encoding={encoding}", f"view_dependence={view}", f"hierarchical={hierarchical}")
     renderer = model.renderer
     assert (renderer.fine is not None) == (hierarchical is True)
-    assert (renderer.proposal is not None) == (hierarchical == "proposal")
-    if renderer.proposal is not None:  # one density network per round, each its own copy of the encoding axis's
-        kinds = {type(net.position_encoding) for net in renderer.proposal.networks}
-        assert len(renderer.proposal.networks) == 2 and kinds == {type(renderer.coarse.position_encoding)}
-        assert renderer.proposal.networks[0].trunk[0].weight is not renderer.proposal.networks[1].trunk[0].weight
+    assert isinstance(renderer.sampler, ProposalSampler) == (hierarchical == "proposal")
+    if hierarchical == "proposal":  # one density network per round, each its own copy of the encoding axis's
+        networks = renderer.sampler.networks
+        kinds = {type(net.position_encoding) for net in networks}
+        assert len(networks) == 2 and kinds == {type(renderer.coarse.position_encoding)}
+        assert networks[0].trunk[0].weight is not networks[1].trunk[0].weight
     field = renderer.coarse
     kind = {"none": IdentityEncoding, "posenc": PositionalEncoding, "hashgrid": HashGridEncoding}[encoding]
     assert isinstance(field.position_encoding, kind)

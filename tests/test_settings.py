@@ -92,12 +92,14 @@ def composed(*overrides):
                                   "data.n_train=12, data.n_val=1, data.n_test=10000000000: a scene of 10000000013 "
                                   "views of 24 x 24 pixels needs about "),
     (["scale.batch_rays=100000000"], "scale.batch_rays=100000000 (which sets datamodule.batch_rays), scale.n_coarse=16 "
-                                     "(which sets model.renderer.n_coarse), scale.n_fine=16 (which sets "
-                                     "model.renderer.n_fine), scale.width=32 (which sets model.renderer.field.width), "
+                                     "(which sets sampler.n_coarse), scale.n_fine=16 (which sets "
+                                     "sampler.n_fine), scale.width=32 (which sets "
+                                     "model.renderer.field.width), "
                                      "scale.depth=2 (which sets model.renderer.field.depth): a training batch of "
                                      "100000000 rays x 48 samples through 2 layers of 32 units needs about"),
     (["scale.width=100000000"], "scale.batch_rays=256 (which sets datamodule.batch_rays), scale.n_coarse=16 (which "
-                                "sets model.renderer.n_coarse), scale.n_fine=16 (which sets model.renderer.n_fine), "
+                                "sets sampler.n_coarse), scale.n_fine=16 (which sets "
+                                "sampler.n_fine), "
                                 "scale.width=100000000 (which sets model.renderer.field.width), scale.depth=2"),
     (["scale.width=1000000", "scale.batch_rays=1", "scale.chunk=1"],  # the weights alone: depth x width^2
      "scale.width=1000000 (which sets model.renderer.field.width), scale.depth=2 (which sets "
@@ -114,12 +116,12 @@ def composed(*overrides):
     # 2^40 rays x 48 samples x (8 + 2 x 32) floats x 4 bytes = 2^40 x 13824 bytes = 13.5 PiB
     (["appearance=embedding", "appearance.fit.rays=1099511627776"],
      "appearance.fit.rays=1099511627776, scale.n_coarse=16 (which sets "
-     "model.renderer.n_coarse), scale.n_fine=16 (which sets model.renderer.n_fine), scale.width=32 (which sets "
+     "sampler.n_coarse), scale.n_fine=16 (which sets sampler.n_fine), scale.width=32 (which sets "
      "model.renderer.field.width), scale.depth=2 (which sets model.renderer.field.depth): a step of the test "
      "images' appearance fit of 1099511627776 rays x 48 samples through 2 layers of 32 units needs about 13.5 PiB"),
     (["test_cameras=refined", "test_cameras.fit.rays=1099511627776"],
      "test_cameras.fit.rays=1099511627776, scale.n_coarse=16 (which sets "
-     "model.renderer.n_coarse), scale.n_fine=16 (which sets model.renderer.n_fine), scale.width=32 (which sets "
+     "sampler.n_coarse), scale.n_fine=16 (which sets sampler.n_fine), scale.width=32 (which sets "
      "model.renderer.field.width), scale.depth=2 (which sets model.renderer.field.depth): a step of the test "
      "cameras' fit of 1099511627776 rays x 48 samples through 2 layers of 32 units needs about 13.5 PiB"),
     # 12 codes x 2^40 numbers x 4 copies (the code, its gradient, Adam's two moments) x 4 bytes = 192 TiB
@@ -195,8 +197,8 @@ def test_an_override_that_does_not_apply_is_named_with_the_reason(hydra_configs)
         ("data.aabb=[[0,0,0],[1,1,1]]", "contraction=mipnerf360 (the grids work in the contraction's box, [-2, 2]^3)"),
         ("data.far=100", "contraction=mipnerf360 (rays end contraction.function.far radii away)")]
     assert [reason for _, reason in unused_settings(composed(), ["proposal.n_final=16"])] == [
-        "hierarchical=true (a coarse network of model.renderer.n_coarse samples and a fine one of n_coarse + n_fine; "
-        "set scale.n_coarse and scale.n_fine)"]
+        "hierarchical=true (a coarse network of sampler.n_coarse samples and a fine one of n_coarse + "
+        "n_fine; set scale.n_coarse and scale.n_fine)"]
 
 
 def test_lpips_settings_are_checked_before_any_work_and_may_change_on_resume(hydra_configs, tmp_path, monkeypatch):
@@ -322,7 +324,7 @@ def test_lpips_weights_are_looked_for_only_by_the_command_that_scores(saved_run,
 
 
 RUN_KEYS = ["model.chunk", "scale.chunk", "data.near", "data.far", "data.n_test", "scale.image_size",
-            "data.supersample", "data.background", "model.renderer.n_coarse", "model.renderer.n_fine", "hierarchical",
+            "data.supersample", "data.background", "sampler.n_coarse", "sampler.n_fine", "hierarchical",
             "seed", "model.renderer.field.density_noise_std", "trainer.precision"]
 NUMBER_TEXTS = st.one_of(  # what a user may type as an argument: small, huge, not finite, not a number
     st.integers(-3, 40).map(str), st.integers(2 ** 40, 2 ** 80).map(str),

@@ -67,12 +67,12 @@ def test_ablation_sweeps_are_the_nine_rows_of_table_4(name, scale):
         renderer = cfg.model.renderer
         assert (encoding_l(renderer.field.position_encoding), encoding_l(cfg.encoding.direction)) == (l_x, l_d), row
         assert renderer.field.view_head._target_.endswith("ViewMLPHead" if view_dependent else "DiffuseHead"), row
-        assert (renderer.hierarchical, cfg.data.n_train) == (hierarchical, n_images), row
+        assert (renderer.sampler.hierarchical, cfg.data.n_train) == (hierarchical, n_images), row
         if l_x is not None:  # the paper's gamma(x); at 64 px the CPU rows encode x / 8 (sweeps/cpu_ablation.yaml)
             assert renderer.field.position_encoding.input_scale == (1.0 if scale == "paper" else 0.125), row
         if scale == "paper":  # (Nc, Nf) = (64, 128); without hierarchy one network with Nc = 256
             assert cfg.data._target_.endswith("BlenderScene") and cfg.data.root == "/data/lego"
-            assert (renderer.n_coarse, renderer.n_fine, renderer.n_single) == (64, 128, 256)
+            assert (renderer.sampler.n_coarse, renderer.sampler.n_fine, renderer.sampler.n_single) == (64, 128, 256)
             assert (cfg.scale.width, cfg.scale.depth, cfg.scale.batch_rays) == (256, 8, 4096)
         else:
             assert cfg.data._target_.endswith("ProceduralScene")
@@ -94,7 +94,8 @@ def test_sparse_tables_sweep_pairs_dense_and_sparse_table_gradients_under_one_op
     for config, flag in ((dense, False), (sparse, True)):
         assert config["model"]["renderer"]["field"]["position_encoding"].pop("sparse_gradients") is flag
         # the proposal networks (built only with hierarchical=proposal) take the encoding axis's encoding too
-        assert config["model"]["renderer"]["proposal"]["network"]["position_encoding"].pop("sparse_gradients") is flag
+        proposal = config["model"]["renderer"]["sampler"]["proposal"]
+        assert proposal["network"]["position_encoding"].pop("sparse_gradients") is flag
         assert config["encoding"]["position"].pop("sparse_gradients") is flag
     assert dense == sparse  # nothing else differs
     assert dense["encoding"]["position"]["_target_"].endswith("HashGridEncoding")
@@ -111,7 +112,7 @@ def test_successors_sweep_crosses_the_papers_sampling_and_view_head_with_their_s
             cfg = compose("config", overrides=["+sweeps=successors", *job])
         check_settings(cfg)
         renderer = cfg.model.renderer
-        seen.add((renderer.hierarchical, renderer.field.view_head._target_.rsplit(".", 1)[1], cfg.seed))
+        seen.add((renderer.sampler.hierarchical, renderer.field.view_head._target_.rsplit(".", 1)[1], cfg.seed))
         assert cfg.trainer.max_steps == 1000 and cfg.data._target_.endswith("ProceduralScene")
     assert seen == {(h, head, seed) for h in (True, "proposal") for head in ("ViewMLPHead", "ReflectionHead")
                     for seed in (0, 1, 2)}

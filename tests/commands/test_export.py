@@ -35,6 +35,7 @@ from nerfexp.errors import NerfexpError
 from nerfexp.geometry.cameras import camera_rays, focal_from_fov
 from nerfexp.geometry.lenses import Intrinsics
 from nerfexp.nerf.fields import FieldOutputs
+from nerfexp.nerf.hierarchy import HierarchyChoice
 from nerfexp.nerf.occupancy import OccupancyGrid
 from nerfexp.nerf.volume_renderer import VolumeRenderer
 from nerfexp.pixels import to_uint8
@@ -197,14 +198,15 @@ def test_points_from_the_scenes_exact_depths_lie_on_its_surface_in_the_absorbed_
 
 
 def renderer(grid: OccupancyGrid | None = None) -> VolumeRenderer:
-    return VolumeRenderer(BuiltInSceneField, hierarchical=True, n_coarse=4, n_fine=4, n_single=8, near=NEAR,
-                          far=FAR, grid=grid)
+    return VolumeRenderer(BuiltInSceneField, HierarchyChoice(hierarchical=True, n_coarse=4, n_fine=4, n_single=8),
+                          near=NEAR, far=FAR, grid=grid)
 
 
 def test_the_box_is_the_bounded_modules_else_the_scenes_and_the_field_the_fine_network():
     plain = renderer()
     assert final_field(plain) is plain.fine
-    unhierarchical = VolumeRenderer(BuiltInSceneField, hierarchical=False, n_coarse=4, n_fine=4, n_single=8,
+    unhierarchical = VolumeRenderer(BuiltInSceneField,
+                                    HierarchyChoice(hierarchical=False, n_coarse=4, n_fine=4, n_single=8),
                                     near=NEAR, far=FAR)
     assert final_field(unhierarchical) is unhierarchical.coarse
     scene = ProceduralScene()

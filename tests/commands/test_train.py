@@ -42,7 +42,7 @@ def test_a_short_run_learns_the_scene_and_writes_every_output(tmp_path):
                                   "field": "nerf", "optimizer": "adam", "scale": "cpu", "trainer": "default",
                                   "acceleration": "none", "contraction": "none", "appearance": "none",
                                   "camera_opt": "off", "test_cameras": "given", "callbacks": "default",
-                                  "logger": "tensorboard",
+                                  "logger": "tensorboard", "sampler": "paper",
                                   "hierarchical": True, "seed": 0}
     # the test scored the checkpoint this run wrote, and says which, by path and content
     written = tmp_path / "checkpoints" / "last.ckpt"
@@ -105,8 +105,9 @@ def test_readme_multirun_trains_four_variants(tmp_path, tiny):
         config, hierarchical = r["config"], r["choices"]["hierarchical"]
         unused = ["n_single"] if hierarchical else ["n_coarse", "n_fine"]
         used = ["n_coarse", "n_fine"] if hierarchical else ["n_single"]
-        assert all(config["scale"][k] is None and config["model"]["renderer"][k] is None for k in unused)
-        assert all(config["scale"][k] == config["model"]["renderer"][k] > 0 for k in used)
+        sampler = config["model"]["renderer"]["sampler"]
+        assert all(config["scale"][k] is None and config["sampler"][k] is None and sampler[k] is None for k in unused)
+        assert all(config["scale"][k] == config["sampler"][k] == sampler[k] > 0 for k in used)
     log = (tmp_path / "0" / "nerfexp.log").read_text()
     assert "scale.n_single=48: not used with hierarchical=true" in log
     report = run_nerfexp(str(tmp_path), cwd=tmp_path, script="nerfexp-report")

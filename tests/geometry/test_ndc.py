@@ -6,6 +6,7 @@ import pytest
 import torch
 
 from nerfexp.geometry.ndc import ndc_rays
+from nerfexp.nerf.hierarchy import HierarchyChoice
 from nerfexp.nerf.volume_renderer import VolumeRenderer
 from tests.analytic import Slab
 
@@ -97,7 +98,7 @@ def test_a_longer_direction_with_scaled_bounds_renders_the_same(hierarchical):
     unit = torch.tensor([[0.0, 0.0, -1.0]], dtype=torch.float64)
     renders = []
     for scale in (1.0, 2.0):
-        renderer = VolumeRenderer(RecordingSlab, hierarchical, n_coarse=64, n_fine=128, n_single=256,
+        renderer = VolumeRenderer(RecordingSlab, HierarchyChoice(hierarchical, n_coarse=64, n_fine=128, n_single=256),
                                   near=2.0 / scale, far=6.0 / scale)
         out = renderer(origins, scale * unit, deterministic=True)
         renders.append(out["fine" if hierarchical else "coarse"])
@@ -109,7 +110,8 @@ def test_a_longer_direction_with_scaled_bounds_renders_the_same(hierarchical):
 
 
 def test_the_field_sees_viewdirs_or_else_the_unit_directions():
-    renderer = VolumeRenderer(RecordingSlab, hierarchical=True, n_coarse=4, n_fine=4, n_single=8, near=2.0, far=6.0)
+    renderer = VolumeRenderer(RecordingSlab, HierarchyChoice(hierarchical=True, n_coarse=4, n_fine=4, n_single=8),
+                              near=2.0, far=6.0)
     origins = torch.tensor([[0.0, 0.0, 4.0]])
     directions = torch.tensor([[0.0, 0.0, -2.0]])
     renderer(origins, directions, deterministic=True)

@@ -37,6 +37,7 @@ import pytest
 import torch
 
 from nerfexp.nerf.backgrounds import BACKGROUNDS
+from nerfexp.nerf.hierarchy import HierarchyChoice
 from nerfexp.nerf.volume_renderer import VolumeRenderer
 from tests.analytic import GaussianBlob, Shell, Slab, aimed_rays, cost_for_error, render_errors, segments_truth
 
@@ -161,7 +162,7 @@ def render(field, origins, directions, n, hierarchical, deterministic=True, n_co
     """The final output of the renderer with n samples per ray: n stratified, or n_coarse (n / 4 unless
     given) coarse and n - n_coarse fine; and its network evaluations per ray."""
     n_coarse = n // 4 if n_coarse is None else n_coarse
-    renderer = VolumeRenderer(lambda: field, hierarchical, n_coarse, n - n_coarse, n, NEAR, FAR)
+    renderer = VolumeRenderer(lambda: field, HierarchyChoice(hierarchical, n_coarse, n - n_coarse, n), NEAR, FAR)
     out = renderer(origins, directions, deterministic=deterministic)
     return out["fine" if hierarchical else "coarse"], renderer.evaluations_per_ray
 

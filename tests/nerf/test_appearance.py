@@ -12,6 +12,7 @@ from torch import nn
 from nerfexp.nerf.appearance import AppearanceEmbedding, CodeFit, left_columns
 from nerfexp.nerf.encodings import PositionalEncoding
 from nerfexp.nerf.fields import NeRFField, ViewMLPHead
+from nerfexp.nerf.hierarchy import HierarchyChoice
 from nerfexp.nerf.volume_renderer import VolumeRenderer
 from tests.helpers import tiny_config
 
@@ -120,7 +121,7 @@ def test_appearance_none_leaves_the_papers_model_bit_identical(variant):
 def test_a_renderer_without_codes_refuses_them_and_one_with_codes_defaults_to_its_test_code():
     field = functools.partial(NeRFField, PositionalEncoding(2), functools.partial(ViewMLPHead,
                               direction_encoding=PositionalEncoding(1)), depth=1, width=8, skips=())
-    plain = VolumeRenderer(field, True, 4, 4, 8, 2.0, 6.0)
+    plain = VolumeRenderer(field, HierarchyChoice(True, 4, 4, 8), 2.0, 6.0)
     directions = nn.functional.normalize(torch.randn(3, 3), dim=-1)
     with pytest.raises(ValueError, match="without appearance=embedding"):
         plain(-4 * directions, directions, True, codes=torch.zeros(3, 2))
@@ -128,7 +129,7 @@ def test_a_renderer_without_codes_refuses_them_and_one_with_codes_defaults_to_it
     embedding.set_views(4)
     with torch.no_grad():
         embedding.codes.copy_(torch.randn(4, 2))
-    coded = VolumeRenderer(field, True, 4, 4, 8, 2.0, 6.0, appearance=embedding)
+    coded = VolumeRenderer(field, HierarchyChoice(True, 4, 4, 8), 2.0, 6.0, appearance=embedding)
     default = coded(-4 * directions, directions, True)["fine"]["rgb"]
     given = coded(-4 * directions, directions, True, codes=embedding.test_code().expand(3, -1))["fine"]["rgb"]
     assert torch.equal(default, given)

@@ -18,22 +18,23 @@ from nerfexp.nerf.fields import (
     SphericalHarmonicsHead,
     ViewMLPHead,
 )
+from nerfexp.nerf.hierarchy import HIERARCHIES, HierarchyChoice
 from nerfexp.nerf.occupancy import OccupancyGrid
 from nerfexp.nerf.proposal import ProposalSampler
 from nerfexp.nerf.reflection import ReflectionHead
 from nerfexp.nerf.samplers import HierarchicalSampler, Sampler, StratifiedSampler
-from nerfexp.nerf.volume_renderer import HIERARCHIES, VolumeRenderer
+from nerfexp.nerf.volume_renderer import VolumeRenderer
 from tests.analytic import rays_down_z, slab
 
 CONFIGURED = [PositionalEncoding, IdentityEncoding, HashGridEncoding, ViewMLPHead, DiffuseHead, SphericalHarmonicsHead,
-              ReflectionHead, DensityField, NeRFField, ProposalSampler, VolumeRenderer, OccupancyGrid]
+              ReflectionHead, DensityField, NeRFField, ProposalSampler, HierarchyChoice, VolumeRenderer, OccupancyGrid]
 BOX = [[-1.0] * 3, [1.0] * 3]
 
 
 @pytest.mark.parametrize("component", CONFIGURED, ids=lambda c: c.__name__)
 def test_a_components_declared_settings_are_its_constructors_arguments_and_take_its_defaults(component):
     parameters = inspect.signature(component).parameters
-    assert set(component.DOMAINS) <= set(parameters) and set(component.APPLIES) <= set(parameters)
+    assert set(component.DOMAINS) <= set(parameters) and set(getattr(component, "APPLIES", {})) <= set(parameters)
     for name, (_, test) in component.DOMAINS.items():
         default = parameters[name].default
         if default is not inspect.Parameter.empty:
@@ -62,11 +63,11 @@ assert torch.isfinite(torch.exp(torch.tensor(88.0))) and torch.isinf(torch.exp(t
     (ProposalSampler, "n_samples", [[64, 64], [1]], [[], [0], 64]),
     (ProposalSampler, "interlevel_weight", [1e-9, 2**24], [0, -1]),  # it alone trains the proposals: never 0
     (ProposalSampler, "distortion_weight", [0, 0.01], [-0.01]),
-    (VolumeRenderer, "hierarchical", [True, False, "proposal"], ["true", 1, 0, "coarse"]),
+    (HierarchyChoice, "hierarchical", [True, False, "proposal"], ["true", 1, 0, "coarse"]),
     (VolumeRenderer, "near", [None, 0, 2**24], [-1, 2**24 + 1]),  # None: from the scene
     (VolumeRenderer, "far", [None, 1e-9, 2**24], [0, 2**24 + 1]),
     (VolumeRenderer, "background", ["white", "black"], ["grey", None]),
-    (VolumeRenderer, "n_single", [1], [0]),
+    (HierarchyChoice, "n_single", [1], [0]),
     (OccupancyGrid, "threshold", [1e-9, 1], [0, 1.5]),
     (OccupancyGrid, "warmup_steps", [0], [-1]),
 ])
@@ -76,16 +77,16 @@ def test_a_components_domains_hold_its_limits(component, argument, accepted, ref
     assert [v for v in accepted if not test(v)] == [] and [v for v in refused if test(v)] == []
 
 
-def test_the_renderers_sample_counts_and_proposals_apply_only_under_the_sampler_that_reads_them():
-    said = {True: "hierarchical=true (a coarse network of model.renderer.n_coarse samples and a fine one of "
+def test_the_sample_counts_and_proposals_apply_only_under_the_sampler_that_reads_them():
+    said = {True: "hierarchical=true (a coarse network of sampler.n_coarse samples and a fine one of "
                   "n_coarse + n_fine; set scale.n_coarse and scale.n_fine)",
-            False: "hierarchical=false (one network of model.renderer.n_single samples; set scale.n_single)",
+            False: "hierarchical=false (one network of sampler.n_single samples; set scale.n_single)",
             "proposal": "hierarchical=proposal (proposal networks choose the samples; set proposal.n_samples and "
                         "proposal.n_final)"}
     reads = {True: {"n_coarse", "n_fine"}, False: {"n_single"}, "proposal": {"proposal"}}
     for hierarchical in HIERARCHIES:
         reasons = {argument: applies({"hierarchical": hierarchical})
-                   for argument, applies in VolumeRenderer.APPLIES.items()}
+                   for argument, applies in HierarchyChoice.APPLIES.items()}
         assert {a for a, reason in reasons.items() if reason is None} == reads[hierarchical]
         assert {reason for reason in reasons.values() if reason is not None} == {said[hierarchical]}
 
@@ -97,8 +98,9 @@ def test_the_renderers_sample_counts_and_proposals_apply_only_under_the_sampler_
 ])
 def test_each_choice_of_hierarchical_renders_through_its_sampler(hierarchical, sampler, names, samples, final):
     proposal = functools.partial(ProposalSampler, slab, n_samples=[8, 8], n_final=12)
-    renderer = VolumeRenderer(slab, hierarchical, n_coarse=8, n_fine=16, n_single=24, near=2.0, far=6.0,
-                              proposal=proposal)
+    renderer = VolumeRenderer(slab,
+                              HierarchyChoice(hierarchical, n_coarse=8, n_fine=16, n_single=24, proposal=proposal),
+                              near=2.0, far=6.0)
     assert type(renderer.sampler) is sampler and isinstance(renderer.sampler, Sampler)
     out = renderer(*rays_down_z(3), deterministic=True)
     assert tuple(out) == renderer.sampler.field_names == names and (renderer.fine is not None) == ("fine" in names)
@@ -107,16 +109,16 @@ def test_each_choice_of_hierarchical_renders_through_its_sampler(hierarchical, s
 
 
 @pytest.mark.parametrize("hierarchical", HIERARCHIES)
-def test_checkpoints_hold_the_networks_under_their_names_and_nothing_of_the_samplers(hierarchical):
+def test_checkpoints_hold_the_networks_under_their_names_and_the_samplers_own_under_sampler(hierarchical):
     field = functools.partial(NeRFField, IdentityEncoding(), DiffuseHead, depth=1, width=4, skips=())
     network = functools.partial(DensityField, IdentityEncoding(), depth=1, width=4, skips=())
     proposal = functools.partial(ProposalSampler, network, n_samples=[8, 8], n_final=8)
-    renderer = VolumeRenderer(field, hierarchical, 8, 8, 8, near=2.0, far=6.0, proposal=proposal)
+    renderer = VolumeRenderer(field, HierarchyChoice(hierarchical, 8, 8, 8, proposal=proposal), near=2.0, far=6.0)
     one = {"trunk.0.weight", "trunk.0.bias", "sigma.weight", "sigma.bias"}
     expected = {f"{name}.{key}" for name in renderer.sampler.field_names for key in one | {"view_head.rgb.weight",
                                                                                           "view_head.rgb.bias"}}
     if hierarchical == "proposal":
-        expected |= {f"proposal.networks.{i}.{key}" for i in (0, 1) for key in one}
+        expected |= {f"sampler.networks.{i}.{key}" for i in (0, 1) for key in one}
     assert set(renderer.state_dict()) == expected
 
 

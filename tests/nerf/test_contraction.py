@@ -10,6 +10,7 @@ import torch
 
 from nerfexp.nerf.contraction import SceneContraction, contract, stretch
 from nerfexp.nerf.fields import FieldOutputs
+from nerfexp.nerf.hierarchy import HierarchyChoice
 from nerfexp.nerf.occupancy import OccupancyGrid, density_threshold
 from nerfexp.nerf.samplers import Rays, first_samples, resample
 from nerfexp.nerf.sampling import disparity_fraction, disparity_spaced, linear_share
@@ -159,8 +160,9 @@ def test_a_contracted_renderer_integrates_density_over_world_distances(hierarchi
     # lengths
     sigma, near, far = 0.01, 0.5, 300.0
     contraction = SceneContraction("l2", centre=[0.0, 0, 0], radius=2.0, far=far / 2)  # far in radii
-    renderer = VolumeRenderer(lambda: Constant(sigma), hierarchical, n_coarse=16, n_fine=32, n_single=48,
-                              near=near, far=6.0, contraction=contraction).double()  # the scene's far: not read
+    renderer = VolumeRenderer(lambda: Constant(sigma),
+                              HierarchyChoice(hierarchical, n_coarse=16, n_fine=32, n_single=48), near=near, far=6.0,
+                              contraction=contraction).double()  # the scene's far: not read
     assert renderer.ray_far == far
     origins = torch.tensor([[0.0, 0, 0], [1.0, 0.5, 0]], dtype=torch.float64)
     directions = torch.tensor([[0.0, 0, 1], [0.0, 2, 0]], dtype=torch.float64)  # the second of length 2

@@ -8,6 +8,7 @@ import pytest
 import torch
 
 from nerfexp.nerf.fields import FieldOutputs
+from nerfexp.nerf.hierarchy import HierarchyChoice
 from nerfexp.nerf.occupancy import OccupancyGrid, cell_corners, cell_indices, density_threshold
 from nerfexp.nerf.volume_renderer import VolumeRenderer, padded_size, query_packed, query_thresholded
 from tests.analytic import GaussianBlob, Slab, aimed_rays
@@ -93,9 +94,9 @@ def render_pair(field, grid, hierarchical=False, n=2048):
     device = grid.density.device
     origins, directions = aimed_rays(n, torch.Generator().manual_seed(1), impact=1.2, distance=(3.5, 4.5))
     origins, directions = origins.float().to(device), directions.float().to(device)
-    options = dict(hierarchical=hierarchical, n_coarse=64, n_fine=64, n_single=128, near=NEAR, far=FAR)
-    plain = VolumeRenderer(lambda: field, **options).to(device)
-    fast = VolumeRenderer(lambda: field, **options, grid=grid).to(device)
+    sampler = HierarchyChoice(hierarchical, n_coarse=64, n_fine=64, n_single=128)
+    plain = VolumeRenderer(lambda: field, sampler, near=NEAR, far=FAR).to(device)
+    fast = VolumeRenderer(lambda: field, sampler, near=NEAR, far=FAR, grid=grid).to(device)
     out = plain(origins, directions, deterministic=True), fast(origins, directions, deterministic=True)
     return out[0], out[1], fast.stats
 

@@ -10,6 +10,7 @@ import torch
 
 from nerfexp.nerf.encodings import IdentityEncoding
 from nerfexp.nerf.fields import DensityField, FieldOutputs
+from nerfexp.nerf.hierarchy import HierarchyChoice
 from nerfexp.nerf.proposal import ProposalSampler, distortion_loss, interlevel_loss, outer_bound
 from nerfexp.nerf.samplers import Rays
 from nerfexp.nerf.sampling import dilate_weights, resampling_bins, sample_pdf, stratified_samples
@@ -97,8 +98,7 @@ def test_the_distortion_loss_prefers_one_short_surface_to_spread_weights():
 def proposal_renderer(n_samples, n_final, proposal_field=slab):
     """Slab field and proposal networks (the exact density), rays from z = 4 down to a slab at |z| < 0.5."""
     sampler = functools.partial(ProposalSampler, proposal_field, n_samples=n_samples, n_final=n_final)
-    return VolumeRenderer(slab, hierarchical="proposal", n_coarse=0, n_fine=0, n_single=0, near=2.0, far=6.0,
-                          proposal=sampler)
+    return VolumeRenderer(slab, sampler, near=2.0, far=6.0)
 
 
 def test_the_field_evaluates_only_samples_drawn_from_the_last_proposal_histogram():
@@ -112,8 +112,8 @@ def test_the_field_evaluates_only_samples_drawn_from_the_last_proposal_histogram
     near, far = torch.full((1,), 2.0, dtype=torch.float64), torch.full((1,), 6.0, dtype=torch.float64)
     t = stratified_samples(near, far, 8, deterministic=True)
     for n_next in (16, 24):
-        weights, _ = renderer.proposal_weights(renderer.proposal.networks[0], Rays(origins, directions, directions,
-                                                                                   near, far), t)
+        weights, _ = renderer.density_weights(renderer.sampler.networks[0], Rays(origins, directions, directions,
+                                                                                 near, far), t)
         t = sample_pdf(resampling_bins(t, near, far), dilate_weights(weights), n_next, deterministic=True)
     torch.testing.assert_close(out["coarse"]["t_starts"], t, rtol=0, atol=0)
     # the slab lies at t in (3.5, 4.5): every sample the field evaluates is within a first-round spacing of it
@@ -138,9 +138,9 @@ def test_the_proposal_networks_train_on_the_interlevel_loss_alone():
     out = renderer(*(t.float() for t in rays_down_z(4)), deterministic=False)["coarse"]
     assert set(out["regularizers"]) == {"interlevel"}  # the distortion loss is off by default
     out["rgb"].sum().backward()  # the colour: no gradient reaches the proposals
-    assert all(p.grad is None for p in renderer.proposal.parameters())
+    assert all(p.grad is None for p in renderer.sampler.parameters())
     out["regularizers"]["interlevel"].backward()
-    grads = [p.grad for p in renderer.proposal.parameters()]
+    grads = [p.grad for p in renderer.sampler.parameters()]
     assert all(g is not None and torch.isfinite(g).all() for g in grads) and any(g.abs().sum() > 0 for g in grads)
     with torch.no_grad():  # rendering for evaluation computes no losses
         assert "regularizers" not in renderer(*(t.float() for t in rays_down_z(4)), deterministic=True)["coarse"]
@@ -160,7 +160,7 @@ class DensityFieldWithColour(torch.nn.Module):
 
 def test_the_distortion_loss_is_added_with_its_weight():
     sampler = functools.partial(ProposalSampler, slab, n_samples=[8], n_final=16, distortion_weight=0.01)
-    renderer = VolumeRenderer(slab, "proposal", 0, 0, 0, near=2.0, far=6.0, proposal=sampler)
+    renderer = VolumeRenderer(slab, sampler, near=2.0, far=6.0)
     out = renderer(*rays_down_z(2), deterministic=True)["coarse"]
     edges = (torch.cat([out["t_starts"], torch.full((2, 1), 6.0, dtype=torch.float64)], -1) - 2) / 4
     expected = 0.01 * distortion_loss(edges, out["weights"]).mean()
@@ -169,6 +169,6 @@ def test_the_distortion_loss_is_added_with_its_weight():
 
 def test_a_proposal_renderer_needs_its_sampler_and_hierarchical_takes_three_values():
     with pytest.raises(ValueError, match="hierarchical=proposal needs the proposal networks"):
-        VolumeRenderer(slab, "proposal", 8, 8, 8, near=2.0, far=6.0)
+        VolumeRenderer(slab, HierarchyChoice("proposal", 8, 8, 8), near=2.0, far=6.0)
     with pytest.raises(ValueError, match="hierarchical: expected true, false or proposal, got 'coarse'"):
-        VolumeRenderer(slab, "coarse", 8, 8, 8, near=2.0, far=6.0)
+        VolumeRenderer(slab, HierarchyChoice("coarse", 8, 8, 8), near=2.0, far=6.0)

@@ -6,6 +6,7 @@ import torch
 from torch import nn
 
 from nerfexp.nerf.fields import FieldOutputs
+from nerfexp.nerf.hierarchy import HierarchyChoice
 from nerfexp.nerf.volume_renderer import VolumeRenderer
 from tests.analytic import rays_down_z, slab
 
@@ -23,8 +24,8 @@ def test_hierarchical_rendering_of_a_slab_converges_to_the_closed_form(shift, ha
     field = functools.partial(slab, sigma=s, half_width=half_width, shift=shift)
     errors = []
     for n_fine in (16, 256):
-        renderer = VolumeRenderer(field, hierarchical=True, n_coarse=8, n_fine=n_fine, n_single=0, near=2.0,
-                                  far=6.0).to(device)
+        renderer = VolumeRenderer(field, HierarchyChoice(hierarchical=True, n_coarse=8, n_fine=n_fine, n_single=0),
+                                  near=2.0, far=6.0).to(device)
         out = renderer(*(x.to(device) for x in rays_down_z(1)), deterministic=True)["fine"]
         errors.append(abs(out["opacity"][0].item() - exact_opacity))
     # 8 coarse samples are 0.5 apart: the coarse error is O(0.1); 256 fine samples resolve the slab.
@@ -35,11 +36,12 @@ def test_hierarchical_rendering_of_a_slab_converges_to_the_closed_form(shift, ha
 
 
 def test_no_hierarchy_uses_one_network_with_its_own_sample_count():
-    renderer = VolumeRenderer(slab, hierarchical=False, n_coarse=8, n_fine=16, n_single=40, near=2.0, far=6.0)
+    renderer = VolumeRenderer(slab, HierarchyChoice(hierarchical=False, n_coarse=8, n_fine=16, n_single=40), near=2.0,
+                              far=6.0)
     assert renderer.fine is None and renderer.evaluations_per_ray == 40
     out = renderer(*rays_down_z(2), deterministic=False)
     assert set(out) == {"coarse"} and out["coarse"]["weights"].shape == (2, 40)
-    assert VolumeRenderer(slab, True, 8, 16, 40, 2.0, 6.0).evaluations_per_ray == 8 + 24
+    assert VolumeRenderer(slab, HierarchyChoice(True, 8, 16, 40), 2.0, 6.0).evaluations_per_ray == 8 + 24
 
 
 def test_gradients_flow_to_both_networks(device):
@@ -49,7 +51,7 @@ def test_gradients_flow_to_both_networks(device):
     def field():
         return NeRFField(IdentityEncoding(), DiffuseHead, depth=2, width=16, skips=(), density_activation="softplus")
 
-    renderer = VolumeRenderer(field, True, 8, 8, 16, near=2.0, far=6.0).to(device)
+    renderer = VolumeRenderer(field, HierarchyChoice(True, 8, 8, 16), near=2.0, far=6.0).to(device)
     origins, directions = rays_down_z(3)
     out = renderer(origins.float().to(device), directions.float().to(device), deterministic=False)
     (out["coarse"]["rgb"].sum() + out["fine"]["rgb"].sum()).backward()
@@ -74,8 +76,8 @@ def test_hierarchical_rendering_reaches_back_to_near(device):
     exact = -math.expm1(-0.4)
     errors = []
     for n_fine in (64, 1024, 16384):
-        renderer = VolumeRenderer(Fog, hierarchical=True, n_coarse=8, n_fine=n_fine, n_single=0, near=2.0,
-                                  far=6.0).to(device)
+        renderer = VolumeRenderer(Fog, HierarchyChoice(hierarchical=True, n_coarse=8, n_fine=n_fine, n_single=0),
+                                  near=2.0, far=6.0).to(device)
         out = renderer(*(x.to(device) for x in rays_down_z(1)), deterministic=True)["fine"]
         errors.append(abs(out["opacity"].item() - exact))
     assert errors[0] < 5e-3 and errors[1] < 3e-4 and errors[2] < 2e-5, errors
@@ -86,13 +88,14 @@ def test_the_sparsity_regularizer_is_the_optical_depth_of_the_samples_worked_by_
     # [t_i, t_{i+1}] (0.1; the last [5.95, 6]: 0.05). A ray down z from z = 4 is at z = 4 - t: the slab |z| < 0.5
     # holds the 10 samples t = 3.55, ..., 4.45, each 0.1 long: sum sigma delta = 3 * 10 * 0.1 = 3. A ray along
     # x at z = 2 never enters it: 0. The regularizer: weight times the mean over the rays, 0.01 * 1.5.
-    renderer = VolumeRenderer(slab, hierarchical=False, n_coarse=8, n_fine=8, n_single=40, near=2.0, far=6.0,
-                              sparsity_weight=0.01)
+    renderer = VolumeRenderer(slab, HierarchyChoice(hierarchical=False, n_coarse=8, n_fine=8, n_single=40), near=2.0,
+                              far=6.0, sparsity_weight=0.01)
     origins = torch.tensor([[0.0, 0.0, 4.0], [-4.0, 0.0, 2.0]], dtype=torch.float64)
     directions = torch.tensor([[0.0, 0.0, -1.0], [1.0, 0.0, 0.0]], dtype=torch.float64)
     out = renderer(origins, directions, deterministic=True)["coarse"]
     assert out["regularizers"]["sparsity"].item() == pytest.approx(0.01 * (3.0 + 0.0) / 2, rel=1e-12)
     with torch.no_grad():  # a regularizer of training: not computed without gradients
         assert "regularizers" not in renderer(origins, directions, deterministic=True)["coarse"]
-    off = VolumeRenderer(slab, hierarchical=False, n_coarse=8, n_fine=8, n_single=40, near=2.0, far=6.0)
+    off = VolumeRenderer(slab, HierarchyChoice(hierarchical=False, n_coarse=8, n_fine=8, n_single=40), near=2.0,
+                         far=6.0)
     assert "regularizers" not in off(origins, directions, deterministic=True)["coarse"]

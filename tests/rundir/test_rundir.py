@@ -32,9 +32,11 @@ from nerfexp.rundir.layout import (
     process_start,
     read_metrics,
 )
+from nerfexp.nerf.proposal import ProposalSampler
+from nerfexp.nerf.samplers import HierarchicalSampler
 from nerfexp.rundir.trained import SHIMS_UNTIL, find_run, run_config
 from nerfexp.settings.checks import check_run_settings
-from tests.helpers import REPO, digests, one_error_line, run_nerfexp
+from tests.helpers import REPO, digests, one_error_line, run_nerfexp, tiny_config
 
 PYPROJECT = tomllib.loads((REPO / "pyproject.toml").read_text())
 
@@ -120,10 +122,41 @@ def test_a_hash_grid_run_saved_with_its_sizes_in_the_scale_group_is_read_with_th
     assert (encoding.table_size, encoding.resolutions[-1]) == (2 ** 12, 64)
 
 
+def old_layout(cfg) -> str:
+    """A composed config's text as nerfexp wrote it before the sampler group: the renderer held the sampler's
+    settings (``nerfexp.rundir.trained.OLD_SAMPLER_KEYS``) and no ``sampler`` section existed."""
+    plain = OmegaConf.to_container(cfg, resolve=False)
+    del plain["sampler"], plain["model"]["renderer"]["sampler"]
+    plain["model"]["renderer"].update(hierarchical="${hierarchical}", n_coarse="${scale.n_coarse}",
+                                      n_fine="${scale.n_fine}", n_single="${scale.n_single}", proposal="${proposal}")
+    return OmegaConf.to_yaml(OmegaConf.create(plain))
+
+
+@pytest.mark.parametrize("hierarchical", [True, "proposal"])
+def test_a_run_made_before_the_sampler_group_is_read_with_its_sampler_and_weights(tmp_path, hierarchical):
+    cfg = tiny_config(f"hierarchical={hierarchical}", "model.lpips=false")
+    (tmp_path / RUN_CONFIG).parent.mkdir()
+    (tmp_path / RUN_CONFIG).write_text(old_layout(cfg))
+    read = run_config(tmp_path)
+    assert read.model.renderer.sampler.n_coarse == cfg.scale.n_coarse and "hierarchical" not in read.model.renderer
+    torch.manual_seed(0)
+    trained = instantiate(cfg.model)  # the weights a run made then saved, under the names it saved them
+    old_names = {name.replace("renderer.sampler.", "renderer.proposal."): value
+                 for name, value in trained.state_dict().items()}
+    assert any(".proposal." in name for name in old_names) == (hierarchical == "proposal")
+    module = instantiate(read.model)
+    assert isinstance(module.renderer.sampler, {True: HierarchicalSampler, "proposal": ProposalSampler}[hierarchical])
+    checkpoint = {"state_dict": dict(old_names)}
+    module.on_load_checkpoint(checkpoint)  # as Lightning and nerfexp-eval before loading the weights
+    module.load_state_dict(checkpoint["state_dict"])
+    assert all(torch.equal(value, module.state_dict()[name]) for name, value in trained.state_dict().items())
+
+
 def test_the_shims_for_runs_made_before_the_layers_go_by_the_version_they_name():
     version = tuple(int(part) for part in PYPROJECT["project"]["version"].split("."))
     assert version < SHIMS_UNTIL, ("nerfexp has reached the version that drops the shims of nerfexp.rundir.trained "
-                                   "(MOVED_TARGETS, OLD_NOISE): remove them, or name a later version")
+                                   "(MOVED_TARGETS, OLD_NOISE, OLD_SAMPLER_KEYS, MOVED_WEIGHTS): remove them, or "
+                                   "name a later version")
 
 
 def test_a_run_is_found_by_its_directory_or_a_checkpoint_in_it(tmp_path):

@@ -139,12 +139,12 @@ RESOLVERS = {  # a call of each resolver OmegaConf and Hydra register, and of on
 }
 POSITIONS = {  # where in a saved config: the value there, given the resolver's call
     "top level": ("seed", "{}"),
-    "nested dict": ("model.renderer.n_coarse", "{}"),
+    "nested dict": ("model.renderer.field.width", "{}"),
     "list": ("scale.skips.0", "{}"),
     "deeper list": ("model.optimizer.betas.1", "{}"),
     "a _target_": ("encoding.position._target_", "{}"),
     "inside a string": ("data.background", "white{}"),
-    "inside a reference's key": ("model.renderer.n_fine", "${{scale.{}}}"),
+    "inside a reference's key": ("sampler.n_fine", "${{scale.{}}}"),
     "inside a resolver's argument": ("model.chunk", "${{oc.select:scale.chunk,{}}}"),
 }
 
@@ -202,10 +202,10 @@ def test_every_resolver_is_refused_wherever_it_is(tmp_path, saved_text, payload_
 
 
 def test_plain_references_are_followed(tmp_path, saved_text):
-    run_dir = saved_run(tmp_path, saved_text, model__renderer__n_fine="${.n_coarse}",
+    run_dir = saved_run(tmp_path, saved_text, sampler__n_fine="${.n_coarse}",
                         model__chunk="${..scale.${which}}", which="chunk")
     cfg = run_config(run_dir)
-    assert cfg.model.renderer.n_fine == cfg.scale.n_coarse == 16  # TINY's scale.n_coarse=16
+    assert cfg.model.renderer.sampler.n_fine == cfg.scale.n_coarse == 16  # TINY's scale.n_coarse=16
     assert cfg.model.chunk == cfg.scale.chunk
 
 
@@ -284,9 +284,9 @@ def test_what_only_training_builds_is_never_read(tmp_path, saved_text, monkeypat
 
 
 def test_a_reference_the_config_cannot_follow_is_an_error_naming_the_key(tmp_path, saved_text):
-    run_dir = saved_run(tmp_path, saved_text, model__renderer__n_fine="${callbacks.checkpoint.every_n_train_steps}")
+    run_dir = saved_run(tmp_path, saved_text, sampler__n_fine="${callbacks.checkpoint.every_n_train_steps}")
     with pytest.raises(ConfigError, match=f"^{run_dir / '.hydra' / 'config.yaml'}: cannot resolve the config at "
-                                          r"model\.renderer\.n_fine: Interpolation key 'callbacks\.checkpoint"):
+                                          r"sampler\.n_fine: Interpolation key 'callbacks\.checkpoint"):
         run_config(run_dir)
 
 

@@ -19,6 +19,7 @@ from torch.utils.data import DataLoader
 from nerfexp.errors import FieldCollapseError, NonFiniteError
 from nerfexp.nerf.encodings import HashGridEncoding
 from nerfexp.nerf.fields import FieldOutputs
+from nerfexp.nerf.hierarchy import HierarchyChoice
 from nerfexp.nerf.volume_renderer import VolumeRenderer
 from nerfexp.training.collapse import colour_spread
 from nerfexp.training.guards import TrainingGuard, gathered_contrasts
@@ -86,8 +87,8 @@ class HashField(nn.Module):
 
 def module(coarse: nn.Module, fine: nn.Module, optimizer=torch.optim.Adam) -> NeRFModule:
     fields = iter([coarse, fine])
-    renderer = VolumeRenderer(lambda: next(fields), hierarchical=True, n_coarse=4, n_fine=4, n_single=8,
-                              near=2.0, far=6.0)
+    renderer = VolumeRenderer(lambda: next(fields),
+                              HierarchyChoice(hierarchical=True, n_coarse=4, n_fine=4, n_single=8), near=2.0, far=6.0)
     return NeRFModule(renderer, functools.partial(optimizer, lr=1e-2), lr_final=1e-2)
 
 

@@ -15,6 +15,7 @@ from torch.utils.data import DataLoader
 from nerfexp.errors import ConfigError
 from nerfexp.nerf.encodings import HashGridEncoding, PositionalEncoding
 from nerfexp.nerf.fields import DensityField, FieldOutputs, NeRFField, ViewMLPHead
+from nerfexp.nerf.hierarchy import HierarchyChoice
 from nerfexp.nerf.proposal import ProposalSampler
 from nerfexp.nerf.volume_renderer import VolumeRenderer
 from nerfexp.training.module import NeRFModule, seeded_random
@@ -44,7 +45,8 @@ class ConstantField(nn.Module):
 
 
 def module(field, lr=1e-3, lr_final=1e-4, lr_warmup_steps=0):
-    renderer = VolumeRenderer(field, hierarchical=True, n_coarse=4, n_fine=4, n_single=12, near=2.0, far=6.0)
+    renderer = VolumeRenderer(field, HierarchyChoice(hierarchical=True, n_coarse=4, n_fine=4, n_single=12), near=2.0,
+                              far=6.0)
     return NeRFModule(renderer, functools.partial(torch.optim.Adam, lr=lr), lr_final=lr_final, chunk=7,
                       lr_warmup_steps=lr_warmup_steps)
 
@@ -72,7 +74,7 @@ def test_training_exposes_each_networks_loss_and_opacity_detached():
 def test_networks_are_named_as_the_renderer_outputs():
     m = module(ConstantField)
     assert m.networks == {"coarse": m.renderer.coarse, "fine": m.renderer.fine}
-    flat = NeRFModule(VolumeRenderer(ConstantField, hierarchical=False, n_coarse=4, n_fine=4, n_single=8, near=2.0,
+    flat = NeRFModule(VolumeRenderer(ConstantField, HierarchyChoice(False, n_coarse=4, n_fine=4, n_single=8), near=2.0,
                                      far=6.0), functools.partial(torch.optim.Adam, lr=1e-3), lr_final=1e-4)
     assert flat.networks == {"coarse": flat.renderer.coarse}
 
@@ -85,7 +87,7 @@ def hash_grid_module(hierarchical, sparse_gradients=False) -> NeRFModule:
     field = functools.partial(NeRFField, grid, head, depth=2, width=8, skips=())
     proposal = functools.partial(ProposalSampler, functools.partial(DensityField, grid, depth=1, width=8, skips=()),
                                  n_samples=[8], n_final=8)
-    renderer = VolumeRenderer(field, hierarchical, 8, 8, 8, near=2.0, far=6.0, proposal=proposal)
+    renderer = VolumeRenderer(field, HierarchyChoice(hierarchical, 8, 8, 8, proposal=proposal), near=2.0, far=6.0)
     return NeRFModule(renderer, functools.partial(torch.optim.Adam, lr=1e-3, weight_decay=1e-6), lr_final=1e-4)
 
 
@@ -259,7 +261,8 @@ def test_bf16_mixed_training_keeps_rendering_in_float32(monkeypatch):
     field = functools.partial(NeRFField, PositionalEncoding(4), head, depth=3, width=32, skips=(1,),
                               density_activation="softplus", density_bias=-1.0)
     torch.manual_seed(0)
-    renderer = VolumeRenderer(field, hierarchical=True, n_coarse=8, n_fine=8, n_single=16, near=2.0, far=6.0)
+    renderer = VolumeRenderer(field, HierarchyChoice(hierarchical=True, n_coarse=8, n_fine=8, n_single=16), near=2.0,
+                              far=6.0)
     network_dtypes = set()
     renderer.coarse.trunk[0].register_forward_hook(lambda m, i, out: network_dtypes.add(out.dtype))
     module = NeRFModule(renderer, functools.partial(torch.optim.Adam, lr=1e-3), lr_final=1e-4)

@@ -17,6 +17,7 @@ from torch import nn
 from nerfexp.geometry.alignment import rotation_angle
 from nerfexp.nerf.appearance import FULL_IMAGE, NERFW_RIGHT_HALF
 from nerfexp.nerf.fields import FieldOutputs
+from nerfexp.nerf.hierarchy import HierarchyChoice
 from nerfexp.nerf.poses import PoseFit, so3_exp
 from nerfexp.nerf.volume_renderer import VolumeRenderer
 from nerfexp.training.module import NeRFModule
@@ -64,7 +65,7 @@ def turned_batch() -> tuple[dict, torch.Tensor]:
 
 
 def module(protocol: str, fit: PoseFit | None) -> NeRFModule:
-    renderer = VolumeRenderer(DirectionColour, True, 4, 4, 8, 2.0, 6.0)
+    renderer = VolumeRenderer(DirectionColour, HierarchyChoice(True, 4, 4, 8), 2.0, 6.0)
     return NeRFModule(renderer, functools.partial(torch.optim.Adam, lr=1e-3), lr_final=1e-4, chunk=128,
                       lpips=False, test_protocol=protocol, test_camera_fit=fit).eval()
 

@@ -11,6 +11,7 @@ from torch import nn
 
 from nerfexp.nerf.appearance import FULL_IMAGE, NERFW_RIGHT_HALF
 from nerfexp.nerf.fields import FieldOutputs
+from nerfexp.nerf.hierarchy import HierarchyChoice
 from nerfexp.nerf.volume_renderer import VolumeRenderer
 from nerfexp.training.module import NeRFModule
 from tests.helpers import tiny_config
@@ -38,7 +39,7 @@ def image_batch(rgb: torch.Tensor, mask: torch.Tensor | None = None) -> dict:
 
 
 def constant_module(colour: float, protocol: str) -> NeRFModule:
-    renderer = VolumeRenderer(lambda: OpaqueColour(colour), True, 4, 4, 8, 2.0, 6.0)
+    renderer = VolumeRenderer(lambda: OpaqueColour(colour), HierarchyChoice(True, 4, 4, 8), 2.0, 6.0)
     return NeRFModule(renderer, functools.partial(torch.optim.Adam, lr=1e-3), lr_final=1e-4, chunk=100,
                       lpips=False, test_protocol=protocol)
 

@@ -98,6 +98,9 @@ def train(cfg: DictConfig) -> dict | None:
     choices = {k: v for k, v in runtime.choices.items() if not k.startswith("hydra") and v is not None}
     choices.update(hierarchical=cfg.hierarchical, seed=cfg.seed)
     resolved = OmegaConf.to_container(cfg, resolve=True)
+    # before anything is built: Hydra's instantiate resolves in place the sections a built one names
+    # (model.renderer.sampler: ${sampler}), and without_unused follows the references as written
+    recorded = without_unused(cfg, resolved, [override for override, _ in unused])
     settings = checkpoint_settings(OmegaConf.create(resolved), group_choices(runtime.choices))
     resumes, resumed = [], None
     if cfg.resume is not None:  # a checkpoint this run may not continue: an error before any work
@@ -111,7 +114,6 @@ def train(cfg: DictConfig) -> dict | None:
         model.on_load_checkpoint({"state_dict": resumed.weights})  # as Lightning will: what the data sizes, sized
         check_weights(resumed.weights, model, Path(cfg.resume))
     overrides = list(HydraConfig.get().overrides.task)
-    recorded = without_unused(cfg, resolved, [override for override, _ in unused])
     recorder = RunRecorder(runtime.output_dir, choices, recorded, overrides, settings, resumes, run_labels(cfg),
                            bounds, test_budgets=list(cfg.test_budgets))
     callbacks = [instantiate(c) for c in cfg.callbacks.values()] + [recorder] + progress_bars(cfg.trainer)

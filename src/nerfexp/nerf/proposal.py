@@ -10,18 +10,14 @@ Conventions: ``edges`` [..., S+1] are sorted interval edges along the ray and ``
 mass of each interval (a step function of t whose integral over an interval is its weight).
 """
 
-from collections.abc import Callable, Sequence
-from typing import TYPE_CHECKING
+from collections.abc import Callable, Mapping, Sequence
 
 import torch
 from torch import Tensor, nn
 
 from nerfexp.domains import COUNT, LOSS_WEIGHT, LOSS_WEIGHT_LIMIT, real
-from nerfexp.nerf.samplers import Rays, Sampler, first_samples, resample
+from nerfexp.nerf.samplers import Rays, Sampler, Steps, first_samples, resample
 from nerfexp.nerf.sampling import disparity_fraction, resampling_bins
-
-if TYPE_CHECKING:
-    from nerfexp.nerf.volume_renderer import VolumeRenderer
 
 
 def outer_bound(edges: Tensor, proposal_edges: Tensor, proposal_weights: Tensor) -> Tensor:
@@ -118,26 +114,30 @@ class ProposalSampler(Sampler):
         self.interlevel_weight = interlevel_weight
         self.distortion_weight = distortion_weight
 
+    @staticmethod
+    def SAMPLES_PER_RAY(config: Mapping) -> tuple[int, tuple[str, ...]]:
+        return sum(config["n_samples"]) + config["n_final"], ("n_samples", "n_final")
+
     @property
     def samples_per_ray(self) -> int:
-        return sum(self.n_samples) + self.n_final
+        return self.SAMPLES_PER_RAY(vars(self))[0]
 
     @property
     def colour_samples_per_ray(self) -> int:
         return self.n_final  # the proposal networks have no colour
 
-    def render(self, renderer: "VolumeRenderer", rays: Rays, deterministic: bool) -> dict[str, dict[str, Tensor]]:
+    def render(self, rays: Rays, steps: Steps, deterministic: bool) -> dict[str, dict[str, Tensor]]:
         """{"coarse": the field's output}; in training (with gradients enabled) the output's ``regularizers``
         hold the proposal losses."""
         counts = [*self.n_samples, self.n_final]  # samples of each round, then the field's
         t = first_samples(rays, counts[0], deterministic)
         histograms, evaluated = [], 0
         for net, n_next in zip(self.networks, counts[1:]):
-            weights, evaluated_here = renderer.proposal_weights(net, rays, t)
+            weights, evaluated_here = steps.density_weights(net, rays, t)
             histograms.append((resampling_bins(t, rays.near, rays.far), weights))
             evaluated = evaluated + evaluated_here
             t = resample(rays, t, weights, n_next, deterministic)
-        out = renderer.render_at(renderer.coarse, rays, t)
+        out = steps.composited("coarse", rays, t)
         out["evaluated"] = out["evaluated"] + evaluated
         if torch.is_grad_enabled():
             edges = torch.cat([t, rays.far[:, None]], -1)  # the field's intervals [t_i, t_{i+1}], the last to far

@@ -1,18 +1,21 @@
 """The sampling axis: where along each ray the fields are evaluated, and by which networks (nerfacc's
 ``AbstractTransEstimator``: one interface for every way of placing samples).
 
-A ``Sampler`` places samples on a batch of ``Rays`` and renders them through the renderer's two steps,
-``VolumeRenderer.render_at`` (a colour network at samples t: its composited output) and
-``VolumeRenderer.proposal_weights`` (a density-only network's interval weights at samples t). Both query the
-networks through the occupancy grid where there is one: the grid's skipping is a component beside the samplers,
-applied to whichever runs. The samplers: ``HierarchicalSampler`` (the paper's coarse + fine), ``StratifiedSampler``
-(one network) and ``nerfexp.nerf.proposal.ProposalSampler`` (mip-NeRF 360's proposal networks).
+A ``Sampler`` places samples on a batch of ``Rays`` and renders them through the two ``Steps`` its caller (the
+renderer, ``nerfexp.nerf.volume_renderer.VolumeRenderer``) provides: ``composited`` (a colour network, by name, at
+samples t: its composited output) and ``density_weights`` (a density-only network's interval weights at samples t).
+The sampler knows nothing else of the renderer. Both steps query the networks through the occupancy grid where
+there is one: the grid's skipping is a component beside the samplers, applied to whichever runs. The samplers:
+``HierarchicalSampler`` (the paper's coarse + fine), ``StratifiedSampler`` (one network) and
+``nerfexp.nerf.proposal.ProposalSampler`` (mip-NeRF 360's proposal networks); ``nerfexp.nerf.hierarchy`` builds
+the one the ``hierarchical`` flag names.
 
 Conventions: ``t`` are sample positions along the rays [B, S], sorted, in units of the rays' directions; the
 renderer's outputs are {network name: output} with the names of ``field_names``.
 """
 
-from typing import TYPE_CHECKING, ClassVar, NamedTuple
+from collections.abc import Mapping
+from typing import ClassVar, NamedTuple, Protocol
 
 import torch
 from torch import Tensor, nn
@@ -26,9 +29,6 @@ from nerfexp.nerf.sampling import (
     sample_pdf,
     stratified_samples,
 )
-
-if TYPE_CHECKING:
-    from nerfexp.nerf.volume_renderer import VolumeRenderer
 
 
 class Rays(NamedTuple):
@@ -69,13 +69,30 @@ def resample(rays: Rays, t: Tensor, weights: Tensor, n_samples: int, determinist
     return disparity_spaced(s, rays.near, rays.split, rays.far)
 
 
+class Steps(Protocol):
+    """What a sampler asks of its caller (the renderer): its two steps, each querying the networks through the
+    occupancy grid where there is one."""
+
+    def composited(self, name: str, rays: Rays, t: Tensor) -> dict[str, Tensor]:
+        """The colour network ``name`` (one of the sampler's ``field_names``) at samples t [B, S] of ``rays``,
+        each standing for its interval: the renderer's output (``VolumeRenderer.forward``: ``rgb`` [B, 3],
+        ``depth``, ``opacity`` [B], ``weights``, ``t_starts``, ``t_ends`` [B, S], ...), also holding ``evaluated``
+        and ``coloured``, the samples whose density and colour the network evaluated."""
+
+    def density_weights(self, network: nn.Module, rays: Rays, t: Tensor) -> tuple[Tensor, Tensor | float]:
+        """A density-only network's (``network.density``: positions [N, 3] -> sigma [N]) interval weights
+        [B, S] at samples t [B, S] of ``rays``, and the samples it evaluated."""
+
+
 class Sampler(nn.Module):
     """Places samples on rays and renders them: the sampling axis's component.
 
     ``field_names``: the colour networks it renders with (the renderer builds one field for each, under that name,
     and its outputs carry the same names). ``samples_per_ray``: samples per ray, all networks together, before
-    any are skipped. ``render``: the renderer's outputs for a batch of rays. ``DOMAINS`` and ``APPLIES`` declare
-    its constructor's settings (``nerfexp.domains``), where a user configures it.
+    any are skipped. ``render``: the renderer's outputs for a batch of rays, through the renderer's ``Steps``.
+    ``DOMAINS`` and ``APPLIES`` declare its constructor's settings (``nerfexp.domains``), where a user configures
+    it, and ``SAMPLES_PER_RAY`` (a staticmethod: its config, resolved as plain data -> (network evaluations per
+    ray, the argument names that set them)) what the settings check's activation-memory estimate counts.
     """
 
     DOMAINS: ClassVar[dict[str, Rule]] = {}
@@ -92,11 +109,10 @@ class Sampler(nn.Module):
         unless the sampler has networks without colour."""
         return self.samples_per_ray
 
-    def render(self, renderer: "VolumeRenderer", rays: Rays, deterministic: bool) -> dict[str, dict[str, Tensor]]:
-        """{name: the renderer's output} for each of ``field_names`` (see ``VolumeRenderer.forward``), each
-        still holding ``evaluated`` and ``coloured``, the samples its networks evaluated, of the density and of the
-        colour (the renderer counts them).
-        ``deterministic``: evenly spaced samples instead of jittered ones."""
+    def render(self, rays: Rays, steps: Steps, deterministic: bool) -> dict[str, dict[str, Tensor]]:
+        """{name: the renderer's output} for each of ``field_names`` (``Steps.composited``), each still holding
+        ``evaluated`` and ``coloured``, the samples its networks evaluated, of the density and of the colour (the
+        renderer counts them). ``deterministic``: evenly spaced samples instead of jittered ones."""
         raise NotImplementedError
 
 
@@ -112,16 +128,20 @@ class HierarchicalSampler(Sampler):
         self.n_coarse = n_coarse
         self.n_fine = n_fine
 
+    @staticmethod
+    def SAMPLES_PER_RAY(config: Mapping) -> tuple[int, tuple[str, ...]]:
+        return config["n_coarse"] + (config["n_coarse"] + config["n_fine"]), ("n_coarse", "n_fine")
+
     @property
     def samples_per_ray(self) -> int:
-        return self.n_coarse + (self.n_coarse + self.n_fine)
+        return self.SAMPLES_PER_RAY(vars(self))[0]
 
-    def render(self, renderer: "VolumeRenderer", rays: Rays, deterministic: bool) -> dict[str, dict[str, Tensor]]:
+    def render(self, rays: Rays, steps: Steps, deterministic: bool) -> dict[str, dict[str, Tensor]]:
         t_coarse = first_samples(rays, self.n_coarse, deterministic)
-        coarse = renderer.render_at(renderer.coarse, rays, t_coarse)
+        coarse = steps.composited("coarse", rays, t_coarse)
         t_fine = resample(rays, t_coarse, coarse["weights"], self.n_fine, deterministic)
         t_all = torch.sort(torch.cat([t_coarse, t_fine], -1), -1).values
-        return {"coarse": coarse, "fine": renderer.render_at(renderer.fine, rays, t_all)}
+        return {"coarse": coarse, "fine": steps.composited("fine", rays, t_all)}
 
 
 class StratifiedSampler(Sampler):
@@ -132,10 +152,14 @@ class StratifiedSampler(Sampler):
         super().__init__()
         self.n_samples = n_samples
 
+    @staticmethod
+    def SAMPLES_PER_RAY(config: Mapping) -> tuple[int, tuple[str, ...]]:
+        return config["n_samples"], ("n_samples",)
+
     @property
     def samples_per_ray(self) -> int:
-        return self.n_samples
+        return self.SAMPLES_PER_RAY(vars(self))[0]
 
-    def render(self, renderer: "VolumeRenderer", rays: Rays, deterministic: bool) -> dict[str, dict[str, Tensor]]:
+    def render(self, rays: Rays, steps: Steps, deterministic: bool) -> dict[str, dict[str, Tensor]]:
         t = first_samples(rays, self.n_samples, deterministic)
-        return {"coarse": renderer.render_at(renderer.coarse, rays, t)}
+        return {"coarse": steps.composited("coarse", rays, t)}

@@ -1,38 +1,21 @@
-"""Rays to pixels: sample (a ``nerfexp.nerf.samplers.Sampler``), query the field(s), composite."""
+"""Rays to pixels: sample (a ``nerfexp.nerf.samplers.Sampler``, which asks the renderer's ``Steps``), query the
+field(s), composite."""
 
-from collections.abc import Callable, Mapping
+from collections.abc import Callable
 from typing import ClassVar
 
 import torch
 from torch import Tensor, nn
 
-from nerfexp.domains import COUNT, FAR, LOSS_WEIGHT, NEAR, Applies, Consistent, Rule, choice, optional
+from nerfexp.domains import FAR, LOSS_WEIGHT, NEAR, Consistent, Rule, choice, optional
 from nerfexp.nerf.appearance import AppearanceEmbedding
 from nerfexp.nerf.backgrounds import BACKGROUNDS
 from nerfexp.nerf.contraction import SceneContraction
 from nerfexp.nerf.fields import FieldOutputs, PositionalOutputs
 from nerfexp.nerf.occupancy import OccupancyGrid
-from nerfexp.nerf.proposal import ProposalSampler
 from nerfexp.nerf.quadrature import composite, optical_depths, render_weights
-from nerfexp.nerf.samplers import HierarchicalSampler, Rays, Sampler, StratifiedSampler
+from nerfexp.nerf.samplers import Rays, Sampler
 from nerfexp.nerf.sampling import intervals
-
-HIERARCHIES = (True, False, "proposal")  # the sampling axis: the paper's coarse + fine, one network, proposals
-HIERARCHY_SAMPLES = {  # what each choice of the sampling axis reads, as said when another's setting is set
-    True: "hierarchical=true (a coarse network of model.renderer.n_coarse samples and a fine one of n_coarse + "
-          "n_fine; set scale.n_coarse and scale.n_fine)",
-    False: "hierarchical=false (one network of model.renderer.n_single samples; set scale.n_single)",
-    "proposal": "hierarchical=proposal (proposal networks choose the samples; set proposal.n_samples and "
-                "proposal.n_final)",
-}
-
-
-def hierarchy_reads(reader: bool | str) -> Applies:
-    """The reason a renderer's argument is unused unless its ``hierarchical`` is ``reader``, the choice that
-    reads it."""
-    def reason(config: Mapping) -> str | None:
-        return None if config["hierarchical"] == reader else HIERARCHY_SAMPLES[config["hierarchical"]]
-    return reason
 
 
 def final_output(outputs: dict[str, dict[str, Tensor]]) -> dict[str, Tensor]:
@@ -153,16 +136,18 @@ def sparsity_loss(sigmas: Tensor, starts: Tensor, ends: Tensor) -> Tensor:
 
 
 class VolumeRenderer(nn.Module):
-    """Renders rays with one field (``hierarchical=False``), a coarse and a fine field (``True``), or
-    proposal networks and one field (``"proposal"``): the sampling axis, each choice a ``Sampler``
-    (``nerfexp.nerf.samplers``), which places the samples and renders them through ``render_at`` and
-    ``proposal_weights``.
+    """Renders rays through its ``sampler`` (``nerfexp.nerf.samplers.Sampler``, the sampling axis's component),
+    which places the samples and renders them through the renderer's two steps (``nerfexp.nerf.samplers.Steps``,
+    which the renderer is): ``composited`` (a colour field, by name, at samples t) and ``density_weights`` (a
+    density-only network's weights at samples t). The renderer builds one field per name of the sampler's
+    ``field_names``, under that name (``coarse``, ``fine``).
 
-    Hierarchical (``HierarchicalSampler``): ``n_coarse`` stratified samples through the coarse field, and
-    ``n_fine`` more from its weights, the fine field evaluating all n_coarse + n_fine. Without it
-    (``StratifiedSampler``), one field evaluates ``n_single`` stratified samples. Proposal (mip-NeRF 360,
-    ``nerfexp.nerf.proposal.ProposalSampler``): ``proposal``'s density-only networks resample the ray in rounds,
-    and the one field (named "coarse", as without hierarchy) evaluates only the last round's samples.
+    The built-in samplers (``nerfexp.nerf.hierarchy``, the ``hierarchical`` flag): hierarchical
+    (``HierarchicalSampler``), ``n_coarse`` stratified samples through the coarse field, and ``n_fine`` more from
+    its weights, the fine field evaluating all n_coarse + n_fine; without it (``StratifiedSampler``), one field
+    evaluates ``n_single`` stratified samples; proposal (mip-NeRF 360, ``nerfexp.nerf.proposal.ProposalSampler``),
+    density-only networks resample the ray in rounds, and the one field (named "coarse", as without hierarchy)
+    evaluates only the last round's samples.
 
     With an occupancy ``grid`` (``acceleration=occupancy``) the samples stay where they are, but the
     networks evaluate only those in occupied cells of the grid, packed into one flat batch
@@ -182,11 +167,11 @@ class VolumeRenderer(nn.Module):
     Args:
         field: builds a field (called once per network of the sampler's ``field_names``), e.g. a partial
             ``NeRFField``.
-        hierarchical: True, False or "proposal".
+        sampler: builds the ``Sampler`` (called once, before the fields): a partial ``Sampler`` class, or a
+            ``nerfexp.nerf.hierarchy.HierarchyChoice``.
         near, far: ray distance bounds (far: without a contraction, ``ray_far``); background: a key of
             ``BACKGROUNDS``.
         grid: an ``OccupancyGrid``, or None to evaluate every sample.
-        proposal: builds the ``ProposalSampler`` (called only when hierarchical is "proposal").
         appearance: an ``AppearanceEmbedding`` (``appearance=embedding``: a code per training image, which the
             colour fields take, ``nerfexp.nerf.appearance``), or None. With one, the fields are built with its
             ``dim`` (``field(appearance_dim=dim)``), and ``forward`` takes each ray's code.
@@ -199,20 +184,10 @@ class VolumeRenderer(nn.Module):
     """
 
     DOMAINS: ClassVar[dict[str, Rule]] = {
-        "hierarchical": choice(*HIERARCHIES),
-        "n_coarse": COUNT,
-        "n_fine": COUNT,
-        "n_single": COUNT,
         "near": optional(NEAR, "from the scene"),
         "far": optional(FAR, "from the scene"),
         "background": choice(*BACKGROUNDS),
         "sparsity_weight": LOSS_WEIGHT,
-    }
-    APPLIES: ClassVar[dict[str, Applies]] = {
-        "n_coarse": hierarchy_reads(True),
-        "n_fine": hierarchy_reads(True),
-        "n_single": hierarchy_reads(False),
-        "proposal": hierarchy_reads("proposal"),
     }
     CONSISTENT: ClassVar[dict[tuple[str, ...], Consistent]] = {
         ("near", "far"): lambda config: (None if config["near"] is None or config["far"] is None
@@ -220,21 +195,8 @@ class VolumeRenderer(nn.Module):
                                          else "near < far (the rays are sampled between them)"),
     }
 
-    @staticmethod
-    def SAMPLES_PER_RAY(config: Mapping) -> tuple[int, tuple[str, ...]]:
-        """The network evaluations per ray of the ``hierarchical`` choice, and the arguments that set them:
-        coarse + (coarse + fine), the single network's, or the proposal rounds' and the field's (counted as the
-        field's, an upper bound on their memory)."""
-        if config["hierarchical"] == "proposal":
-            proposal = config["proposal"]
-            return sum(proposal["n_samples"]) + proposal["n_final"], ("proposal.n_samples", "proposal.n_final")
-        if config["hierarchical"]:
-            return 2 * config["n_coarse"] + config["n_fine"], ("n_coarse", "n_fine")
-        return config["n_single"], ("n_single",)
-
-    def __init__(self, field: Callable[[], nn.Module], hierarchical: bool | str, n_coarse: int, n_fine: int,
-                 n_single: int, near: float, far: float, background: str = "white",
-                 grid: OccupancyGrid | None = None, proposal: Callable[[], ProposalSampler] | None = None,
+    def __init__(self, field: Callable[[], nn.Module], sampler: Callable[[], Sampler], near: float, far: float,
+                 background: str = "white", grid: OccupancyGrid | None = None,
                  contraction: SceneContraction | None = None, appearance: AppearanceEmbedding | None = None,
                  sparsity_weight: float = 0.0):
         super().__init__()
@@ -243,20 +205,15 @@ class VolumeRenderer(nn.Module):
         self.sparsity_weight = sparsity_weight
         if background not in BACKGROUNDS:
             raise ValueError(f"data.background: expected one of {sorted(BACKGROUNDS)}, got {background!r}")
-        if hierarchical not in HIERARCHIES:
-            raise ValueError(f"hierarchical: expected true, false or proposal, got {hierarchical!r}")
-        if hierarchical == "proposal" and proposal is None:
-            raise ValueError("hierarchical=proposal needs the proposal networks (model.renderer.proposal)")
-        # The proposal sampler holds networks: it is kept as ``proposal``, the name its weights are saved under
-        # in checkpoints; the other samplers hold none.
-        self.proposal = proposal() if hierarchical == "proposal" else None
-        self._sampler = (None if self.proposal is not None
-                         else HierarchicalSampler(n_coarse, n_fine) if hierarchical else StratifiedSampler(n_single))
+        # Built first, as a module of the renderer: a sampler's own networks (the proposals') draw their initial
+        # weights before the fields', and are saved in checkpoints under ``sampler``.
+        self.sampler = sampler()
         self.near, self.far = near, far
         self.appearance = appearance
         sized = {} if appearance is None else {"appearance_dim": appearance.dim}  # fields take codes of its size
-        self.coarse = field(**sized)
-        self.fine = field(**sized) if "fine" in self.sampler.field_names else None
+        self.fine = None  # the final renders' network where the sampler has one (``final_output``)
+        for name in self.sampler.field_names:  # "coarse", then "fine": the names checkpoints hold them under
+            setattr(self, name, field(**sized))
         self.register_buffer("background", torch.tensor(BACKGROUNDS[background]), persistent=False)
         self.grid = grid
         self.contraction = contraction
@@ -272,14 +229,8 @@ class VolumeRenderer(nn.Module):
         return self.far if self.contraction is None else self.contraction.far_distance
 
     @property
-    def sampler(self) -> Sampler:
-        """The sampling axis's component: the proposal sampler, the hierarchy or one stratified network."""
-        return self.proposal if self.proposal is not None else self._sampler
-
-    @property
     def samples_per_ray(self) -> int:
-        """Samples per ray, all networks (the sampler's): n_coarse + (n_coarse + n_fine) hierarchical, the
-        proposal rounds' and the field's with proposals, else n_single."""
+        """Samples per ray, all networks (the sampler's ``samples_per_ray``)."""
         return self.sampler.samples_per_ray
 
     @property
@@ -303,7 +254,7 @@ class VolumeRenderer(nn.Module):
 
     def density_fns(self) -> list[Callable[[Tensor], Tensor]]:
         """Each colour network's density (positions [N, 3] -> sigma [N]), for ``OccupancyGrid.update``."""
-        return [net.density for net in (self.coarse, self.fine) if net is not None]
+        return [getattr(self, name).density for name in self.sampler.field_names]
 
     def _query(self, field: Callable[..., FieldOutputs], points: Tensor,
                viewdirs: Tensor | None, starts: Tensor, ends: Tensor,
@@ -369,13 +320,18 @@ class VolumeRenderer(nn.Module):
         t_starts, t_ends = intervals(t, rays.far)
         return points, t_starts, t_ends, t_starts * lengths, t_ends * lengths
 
-    def proposal_weights(self, net: nn.Module, rays: Rays, t: Tensor) -> tuple[Tensor, Tensor | float]:
+    def density_weights(self, network: nn.Module, rays: Rays, t: Tensor) -> tuple[Tensor, Tensor | float]:
         """A density-only network's interval weights [B, S] at samples t [B, S] of ``rays``, and the samples
-        it evaluated."""
+        it evaluated (``nerfexp.nerf.samplers.Steps``)."""
         points, _, _, starts, ends = self._samples(rays, t)
-        outputs, evaluated, _ = self._query(density_query(net), points, None, starts, ends)
+        outputs, evaluated, _ = self._query(density_query(network), points, None, starts, ends)
         weights, _ = render_weights(outputs.sigma.to(t.dtype), starts, ends)
         return weights, evaluated
+
+    def composited(self, name: str, rays: Rays, t: Tensor) -> dict[str, Tensor]:
+        """The colour field ``name`` (``coarse``, ``fine``: one of the sampler's ``field_names``) at samples t
+        [B, S] of ``rays`` (``render_at``; ``nerfexp.nerf.samplers.Steps``)."""
+        return self.render_at(getattr(self, name), rays, t)
 
     def render_at(self, field: nn.Module, rays: Rays, t: Tensor) -> dict[str, Tensor]:
         """Query ``field`` at samples t [B, S] of ``rays``; each sample stands for its interval. The output
@@ -431,7 +387,7 @@ class VolumeRenderer(nn.Module):
         if codes is None and self.appearance is not None:  # an image not trained on: the embedding's test code
             codes = self.appearance.test_code().expand(B, -1)
         rays = Rays(origins, directions, viewdirs, near, far, split, codes)
-        outputs = self.sampler.render(self, rays, deterministic)
+        outputs = self.sampler.render(rays, self, deterministic)
         self._count(outputs, B)
         return outputs
 

@@ -1,6 +1,6 @@
 """A finished (or interrupted) run's files read back as data: ``find_run`` (its directory and checkpoint),
 ``run_config`` (its config) and ``read_checkpoint`` (the checkpoint's contents); runs made by earlier versions
-are read as if made by this one (``MOVED_TARGETS``). What is built from them, the model, is a layer above
+are read as if made by this one (``MOVED_TARGETS``, ``OLD_SAMPLER_KEYS``, ``MOVED_WEIGHTS``). What is built from them, the model, is a layer above
 training (``nerfexp.products.trained``)."""
 
 import io
@@ -36,6 +36,14 @@ MOVED_TARGETS = {  # the first match of a target wins; callbacks are not read ba
     "nerfexp.occupancy.": "nerfexp.nerf.occupancy.",
 }
 OLD_NOISE = "density_noise_std: ${oc.select:data.density_noise_std,0.0}"  # the field's line while data held it
+# The renderer's arguments that chose and sized its sampler before the sampler was a component of its own (the
+# ``sampler`` config group, ``nerfexp.nerf.hierarchy.HierarchyChoice``); a run made then is read with them moved
+# there (``moved_sampler``), and its checkpoint's proposal networks under the sampler's name (``current_weights``).
+# Runs made before the sampler group are on researchers' disks under the same version number: these shims stay
+# until SHIMS_UNTIL too.
+OLD_SAMPLER_KEYS = ("hierarchical", "n_coarse", "n_fine", "n_single", "proposal")
+HIERARCHY_CHOICE = "nerfexp.nerf.hierarchy.HierarchyChoice"
+MOVED_WEIGHTS = {"renderer.proposal.": "renderer.sampler."}  # a checkpoint's state_dict names: old prefix -> new
 
 
 def find_run(path: str | Path) -> tuple[Path, Path]:
@@ -66,17 +74,41 @@ def _current(text: str, source: Path) -> DictConfig:
     """A run config's text (read from ``source``) as this version's config, read as data
     (``nerfexp.rundir.saved_configs.as_data``, before anything in it is resolved): ``MOVED_TARGETS`` paths made
     current, and ``data.density_noise_std`` moved to ``model.renderer.field`` (``OLD_NOISE``: the field
-    once read it with a resolver, whose default was 0.0)."""
+    once read it with a resolver, whose default was 0.0), and the renderer's sampler settings moved to the ``sampler``
+    section (``moved_sampler``)."""
     for old, new in MOVED_TARGETS.items():
         text = text.replace(f"_target_: {old}", f"_target_: {new}")  # a replaced target matches no later old
     cfg = OmegaConf.create(text.replace(OLD_NOISE, "density_noise_std: 0.0"))
     if not isinstance(cfg, DictConfig):
         raise ConfigError(f"{source}: not a config nerfexp can read (a mapping of keys was expected)")
-    cfg = as_data(cfg, source)
+    cfg = as_data(moved_sampler(cfg), source)
     if "density_noise_std" in cfg.get("data", {}):
         with open_dict(cfg):
             cfg.model.renderer.field.density_noise_std = cfg.data.pop("density_noise_std")
     return cfg
+
+
+def moved_sampler(cfg: DictConfig) -> DictConfig:
+    """A run config (nothing resolved) whose renderer held its sampler's settings (``OLD_SAMPLER_KEYS``) as this
+    version's: those keys, as written, in a top-level ``sampler`` section that builds the sampler they name
+    (``HIERARCHY_CHOICE``, what ``conf/sampler/paper.yaml`` writes), and the renderer's ``sampler`` a reference to
+    it; any other config unchanged."""
+    plain = OmegaConf.to_container(cfg, resolve=False)
+    renderer = plain.get("model", {}).get("renderer") if isinstance(plain.get("model"), dict) else None
+    if not isinstance(renderer, dict) or "hierarchical" not in renderer or "sampler" in renderer \
+            or "sampler" in plain:
+        return cfg
+    plain["sampler"] = {"_target_": HIERARCHY_CHOICE,
+                        **{key: renderer.pop(key) for key in OLD_SAMPLER_KEYS if key in renderer}}
+    renderer["sampler"] = "${sampler}"
+    return OmegaConf.create(plain)
+
+
+def current_weights(state_dict: dict) -> None:
+    """A checkpoint's ``state_dict`` made this version's, in place: the names ``MOVED_WEIGHTS`` moved."""
+    for name in [name for name in state_dict if name.startswith(tuple(MOVED_WEIGHTS))]:
+        old = next(prefix for prefix in MOVED_WEIGHTS if name.startswith(prefix))
+        state_dict[MOVED_WEIGHTS[old] + name.removeprefix(old)] = state_dict.pop(name)
 
 
 def run_config(run_dir: Path, overrides: list[str] = ()) -> DictConfig:

@@ -41,7 +41,7 @@ from nerfexp.domains import (
     whole_list,
 )
 from nerfexp.nerf.appearance import PROTOCOLS
-from nerfexp.nerf.volume_renderer import HIERARCHIES
+from nerfexp.nerf.hierarchy import HIERARCHIES
 from nerfexp.rundir.labels import NOTES, TAGS
 from nerfexp.training.guard_actions import COLLAPSE_ACTIONS, NONFINITE_ACTIONS
 from nerfexp.training.perceptual import SETTINGS as LPIPS_SETTINGS
@@ -152,8 +152,8 @@ SCHEMA: dict[str, Rule] = {
     "model.optimizer.eps": ADAM_EPS,
     "model.optimizer.weight_decay": FRACTION,
     "model.optimizer.fused": BOOLEAN,
-    # the components' keys (model.renderer.*, encoding.*, view_dependence.*, proposal.*, acceleration.grid.*,
-    # data.*): each class's DOMAINS, beside it (component_rule)
+    # the components' keys (model.renderer.*, sampler.*, encoding.*, view_dependence.*, proposal.*,
+    # acceleration.grid.*, data.*): each class's DOMAINS, beside it (component_rule)
     "datamodule.batch_rays": COUNT,
     "datamodule.seed": whole(0, SEED_LIMIT - 1),
     "acceleration.grid": NULL,  # acceleration=none
@@ -211,7 +211,7 @@ PASSED_ON = ("trainer.*", "callbacks.*", "logger.*", "model.optimizer.*")
 
 # Keys that stand for a whole section of the config through an interpolation (checked where it is set).
 REFERENCES = ("datamodule.scene", "model.renderer.field.position_encoding", "model.renderer.field.view_head",
-              "view_dependence.direction_encoding", "model.renderer.grid", "model.renderer.proposal",
+              "view_dependence.direction_encoding", "model.renderer.grid", "model.renderer.sampler", "sampler.proposal",
               "model.renderer.contraction", "model.renderer.appearance", "model.appearance_fit",
               "proposal.network.position_encoding", "model.camera_opt", "model.test_camera_fit")
 

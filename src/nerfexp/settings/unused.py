@@ -2,7 +2,7 @@
 (``ROOTS``: the model, the data module, the trainer, ...) holds it, directly or through the references that
 carry it there (``model.optimizer.lr: ${scale.lr}``, ``datamodule.scene: ${data}``), and no component on the way
 declares it idle: a component's ``APPLIES`` (``nerfexp.domains``) says when one of its arguments does nothing
-(``VolumeRenderer``'s ``n_fine`` without the hierarchy). A scene's setting that only other components read (its
+(``HierarchyChoice``'s ``n_fine`` without the hierarchy). A scene's setting that only other components read (its
 ``SERVES``: the box) does nothing unless a component built reads it (their ``SCENE_FIELDS``), and a component built
 may take a scene setting's place (its ``REPLACES_SCENE``: a contraction's box and far); ``CROSSING`` holds the rules
 of the keys no component owns. A key nothing reads (``scale.lr`` where ``optimizer=ngp`` sets its own rate) is
@@ -206,9 +206,14 @@ def has_key(plain: dict, key: str) -> bool:
 def without_unused(cfg: DictConfig, resolved: dict, overrides: list[str]) -> dict:
     """``resolved`` (``cfg`` resolved, as a run records it) with null for each key of ``overrides`` (unused
     settings of a sweep's job, ``unused_settings``) and for each key that is a plain interpolation of one
-    (``model.renderer.n_fine: ${scale.n_fine}``): the record says what the run used, not what was asked."""
+    (``sampler.n_fine: ${scale.n_fine}``), or lies in a section that one names (``model.renderer.sampler.n_fine``
+    through ``model.renderer.sampler: ${sampler}``): the record says what the run used, not what was asked."""
     keys = {overridden_key(o) for o in overrides}
-    keys |= {key for key, raw in entries(OmegaConf.to_container(cfg, resolve=False)) if reference(raw) in keys}
+    references = [(key, named) for key, raw in entries(OmegaConf.to_container(cfg, resolve=False))
+                  if (named := reference(raw)) is not None]
+    while new := {key + unused[len(named):] for key, named in references for unused in keys
+                  if unused == named or unused.startswith(f"{named}.")} - keys:
+        keys |= new  # a reference to a section carries its keys (model.renderer.sampler: ${sampler}), to the end
     recorded = OmegaConf.create(resolved)
     for key in keys:
         OmegaConf.update(recorded, key, None, force_add=False)

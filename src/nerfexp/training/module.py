@@ -19,6 +19,7 @@ from nerfexp.nerf.encodings import Encoding
 from nerfexp.nerf.poses import PoseCorrection, PoseFit
 from nerfexp.nerf.schedules import warmup_exponential_decay
 from nerfexp.nerf.volume_renderer import VolumeRenderer, final_output
+from nerfexp.rundir.trained import current_weights
 from nerfexp.training.collapse import contrast
 from nerfexp.training.metrics import psnr, ssim
 from nerfexp.training.optimizers import update_kernels
@@ -385,7 +386,9 @@ class NeRFModule(L.LightningModule):
     def on_load_checkpoint(self, checkpoint: dict) -> None:
         """Where the cameras are refined and the correction is not built yet (a run read back to render:
         ``nerfexp.products.trained.load_module`` calls this before loading the weights), it is built with as many
-        views as the checkpoint's correction holds."""
+        views as the checkpoint's correction holds. An earlier nerfexp's weight names are made current first
+        (``nerfexp.rundir.trained.current_weights``: its proposal networks, now the sampler's)."""
+        current_weights(checkpoint["state_dict"])
         delta = checkpoint["state_dict"].get("camera_opt.delta")
         if self.pose_correction_of is not None and self.camera_opt is None and delta is not None:
             self.build_camera_opt(len(delta) + 1)
