@@ -1,6 +1,6 @@
-"""The recipes of docs/developing.md, followed from the tests' own folder: a toy encoding and a toy colour head
-(each a class and a config file, nothing of nerfexp edited) compose, are checked by their own domains and
-train; the encoding sweeps beside the paper's positional encoding and reaches the report."""
+"""The recipes of docs/developing.md, followed from the tests' own folder: a toy encoding, a toy colour head and a
+toy sampler (each a class and a config file, nothing of nerfexp edited) compose, are checked by their own domains
+and train; the encoding sweeps beside the paper's positional encoding and reaches the report."""
 
 import csv
 import json
@@ -12,8 +12,9 @@ from hydra import compose, initialize_config_module
 from hydra.utils import instantiate
 
 from nerfexp.errors import ConfigError
+from nerfexp.nerf.samplers import Rays
 from nerfexp.settings.checks import check_settings
-from tests.components.toy import PowerEncoding, TiltHead
+from tests.components.toy import MidpointSampler, PowerEncoding, TiltHead
 from tests.helpers import REPO, TINY, one_error_line, run_nerfexp
 
 SEARCH = f"hydra.searchpath=[file://{REPO / 'tests' / 'components'}]"  # where encoding/toy.yaml lies
@@ -84,3 +85,46 @@ def test_the_toy_colour_head_composes_into_the_field_is_checked_by_its_domains_a
     assert done.returncode == 0, done.stderr[-3000:]
     results = json.loads((run / "results.json").read_text())
     assert results["steps"] == 20 and math.isfinite(results["test_psnr"])
+
+
+class RecordedSteps:
+    """The renderer's two steps as a sampler sees them, recording the samples asked for."""
+
+    def __init__(self):
+        self.asked = []
+
+    def composited(self, name, rays, t):
+        self.asked.append((name, t))
+        return {"rgb": torch.zeros(len(t), 3)}
+
+    def density_weights(self, network, rays, t):
+        raise AssertionError("the toy sampler has no density-only network")
+
+
+def test_the_toy_sampler_asks_for_the_midpoints_of_equal_bins_of_each_ray():
+    rays = Rays(torch.zeros(2, 3), torch.ones(2, 3), torch.ones(2, 3) / 3 ** 0.5, torch.tensor([2.0, 0.0]),
+                torch.tensor([6.0, 1.0]))
+    steps = RecordedSteps()
+    out = MidpointSampler(n_samples=4).render(rays, steps, deterministic=False)
+    assert set(out) == {"coarse"} and [name for name, _ in steps.asked] == ["coarse"]
+    # [2, 6] in 4 bins of 1: midpoints 2.5 .. 5.5; [0, 1] in 4 bins of 1/4: 1/8, 3/8, 5/8, 7/8
+    assert torch.equal(steps.asked[0][1], torch.tensor([[2.5, 3.5, 4.5, 5.5], [0.125, 0.375, 0.625, 0.875]]))
+
+
+def test_the_toy_sampler_composes_into_the_renderer_is_checked_by_its_domains_and_trains(tmp_path):
+    cfg = composed("sampler=toy")
+    check_settings(cfg)
+    with pytest.raises(ConfigError, match=r"^sampler.n_samples=0: expected a whole number in \[1, "):
+        check_settings(composed("sampler=toy", "sampler.n_samples=0"))
+    renderer = instantiate(cfg.model).renderer
+    assert isinstance(renderer.sampler, MidpointSampler) and renderer.samples_per_ray == 24
+    assert renderer.fine is None  # one field, the sampler's only name
+    # the hierarchy's sizes are the paper sampler's: with another sampler they are refused as unused
+    tiny = [o for o in TINY if not o.startswith(("scale.n_coarse=", "scale.n_fine="))]
+    run = tmp_path / "run"
+    done = run_nerfexp(*tiny, SEARCH, "sampler=toy", "scale.steps=20", "scale.val_every=20",
+                       f"hydra.run.dir={run}", cwd=tmp_path)
+    assert done.returncode == 0, done.stderr[-3000:]
+    results = json.loads((run / "results.json").read_text())
+    assert results["steps"] == 20 and math.isfinite(results["test_psnr"])
+    assert results["evaluations_per_ray"] == 24

@@ -1,5 +1,5 @@
-"""Components from outside nerfexp, each added by its recipe in docs/developing.md: a toy encoding and a toy
-colour head (the tests' own), their configs in ``tests/components/GROUP/toy.yaml`` found through
+"""Components from outside nerfexp, each added by its recipe in docs/developing.md: a toy encoding, a toy colour
+head and a toy sampler (the tests' own), their configs in ``tests/components/GROUP/toy.yaml`` found through
 ``hydra.searchpath``."""
 
 from collections.abc import Mapping
@@ -10,6 +10,7 @@ from torch import Tensor, nn
 from nerfexp.domains import COUNT, real
 from nerfexp.nerf.encodings import Encoding
 from nerfexp.nerf.fields import ColourHead
+from nerfexp.nerf.samplers import Rays, Sampler, Steps
 
 
 class PowerEncoding(Encoding):
@@ -50,3 +51,27 @@ class TiltHead(ColourHead):
     def forward(self, h: Tensor, directions: Tensor) -> Tensor:
         """h [..., S, F], directions [..., S or 1, 3] -> rgb [..., S, 3]."""
         return torch.sigmoid(self.rgb(h) + self.tilt * directions)
+
+
+class MidpointSampler(Sampler):
+    """One field at the midpoints of ``n_samples`` equal bins of [near, far], never jittered:
+    t_i = near + (i + 1/2) (far - near) / n_samples."""
+
+    DOMAINS = {"n_samples": COUNT}
+
+    def __init__(self, n_samples: int):
+        super().__init__()
+        self.n_samples = n_samples
+
+    @staticmethod
+    def SAMPLES_PER_RAY(config: Mapping) -> tuple[int, tuple[str, ...]]:
+        return config["n_samples"], ("n_samples",)
+
+    @property
+    def samples_per_ray(self) -> int:
+        return self.n_samples
+
+    def render(self, rays: Rays, steps: Steps, deterministic: bool) -> dict[str, dict[str, Tensor]]:
+        fractions = (torch.arange(self.n_samples, dtype=rays.near.dtype, device=rays.near.device) + 0.5) / self.n_samples
+        t = rays.near[:, None] + (rays.far - rays.near)[:, None] * fractions  # [B, n_samples]
+        return {"coarse": steps.composited("coarse", rays, t)}
