@@ -314,6 +314,16 @@ def test_a_sweeps_planned_jobs_are_counted_without_expanding_or_resolving(tmp_pa
     assert planned_jobs(tmp_path) == jobs
 
 
+def test_a_key_the_command_line_sweeps_replaces_the_sweepers_params_of_that_key_in_the_count(tmp_path):
+    # nerfexp +sweeps=budgets ablation=complete,no_view_dependence,no_hierarchical: sweeps/budgets.yaml's params
+    # sweep 4 ablation rows x 3 seeds; the command line's 3 rows replace its 4, and Hydra launched 9 jobs
+    (tmp_path / "multirun.yaml").write_text(
+        f"{BASIC_SWEEPER}    params:\n      ablation: complete,no_posenc,no_view_dependence,no_hierarchical\n"
+        "      seed: 0,1,2\n  overrides:\n    task: [+sweeps=budgets, 'ablation=complete,no_view_dependence,"
+        "no_hierarchical', data=blender]\n")
+    assert planned_jobs(tmp_path) == 9
+
+
 LAUGHS = "a: &a [lol, lol, lol, lol, lol, lol, lol, lol, lol]\n" + "".join(
     f"{b}: &{b} [{', '.join(['*' + a] * 9)}]\n" for a, b in zip("abcdefgh", "bcdefghi"))
 

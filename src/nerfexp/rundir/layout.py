@@ -188,7 +188,8 @@ def sweep_length(override: str) -> int | None:
 
 def planned_jobs(directory: Path) -> int | None:
     """How many jobs the multirun in ``directory`` launches (its ``multirun.yaml``): the product of the
-    lengths of a basic sweep's overrides (``sweep_length``), the trials of a search; None where there is no
+    lengths of a basic sweep's overrides (``sweep_length``; each key once, the command line's over the sweeper's
+    params), the trials of a search; None where there is no
     such file or that cannot be told. The file is read as data (it may come from elsewhere: bounded, nothing
     in it resolved, an interpolation counted as the text it is); one that cannot be read is an
     ``UnreadableFile`` naming it and why."""
@@ -208,7 +209,10 @@ def planned_jobs(directory: Path) -> int | None:
     if not isinstance(params, dict) or not isinstance(task, list):
         raise reading.UnreadableFile(path, "not a sweep's multirun.yaml (its sweeper's params or task overrides "
                                            "are not a mapping and a list)")
-    overrides = [f"{key}={value}" for key, value in params.items()] + [str(override) for override in task]
+    # a key the command line sweeps replaces the sweeper's params of that key (Hydra's basic sweeper: the
+    # command line takes precedence), so each key counts once, as its last override says
+    overrides = list({str(override).split("=", 1)[0]: str(override)
+                      for override in [f"{key}={value}" for key, value in params.items()] + task}.values())
     if sum(map(len, overrides)) > COUNTED_TEXT:
         return None
     jobs = 1
