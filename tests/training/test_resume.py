@@ -9,13 +9,14 @@ from pathlib import Path
 
 import pytest
 import torch
+from omegaconf import OmegaConf
 
 import nerfexp.training.resume as resume
 from nerfexp.errors import NerfexpError
-from nerfexp.rundir.trained import read_checkpoint
+from nerfexp.rundir.trained import current_settings, read_checkpoint
 from nerfexp.training.precision import auto_precision
 from nerfexp.training.recorders import keep_metrics_through
-from tests.helpers import final_state, kill_at, one_error_line, read_json, run_nerfexp
+from tests.helpers import final_state, kill_at, one_error_line, read_json, run_nerfexp, tiny_config
 
 
 def records(run_dir: Path) -> list[tuple]:
@@ -220,3 +221,25 @@ def test_a_finished_run_trained_further_records_what_changed(tiny_run, tmp_path,
     assert records(run_dir)[:5] == records(tiny_run)  # the first 60 steps' lines as they were
     assert [budget["step"] for budget in results["test_budgets"]] == [15, 30, 90]
     assert torch.load(run_dir / "checkpoints" / "last.ckpt", weights_only=True)["nerfexp_resumes"] == [resume]
+
+
+@pytest.mark.parametrize("hierarchical", [True, "proposal"])
+def test_a_checkpoint_recorded_before_the_sampler_group_resumes_with_the_same_settings_and_names_a_changed_one(
+        hierarchical):
+    cfg = tiny_config(f"hierarchical={hierarchical}", "model.lpips=false")
+    # the record a checkpoint of then holds: the renderer held the sampler's settings, and the scale group the hash
+    # grid's sizes
+    old = OmegaConf.to_container(cfg, resolve=False)
+    del old["sampler"], old["model"]["renderer"]["sampler"]
+    old["model"]["renderer"].update(hierarchical="${hierarchical}", n_coarse="${scale.n_coarse}",
+                                    n_fine="${scale.n_fine}", n_single="${scale.n_single}", proposal="${proposal}")
+    old["scale"].update(hash_log2_table_size=16, hash_finest=256)
+    recorded = {"settings": resume.flat_settings(OmegaConf.create(old)), "choices": {}}
+    assert "model.renderer.n_fine" in recorded["settings"]
+    current = resume.flat_settings(cfg, skip=resume.may_differ)
+    named_now = {**recorded, "settings": current_settings(recorded["settings"])}
+    assert resume.differing(named_now, cfg, current, {}) == []
+    assert resume.differing(recorded, cfg, current, {}) != []  # as recorded, the old names are not this run's
+    changed = tiny_config(f"hierarchical={hierarchical}", "model.lpips=false", "scale.n_fine=8")
+    found = resume.differing(named_now, changed, resume.flat_settings(changed, skip=resume.may_differ), {})
+    assert [name for name, _, _ in found] == ["scale.n_fine"] and found[0][1:] == (16, 8)

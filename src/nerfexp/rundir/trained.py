@@ -44,6 +44,9 @@ OLD_NOISE = "density_noise_std: ${oc.select:data.density_noise_std,0.0}"  # the 
 OLD_SAMPLER_KEYS = ("hierarchical", "n_coarse", "n_fine", "n_single", "proposal")
 HIERARCHY_CHOICE = "nerfexp.nerf.hierarchy.HierarchyChoice"
 MOVED_WEIGHTS = {"renderer.proposal.": "renderer.sampler."}  # a checkpoint's state_dict names: old prefix -> new
+# The hash grid's sizes while the scale group held them: a checkpoint of then records them beside the encoding's
+# own keys (encoding.position.log2_table_size, .finest), which it is compared by (``current_settings``).
+OLD_SCALE_KEYS = ("scale.hash_log2_table_size", "scale.hash_finest")
 
 
 def find_run(path: str | Path) -> tuple[Path, Path]:
@@ -102,6 +105,25 @@ def moved_sampler(cfg: DictConfig) -> DictConfig:
                         **{key: renderer.pop(key) for key in OLD_SAMPLER_KEYS if key in renderer}}
     renderer["sampler"] = "${sampler}"
     return OmegaConf.create(plain)
+
+
+def current_settings(settings: dict[str, object]) -> dict[str, object]:
+    """A checkpoint's recorded settings ({dotted key: resolved value}, ``nerfexp.training.resume.flat_settings``) as
+    this version names them: a renderer's sampler keys (``OLD_SAMPLER_KEYS``, ``model.renderer.n_fine``) under the
+    sampler, where this version records them twice (``model.renderer.sampler.n_fine``, and ``sampler.n_fine`` where
+    the section is set: ``moved_sampler``), and ``OLD_SCALE_KEYS`` left out; any other record unchanged."""
+    renderer = "model.renderer."
+    moved = {}
+    for key, value in settings.items():
+        argument = key.removeprefix(renderer)
+        if key in OLD_SCALE_KEYS:
+            continue
+        if key.startswith(renderer) and argument.split(".")[0] in OLD_SAMPLER_KEYS \
+                and f"{renderer}hierarchical" in settings:
+            moved[f"{renderer}sampler.{argument}"] = moved[f"sampler.{argument}"] = value
+        else:
+            moved[key] = value
+    return moved
 
 
 def current_weights(state_dict: dict) -> None:

@@ -29,7 +29,7 @@ from nerfexp.config_keys import leaves, source_key
 from nerfexp.errors import NerfexpError
 from nerfexp.rundir.labels import LABELS
 from nerfexp.rundir.layout import RUN_CONFIG
-from nerfexp.rundir.trained import read_checkpoint, run_config
+from nerfexp.rundir.trained import current_settings, read_checkpoint, run_config
 from nerfexp.training.precision import fill_precision
 
 SETTINGS = "nerfexp_settings"  # a checkpoint's key: {"settings": flat_settings, "choices": config group -> option}
@@ -120,8 +120,8 @@ def recorded_settings(resumed: Resumed, checkpoint: Path) -> dict | None:
     """The settings (``checkpoint_settings``) that trained checkpoint ``checkpoint`` (``resumed``): as it
     records them, else (an earlier nerfexp's) those of its run directory's saved config while that is still
     the run's (``checkpoint`` is ``RUN/checkpoints/NAME.ckpt``), with no choices; None where neither exists."""
-    if resumed.settings is not None:
-        return resumed.settings
+    if resumed.settings is not None:  # named as this version names them (a record of an earlier layout)
+        return {**resumed.settings, "settings": current_settings(resumed.settings.get("settings", {}))}
     run_dir = Path(checkpoint).resolve().parent.parent
     if not (run_dir / RUN_CONFIG).is_file():
         return None
