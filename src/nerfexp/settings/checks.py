@@ -21,7 +21,7 @@ from nerfexp.errors import ConfigError
 from nerfexp.extras import SETTINGS_NEEDING, TARGETS_NEEDING, require
 from nerfexp.kernels import enabled
 from nerfexp.memory import network_bytes, require_memory
-from nerfexp.settings.components import argument_keys, asked, components
+from nerfexp.settings.components import argument_keys, asked, components, walked_once
 from nerfexp.settings.rows import check_row
 from nerfexp.settings.schema import PASSED_ON, REFERENCES, matching, rule_of
 from nerfexp.settings.unused import check_used
@@ -231,10 +231,11 @@ def check_settings(cfg: DictConfig, training: bool = True, scoring: bool = True)
     enabled()  # the kernels' switch, read now so that a value it does not take stops the run before any work
     check_extras(cfg)  # first: a component whose package is missing cannot say what its settings are
     check_rules(cfg, strict=training)
-    check_consistent(cfg)
-    check_sparse_gradients(cfg)
-    check_world_rays(cfg)
-    check_memory(cfg, training)
+    with walked_once(cfg):  # the checks below ask the components many times
+        check_consistent(cfg)
+        check_sparse_gradients(cfg)
+        check_world_rays(cfg)
+        check_memory(cfg, training)
     if scoring:
         check_lpips(cfg)
 

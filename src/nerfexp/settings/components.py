@@ -7,6 +7,7 @@ what nerfexp builds (``ROOTS``) through its sections and the interpolations that
 """
 
 from collections.abc import Iterator, Mapping
+from contextlib import contextmanager
 from dataclasses import dataclass
 
 from omegaconf import DictConfig, OmegaConf
@@ -42,9 +43,34 @@ def idle_arguments(cls: type, config: Mapping) -> set[str]:
     return {argument for argument, applies in getattr(cls, "APPLIES", {}).items() if applies(config)}
 
 
+# The walks of the configs being checked (``walked_once``): id -> [the config, its components or None: not walked yet]
+_WALKS: dict[int, list] = {}
+
+
+@contextmanager
+def walked_once(cfg: DictConfig) -> Iterator[None]:
+    """Within it, ``components(cfg)`` walks ``cfg`` once, at its first call, and gives the same components after
+    (the settings check asks the components many times and changes nothing of the config)."""
+    _WALKS[id(cfg)] = [cfg, None]
+    try:
+        yield
+    finally:
+        _WALKS.pop(id(cfg), None)
+
+
 def components(cfg: DictConfig) -> Iterator[Component]:
     """Each component of ``cfg`` that nerfexp builds, once, where it is set, in the order the config holds them
-    (see the module's docstring)."""
+    (see the module's docstring); walked once where ``walked_once`` holds ``cfg``."""
+    held = _WALKS.get(id(cfg))
+    if held is None or held[0] is not cfg:
+        return walk(cfg)
+    if held[1] is None:
+        held[1] = list(walk(cfg))  # an error on the way is raised here, at the first ask, as without the cache
+    return iter(held[1])
+
+
+def walk(cfg: DictConfig) -> Iterator[Component]:
+    """``components``' walk of ``cfg``, done anew."""
     seen: set[str] = set()
 
     def visit(path: str) -> Iterator[Component]:
