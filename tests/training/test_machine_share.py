@@ -1,15 +1,21 @@
 """The machine a run shares: CPU counters read from /proc/stat texts written by hand, the others' load from known
-counter values, and the thread count from the CPUs and the jobs at once."""
+counter values, and the thread count from the CPUs and the jobs at once, and while training from samples of known
+counters (``ThreadsFollowLoad``)."""
+
+import logging
+from types import SimpleNamespace
 
 import pytest
 import torch
 
-from nerfexp.training import machine_share
+from nerfexp.training import callbacks, machine_share
+from nerfexp.training.callbacks import ThreadsFollowLoad
 from nerfexp.training.machine_share import (
     BUSY_LOAD,
     Sample,
     busy_line,
     busy_ticks,
+    follow_load,
     intra_op_threads,
     other_load,
     others_cpu_s,
@@ -114,7 +120,7 @@ def test_a_busy_start_sets_fewer_threads_and_says_why(monkeypatch, torch_threads
     monkeypatch.setattr(machine_share, "BUSY_SAMPLE_S", 0.0)
     samples = iter([Sample(10.0, 1.0, 100.0), Sample(10.5, 1.0, 101.0)])
     monkeypatch.setattr(machine_share, "sample", lambda: next(samples))
-    line, busy = start_threads(None, None)
+    line, busy, _ = start_threads(None, None)
     assert torch.get_num_threads() == 1
     assert line == ("torch threads: 1 (auto: 2 CPUs this process may use, 2.0 of them busy with other processes; "
                     "threads=N sets it)")
@@ -153,8 +159,72 @@ def test_a_joblib_multirun_on_four_cpus_with_two_jobs_gives_each_two_threads(mon
     monkeypatch.delenv("OMP_NUM_THREADS", raising=False)
     monkeypatch.setattr(machine_share, "available_cpus", lambda: 4)
     monkeypatch.setattr(machine_share, "BUSY_SAMPLE_S", 0.0)
-    line, _ = start_threads(None, {"_target_": JOBLIB, "n_jobs": 2})
+    line, _, _ = start_threads(None, {"_target_": JOBLIB, "n_jobs": 2})
     assert torch.get_num_threads() == 2
     assert line == "torch threads: 2 (auto: 4 CPUs this process may use, 2 jobs at once; threads=N sets it)"
-    line, _ = start_threads(1, {"_target_": JOBLIB, "n_jobs": 2})
+    line, _, _ = start_threads(1, {"_target_": JOBLIB, "n_jobs": 2})
     assert torch.get_num_threads() == 1 and "asked for" in line
+
+
+@pytest.mark.parametrize(("threads", "cpus", "others_s", "expected"), [
+    (2, 2, 12.0, (1, 1.2)),  # a neighbour came: 1.2 CPUs of others over 10 s
+    (1, 2, 0.5, (2, 0.05)),  # it left
+    (2, 2, 3.0, None),  # 0.3 of a CPU: not a CPU taken, the count stays
+    (1, 2, 11.0, None),  # still there
+    (4, 16, 20.0, (14, 2.0)),
+    (1, 1, 30.0, None),  # one CPU: never fewer than one thread
+])
+def test_the_threads_follow_what_others_keep_busy(threads, cpus, others_s, expected):
+    start, end = Sample(0.0, 0.0, 0.0), Sample(10.0, 8.0, 8.0 + others_s)  # the run's own 8 CPU seconds
+    assert follow_load(threads, cpus, start, end) == expected
+
+
+def test_without_counters_the_threads_stay():
+    assert follow_load(2, 2, Sample(0.0, 0.0, None), Sample(10.0, 8.0, None)) is None
+
+
+def follow(monkeypatch, samples: list[Sample], world_size: int = 1) -> tuple[ThreadsFollowLoad, list[dict]]:
+    """A ``ThreadsFollowLoad`` for 2 CPUs run through ``len(samples) - 1`` training steps of a fake trainer, the
+    machine read from ``samples`` in order (the first as training starts)."""
+    readings = iter(samples)
+    monkeypatch.setattr(callbacks, "sample", lambda: next(readings))
+    changes: list[dict] = []
+    follower = ThreadsFollowLoad(2, changes, window_s=10.0)
+    trainer = SimpleNamespace(world_size=world_size, global_step=0)
+    follower.on_train_start(trainer, None)
+    for step in range(1, len(samples)):
+        trainer.global_step = step
+        follower.on_train_batch_end(trainer, None, None, None, step - 1)
+    return follower, changes
+
+
+def test_a_neighbour_that_comes_and_goes_takes_a_thread_and_gives_it_back(monkeypatch, torch_threads, caplog):
+    torch.set_num_threads(2)
+    # (wall, the run's own CPU seconds, the CPUs' busy seconds); at 6 s it is too soon to look
+    samples = [Sample(0.0, 0.0, 0.0), Sample(6.0, 6.0, 6.0), Sample(12.0, 10.0, 24.4),
+               Sample(22.0, 20.0, 45.4), Sample(32.0, 38.0, 63.6)]
+    with caplog.at_level(logging.INFO, logger=callbacks.__name__):
+        _, changes = follow(monkeypatch, samples)
+    # step 2: 24.4 - 10 = 14.4 others' seconds over 12 s -> 1.2 CPUs: one thread; step 3: 21 - 10 = 11 over 10 s
+    # -> stays; step 4: 18.2 - 18 = 0.2 over 10 s -> 0.02: two threads again
+    assert changes == [{"step": 2, "threads": 1, "other_load": pytest.approx(1.2)},
+                       {"step": 4, "threads": 2, "other_load": pytest.approx(0.02)}]
+    assert torch.get_num_threads() == 2
+    lines = [record.getMessage() for record in caplog.records]
+    assert lines[0].startswith("torch threads: 2 -> 1 at step 2: other processes kept 1.2 of the 2 CPUs")
+    assert caplog.records[0].levelno == logging.WARNING and caplog.records[1].levelno == logging.INFO
+
+
+def test_a_distributed_run_never_looks(monkeypatch, torch_threads):
+    torch.set_num_threads(2)
+    _, changes = follow(monkeypatch, [Sample(0.0, 0.0, 0.0), Sample(20.0, 0.0, 40.0)], world_size=2)
+    assert changes == [] and torch.get_num_threads() == 2
+
+
+def test_a_run_follows_the_load_only_where_its_threads_were_chosen_for_it(monkeypatch, torch_threads):
+    monkeypatch.delenv("OMP_NUM_THREADS", raising=False)
+    monkeypatch.setattr(machine_share, "BUSY_SAMPLE_S", 0.0)
+    monkeypatch.setattr(machine_share, "sample", lambda: Sample(0.0, 0.0, 0.0))
+    assert start_threads(None, None).follows_load
+    assert not start_threads(2, None).follows_load  # the user's number stands
+    assert not start_threads(None, {"_target_": JOBLIB, "n_jobs": 2}).follows_load  # a multirun's division stands

@@ -2,6 +2,7 @@
 build moves the clock on by ``JUMP`` seconds, far more than a tiny run trains, so no timing is needed), and the
 run records its CPU time, the others' load, the CPUs and the torch threads beside its wall time."""
 
+import itertools
 import json
 import time
 
@@ -10,7 +11,8 @@ import torch
 from hydra.utils import instantiate
 
 from nerfexp import kernels
-from nerfexp.training.machine_share import available_cpus
+from nerfexp.training import callbacks, machine_share
+from nerfexp.training.machine_share import Sample, available_cpus
 from nerfexp.training.module import NeRFModule
 from tests.helpers import run_nerfexp, tiny_config
 
@@ -91,3 +93,26 @@ def test_a_model_names_the_kernels_its_training_runs_on_a_cpu(overrides, expecte
     assert model.kernels() == expected
     model.to(torch.float64)  # tables no longer float32: the fused kernels would not run
     assert model.kernels() == []
+
+
+def test_a_busy_start_that_passes_gives_the_run_its_threads_back(tmp_path, tiny, monkeypatch):
+    """The start sees every CPU busy (one thread); the machine read while training, every sample 10 s of wall time
+    after the last with nothing else running: the run takes the CPUs back at its first step, says so and records it."""
+    cpus = available_cpus()
+    monkeypatch.delenv("OMP_NUM_THREADS", raising=False)
+    monkeypatch.setattr(machine_share, "BUSY_SAMPLE_S", 0.0)
+    start = iter([Sample(0.0, 0.0, 0.0), Sample(1.0, 0.0, float(cpus))])  # others kept every CPU busy
+    monkeypatch.setattr(machine_share, "sample", lambda: next(start))
+    ticks = itertools.count()
+    monkeypatch.setattr(callbacks, "sample", lambda: Sample(10.0 * next(ticks), 0.0, 0.0))
+    saved = torch.get_num_threads()
+    try:
+        results, _, output = train(tmp_path, tiny)
+    finally:
+        torch.set_num_threads(saved)
+    assert results["torch_threads"] == 1 and "the machine is already busy" in output
+    if cpus > 1:
+        assert results["thread_changes"] == [{"step": 1, "threads": cpus, "other_load": 0.0}]
+        assert f"torch threads: 1 -> {cpus} at step 1" in output
+    else:
+        assert results["thread_changes"] == []

@@ -69,9 +69,9 @@ def train(cfg: DictConfig) -> dict | None:
 
     from nerfexp.data.datamodule import fill_ray_bounds
     from nerfexp.products.trained import check_weights
-    from nerfexp.training.callbacks import KeepSigtermHandler
+    from nerfexp.training.callbacks import KeepSigtermHandler, ThreadsFollowLoad
     from nerfexp.training.loggers import finish
-    from nerfexp.training.machine_share import start_threads
+    from nerfexp.training.machine_share import available_cpus, start_threads
     from nerfexp.training.pose_records import RefinedPoses
     from nerfexp.training.precision import fill_precision
     from nerfexp.training.progress import progress_bars
@@ -90,10 +90,10 @@ def train(cfg: DictConfig) -> dict | None:
     fill_precision(cfg)
     L.seed_everything(cfg.seed, workers=True, verbose=False)
     launcher = OmegaConf.to_container(HydraConfig.get().launcher, resolve=True) if sweep else None
-    threads, busy = start_threads(cfg.threads, launcher)  # one line each, before any work
-    log.info("%s", threads)
-    if busy is not None:
-        log.warning("%s", busy)
+    threads = start_threads(cfg.threads, launcher)  # one line each, before any work
+    log.info("%s", threads.line)
+    if threads.busy is not None:
+        log.warning("%s", threads.busy)
     runtime = HydraConfig.get().runtime
     choices = {k: v for k, v in runtime.choices.items() if not k.startswith("hydra") and v is not None}
     choices.update(hierarchical=cfg.hierarchical, seed=cfg.seed)
@@ -117,6 +117,8 @@ def train(cfg: DictConfig) -> dict | None:
     recorder = RunRecorder(runtime.output_dir, choices, recorded, overrides, settings, resumes, run_labels(cfg),
                            bounds, test_budgets=list(cfg.test_budgets))
     callbacks = [instantiate(c) for c in cfg.callbacks.values()] + [recorder] + progress_bars(cfg.trainer)
+    if threads.follows_load:  # an automatic count follows the machine (the changes: results.json's thread_changes)
+        callbacks.append(ThreadsFollowLoad(available_cpus(), recorder.thread_changes))
     if cfg.model.get("camera_opt") is not None:  # camera_opt=so3xr3: the refined training cameras into the run
         callbacks.append(RefinedPoses(runtime.output_dir))
     if in_launcher_job():  # SIGTERM handled by job_signals, not by Lightning (see KeepSigtermHandler)

@@ -1,10 +1,15 @@
-"""Lightning callbacks of a training run that are not about NeRF: CPU denormals flushed while it trains, and a
-launcher's job's SIGTERM handler kept in place of Lightning's."""
+"""Lightning callbacks of a training run that are not about NeRF: CPU denormals flushed while it trains, a
+launcher's job's SIGTERM handler kept in place of Lightning's, and torch's threads following the machine's load."""
 
+import logging
 import signal
 
 import lightning as L
 import torch
+
+from nerfexp.training.machine_share import FOLLOW_WINDOW_S, Sample, follow_load, sample
+
+log = logging.getLogger(__name__)
 
 
 def flushes_denormals() -> bool:
@@ -67,3 +72,46 @@ class KeepSigtermHandler(L.Callback):
 
     def on_test_start(self, trainer: L.Trainer, pl_module: L.LightningModule) -> None:
         self._restore()
+
+
+class ThreadsFollowLoad(L.Callback):
+    """Looks at the machine every ``window_s`` seconds of training and, where other processes now keep more or fewer
+    of the ``cpus`` this run may use busy than its thread count leaves them (``follow_load``), sets torch's intra-op
+    threads to the rest: a neighbour that starts after the run does not make its OpenMP threads wait on each other
+    for the rest of it (a collapse of many times, docs/acceleration.md), and a busy moment at the start that has
+    passed does not keep it on fewer threads. Each change is said in one line and appended to ``changes``
+    (``{"step", "threads", "other_load"}``: results.json's ``thread_changes``).
+
+    For a single run whose threads were chosen automatically (``ThreadChoice.follows_load``), in one process: the
+    processes of a distributed run would count each other as neighbours. The thread count may change the order of
+    a parallel sum, so such a run's numbers may differ from an undisturbed one's in their last digits."""
+
+    def __init__(self, cpus: int, changes: list[dict], window_s: float = FOLLOW_WINDOW_S):
+        self.cpus, self.changes, self.window_s = cpus, changes, window_s
+        self._last: Sample | None = None
+
+    def on_train_start(self, trainer: L.Trainer, pl_module: L.LightningModule) -> None:
+        self._last = sample() if trainer.world_size == 1 else None
+
+    def on_train_batch_end(self, trainer: L.Trainer, pl_module: L.LightningModule, outputs, batch, batch_idx) -> None:
+        if self._last is None:
+            return
+        now = sample()
+        elapsed = now.wall_s - self._last.wall_s
+        if elapsed < self.window_s:
+            return
+        threads = torch.get_num_threads()
+        change = follow_load(threads, self.cpus, self._last, now)
+        self._last = now
+        if change is None:
+            return
+        wanted, load = change
+        torch.set_num_threads(wanted)
+        self.changes.append({"step": trainer.global_step, "threads": wanted, "other_load": load})
+        log.log(logging.WARNING if wanted < threads else logging.INFO,
+                "torch threads: %d -> %d at step %d: other processes kept %.1f of the %d CPUs this run may use busy "
+                "over the last %.0f s (auto; threads=N fixes the count)", threads, wanted, trainer.global_step, load,
+                self.cpus, elapsed)
+
+    def on_train_end(self, trainer: L.Trainer, pl_module: L.LightningModule) -> None:
+        self._last = None

@@ -11,7 +11,10 @@ seconds over the wall seconds: the number of CPUs other processes kept busy on a
 Why it matters: a run beside other work trains slower than its components do, and torch's OpenMP threads, one per
 core by default, wait on each other once the cores are oversubscribed (docs/acceleration.md). So the thread
 count is chosen from the CPUs this process may use and the jobs a local multirun starts at once
-(``intra_op_threads``), and a run says at its start when the machine is already busy (``busy_line``).
+(``intra_op_threads``), and a run says at its start when the machine is already busy (``busy_line``). A single
+run's automatic choice then follows the machine while it trains (``follow_load``, which
+``nerfexp.training.callbacks.ThreadsFollowLoad`` asks every ``FOLLOW_WINDOW_S``): a neighbour that starts later,
+or a busy moment at the start that passed, changes the thread count instead of deciding it for the whole run.
 """
 
 import math
@@ -32,6 +35,7 @@ BUSY_LOAD = 0.5  # ... above which a run says at its start that the machine is a
 BUSY_SAMPLE_S = 0.3  # seconds over which the machine is looked at before training (``busy_line``)
 THREADS_VARIABLE = "OMP_NUM_THREADS"  # a user's own thread count, which torch also reads at import
 JOBLIB_LAUNCHER = "JoblibLauncher"  # Hydra's joblib launcher (hydra/launcher=joblib): n_jobs runs at once
+FOLLOW_WINDOW_S = 10.0  # seconds of training between two looks at the machine (``follow_load``)
 
 
 class Sample(NamedTuple):
@@ -181,11 +185,19 @@ def threads_line(threads: int, requested: int | None, cpus: int, jobs: int, busy
     return f"torch threads: {threads} (auto: {cpus} CPUs this process may use, {others}; threads=N sets it)"
 
 
-def start_threads(setting: int | None, launcher: dict | None) -> tuple[str, str | None]:
+class ThreadChoice(NamedTuple):
+    line: str  # ``threads_line``
+    busy: str | None  # ``busy_line``
+    follows_load: bool  # chosen automatically for one job at a time: ``follow_load`` may change it while it trains
+
+
+def start_threads(setting: int | None, launcher: dict | None) -> ThreadChoice:
     """Look at the machine for ``BUSY_SAMPLE_S``, then set torch's intra-op threads for this run
     (``intra_op_threads``: the ``threads`` setting, else ``OMP_NUM_THREADS``, else the CPUs this process may use,
     less those other processes kept busy, over the ``launcher``'s jobs at once): the line saying the threads
-    (``threads_line``), and ``busy_line``'s."""
+    (``threads_line``), ``busy_line``'s, and whether the count may follow the machine's load while the run trains
+    (an automatic choice for a single job: a multirun's jobs divide the CPUs among themselves, and a number the user
+    gave stands)."""
     cpus = available_cpus()
     jobs = parallel_jobs(launcher, cpus)
     requested = requested_threads(setting, dict(os.environ))
@@ -195,7 +207,26 @@ def start_threads(setting: int | None, launcher: dict | None) -> tuple[str, str 
     busy = other_load(others_cpu_s(start, end), end.wall_s - start.wall_s)
     threads = intra_op_threads(cpus, jobs, requested, busy or 0.0)
     torch.set_num_threads(threads)
-    return threads_line(threads, requested, cpus, jobs, busy), busy_line(start, end, cpus)
+    return ThreadChoice(threads_line(threads, requested, cpus, jobs, busy), busy_line(start, end, cpus),
+                        requested is None and jobs == 1)
+
+
+def follow_load(threads: int, cpus: int, start: Sample, end: Sample) -> tuple[int, float] | None:
+    """A single run's automatic thread count for what other processes did from ``start`` to ``end`` (two samples
+    ``FOLLOW_WINDOW_S`` apart, while it trained): ``intra_op_threads`` of the ``cpus`` it may use less the CPUs the
+    others kept busy, with that load, where it differs from ``threads`` (the count now); None where it stays, or
+    where the system has no counters.
+
+    >>> follow_load(2, 2, Sample(0.0, 0.0, 0.0), Sample(10.0, 10.0, 22.0))  # a neighbour: 12 of 20 CPU seconds
+    (1, 1.2)
+    >>> follow_load(1, 2, Sample(0.0, 0.0, 0.0), Sample(10.0, 10.0, 10.5)) # it left: 0.05 of a CPU
+    (2, 0.05)
+    """
+    load = other_load(others_cpu_s(start, end), end.wall_s - start.wall_s)
+    if load is None:
+        return None
+    wanted = intra_op_threads(cpus, 1, None, load)
+    return None if wanted == threads else (wanted, load)
 
 
 def share_record(wall_s: float, cpu_s: float | None, others_s: float | None, cpus: int) -> dict:

@@ -178,7 +178,8 @@ class RunRecorder(L.Callback):
         self.kernel_build_s = 0.0  # seconds spent getting kernels, outside the clock
         self._start: Sample | None = None  # the clock's start (``nerfexp.training.machine_share.sample``)
         self._spent_at_start = self._spent_at_fit = 0.0  # ``nerfexp.kernels.seconds_spent`` then
-        self.torch_threads = torch.get_num_threads()
+        self.torch_threads = torch.get_num_threads()  # as training starts
+        self.thread_changes: list[dict] = []  # nerfexp.training.callbacks.ThreadsFollowLoad's, in step order
         self._scores: dict[int, dict[str, float]] = {}  # image index -> its measures (MEASURES)
         self.test_budgets = list(test_budgets)  # fractions of trainer.max_steps at which the test views are scored
         self.budgets: list[dict] = []  # the budgets scored so far (budget_entry), in step order
@@ -306,6 +307,7 @@ class RunRecorder(L.Callback):
         kernels = self.kernel_build_s + (seconds_spent() - self._spent_at_fit if not self.trained else 0.0)
         return {"elapsed_s": wall, "last_val_psnr": self.last_val_psnr, "cpu_time_s": cpu, "others_cpu_s": others,
                 "kernel_build_s": kernels, "torch_threads": self.torch_threads,
+                "thread_changes": [dict(change) for change in self.thread_changes],
                 "test_budgets": [dict(entry) for entry in self.budgets]}
 
     def load_state_dict(self, state_dict: dict) -> None:
@@ -316,6 +318,7 @@ class RunRecorder(L.Callback):
             self.cpu_s, self.others_s = state_dict.get("cpu_time_s"), state_dict.get("others_cpu_s")
             self.kernel_build_s = state_dict.get("kernel_build_s", 0.0)
             self.torch_threads = state_dict.get("torch_threads", self.torch_threads)
+            self.thread_changes[:] = [dict(change) for change in state_dict.get("thread_changes", [])]
             self.budgets = [dict(entry) for entry in state_dict.get("test_budgets", [])]
 
     def on_save_checkpoint(self, trainer, pl_module, checkpoint: dict) -> None:
@@ -407,7 +410,7 @@ class RunRecorder(L.Callback):
             "val_psnr": self.last_val_psnr,
             "train_time_s": self.elapsed_s, "steps": steps, "kernel_build_s": self.kernel_build_s,
             **share_record(self.elapsed_s, self.cpu_s, self.others_s, available_cpus()),
-            "torch_threads": self.torch_threads,
+            "torch_threads": self.torch_threads, "thread_changes": self.thread_changes,
             "time_per_step_s": self.elapsed_s / max(steps, 1),
             "rays_per_s": batch_rays * steps / self.elapsed_s if batch_rays and self.elapsed_s > 0 else None,
             "batch_rays": batch_rays, "processes": trainer.world_size, "precision": str(trainer.precision),
