@@ -3,12 +3,14 @@ reaching the internet; the pytest-xdist workers (``-n auto``) and each one's sha
 device-independent tests run on (``device``: ``NERFEXP_TEST_DEVICE``, the CPU where unset)."""
 
 import os
+import tempfile
 from pathlib import Path
 
 import pytest
 import torch
 
 from nerfexp.training import perceptual
+from nerfexp.training.precision import CACHE_VARIABLE
 from tests.helpers import NO_INTERNET, TINY, run_nerfexp
 from tests.training.weights_server import refused_url
 
@@ -31,6 +33,9 @@ def pytest_configure(config) -> None:
         threads = max(1, len(os.sched_getaffinity(0)) // workers)
         os.environ["OMP_NUM_THREADS"] = str(threads)
         torch.set_num_threads(threads)
+    # trainer.precision=auto's measurements (nerfexp.training.precision) kept apart from the user's, for this session
+    # and every command it starts
+    os.environ.setdefault(CACHE_VARIABLE, tempfile.mkdtemp(prefix="nerfexp-precision-"))
     chosen_device()  # a device that is misspelt or not here stops the session in one line, before any test
 
 

@@ -96,12 +96,13 @@ def test_the_hash_grids_sizes_follow_the_scale_and_the_command_line_wins(scale, 
     assert (enc.table_size, enc.resolutions[-1]) == (2 ** 12, 64)
 
 
-def test_the_fast_preset_is_the_hash_grid_with_the_occupancy_grid_in_float32_and_the_command_line_wins():
+def test_the_fast_preset_is_one_hash_grid_network_with_the_occupancy_grid_in_float32_and_the_command_line_wins():
     cfg, model = build("experiment=fast")
     assert isinstance(model.renderer.coarse.position_encoding, HashGridEncoding)
-    assert model.renderer.grid is not None and model.renderer.fine is not None  # coarse + fine, as the complete model
+    assert model.renderer.grid is not None and model.renderer.fine is None  # one network: the grid skips for it
+    assert model.renderer.sampler.field_names == ("coarse",) and cfg.hierarchical is False
     assert len(model.renderer.coarse.trunk) == 1  # the hash grid's own field (field=ngp)
-    assert cfg.trainer.precision == "32-true" and cfg.scale.steps == cfg.trainer.max_steps == 3000
+    assert cfg.trainer.precision == "32-true" and cfg.scale.steps == cfg.trainer.max_steps == 5000
     _, default = build()
     assert isinstance(default.renderer.coarse.position_encoding, PositionalEncoding) and default.renderer.grid is None
     cfg, model = build("experiment=fast", "encoding=posenc", "scale.steps=50", "trainer.precision=auto")

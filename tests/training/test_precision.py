@@ -1,6 +1,7 @@
 """trainer.precision=auto against known hardware descriptions: the CPU flags that mean bf16 units, and the
 config filled in place with what was chosen."""
 
+import json
 import logging
 
 import pytest
@@ -58,12 +59,12 @@ def test_auto_on_a_gpu_follows_its_compute_capability():
 
 @pytest.mark.slow
 def test_an_auto_run_records_and_resumes_in_the_precision_it_chose(tmp_path, tiny):
-    chosen, _ = auto_precision("cpu")
     run_dir = tmp_path / "run"
     result = run_nerfexp(*tiny, "scale.steps=30", "trainer.accelerator=cpu", "trainer.precision=auto",
                          f"hydra.run.dir={run_dir}", cwd=tmp_path)
     assert result.returncode == 0, result.stderr[-3000:]
-    assert f"trainer.precision=auto: {chosen} (" in result.stderr + result.stdout
+    chosen = read_json(run_dir / "results.json")["precision"]  # by the CPU's units, and where it has some, measured
+    assert chosen in ("32-true", "bf16-mixed") and f"trainer.precision=auto: {chosen} (" in result.stderr + result.stdout
     assert read_json(run_dir / "results.json")["precision"] == chosen
     checkpoint = run_dir / "checkpoints" / "last.ckpt"
     assert read_checkpoint(checkpoint)["nerfexp_settings"]["settings"]["trainer.precision"] == chosen
@@ -83,6 +84,7 @@ def test_auto_on_a_bf16_cpu_keeps_float32_for_a_component_that_autocast_slows(tm
                                                                                   overrides, expected):
     (tmp_path / "cpuinfo").write_text(SAPPHIRE_RAPIDS)
     monkeypatch.setattr(precision, "CPUINFO", tmp_path / "cpuinfo")
+    monkeypatch.setattr(precision, "measure_field", lambda cfg: (2.0, 1.0, 100))  # bf16 measured 2x faster
     cfg = tiny_config("trainer.accelerator=cpu", "trainer.precision=auto", *overrides)
     with caplog.at_level(logging.INFO, logger="nerfexp"):
         fill_precision(cfg)
@@ -98,3 +100,66 @@ def test_the_component_rule_is_the_cpus_only(monkeypatch):
     assert auto_precision("cuda", targets) == ("bf16-mixed", "a cuda with bf16")
     assert auto_precision("cpu", targets)[0] == "32-true"
     assert auto_precision("cpu", ["nerfexp.nerf.encodings.PositionalEncoding"]) == ("bf16-mixed", "a cpu with bf16")
+
+
+@pytest.fixture
+def bf16_cpu(tmp_path, monkeypatch):
+    """A CPU with bf16 units (faked) and an empty cache of measurements; the fields' steps measured: a list of
+    each call's config."""
+    (tmp_path / "cpuinfo").write_text(SAPPHIRE_RAPIDS)
+    monkeypatch.setattr(precision, "CPUINFO", tmp_path / "cpuinfo")
+    monkeypatch.setenv(precision.CACHE_VARIABLE, str(tmp_path / "cache"))
+    return tmp_path / "cache"
+
+
+@pytest.mark.parametrize(("float32_s", "bf16_s", "expected"), [
+    (1.5, 1.0, "bf16-mixed"),  # 1.5x faster in bf16
+    (1.05, 1.0, "32-true"),  # faster, but by less than MEASURED_MARGIN: float32's precision kept
+    (1.0, 1.1, "32-true"),  # slower in bf16 (as on an Intel Xeon with AVX-512 BF16 and no AMX)
+])
+def test_auto_on_a_bf16_cpu_takes_bf16_only_where_the_fields_step_is_measured_faster(
+        bf16_cpu, monkeypatch, caplog, float32_s, bf16_s, expected):
+    monkeypatch.setattr(precision, "measure_field", lambda cfg: (float32_s, bf16_s, 123))
+    cfg = tiny_config("trainer.accelerator=cpu", "trainer.precision=auto")
+    with caplog.at_level(logging.INFO, logger="nerfexp"):
+        fill_precision(cfg)
+    assert cfg.trainer.precision == expected
+    assert (f"a step of this run's field, 123 points, took {bf16_s:.4f} s in bf16 against {float32_s:.4f} s in "
+            "float32 here (measured now;") in caplog.text
+
+
+def test_a_measurement_is_kept_and_read_back_so_that_runs_of_one_config_choose_alike(bf16_cpu, monkeypatch):
+    measured = []
+    monkeypatch.setattr(precision, "measure_field", lambda cfg: measured.append(cfg) or (1.0, 2.0, 7))
+    for seed in (5, 6):  # the seed is not what the step's time depends on
+        cfg = tiny_config("trainer.accelerator=cpu", "trainer.precision=auto", f"seed={seed}")
+        fill_precision(cfg)
+        assert cfg.trainer.precision == "32-true"
+    assert len(measured) == 1  # the second run read the first's measurement
+    record = bf16_cpu / f"{precision.measured_key(cfg)}.json"
+    assert json.loads(record.read_text()) == {"float32_s": 1.0, "bf16_s": 2.0, "points": 7}
+    fill_precision(tiny_config("trainer.accelerator=cpu", "trainer.precision=auto", "scale.width=48"))
+    assert len(measured) == 2  # another field: measured afresh
+    record.write_text("{not json")  # a damaged record is measured again, never read as a choice
+    fill_precision(tiny_config("trainer.accelerator=cpu", "trainer.precision=auto"))
+    assert len(measured) == 3
+
+
+def test_the_measured_step_is_the_runs_own_field_over_a_steps_points_on_forked_random_numbers(bf16_cpu):
+    cfg = tiny_config("trainer.accelerator=cpu", "trainer.precision=auto")
+    torch.manual_seed(3)
+    expected_next = torch.rand(4)
+    torch.manual_seed(3)
+    float32_s, bf16_s, points = precision.measure_field(cfg)
+    assert torch.equal(torch.rand(4), expected_next)  # the run's random numbers as they were
+    assert float32_s > 0 and bf16_s > 0
+    assert points == 256 * (16 + 16 + 16)  # TINY: 256 rays x (16 coarse + 32 fine samples)
+    big = tiny_config("trainer.accelerator=cpu", "scale.batch_rays=4096")
+    assert precision.measure_field(big)[2] == precision.MEASURED_POINTS
+
+
+def test_components_that_say_autocast_slows_them_are_not_measured(bf16_cpu, monkeypatch):
+    monkeypatch.setattr(precision, "measure_field", lambda cfg: pytest.fail("measured"))
+    cfg = tiny_config("trainer.accelerator=cpu", "trainer.precision=auto", "encoding=hashgrid")
+    fill_precision(cfg)
+    assert cfg.trainer.precision == "32-true"

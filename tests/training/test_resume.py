@@ -14,7 +14,6 @@ from omegaconf import OmegaConf
 import nerfexp.training.resume as resume
 from nerfexp.errors import NerfexpError
 from nerfexp.rundir.trained import current_settings, read_checkpoint
-from nerfexp.training.precision import auto_precision
 from nerfexp.training.recorders import keep_metrics_through
 from tests.helpers import final_state, kill_at, one_error_line, read_json, run_nerfexp, tiny_config
 
@@ -98,9 +97,9 @@ def test_eval_of_a_missing_run_is_one_clear_line(tmp_path, make):
     assert len(lines) == 1 and lines[0].startswith("nerfexp-eval: error: ") and expected in lines[0], lines
 
 
-# the tiny run trains at the default precision (auto): what this machine chose, and the other one
-AUTO_PRECISION = auto_precision("cpu")[0]
-OTHER_PRECISION = {"bf16-mixed": "32-true", "32-true": "bf16-mixed"}[AUTO_PRECISION]
+# the tiny run trains at the default precision (auto): what this machine chose ("{auto}" below, read from the run),
+# and the other one ("{other}")
+OTHER_PRECISION = {"bf16-mixed": "32-true", "32-true": "bf16-mixed"}
 
 
 def files_of(folder: Path) -> dict:
@@ -116,8 +115,8 @@ def files_of(folder: Path) -> dict:
     (["encoding=hashgrid", "field=nerf", "scale.steps=90"], "the checkpoint was trained with encoding=posenc, "),
     (["scale.width=64", "scale.steps=90"],
      "the checkpoint was trained with scale.width=32; this run sets scale.width=64:"),
-    ([f"trainer.precision={OTHER_PRECISION}", "scale.steps=90"],
-     f"trained with trainer.precision={AUTO_PRECISION}; this run sets trainer.precision={OTHER_PRECISION}:"),
+    (["trainer.precision={other}", "scale.steps=90"],
+     "trained with trainer.precision={auto}; this run sets trainer.precision={other}:"),
     ([], "the checkpoint has taken 60 steps, all of this run's (scale.steps=60): raise scale.steps to train further, "
          "or score it with nerfexp-eval"),
 ])
@@ -127,6 +126,9 @@ def test_a_resume_that_would_not_continue_the_run_is_one_line_and_touches_nothin
     shutil.copytree(tiny_run, run_dir)
     before = files_of(run_dir)
     checkpoint = run_dir / "checkpoints" / "last.ckpt"
+    auto = read_json(run_dir / "results.json")["precision"]
+    words = {"auto": auto, "other": OTHER_PRECISION[auto]}
+    overrides, expected = [override.format(**words) for override in overrides], expected.format(**words)
     result = run_nerfexp(*tiny, *overrides, f"resume={checkpoint}", f"hydra.run.dir={run_dir}", cwd=tmp_path)
     line = one_error_line(result)
     assert line.startswith(f"nerfexp: error: resume={checkpoint}: ") and expected in line, line

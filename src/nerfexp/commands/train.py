@@ -87,13 +87,13 @@ def train(cfg: DictConfig) -> dict | None:
         log.warning("%s: not used with %s; results.json records it as null", override, reason)
     quiet_dependencies()
     bounds = fill_ray_bounds(cfg)
-    fill_precision(cfg)
     L.seed_everything(cfg.seed, workers=True, verbose=False)
     launcher = OmegaConf.to_container(HydraConfig.get().launcher, resolve=True) if sweep else None
     threads = start_threads(cfg.threads, launcher)  # one line each, before any work
     log.info("%s", threads.line)
     if threads.busy is not None:
         log.warning("%s", threads.busy)
+    fill_precision(cfg)  # with the run's threads: auto may time the run's field (on forked random numbers)
     runtime = HydraConfig.get().runtime
     choices = {k: v for k, v in runtime.choices.items() if not k.startswith("hydra") and v is not None}
     choices.update(hierarchical=cfg.hierarchical, seed=cfg.seed)

@@ -3,6 +3,7 @@ launcher's job's SIGTERM handler kept in place of Lightning's, and torch's threa
 
 import logging
 import signal
+import time
 
 import lightning as L
 import torch
@@ -95,6 +96,8 @@ class ThreadsFollowLoad(L.Callback):
 
     def on_train_batch_end(self, trainer: L.Trainer, pl_module: L.LightningModule, outputs, batch, batch_idx) -> None:
         if self._last is None:
+            return
+        if time.perf_counter() - self._last.wall_s < self.window_s:  # /proc/stat read only once the window passed
             return
         now = sample()
         elapsed = now.wall_s - self._last.wall_s

@@ -1,20 +1,31 @@
 """``trainer.precision=auto``: bf16 mixed precision where this machine computes bf16 matrix products in
-hardware, float32 elsewhere, chosen when a job starts.
+hardware and, on a CPU, a step of the run's own field is measured faster in bf16; float32 elsewhere; chosen when a
+job starts.
 
 bf16 is fast on GPUs from Ampere on (compute capability 8.0) and on CPUs with AMX or AVX-512 BF16 units
 (Intel from Cooper Lake and Sapphire Rapids, AMD from Zen 4): there ``bf16-mixed`` runs the networks' matrix
 products in bf16 (weights, optimizer and volume rendering stay float32, ``nerfexp.nerf``). Elsewhere ``auto``
 keeps ``32-true``, and so it does on a CPU where a component the run builds says that autocast slows its step
 there (a class attribute ``CPU_AUTOCAST_SLOWER``, the measurement in words: the hash encoding's lookups stay
-float32, so autocast only adds casts around its small field). docs/precision.md has the measurements behind the choice (``benchmarks/precision.py``,
-and quality paired by seed).
+float32, so autocast only adds casts around its small field). Otherwise, on a CPU, units are not speed: AVX-512
+BF16 without AMX made the complete model's step 1.9x faster on an AMD EPYC (Zen 4) and 10% slower on an Intel
+Xeon. So there ``auto`` times the run's colour field, forward and backward over a step's points, in both
+precisions (``measured_precision``) and takes bf16 only where it is at least ``MEASURED_MARGIN`` times faster; the
+answer is kept per machine, threads and field (``precision_cache``), so that a sweep's jobs and a resumed run
+choose alike. docs/precision.md has the measurements behind the choice (``benchmarks/precision.py``, and quality
+paired by seed).
 """
 
+import hashlib
+import json
 import logging
+import os
+import statistics
+import time
 from pathlib import Path
 
 import torch
-from hydra.utils import get_class
+from hydra.utils import get_class, instantiate
 from omegaconf import DictConfig, OmegaConf, open_dict
 
 log = logging.getLogger(__name__)
@@ -22,6 +33,10 @@ log = logging.getLogger(__name__)
 AUTO = "auto"
 CPU_BF16_FLAGS = ("amx_bf16", "avx512_bf16")  # /proc/cpuinfo's names of the CPU's bf16 matrix units
 CPUINFO = Path("/proc/cpuinfo")
+MEASURED_MARGIN = 1.1  # bf16 chosen on a CPU only where a field's step is at least this many times faster in it
+MEASURED_POINTS = 32_768  # at most this many points in the measured step (the default's step: 256 rays x 96)
+MEASURED_REPEATS = 5  # timed steps in each precision, alternating, after one warm-up each; the medians compared
+CACHE_VARIABLE = "NERFEXP_PRECISION_CACHE"  # where auto keeps its measurements (``precision_cache``)
 
 
 def cpu_bf16_units(cpuinfo: str) -> list[str]:
@@ -97,13 +112,100 @@ def model_targets(cfg: DictConfig) -> list[str]:
     return config_targets(OmegaConf.to_container(cfg.model, resolve=True)) if "model" in cfg else []
 
 
+def precision_cache() -> Path:
+    """The folder of auto's measurements: ``NERFEXP_PRECISION_CACHE``, else ``$XDG_CACHE_HOME/nerfexp/precision``
+    (``~/.cache/nerfexp/precision``)."""
+    if os.environ.get(CACHE_VARIABLE):
+        return Path(os.environ[CACHE_VARIABLE])
+    return Path(os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache") / "nerfexp" / "precision"
+
+
+def field_step_s(field: torch.nn.Module, inputs: tuple[torch.Tensor, ...], bf16: bool) -> float:
+    """Seconds of one forward and backward pass of ``field`` at ``inputs`` (points [N, 3], directions [N, 3] and,
+    where it takes them, appearance codes [N, D]), under CPU bf16 autocast where ``bf16``."""
+    started = time.perf_counter()
+    with torch.autocast("cpu", torch.bfloat16, enabled=bf16):
+        outputs = field(*inputs)
+    (outputs.rgb.float().sum() + outputs.sigma.float().sum()).backward()
+    return time.perf_counter() - started
+
+
+def measure_field(cfg: DictConfig) -> tuple[float, float, int]:
+    """The median seconds of a step of the run's colour field (``model.renderer.field``, built as the renderer
+    builds it) in float32 and in bf16 autocast, alternating after a warm-up step each, and its points: a step's
+    samples (``datamodule.batch_rays`` x the sampler's samples per ray, all networks), at most ``MEASURED_POINTS``.
+    Draws on forked random numbers: the run's own stay as they were."""
+    renderer = cfg.model.renderer
+    appearance = renderer.get("appearance")
+    dim = int(appearance.dim) if appearance is not None else 0
+    with torch.random.fork_rng(devices=[]):
+        torch.manual_seed(0)
+        samples = instantiate(renderer.sampler)().samples_per_ray
+        field = instantiate(renderer.field)(**({"appearance_dim": dim} if dim else {}))
+        n = min(int(cfg.datamodule.batch_rays) * samples, MEASURED_POINTS)
+        directions = torch.nn.functional.normalize(torch.randn(n, 3), dim=-1)
+        inputs = (torch.rand(n, 3) * 2 - 1, directions, *((torch.zeros(n, dim),) if dim else ()))
+        seconds = {False: [], True: []}
+        for bf16 in (False, True):  # warm-up: oneDNN builds its kernels for a new shape at its first call
+            field_step_s(field, inputs, bf16)
+        for _ in range(MEASURED_REPEATS):
+            for bf16 in (False, True):
+                seconds[bf16].append(field_step_s(field, inputs, bf16))
+    return statistics.median(seconds[False]), statistics.median(seconds[True]), n
+
+
+def measured_key(cfg: DictConfig) -> str:
+    """What a measurement of ``measure_field`` depends on, hashed: the CPU (its model and flags), torch, the
+    threads, and the field, sampler, appearance and batch the run builds."""
+    try:
+        cpu = CPUINFO.read_text().split("\n\n")[0]
+    except OSError:
+        cpu = "unknown"
+    renderer = OmegaConf.to_container(cfg.model.renderer, resolve=True)
+    what = {"cpu": cpu, "torch": torch.__version__, "threads": torch.get_num_threads(),
+            "batch_rays": cfg.datamodule.batch_rays,
+            **{key: renderer.get(key) for key in ("field", "sampler", "appearance")}}
+    return hashlib.sha256(json.dumps(what, sort_keys=True, default=str).encode()).hexdigest()[:32]
+
+
+def measured_precision(cfg: DictConfig, why: str) -> tuple[str, str]:
+    """(``bf16-mixed`` or ``32-true``, why) on a CPU with bf16 units (``why`` says which): bf16 where the run's
+    colour field's step was measured at least ``MEASURED_MARGIN`` times faster in it (``measure_field``). The
+    measurement is kept in ``precision_cache()`` under ``measured_key`` and read back (as data: a file that does not
+    hold one is measured again), so that runs of one config on one machine choose alike."""
+    cache = precision_cache() / f"{measured_key(cfg)}.json"
+    try:
+        record = json.loads(cache.read_text())
+        float32_s, bf16_s, points = float(record["float32_s"]), float(record["bf16_s"]), int(record["points"])
+        source = f"measured before, {cache}"
+    except (OSError, ValueError, KeyError, TypeError):
+        try:
+            float32_s, bf16_s, points = measure_field(cfg)
+        except Exception as error:  # a field that needs the scene to be built: the model's build will say more
+            return "bf16-mixed", f"{why} (this run's field not measured: {type(error).__name__}: {error})"
+        source = "measured now"
+        try:
+            cache.parent.mkdir(parents=True, exist_ok=True)
+            cache.write_text(json.dumps({"float32_s": float32_s, "bf16_s": bf16_s, "points": points}))
+        except OSError:  # not kept: the next run measures again
+            pass
+    faster = float32_s >= MEASURED_MARGIN * bf16_s
+    words = (f"{why}; a step of this run's field, {points:,} points, took {bf16_s:.4f} s in bf16 against "
+             f"{float32_s:.4f} s in float32 here ({source}; bf16 where it is at least {MEASURED_MARGIN}x faster)")
+    return ("bf16-mixed" if faster else "32-true"), words
+
+
 def fill_precision(cfg: DictConfig) -> None:
-    """Set ``trainer.precision=auto`` in ``cfg`` to the precision this machine runs fast (``auto_precision``),
-    in place and said in the log, so that the trainer built from ``cfg``, the checkpoints' settings and the
-    config a run records hold the precision used. Any other value stays."""
+    """Set ``trainer.precision=auto`` in ``cfg`` to the precision this machine runs fast (``auto_precision``,
+    then on a CPU with bf16 units ``measured_precision``), in place and said in the log, so that the trainer built
+    from ``cfg``, the checkpoints' settings and the config a run records hold the precision used. Any other value
+    stays."""
     if cfg.trainer.get("precision") != AUTO:
         return
-    precision, why = auto_precision(str(cfg.trainer.get("accelerator", AUTO)), model_targets(cfg))
+    accelerator = str(cfg.trainer.get("accelerator", AUTO))
+    precision, why = auto_precision(accelerator, model_targets(cfg))
+    if precision == "bf16-mixed" and device_type(accelerator) == "cpu" and "model" in cfg:
+        precision, why = measured_precision(cfg, why)
     log.info("trainer.precision=auto: %s (%s)", precision, why)
     with open_dict(cfg.trainer):
         cfg.trainer.precision = precision
