@@ -14,7 +14,7 @@ after a warm-up, for each formulation:
   docs/acceleration.md);
 - ``nerfexp_torch_path``: the same with ``NERFEXP_KERNELS=off``: dense levels by ``F.grid_sample``, the hashed ones
   corner-first ([8, L, N]) by one autograd node whose backward sums rows by one ``bincount``
-  (``nerfexp.nerf.encodings.interpolate_rows``).
+  (``nerfexp.nerf.hashgrid.interpolate_rows``).
 The reference: ``PositionalEncoding(10)`` followed by the 4 x 128 MLP of ``scale=cpu`` (the encoding
 and the network it feeds, since the positional encoding alone costs nothing). The hash grid's own MLP
 (one layer of 64) is timed with it. Every formulation is checked against ``nerfexp``'s output first.
@@ -36,8 +36,9 @@ from torch import nn
 
 from nerfexp.files import atomic_write
 from nerfexp.kernels import SWITCH
-from nerfexp.nerf import encodings
-from nerfexp.nerf.encodings import HASH_PRIMES, HashGridEncoding, PositionalEncoding, interpolate_rows
+from nerfexp.nerf import hashgrid
+from nerfexp.nerf.encodings import PositionalEncoding
+from nerfexp.nerf.hashgrid import HASH_PRIMES, HashGridEncoding, interpolate_rows
 
 OUT = Path(__file__).parent / "results"
 CORNERS = torch.tensor([[(c >> 2) & 1, (c >> 1) & 1, c & 1] for c in range(8)])  # [8, 3]: (i, j, k) offsets
@@ -103,19 +104,19 @@ def scatter_ms(enc: HashGridEncoding, points: torch.Tensor, repeats: int) -> dic
         captured["corners"] = corners
         return interpolate_rows(table, corners, weights, sparse)
 
-    encodings.interpolate_rows = capture
+    hashgrid.interpolate_rows = capture
     os.environ[SWITCH] = "off"  # the torch path's gathers (the fused kernel has none to capture)
     try:
         with torch.no_grad():
             enc(points)
     finally:
-        encodings.interpolate_rows = interpolate_rows
+        hashgrid.interpolate_rows = interpolate_rows
         os.environ.pop(SWITCH)
     n_entries = enc.hashed.numel()
-    entries = encodings.flat_indices(captured["corners"], n_entries // enc.features_per_level,
-                                     enc.features_per_level).view(-1)
+    entries = hashgrid.flat_indices(captured["corners"], n_entries // enc.features_per_level,
+                                   enc.features_per_level).view(-1)
     values = torch.randn(len(entries))
-    sums = {"bincount": lambda: encodings.entry_sums(entries, values, n_entries),
+    sums = {"bincount": lambda: hashgrid.entry_sums(entries, values, n_entries),
             "index_add_": lambda: values.new_zeros(n_entries).index_add_(0, entries, values)}
     torch.testing.assert_close(sums["bincount"](), sums["index_add_"](), rtol=1e-4, atol=1e-4)
     return {name: median_ms(fn, repeats) for name, fn in sums.items()}

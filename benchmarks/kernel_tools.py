@@ -38,7 +38,7 @@ from torch import nn
 
 from nerfexp.files import atomic_write
 from nerfexp.kernels import SWITCH
-from nerfexp.nerf.encodings import HASH_PRIMES, HashGridEncoding
+from nerfexp.nerf.hashgrid import HASH_PRIMES, HashGridEncoding
 from nerfexp.rundir.layout import machine
 
 OUT = Path(__file__).parent / "results"

@@ -36,7 +36,7 @@ from hydra.utils import instantiate
 
 from nerfexp.files import atomic_write
 from nerfexp.nerf.bounds import Bounded
-from nerfexp.nerf.encodings import HashGridEncoding
+from nerfexp.nerf.hashgrid import HashGridEncoding
 from nerfexp.report.runs import find_runs
 from nerfexp.report.variants import difference, group_variants
 

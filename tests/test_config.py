@@ -12,8 +12,9 @@ from hydra.utils import get_class, instantiate
 from omegaconf import OmegaConf
 
 from nerfexp.nerf.bounds import Bounded
-from nerfexp.nerf.encodings import HashGridEncoding, IdentityEncoding, PositionalEncoding
+from nerfexp.nerf.encodings import IdentityEncoding, PositionalEncoding
 from nerfexp.nerf.fields import DiffuseHead, SphericalHarmonicsHead, ViewMLPHead
+from nerfexp.nerf.hashgrid import HashGridEncoding
 from nerfexp.nerf.proposal import ProposalSampler
 from nerfexp.nerf.reflection import ReflectionHead
 
@@ -82,7 +83,7 @@ def test_hashgrid_has_instant_ngps_field_and_optimizer_and_no_decay_on_its_table
 @pytest.mark.parametrize(("scale", "log2_table_size", "finest"), [("cpu", 16, 256), ("paper", 19, 2048)])
 def test_the_hash_grids_sizes_follow_the_scale_and_the_command_line_wins(scale, log2_table_size, finest):
     # the encoding as it was built when the scale group held these sizes (scale.hash_log2_table_size, hash_finest)
-    expected = {"_target_": "nerfexp.nerf.encodings.HashGridEncoding", "n_levels": 16, "features_per_level": 2,
+    expected = {"_target_": "nerfexp.nerf.hashgrid.HashGridEncoding", "n_levels": 16, "features_per_level": 2,
                 "log2_table_size": log2_table_size, "coarsest": 16, "finest": finest, "include_input": False,
                 "sparse_gradients": False}
     for order in ([f"scale={scale}", "encoding=hashgrid"], ["encoding=hashgrid", f"scale={scale}"],

@@ -7,7 +7,7 @@ import math
 
 import torch
 
-from nerfexp.nerf.encodings import HASH_PRIMES, HashGridEncoding
+from nerfexp.nerf.hashgrid import HASH_PRIMES, HashGridEncoding
 
 BOX = [[-1.0, -0.5, 0.0], [1.0, 1.5, 3.0]]  # unequal sides: the axes must not be mixed up
 

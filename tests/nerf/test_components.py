@@ -8,7 +8,7 @@ import inspect
 import pytest
 import torch
 
-from nerfexp.nerf.encodings import Encoding, HashGridEncoding, IdentityEncoding, PositionalEncoding
+from nerfexp.nerf.encodings import Encoding, IdentityEncoding, PositionalEncoding
 from nerfexp.nerf.fields import (
     ColourHead,
     DensityField,
@@ -18,6 +18,7 @@ from nerfexp.nerf.fields import (
     SphericalHarmonicsHead,
     ViewMLPHead,
 )
+from nerfexp.nerf.hashgrid import HashGridEncoding
 from nerfexp.nerf.hierarchy import HIERARCHIES, HierarchyChoice
 from nerfexp.nerf.occupancy import OccupancyGrid
 from nerfexp.nerf.proposal import ProposalSampler

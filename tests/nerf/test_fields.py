@@ -4,8 +4,9 @@ import math
 import pytest
 import torch
 
-from nerfexp.nerf.encodings import HashGridEncoding, IdentityEncoding, PositionalEncoding
+from nerfexp.nerf.encodings import IdentityEncoding, PositionalEncoding
 from nerfexp.nerf.fields import DiffuseHead, NeRFField, SphericalHarmonicsHead, ViewMLPHead, sh_basis
+from nerfexp.nerf.hashgrid import HashGridEncoding
 from nerfexp.nerf.reflection import ReflectionHead, normal_penalties
 from nerfexp.nerf.volume_renderer import query_packed, query_thresholded
 

@@ -14,7 +14,7 @@ import pytest
 import torch
 
 from nerfexp import kernels
-from nerfexp.nerf import encodings
+from nerfexp.nerf import hashgrid
 from tests.nerf.hashgrid_reference import BOX, reference_features, small_encoding
 
 FUSED = kernels.kernel("hash_encoding")
@@ -116,7 +116,7 @@ def test_on_any_device_but_the_cpu_the_torch_path_runs(monkeypatch):
     # a GPU's tensors never reach the CPU kernel: the meta device (in every torch build) stands for a GPU here,
     # and a stand-in for the kernel is "built", so that the choice is seen whether or not a compiler is here
     built = object()
-    monkeypatch.setattr(encodings, "kernel", lambda name: built)
+    monkeypatch.setattr(hashgrid, "kernel", lambda name: built)
     enc = small_encoding()
     assert enc._fused_kernel(torch.rand(5, 3)) is built  # float32 on the CPU: the kernel
     assert enc.to("meta")._fused_kernel(torch.rand(5, 3, device="meta")) is None  # elsewhere: the torch path

@@ -9,8 +9,9 @@ import math
 import pytest
 import torch
 
-from nerfexp.nerf.encodings import HASH_PRIMES, HashGridEncoding, PositionalEncoding, flat_indices, level_resolutions
+from nerfexp.nerf.encodings import PositionalEncoding
 from nerfexp.nerf.fields import NeRFField, ViewMLPHead
+from nerfexp.nerf.hashgrid import HASH_PRIMES, HashGridEncoding, flat_indices, level_resolutions
 from tests.nerf.hashgrid_reference import BOX, hashed_row, reference_features, small_encoding
 
 

@@ -20,7 +20,7 @@ from omegaconf import OmegaConf
 
 from nerfexp import manifest
 from nerfexp.commands import scene
-from nerfexp.errors import NerfexpError
+from nerfexp.errors import ConfigError, NerfexpError
 from nerfexp.rundir.claim import admit_run, claim, held_run, remove_entries
 from nerfexp.rundir.layout import (
     LAST_CHECKPOINT,
@@ -32,9 +32,10 @@ from nerfexp.rundir.layout import (
     process_start,
     read_metrics,
 )
+from nerfexp.nerf.hashgrid import HashGridEncoding
 from nerfexp.nerf.proposal import ProposalSampler
 from nerfexp.nerf.samplers import HierarchicalSampler
-from nerfexp.rundir.trained import SHIMS_UNTIL, find_run, run_config
+from nerfexp.rundir.trained import MOVED_TARGETS, SHIMS_UNTIL, find_run, run_config
 from nerfexp.settings.checks import check_run_settings
 from tests.helpers import REPO, digests, one_error_line, run_nerfexp, tiny_config
 
@@ -120,6 +121,28 @@ def test_a_hash_grid_run_saved_with_its_sizes_in_the_scale_group_is_read_with_th
     check_run_settings(cfg)  # the run's own keys, which this version no longer has, are not refused
     encoding = instantiate(cfg.model.renderer.field.position_encoding)
     assert (encoding.table_size, encoding.resolutions[-1]) == (2 ** 12, 64)
+
+
+HASH_GRID = "nerfexp.nerf.hashgrid.HashGridEncoding"
+
+
+# where the hash grid's class lived: in nerfexp.nerf.encodings before it had a module of its own, and in
+# nerfexp.encodings before the layers (whose prefix entry alone would take it to nerfexp.nerf.encodings)
+@pytest.mark.parametrize("old", ["nerfexp.nerf.encodings.HashGridEncoding", "nerfexp.encodings.HashGridEncoding"])
+def test_a_hash_grid_run_saved_before_the_grid_had_its_own_module_is_built_with_the_current_class(
+        tmp_path, monkeypatch, old):
+    with initialize_config_module("nerfexp.conf", version_base=None):
+        text = OmegaConf.to_yaml(compose("config", overrides=["encoding=hashgrid", "scale=cpu"]))
+    assert text.count(f"_target_: {HASH_GRID}\n") == 1  # encoding.position; the field's is a reference to it
+    (tmp_path / RUN_CONFIG).parent.mkdir()
+    (tmp_path / RUN_CONFIG).write_text(text.replace(HASH_GRID, old))
+    cfg = run_config(tmp_path)
+    assert cfg.encoding.position._target_ == HASH_GRID
+    encoding = instantiate(cfg.model.renderer.field.position_encoding)
+    assert type(encoding) is HashGridEncoding and encoding.resolutions[-1] == cfg.encoding.position.finest
+    monkeypatch.delitem(MOVED_TARGETS, old)  # without its entry the old path names no class nerfexp builds
+    with pytest.raises(ConfigError, match="HashGridEncoding' is not a class nerfexp builds"):
+        run_config(tmp_path)
 
 
 def old_layout(cfg) -> str:

@@ -463,7 +463,7 @@ def test_the_classes_a_key_allows_are_those_nerfexps_own_files_name_there_or_ref
     assert named["model.renderer.field"] == {"nerfexp.nerf.fields.NeRFField"}  # conf/field/, @package
     # ${view_dependence} in conf/field/, whose head holds ${encoding.direction}: carried through both
     assert named["model.renderer.field.view_head.direction_encoding"] == ENCODINGS
-    assert named["model.renderer.field.position_encoding"] == {*ENCODINGS, "nerfexp.nerf.encodings.HashGridEncoding"}
+    assert named["model.renderer.field.position_encoding"] == {*ENCODINGS, "nerfexp.nerf.hashgrid.HashGridEncoding"}
     assert named["model.optimizer"] == {"torch.optim.Adam", "nerfexp.training.optimizers.LazyAdam"}  # the sweeps'
     assert named["trainer.plugins.0"] == {"nerfexp.training.checkpoints.AtomicCheckpointIO"}
     assert not any(key.startswith("model.renderer.") and LOGGERS & classes for key, classes in named.items())

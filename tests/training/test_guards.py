@@ -17,8 +17,8 @@ from torch import nn
 from torch.utils.data import DataLoader
 
 from nerfexp.errors import FieldCollapseError, NonFiniteError
-from nerfexp.nerf.encodings import HashGridEncoding
 from nerfexp.nerf.fields import FieldOutputs
+from nerfexp.nerf.hashgrid import HashGridEncoding
 from nerfexp.nerf.hierarchy import HierarchyChoice
 from nerfexp.nerf.volume_renderer import VolumeRenderer
 from nerfexp.training.collapse import colour_spread

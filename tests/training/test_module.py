@@ -13,8 +13,9 @@ from torch import nn
 from torch.utils.data import DataLoader
 
 from nerfexp.errors import ConfigError
-from nerfexp.nerf.encodings import HashGridEncoding, PositionalEncoding
+from nerfexp.nerf.encodings import PositionalEncoding
 from nerfexp.nerf.fields import DensityField, FieldOutputs, NeRFField, ViewMLPHead
+from nerfexp.nerf.hashgrid import HashGridEncoding
 from nerfexp.nerf.hierarchy import HierarchyChoice
 from nerfexp.nerf.proposal import ProposalSampler
 from nerfexp.nerf.volume_renderer import VolumeRenderer

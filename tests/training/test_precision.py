@@ -96,7 +96,7 @@ def test_auto_on_a_bf16_cpu_keeps_float32_for_a_component_that_autocast_slows(tm
 def test_the_component_rule_is_the_cpus_only(monkeypatch):
     """On a GPU with bf16 (faked) the hash encoding's CPU measurement does not apply."""
     monkeypatch.setattr(precision, "fast_bf16", lambda device: (True, f"a {device} with bf16"))
-    targets = ["nerfexp.nerf.encodings.HashGridEncoding", "not.a.module.Class"]
+    targets = ["nerfexp.nerf.hashgrid.HashGridEncoding", "not.a.module.Class"]
     assert auto_precision("cuda", targets) == ("bf16-mixed", "a cuda with bf16")
     assert auto_precision("cpu", targets)[0] == "32-true"
     assert auto_precision("cpu", ["nerfexp.nerf.encodings.PositionalEncoding"]) == ("bf16-mixed", "a cpu with bf16")

@@ -245,3 +245,17 @@ def test_a_checkpoint_recorded_before_the_sampler_group_resumes_with_the_same_se
     changed = tiny_config(f"hierarchical={hierarchical}", "model.lpips=false", "scale.n_fine=8")
     found = resume.differing(named_now, changed, resume.flat_settings(changed, skip=resume.may_differ), {})
     assert [name for name, _, _ in found] == ["scale.n_fine"] and found[0][1:] == (16, 8)
+
+
+@pytest.mark.parametrize("old", ["nerfexp.nerf.encodings.HashGridEncoding", "nerfexp.encodings.HashGridEncoding"])
+def test_a_hash_grid_checkpoint_recorded_before_the_grid_had_its_own_module_resumes_with_the_same_settings(old):
+    cfg = tiny_config("encoding=hashgrid", "model.lpips=false")
+    current = resume.flat_settings(cfg, skip=resume.may_differ)
+    # the record a checkpoint of then holds: the class where it lived, at every key that names it
+    new = "nerfexp.nerf.hashgrid.HashGridEncoding"
+    settings = {key: old if value == new else value for key, value in resume.flat_settings(cfg).items()}
+    assert {key for key, value in settings.items() if value == old} >= {  # the proposal networks' grids too
+        "model.renderer.field.position_encoding._target_", "encoding.position._target_"}
+    recorded = {"settings": settings, "choices": {}}
+    assert resume.differing(recorded, cfg, current, {}) != []  # as recorded, the old path is not this run's
+    assert resume.differing({**recorded, "settings": current_settings(settings)}, cfg, current, {}) == []

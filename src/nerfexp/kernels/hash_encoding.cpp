@@ -1,4 +1,4 @@
-// The hash encoding's forward and backward (nerfexp.nerf.encodings.HashGridEncoding) as fused CPU loops: each
+// The hash encoding's forward and backward (nerfexp.nerf.hashgrid.HashGridEncoding) as fused CPU loops: each
 // position's 8 corners per level found, weighted and summed in one pass (forward, parallel over positions), and
 // each level's table gradient accumulated in one pass over the positions (backward, parallel over levels: a
 // level's entries are its own, so no two threads add to one entry, without atomics or per-thread copies), into new

@@ -5,6 +5,7 @@ training (``nerfexp.products.trained``)."""
 
 import io
 import pickle
+import re
 import warnings
 import zipfile
 from pathlib import Path
@@ -22,12 +23,18 @@ from nerfexp.rundir.records import checkpoint_problem
 from nerfexp.rundir.saved_configs import as_data, check_resolved
 
 # Where the classes of a run's config lived before the package was split into layers (and the data group
-# held the field's density noise): a run made by an earlier nerfexp is read as if made by this one. Both shims
+# held the field's density noise), and the hash grid before it had a module of its own (nerfexp.nerf.hashgrid): a
+# run made by an earlier nerfexp is read, and its checkpoint's record compared, as if made by this one. Both shims
 # stay until nerfexp 0.2.0 (SHIMS_UNTIL): the runs made before the layers (commit 591e713, 2026-11-23) are
 # still on researchers' disks, under the same version number, 0.1.0; a release may drop them
 # (tests/rundir/test_rundir.py fails once the version reaches it with them still here).
 SHIMS_UNTIL = (0, 2, 0)
-MOVED_TARGETS = {  # the first match of a target wins; callbacks are not read back (saved_configs.TRAINING_ONLY)
+# An entry ending in "." moves every class under it, any other the class it names (``moved_target``); the first
+# match of a target wins, so a class moved apart from its module comes before its module's prefix. Callbacks are not
+# read back (saved_configs.TRAINING_ONLY).
+MOVED_TARGETS = {
+    "nerfexp.nerf.encodings.HashGridEncoding": "nerfexp.nerf.hashgrid.HashGridEncoding",
+    "nerfexp.encodings.HashGridEncoding": "nerfexp.nerf.hashgrid.HashGridEncoding",
     "nerfexp.module.": "nerfexp.training.module.",
     "nerfexp.guards.": "nerfexp.training.guards.",
     "nerfexp.renderer.": "nerfexp.nerf.volume_renderer.",
@@ -35,6 +42,7 @@ MOVED_TARGETS = {  # the first match of a target wins; callbacks are not read ba
     "nerfexp.encodings.": "nerfexp.nerf.encodings.",
     "nerfexp.occupancy.": "nerfexp.nerf.occupancy.",
 }
+TARGET_IN_TEXT = re.compile(r"(_target_: )([\w.]+)")  # a ``_target_`` in a config's YAML text: the key and its class
 OLD_NOISE = "density_noise_std: ${oc.select:data.density_noise_std,0.0}"  # the field's line while data held it
 # The renderer's arguments that chose and sized its sampler before the sampler was a component of its own (the
 # ``sampler`` config group, ``nerfexp.nerf.hierarchy.HierarchyChoice``); a run made then is read with them moved
@@ -79,8 +87,7 @@ def _current(text: str, source: Path) -> DictConfig:
     current, and ``data.density_noise_std`` moved to ``model.renderer.field`` (``OLD_NOISE``: the field
     once read it with a resolver, whose default was 0.0), and the renderer's sampler settings moved to the ``sampler``
     section (``moved_sampler``)."""
-    for old, new in MOVED_TARGETS.items():
-        text = text.replace(f"_target_: {old}", f"_target_: {new}")  # a replaced target matches no later old
+    text = TARGET_IN_TEXT.sub(lambda found: found[1] + moved_target(found[2]), text)
     cfg = OmegaConf.create(text.replace(OLD_NOISE, "density_noise_std: 0.0"))
     if not isinstance(cfg, DictConfig):
         raise ConfigError(f"{source}: not a config nerfexp can read (a mapping of keys was expected)")
@@ -89,6 +96,21 @@ def _current(text: str, source: Path) -> DictConfig:
         with open_dict(cfg):
             cfg.model.renderer.field.density_noise_std = cfg.data.pop("density_noise_std")
     return cfg
+
+
+def moved_target(target: str) -> str:
+    """The class path ``target`` where this version has the class: made current by the first entry of
+    ``MOVED_TARGETS`` that names it (the class itself, or a prefix ending in "." of its module), else unchanged.
+
+    >>> moved_target("nerfexp.encodings.PositionalEncoding")
+    'nerfexp.nerf.encodings.PositionalEncoding'
+    >>> moved_target("nerfexp.nerf.encodings.HashGridEncoding")
+    'nerfexp.nerf.hashgrid.HashGridEncoding'
+    """
+    for old, new in MOVED_TARGETS.items():
+        if target == old or (old.endswith(".") and target.startswith(old)):
+            return new + target.removeprefix(old)
+    return target
 
 
 def moved_sampler(cfg: DictConfig) -> DictConfig:
@@ -111,7 +133,8 @@ def current_settings(settings: dict[str, object]) -> dict[str, object]:
     """A checkpoint's recorded settings ({dotted key: resolved value}, ``nerfexp.training.resume.flat_settings``) as
     this version names them: a renderer's sampler keys (``OLD_SAMPLER_KEYS``, ``model.renderer.n_fine``) under the
     sampler, where this version records them twice (``model.renderer.sampler.n_fine``, and ``sampler.n_fine`` where
-    the section is set: ``moved_sampler``), and ``OLD_SCALE_KEYS`` left out; any other record unchanged."""
+    the section is set: ``moved_sampler``), ``OLD_SCALE_KEYS`` left out, and every ``_target_`` where its class is
+    now (``moved_target``); any other record unchanged."""
     renderer = "model.renderer."
     moved = {}
     for key, value in settings.items():
@@ -121,6 +144,8 @@ def current_settings(settings: dict[str, object]) -> dict[str, object]:
         if key.startswith(renderer) and argument.split(".")[0] in OLD_SAMPLER_KEYS \
                 and f"{renderer}hierarchical" in settings:
             moved[f"{renderer}sampler.{argument}"] = moved[f"sampler.{argument}"] = value
+        elif key.split(".")[-1] == "_target_" and isinstance(value, str):
+            moved[key] = moved_target(value)
         else:
             moved[key] = value
     return moved

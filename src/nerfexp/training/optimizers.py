@@ -1,5 +1,5 @@
 """Optimizers beyond torch's: ``LazyAdam``, Adam that also takes sparse gradients and updates only the rows
-they hold (the hash grid's tables, ``nerfexp.nerf.encodings.HashGridEncoding(sparse_gradients=True)``).
+they hold (the hash grid's tables, ``nerfexp.nerf.hashgrid.HashGridEncoding(sparse_gradients=True)``).
 
 Naming: a sparse gradient is a COO tensor of its parameter's shape [*S, *D], hybrid: its first
 ``sparse_dim()`` dims S are sparse (for a hash table [L_h, T, F]: level and row), the others D dense
