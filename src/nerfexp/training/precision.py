@@ -28,6 +28,8 @@ import torch
 from hydra.utils import get_class, instantiate
 from omegaconf import DictConfig, OmegaConf, open_dict
 
+from nerfexp.files import atomic_write
+
 log = logging.getLogger(__name__)
 
 AUTO = "auto"
@@ -186,7 +188,8 @@ def measured_precision(cfg: DictConfig, why: str) -> tuple[str, str]:
         source = "measured now"
         try:
             cache.parent.mkdir(parents=True, exist_ok=True)
-            cache.write_text(json.dumps({"float32_s": float32_s, "bf16_s": bf16_s, "points": points}))
+            # whole or not at all: the jobs of a joblib sweep may write one record at once
+            atomic_write(cache, json.dumps({"float32_s": float32_s, "bf16_s": bf16_s, "points": points}).encode())
         except OSError:  # not kept: the next run measures again
             pass
     faster = float32_s >= MEASURED_MARGIN * bf16_s
