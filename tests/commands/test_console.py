@@ -65,8 +65,8 @@ def test_a_run_prints_its_own_lines_only(tmp_path):
     # the one warning a run may give here is its own about the machine: another test may be keeping a CPU busy
     lines = [line for line in lines if not (BUSY_LINE.match(line) and "the machine is already busy" in line)]
     assert [line for line in lines if not OWN_LINE.match(line)] == []
-    assert re.search(r"trainer.precision=auto: (bf16-mixed|32-true) \(.+\)$", lines[0])  # chosen at start-up
-    assert re.search(r"torch threads: \d+ \(.+\)$", lines[1])  # and the threads it runs with
+    assert re.search(r"torch threads: \d+ \(.+\)$", lines[0])  # the threads it runs with
+    assert re.search(r"trainer.precision=auto: (bf16-mixed|32-true) \(.+\)$", lines[1])  # then, with them, the precision
     assert "LPIPS not scored: " in lines[2]  # TINY's images are below AlexNet's 31 pixels, and its weights absent
     # a line per test budget (the default 1/4 and 1/2: steps 15 and 30) and per validation
     assert [re.search(r"step \d+/60: (validation|test)", line)[0] for line in lines[3:-1]] == [
