@@ -7,9 +7,9 @@ bf16 is fast on GPUs from Ampere on (compute capability 8.0) and on CPUs with AM
 products in bf16 (weights, optimizer and volume rendering stay float32, ``nerfexp.nerf``). Elsewhere ``auto``
 keeps ``32-true``, and so it does on a CPU where a component the run builds says that autocast slows its step
 there (a class attribute ``CPU_AUTOCAST_SLOWER``, the measurement in words: the hash encoding's lookups stay
-float32, so autocast only adds casts around its small field). Otherwise, on a CPU, units are not speed: AVX-512
-BF16 without AMX made the complete model's step 1.9x faster on an AMD EPYC (Zen 4) and 10% slower on an Intel
-Xeon. So there ``auto`` times the run's colour field, forward and backward over a step's points, in both
+float32, so autocast only adds casts around its small field). Otherwise, on a CPU, units are not speed: the same
+AVX-512 BF16 units made bf16 faster on one CPU and slower on another (docs/precision.md, measured, not assumed).
+So there ``auto`` times the run's colour field, forward and backward over a step's points, in both
 precisions (``measured_precision``) and takes bf16 only where it is at least ``MEASURED_MARGIN`` times faster; the
 answer is kept per machine, threads and field (``precision_cache``), so that a sweep's jobs and a resumed run
 choose alike. docs/precision.md has the measurements behind the choice (``benchmarks/precision.py``, and quality
@@ -190,7 +190,7 @@ def measured_precision(cfg: DictConfig, why: str) -> tuple[str, str]:
             cache.parent.mkdir(parents=True, exist_ok=True)
             # whole or not at all: the jobs of a joblib sweep may write one record at once
             atomic_write(cache, json.dumps({"float32_s": float32_s, "bf16_s": bf16_s, "points": points}).encode())
-        except OSError:  # not kept: the next run measures again
+        except OSError:  # a cache folder that cannot be written: this run's choice stands, the next run measures again
             pass
     faster = float32_s >= MEASURED_MARGIN * bf16_s
     words = (f"{why}; a step of this run's field, {points:,} points, took {bf16_s:.4f} s in bf16 against "
