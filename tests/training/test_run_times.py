@@ -29,7 +29,7 @@ def slow_builds(monkeypatch):
     def build(name: str, source: bytes):
         built.append(name)
         offset[0] += JUMP
-        return None, True, None  # "built", yet none: the components take the torch path
+        return object(), True, None  # a module nothing calls: the default run encodes positions with posenc
 
     monkeypatch.setattr(time, "perf_counter", lambda: real() + offset[0])
     monkeypatch.setattr(kernels, "cached_kernel", build)
@@ -49,13 +49,13 @@ def train(tmp_path, tiny, *overrides: str) -> tuple[dict, list[dict], str]:
 
 def test_the_kernels_a_run_uses_are_built_before_its_clock_starts_and_recorded_apart(
         tmp_path, tiny, slow_builds, monkeypatch):
-    monkeypatch.setattr(NeRFModule, "kernels", lambda self: ["composite", "hash_encoding"])
+    monkeypatch.setattr(NeRFModule, "kernels", lambda self: ["hash_encoding"])
     results, metrics, output = train(tmp_path, tiny)
-    assert slow_builds == ["composite", "hash_encoding"]  # each once, before training
-    assert results["kernel_build_s"] >= 2 * JUMP
+    assert slow_builds == ["hash_encoding"]  # once, before training
+    assert results["kernel_build_s"] >= JUMP
     assert results["train_time_s"] < JUMP and all(m["wall_time_s"] < JUMP for m in metrics)
-    assert "kernel hash_encoding built in 1000 s" in output  # each build said once, with its seconds
-    assert "kernels composite, hash_encoding ready before the training clock started" in output
+    assert "kernel hash_encoding built in 1000 s" in output  # the build said once, with its seconds
+    assert "kernels hash_encoding ready before the training clock started" in output
 
 
 def test_a_kernel_first_asked_for_inside_the_clock_is_taken_out_of_it(tmp_path, tiny, slow_builds, monkeypatch):
@@ -68,33 +68,30 @@ def test_a_kernel_first_asked_for_inside_the_clock_is_taken_out_of_it(tmp_path, 
     monkeypatch.setattr(NeRFModule, "kernels", lambda self: [])
     monkeypatch.setattr(NeRFModule, "on_train_batch_start", first_step_asks)
     results, metrics, _ = train(tmp_path, tiny)
-    assert slow_builds == ["lazy_adam", "composite"]  # the renderer's, asked for at its first composite
+    assert slow_builds == ["lazy_adam"]
     assert results["kernel_build_s"] >= JUMP
     assert results["train_time_s"] < JUMP and all(m["wall_time_s"] < JUMP for m in metrics)
 
 
 def test_a_run_records_its_cpu_time_the_others_load_its_cpus_and_threads(tmp_path, tiny, monkeypatch):
     monkeypatch.setenv("OMP_NUM_THREADS", "1")
-    kernels.prepare(["composite"])  # the default model's one kernel, which this process then has already
     results, _, output = train(tmp_path, tiny, "threads=2")  # the setting wins over OMP_NUM_THREADS
     assert results["torch_threads"] == 2 and "torch threads: 2 (asked for" in output
     assert results["cpu_time_s"] > 0 and results["cpus"] == available_cpus()
     assert results["other_load"] is None or results["other_load"] >= 0  # None only without /proc/stat
-    assert results["kernel_build_s"] == 0.0  # got before the run: no second build, no second read
+    assert results["kernel_build_s"] == 0.0  # the default model runs no fused kernel
 
 
 @pytest.mark.parametrize(("overrides", "expected"), [
-    ([], ["composite"]),  # the positional encoding runs no fused kernel; the renderer composites by one
-    (["encoding=hashgrid"], ["composite", "hash_encoding"]),
+    ([], []),  # the positional encoding runs no fused kernel
+    (["encoding=hashgrid"], ["hash_encoding"]),
     (["encoding=hashgrid", "encoding.position.sparse_gradients=true",
-      "model.optimizer._target_=nerfexp.training.optimizers.LazyAdam"], ["composite", "hash_encoding", "lazy_adam"]),
+      "model.optimizer._target_=nerfexp.training.optimizers.LazyAdam"], ["hash_encoding", "lazy_adam"]),
 ])
 def test_a_model_names_the_kernels_its_training_runs_on_a_cpu(overrides, expected):
     model = instantiate(tiny_config(*overrides).model)
     assert model.kernels() == expected
-    model.to(torch.float64)  # tables no longer float32: the encoding's kernels would not run; the composite would
-    assert model.kernels() == ["composite"]
-    model.to("meta")  # any device but the CPU (a GPU's): none
+    model.to(torch.float64)  # tables no longer float32: the fused kernels would not run
     assert model.kernels() == []
 
 

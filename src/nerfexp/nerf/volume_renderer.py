@@ -10,12 +10,10 @@ from torch import Tensor, nn
 from nerfexp.domains import FAR, LOSS_WEIGHT, NEAR, Consistent, Rule, choice, optional
 from nerfexp.nerf.appearance import AppearanceEmbedding
 from nerfexp.nerf.backgrounds import BACKGROUNDS
-from nerfexp.nerf.compositing import KERNEL as COMPOSITE_KERNEL
-from nerfexp.nerf.compositing import rendered
 from nerfexp.nerf.contraction import SceneContraction
 from nerfexp.nerf.fields import FieldOutputs, PositionalOutputs
 from nerfexp.nerf.occupancy import OccupancyGrid
-from nerfexp.nerf.quadrature import optical_depths, render_weights
+from nerfexp.nerf.quadrature import composite, optical_depths, render_weights
 from nerfexp.nerf.samplers import Rays, Sampler
 from nerfexp.nerf.sampling import intervals
 
@@ -254,11 +252,6 @@ class VolumeRenderer(nn.Module):
             return self.sampler.colour_samples_per_ray
         return float(self._trained["colour_evaluations"]) / self._trained["rays"]
 
-    def kernels(self) -> tuple[str, ...]:
-        """The fused kernels (``nerfexp.kernels``) its compositing runs where it now is: the composite on a CPU
-        (``nerfexp.nerf.compositing``); its fields' encodings name their own."""
-        return (COMPOSITE_KERNEL,) if self.background.device.type == "cpu" else ()
-
     def density_fns(self) -> list[Callable[[Tensor], Tensor]]:
         """Each colour network's density (positions [N, 3] -> sigma [N]), for ``OccupancyGrid.update``."""
         return [getattr(self, name).density for name in self.sampler.field_names]
@@ -353,7 +346,8 @@ class VolumeRenderer(nn.Module):
         # Rendering runs in the rays' precision whatever the network's: under bf16 autocast the field
         # answers in bf16 (8 significant bits), too coarse for exp/cumsum of optical depths.
         rgbs, sigmas = outputs.rgb.to(t.dtype), outputs.sigma.to(t.dtype)
-        weights, out = rendered(sigmas, rgbs, starts, ends, t, self.background, self.ray_far)
+        weights, _ = render_weights(sigmas, starts, ends)
+        out = composite(weights, rgbs, t, self.background, self.ray_far)
         out.update(weights=weights, t_starts=t_starts, t_ends=t_ends, evaluated=evaluated, coloured=coloured)
         regularizers = {}
         if outputs.penalties is not None:
