@@ -8,14 +8,10 @@ import time
 import lightning as L
 import torch
 
+from nerfexp.training.denormals import flushes_denormals, set_flush_denormal_everywhere
 from nerfexp.training.machine_share import FOLLOW_WINDOW_S, Sample, follow_load, sample
 
 log = logging.getLogger(__name__)
-
-
-def flushes_denormals() -> bool:
-    """Whether this thread's CPU arithmetic flushes float32 denormals to zero (torch sets it, but has no getter)."""
-    return (torch.tensor(torch.finfo(torch.float32).tiny) / 2).item() == 0.0
 
 
 class FlushDenormals(L.Callback):
@@ -24,9 +20,10 @@ class FlushDenormals(L.Callback):
 
     exp(-optical depth) behind surfaces and the densities of empty space produce float32 denormals
     (below 1.2e-38), which slow the CPU's backward pass down (measured in docs/results/default_run.md);
-    flushing them costs nothing in accuracy at these magnitudes. The setting is process-wide, so it is
-    scoped to training: other code in the process (a notebook, the test suite's float64 references)
-    keeps IEEE denormals.
+    flushing them costs nothing in accuracy at these magnitudes. The setting is a thread's, so it is set on every
+    thread of torch's OpenMP team (``set_flush_denormal_everywhere``: torch's own call reaches only the calling
+    thread, and the workers kept computing on denormals), and it is scoped to training: other code in the process (a
+    notebook, the test suite's float64 references) keeps IEEE denormals.
     """
 
     def __init__(self):
@@ -34,11 +31,13 @@ class FlushDenormals(L.Callback):
 
     def on_fit_start(self, trainer: L.Trainer, pl_module: L.LightningModule) -> None:
         self._previous = flushes_denormals()
-        torch.set_flush_denormal(True)
+        if not set_flush_denormal_everywhere(True):
+            log.info("CPU denormals flushed on the training thread only: no OpenMP runtime found in this process to "
+                     "reach torch's other threads")
 
     def _restore(self) -> None:
         if self._previous is not None:
-            torch.set_flush_denormal(self._previous)
+            set_flush_denormal_everywhere(self._previous)
             self._previous = None
 
     def on_fit_end(self, trainer: L.Trainer, pl_module: L.LightningModule) -> None:
