@@ -3,9 +3,8 @@
 ``torch.set_flush_denormal`` sets the flush-to-zero and denormals-are-zero bits of the calling thread's floating-point
 control register (x86's MXCSR). torch's intra-op work runs on an OpenMP team: the calling thread and workers that
 the runtime started at the first parallel region and keeps. A worker started before the flag was set keeps IEEE
-denormals, so with 2 threads half of every parallel operator kept computing on denormals: a default run's step on a
-Blender scene grew from 0.105 to 0.164 s over its first 1,600 steps, and stayed 0.105 s with every thread flushing
-(benchmarks/results/denormals.md). ``set_flush_denormal_everywhere`` runs ``torch.set_flush_denormal`` on each thread of
+denormals, so with 2 threads half of every parallel operator kept computing on denormals, which grow as a run learns
+its scene (what that cost: benchmarks/results/denormals.md). ``set_flush_denormal_everywhere`` runs ``torch.set_flush_denormal`` on each thread of
 the calling thread's OpenMP team, through the runtime's own entry point for a parallel region (``GOMP_parallel``, which
 GNU's libgomp and LLVM's libomp both export), found among the libraries this process has loaded: the runtime torch
 itself uses. Where there is none (another parallel backend, a system without ``/proc/self/maps``), only the calling
