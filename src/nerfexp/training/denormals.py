@@ -4,11 +4,13 @@
 control register (x86's MXCSR). torch's intra-op work runs on an OpenMP team: the calling thread and workers that
 the runtime started at the first parallel region and keeps. A worker started before the flag was set keeps IEEE
 denormals, so with 2 threads half of every parallel operator kept computing on denormals, which grow as a run learns
-its scene (what that cost: benchmarks/results/denormals.md). ``set_flush_denormal_everywhere`` runs ``torch.set_flush_denormal`` on each thread of
-the calling thread's OpenMP team, through the runtime's own entry point for a parallel region (``GOMP_parallel``, which
-GNU's libgomp and LLVM's libomp both export), found among the libraries this process has loaded: the runtime torch
-itself uses. Where there is none (another parallel backend, a system without ``/proc/self/maps``), only the calling
-thread's flag is set, as torch alone does, and the caller is told.
+its scene (what that cost: benchmarks/results/denormals.md).
+
+``set_flush_denormal_everywhere`` runs ``torch.set_flush_denormal`` on each thread of the calling thread's OpenMP
+team, through the runtime's own entry point for a parallel region (``GOMP_parallel``, which GNU's libgomp and LLVM's
+libomp both export), found among the libraries this process has loaded: the runtime torch itself uses. Where there is
+none (another parallel backend, a system without ``/proc/self/maps``), only the calling thread's flag is set, as torch
+alone does, and the caller is told.
 """
 
 import ctypes
@@ -36,7 +38,8 @@ def openmp_runtime() -> ctypes.CDLL | None:
         maps = Path("/proc/self/maps").read_text().splitlines()
     except OSError:
         return None
-    paths = dict.fromkeys(line.split(maxsplit=5)[-1] for line in maps if len(line.split(maxsplit=5)) == 6)
+    fields = (line.split(maxsplit=5) for line in maps)  # address, perms, offset, device, inode[, path]
+    paths = dict.fromkeys(f[5] for f in fields if len(f) == 6)
     torch_libraries = str(Path(torch.__file__).parent)
     for path in sorted(paths, key=lambda path: not path.startswith(torch_libraries)):  # torch's own first
         if Path(path).name.startswith(OPENMP_LIBRARIES):
