@@ -321,3 +321,52 @@ def test_update_occupied_re_evaluates_the_occupied_cells_besides_a_random_quarte
     plain.update(1, [lambda x: torch.zeros(len(x))])
     assert (plain.density[occupied] == before[occupied]).any()
     assert len(plain.cells_to_update(2)) == 128
+
+
+def test_training_evaluates_a_drawn_share_of_the_samples_in_empty_cells_and_rendering_none():
+    # The 8 occupied cells of a cube at a corner of BOX (R = 8), and 40,000 points uniform over [-1.5, 1.5]^3, of
+    # which (2/3)^3 = 30% lie inside the box. While training, a point inside the box in an empty cell is kept with
+    # probability train_empty_share: binomial, so the kept share lies within 5 standard deviations of it.
+    cube = SimpleNamespace(density=lambda x: torch.where((x > 0.5).all(-1), 5.0, 0.0))
+    grid = OccupancyGrid(resolution=8, update_every=1, warmup_steps=1, aabb=BOX, train_empty_share=0.25)
+    grid.update(0, [cube.density])
+    points = torch.rand(40_000, 3, generator=torch.Generator().manual_seed(0)) * 3 - 1.5
+    occupied = grid.occupied_at(points)
+    inside = (points.abs() < 1).all(-1)
+    assert torch.equal(grid.kept_at(points, training=False), occupied)  # rendering: the grid alone
+    torch.manual_seed(0)
+    kept = grid.kept_at(points, training=True)
+    assert (kept >= occupied).all() and not kept[~inside].any()  # the occupied ones always, outside never
+    empty_inside = inside & ~occupied
+    share, n = kept[empty_inside].float().mean().item(), int(empty_inside.sum())
+    assert abs(share - 0.25) < 5 * math.sqrt(0.25 * 0.75 / n)
+    grid.train_empty_share = 1.0
+    assert torch.equal(grid.kept_at(points, training=True), inside)
+    grid.train_empty_share = 0.0  # off: the grid alone, and no random number drawn (the variant is unchanged)
+    state = torch.get_rng_state()
+    assert torch.equal(grid.kept_at(points, training=True), occupied)
+    assert torch.equal(torch.get_rng_state(), state)
+
+
+def test_a_training_render_with_every_empty_sample_drawn_is_the_render_of_the_field_inside_the_box():
+    # With train_empty_share = 1 a training render evaluates every sample inside the box, as if there were no grid
+    # for the field zeroed outside the box (the blob is not: 0.019 at distance 1); an evaluation render skips them.
+    blob = GaussianBlob(peak=5.0, radius=0.3)
+    grid = trained_grid(blob, early_stop_transmittance=0.0, train_empty_share=1.0)
+    assert not grid.occupied.all()
+
+    class Boxed(GaussianBlob):
+        def density(self, positions):
+            return torch.where((positions.abs() < 1).all(-1), super().density(positions), 0)
+
+    everywhere = OccupancyGrid(resolution=16, aabb=BOX, early_stop_transmittance=0.0)  # new: every cell occupied
+    _, boxed, _ = render_pair(Boxed(peak=5.0, radius=0.3), everywhere)
+    _, skipped, _ = render_pair(blob, trained_grid(blob, early_stop_transmittance=0.0))
+    origins, directions = aimed_rays(2048, torch.Generator().manual_seed(1), impact=1.2, distance=(3.5, 4.5))
+    renderer = VolumeRenderer(lambda: blob, HierarchyChoice(False, n_coarse=64, n_fine=64, n_single=128),
+                              near=NEAR, far=FAR, grid=grid)
+    training = renderer.train()(origins.float(), directions.float(), deterministic=True)["coarse"]
+    rendering = renderer.eval()(origins.float(), directions.float(), deterministic=True)["coarse"]
+    torch.testing.assert_close(training["rgb"], boxed["coarse"]["rgb"], atol=1e-6, rtol=0)
+    torch.testing.assert_close(rendering["rgb"], skipped["coarse"]["rgb"], atol=1e-6, rtol=0)
+    assert (training["rgb"] - rendering["rgb"]).abs().max() > 1e-3  # the empty cells' faint density counts
