@@ -98,7 +98,6 @@ class OccupancyGrid(Bounded):
         "alpha_threshold": real(0, 1),
         "march_steps": optional(COUNT, "the cell's diagonal"),
         "update_occupied": BOOLEAN,
-        "train_empty_share": real(0, 1),
     }
     APPLIES: ClassVar[dict[str, Applies]] = {}
     SCENE_FIELDS: ClassVar[tuple[str, ...]] = ("aabb",)  # its cells divide the scene's box
@@ -112,23 +111,20 @@ class OccupancyGrid(Bounded):
     def __init__(self, resolution: int = 32, threshold: float = 0.01, decay: float = 0.95, warmup_steps: int = 256,
                  update_every: int = 16, early_stop_transmittance: float = 1e-4, segments: int = 4,
                  aabb: Sequence[Sequence[float]] | None = None, alpha_threshold: float = 0.0,
-                 march_steps: int | None = None, update_occupied: bool = False, train_empty_share: float = 0.0):
+                 march_steps: int | None = None, update_occupied: bool = False):
         super().__init__(aabb)
         checks = {"resolution": resolution >= 1, "threshold": 0 < threshold < 1, "decay": 0 <= decay <= 1,
                   "warmup_steps": warmup_steps >= 0, "update_every": update_every >= 1,
                   "early_stop_transmittance": 0 <= early_stop_transmittance < 1, "segments": segments >= 1,
-                  "alpha_threshold": 0 <= alpha_threshold < 1, "march_steps": march_steps is None or march_steps >= 1,
-                  "train_empty_share": 0 <= train_empty_share <= 1}
+                  "alpha_threshold": 0 <= alpha_threshold < 1, "march_steps": march_steps is None or march_steps >= 1}
         bad = [key for key, ok in checks.items() if not ok]
         if bad:
             values = {"resolution": resolution, "threshold": threshold, "decay": decay, "warmup_steps": warmup_steps,
                       "update_every": update_every, "early_stop_transmittance": early_stop_transmittance,
-                      "segments": segments, "alpha_threshold": alpha_threshold, "march_steps": march_steps,
-                      "train_empty_share": train_empty_share}
+                      "segments": segments, "alpha_threshold": alpha_threshold, "march_steps": march_steps}
             raise ValueError(f"acceleration.grid.{bad[0]}: expected resolution >= 1, 0 < threshold < 1, "
                              f"0 <= decay <= 1, warmup_steps >= 0, update_every >= 1, 0 <= early_stop_transmittance "
-                             f"< 1, segments >= 1, 0 <= alpha_threshold < 1, march_steps >= 1 or null, "
-                             f"0 <= train_empty_share <= 1; "
+                             f"< 1, segments >= 1, 0 <= alpha_threshold < 1, march_steps >= 1 or null; "
                              f"got {bad[0]}={values[bad[0]]}")
         self.resolution = resolution
         self.threshold = threshold
@@ -140,7 +136,6 @@ class OccupancyGrid(Bounded):
         self.alpha_threshold = alpha_threshold
         self.march_steps = march_steps
         self.update_occupied = update_occupied
-        self.train_empty_share = train_empty_share
         # contracted positions -> world units per unit there (``SceneContraction.stretch``), set by the renderer
         # of a contracted scene: the cells' thresholds then follow the world lengths they span; None: the box's
         self.world_scale: Callable[[Tensor], Tensor] | None = None
@@ -158,17 +153,6 @@ class OccupancyGrid(Bounded):
         self.require_bounds()
         index, inside = cell_indices(points, self.aabb.to(points.dtype), self.resolution)
         return inside & self.occupied[index]
-
-    def kept_at(self, points: Tensor, training: bool) -> Tensor:
-        """The samples the networks evaluate, bool [...] of points [..., 3]: those in occupied cells
-        (``occupied_at``) and, while ``training``, each one inside the box in an empty cell with probability
-        ``train_empty_share`` (drawn from torch's global random numbers, only where that share is positive)."""
-        occupied = self.occupied_at(points)
-        if not training or self.train_empty_share == 0:
-            return occupied
-        _, inside = cell_indices(points, self.aabb.to(points.dtype), self.resolution)
-        drawn = torch.rand(points.shape[:-1], device=points.device) < self.train_empty_share
-        return occupied | (inside & drawn)
 
     def due(self, step: int) -> bool:
         """Whether ``update`` re-evaluates cells at training step ``step``."""

@@ -273,7 +273,7 @@ class VolumeRenderer(nn.Module):
             outputs = ask(field, points.reshape(B * S, 3), flat_dirs, flat_codes)
             return (each_output(outputs, lambda out: out.reshape(B, S, *out.shape[1:])), float(B * S),
                     float(B * S) if colour else 0.0)
-        keep = self.grid.kept_at(points, self.training)
+        keep = self.grid.occupied_at(points)
         eps = self.grid.early_stop_transmittance
         n_segments = 1 if eps == 0 else min(self.grid.segments, S)
         parts, evaluated, coloured = [], 0, 0
