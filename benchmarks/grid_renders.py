@@ -63,7 +63,7 @@ def every_cell(grid: OccupancyGrid) -> OccupancyGrid:
 
 
 @torch.no_grad()
-def test_psnr(module, test_views) -> float:
+def mean_test_psnr(module, test_views) -> float:
     """The mean PSNR of ``module``'s renders of the ``test_views`` (a test dataloader's whole images)."""
     scores = [psnr(module.render_image(view["origins"], view["directions"], view.get("viewdirs"))["rgb"],
                    view["rgb"], view.get("mask")) for view in test_views]
@@ -76,7 +76,7 @@ def rendered_through(module, test_views, grids: dict[str, OccupancyGrid | None])
     scores = {}
     for name, grid in grids.items():
         module.renderer.grid = grid
-        scores[name] = test_psnr(module, test_views)
+        scores[name] = mean_test_psnr(module, test_views)
     module.renderer.grid = own
     return scores
 
@@ -87,7 +87,7 @@ def grid_run_row(run: Path, points: int, generator: torch.Generator) -> tuple[di
     module, grid = trained.module, trained.module.renderer.grid
     if grid is None:
         raise SystemExit(f"{run}: trained without acceleration=occupancy; give it with --plain-runs")
-    views = test_views_of(trained.cfg)
+    views = whole_test_views(trained.cfg)
     fresh = rebuilt(grid, module.renderer.density_fns(), points, generator)
     row = rendered_through(module, views, {"own grid": grid, "rebuilt grid": fresh, "every cell of the box":
                                            every_cell(grid), "no grid": None})
@@ -104,12 +104,12 @@ def plain_run_row(run: Path, grid: OccupancyGrid, points: int, generator: torch.
     if module.renderer.grid is not None:
         raise SystemExit(f"{run}: trained with acceleration=occupancy; give it with --grid-runs")
     fresh = rebuilt(grid, module.renderer.density_fns(), points, generator)
-    row = rendered_through(module, test_views_of(trained.cfg), {"no grid": None, "rebuilt grid": fresh})
+    row = rendered_through(module, whole_test_views(trained.cfg), {"no grid": None, "rebuilt grid": fresh})
     row["cells occupied, rebuilt"] = float(fresh.occupied.float().mean())
     return row
 
 
-def test_views_of(cfg) -> list[dict]:
+def whole_test_views(cfg) -> list[dict]:
     """The whole test images of a run's data (its datamodule's test loader), loaded once."""
     datamodule = instantiate(cfg.datamodule)
     datamodule.setup("test")
