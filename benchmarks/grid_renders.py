@@ -38,8 +38,7 @@ CHUNK = 1 << 16  # points per density evaluation
 @torch.no_grad()
 def rebuilt(grid: OccupancyGrid, density_fns, points: int, generator: torch.Generator) -> OccupancyGrid:
     """A copy of ``grid`` whose estimates are the largest density of ``density_fns`` (positions [N, 3] -> sigma
-    [N]) at ``points`` uniformly jittered points in each cell, occupied by the grid's rule (above min(sigma_t,
-    the mean estimate))."""
+    [N]) at ``points`` uniformly jittered points in each cell, occupied by the grid's rule (``mark_occupied``)."""
     fresh = copy.deepcopy(grid)
     corners = cell_corners(fresh.resolution, fresh.aabb.device)  # [R^3, 3]
     largest = torch.zeros(len(corners), device=corners.device)
@@ -51,7 +50,7 @@ def rebuilt(grid: OccupancyGrid, density_fns, points: int, generator: torch.Gene
             for density in density_fns:
                 largest[part] = torch.maximum(largest[part], density(positions[part]).float())
     fresh.density.copy_(largest)
-    fresh.occupied.copy_(largest > torch.clamp(largest.mean(), max=fresh.cell_thresholds()))
+    fresh.mark_occupied()
     return fresh
 
 

@@ -175,8 +175,11 @@ class OccupancyGrid(Bounded):
             self.density[cells] = sigma
         else:
             self.density[cells] = torch.maximum(self.density[cells] * self.decay, sigma)
-        limit = torch.clamp(self.density.mean(), max=self.cell_thresholds())
-        self.occupied.copy_(self.density > limit)
+        self.mark_occupied()
+
+    def mark_occupied(self) -> None:
+        """``occupied`` from the estimates ``density``: above min(sigma_t, their mean) (see the class docstring)."""
+        self.occupied.copy_(self.density > torch.clamp(self.density.mean(), max=self.cell_thresholds()))
 
     def cells_to_update(self, step: int) -> Tensor:
         """The flat indices [N] of the cells an update at ``step`` re-evaluates: all of them during the warm-up,
