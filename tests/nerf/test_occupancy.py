@@ -17,6 +17,8 @@ from tests.analytic import GaussianBlob, Slab, aimed_rays
 
 BOX = [[-1.0, -1.0, -1.0], [1.0, 1.0, 1.0]]
 NEAR, FAR = 2.0, 6.0
+# density 50 over 0.5: T behind it is exp(-25), so every sample behind it could be left out
+OPAQUE_SLAB = Slab(normal=(0.0, 0.0, 1.0), lower=-0.25, upper=0.25, density=50.0, colour=(0.1, 0.2, 0.9))
 
 
 def trained_grid(field, resolution=16, updates=16, device="cpu", **options) -> OccupancyGrid:
@@ -141,21 +143,18 @@ def test_a_skipped_sample_is_a_sample_that_absorbs_nothing(device):
 
 @pytest.mark.parametrize("eps", [1e-4, 1e-2, 0.1])
 def test_early_termination_drops_at_most_the_threshold_of_colour(eps):
-    # An opaque slab (density 50 over 0.5: T behind it is exp(-25)) seen from above: without
-    # termination every sample behind it is evaluated for nothing. Leaving out the runs of samples in
-    # front of which T < eps removes at most eps of absorbed light, so colour and opacity move by <= eps.
-    slab = Slab(normal=(0.0, 0.0, 1.0), lower=-0.25, upper=0.25, density=50.0, colour=(0.1, 0.2, 0.9))
+    # The opaque slab seen from above: without termination every sample behind it is evaluated for nothing.
+    # Leaving out the runs of samples in front of which T < eps removes at most eps of absorbed light, so colour
+    # and opacity move by <= eps.
     grid = OccupancyGrid(resolution=8, early_stop_transmittance=eps, segments=8, aabb=[[-4.0] * 3, [4.0] * 3])
     without = OccupancyGrid(resolution=8, early_stop_transmittance=0.0, aabb=[[-4.0] * 3, [4.0] * 3])
-    _, reference, all_stats = render_pair(slab, without)
-    _, stopped, stats = render_pair(slab, grid)
+    _, reference, all_stats = render_pair(OPAQUE_SLAB, without)
+    _, stopped, stats = render_pair(OPAQUE_SLAB, grid)
     colour = (reference["coarse"]["rgb"] - stopped["coarse"]["rgb"]).abs().max().item()
     opacity = (reference["coarse"]["opacity"] - stopped["coarse"]["opacity"]).abs().max().item()
     assert colour <= eps and opacity <= eps
     assert all_stats["samples_per_ray"] == 128  # the grid is all occupied: only termination leaves out
     assert stats["samples_per_ray"] < 0.8 * all_stats["samples_per_ray"]  # many samples lie behind the slab
-
-
 
 
 @pytest.mark.parametrize("overrides", [["acceleration=occupancy"], ["experiment=fast"]])
@@ -165,8 +164,7 @@ def test_the_configured_grid_stops_no_ray_early(overrides):
     with initialize_config_module("nerfexp.conf", version_base=None):
         node = compose("config", overrides=overrides).acceleration.grid
     configured = instantiate(node, resolution=8, aabb=[[-4.0] * 3, [4.0] * 3])
-    slab = Slab(normal=(0.0, 0.0, 1.0), lower=-0.25, upper=0.25, density=50.0, colour=(0.1, 0.2, 0.9))
-    _, _, stats = render_pair(slab, configured)
+    _, _, stats = render_pair(OPAQUE_SLAB, configured)
     assert stats["samples_per_ray"] == 128  # every cell occupied before an update: all 128, none stopped
 
 
