@@ -45,6 +45,9 @@ from tests.helpers import one_error_line, run_nerfexp
                          "or null (from the scene)"),
     (["hierarchical=false", "scale.n_fine=64"], "scale.n_fine=64: not used with hierarchical=false (one network of "
                                                 "sampler.n_single samples; set scale.n_single)"),
+    (["acceleration=occupancy", "acceleration.grid.segments=8"],
+     "acceleration.grid.segments=8: not used with acceleration.grid.early_stop_transmittance=0 (no early "
+     "termination: set it > 0, e.g. 1e-4, to march in segments)"),
     (["encoding=bogus"], "encoding=bogus: no such option (choose from hashgrid, none, posenc)"),
     (["scale.lrr=1"], "scale.lrr=1: no such key (scale has steps, lr, lr_final, lr_warmup_steps, batch_rays, depth, "
                       "width, skips, view_hidden, n_coarse, n_fine, n_single, chunk, val_every, image_size, "

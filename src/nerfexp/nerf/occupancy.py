@@ -100,7 +100,11 @@ class OccupancyGrid(Bounded):
         "march_steps": optional(COUNT, "the cell's diagonal"),
         "update_occupied": BOOLEAN,
     }
-    APPLIES: ClassVar[dict[str, Applies]] = {}
+    APPLIES: ClassVar[dict[str, Applies]] = {  # nerfexp.domains: when an argument does nothing
+        "segments": lambda grid: (None if grid.get("early_stop_transmittance")
+                                  else "acceleration.grid.early_stop_transmittance=0 (no early termination: "
+                                       "set it > 0, e.g. 1e-4, to march in segments)"),
+    }
     SCENE_FIELDS: ClassVar[tuple[str, ...]] = ("aabb",)  # its cells divide the scene's box
 
     @staticmethod
