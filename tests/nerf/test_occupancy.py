@@ -159,8 +159,8 @@ def test_early_termination_drops_at_most_the_threshold_of_colour(eps):
 
 @pytest.mark.parametrize("overrides", [["acceleration=occupancy"], ["experiment=fast"]])
 def test_the_configured_grid_stops_no_ray_early(overrides):
-    # Early termination is an option, off as configured (docs/acceleration.md: measured, it left out almost
-    # nothing and cost a quarter of the training time): behind the opaque slab every occupied sample is evaluated.
+    # Early termination is an option, off as configured (docs/acceleration.md says why): behind the opaque slab
+    # every occupied sample is evaluated.
     with initialize_config_module("nerfexp.conf", version_base=None):
         node = compose("config", overrides=overrides).acceleration.grid
     configured = instantiate(node, resolution=8, aabb=[[-4.0] * 3, [4.0] * 3])

@@ -77,8 +77,8 @@ class OccupancyGrid(Bounded):
 
     With ``early_stop_transmittance`` > 0 rays stop there: the renderer marches them in ``segments`` runs of
     samples and evaluates a run only for rays that let through at least that much light in front of
-    it (see ``VolumeRenderer``). 0, the default, turns it off: measured, it left out at most one evaluation per
-    ray and cost a quarter of the training time (docs/acceleration.md, early termination).
+    it (see ``VolumeRenderer``). 0, the default, turns it off (why, measured: docs/acceleration.md, early
+    termination).
 
     The bounds are a buffer: ``aabb`` [2, 3] here or, left None, set once from the scene
     (``set_bounds``, which ``NeRFModule`` calls when training starts). ``density``, ``occupied`` and
