@@ -333,3 +333,15 @@ def test_update_occupied_re_evaluates_the_occupied_cells_besides_a_random_quarte
     plain.update(1, [lambda x: torch.zeros(len(x))])
     assert (plain.density[occupied] == before[occupied]).any()
     assert len(plain.cells_to_update(2)) == 128
+
+
+def test_update_fraction_is_the_share_of_cells_each_update_re_evaluates_after_the_warm_up():
+    # R = 8: 512 cells; every one in the warm-up, then an eighth (64) distinct cells at random; the density
+    # gone at step 1, exactly those 64 cells halve (decay 0.5) and the other 448 keep theirs
+    grid = OccupancyGrid(resolution=8, update_every=1, warmup_steps=1, decay=0.5, aabb=BOX, update_fraction=0.125)
+    assert len(grid.cells_to_update(0)) == 512
+    grid.update(0, [lambda x: torch.ones(len(x))])
+    grid.update(1, [lambda x: torch.zeros(len(x))])
+    assert (grid.density == 0.5).sum() == 64 and (grid.density == 1.0).sum() == 448
+    with pytest.raises(ValueError, match="acceleration.grid.update_fraction: expected"):
+        OccupancyGrid(update_fraction=0.0)

@@ -54,7 +54,8 @@ class OccupancyGrid(Bounded):
 
     Every ``update_every`` training steps (``update``), the density of the networks is evaluated at one
     uniformly jittered point in each of a set of cells: all cells during the first ``warmup_steps``
-    steps, afterwards a random quarter of them (each cell on average every fourth update) and, with
+    steps, afterwards a random share ``update_fraction`` of them (nerfacc's quarter: each cell on average every
+    fourth update) and, with
     ``update_occupied``, as many again drawn from the occupied cells (nerfacc's and Instant-NGP's rule: a cell
     that holds density is looked at about twice as often, so it forgets a density that went away sooner). During the
     warm-up a cell's estimate is its latest evaluation; afterwards it becomes max(decay * old, new): it
@@ -99,6 +100,7 @@ class OccupancyGrid(Bounded):
         "alpha_threshold": real(0, 1),
         "march_steps": optional(COUNT, "the cell's diagonal"),
         "update_occupied": BOOLEAN,
+        "update_fraction": real(0, 1, above=True),
     }
     APPLIES: ClassVar[dict[str, Applies]] = {  # nerfexp.domains: when an argument does nothing
         "segments": lambda grid: (None if grid.get("early_stop_transmittance")
@@ -116,20 +118,22 @@ class OccupancyGrid(Bounded):
     def __init__(self, resolution: int = 32, threshold: float = 0.01, decay: float = 0.95, warmup_steps: int = 256,
                  update_every: int = 16, early_stop_transmittance: float = 0.0, segments: int = 4,
                  aabb: Sequence[Sequence[float]] | None = None, alpha_threshold: float = 0.0,
-                 march_steps: int | None = None, update_occupied: bool = False):
+                 march_steps: int | None = None, update_occupied: bool = False, update_fraction: float = 0.25):
         super().__init__(aabb)
         checks = {"resolution": resolution >= 1, "threshold": 0 < threshold < 1, "decay": 0 <= decay <= 1,
                   "warmup_steps": warmup_steps >= 0, "update_every": update_every >= 1,
                   "early_stop_transmittance": 0 <= early_stop_transmittance < 1, "segments": segments >= 1,
-                  "alpha_threshold": 0 <= alpha_threshold < 1, "march_steps": march_steps is None or march_steps >= 1}
+                  "alpha_threshold": 0 <= alpha_threshold < 1, "march_steps": march_steps is None or march_steps >= 1,
+                  "update_fraction": 0 < update_fraction <= 1}
         bad = [key for key, ok in checks.items() if not ok]
         if bad:
             values = {"resolution": resolution, "threshold": threshold, "decay": decay, "warmup_steps": warmup_steps,
                       "update_every": update_every, "early_stop_transmittance": early_stop_transmittance,
-                      "segments": segments, "alpha_threshold": alpha_threshold, "march_steps": march_steps}
+                      "segments": segments, "alpha_threshold": alpha_threshold, "march_steps": march_steps,
+                      "update_fraction": update_fraction}
             raise ValueError(f"acceleration.grid.{bad[0]}: expected resolution >= 1, 0 < threshold < 1, "
                              f"0 <= decay <= 1, warmup_steps >= 0, update_every >= 1, 0 <= early_stop_transmittance "
-                             f"< 1, segments >= 1, 0 <= alpha_threshold < 1, march_steps >= 1 or null; "
+                             f"< 1, segments >= 1, 0 <= alpha_threshold < 1, march_steps >= 1 or null, 0 < update_fraction <= 1; "
                              f"got {bad[0]}={values[bad[0]]}")
         self.resolution = resolution
         self.threshold = threshold
@@ -141,6 +145,7 @@ class OccupancyGrid(Bounded):
         self.alpha_threshold = alpha_threshold
         self.march_steps = march_steps
         self.update_occupied = update_occupied
+        self.update_fraction = update_fraction
         # contracted positions -> world units per unit there (``SceneContraction.stretch``), set by the renderer
         # of a contracted scene: the cells' thresholds then follow the world lengths they span; None: the box's
         self.world_scale: Callable[[Tensor], Tensor] | None = None
@@ -188,18 +193,18 @@ class OccupancyGrid(Bounded):
 
     def cells_to_update(self, step: int) -> Tensor:
         """The flat indices [N] of the cells an update at ``step`` re-evaluates: all of them during the warm-up,
-        afterwards a random quarter and, with ``update_occupied``, as many drawn (with repetition) from the occupied
+        afterwards a random ``update_fraction`` of them and, with ``update_occupied``, as many drawn (with repetition) from the occupied
         ones, without duplicates: a cell drawn twice is evaluated once. Draws from torch's global random numbers."""
         n_cells = self.density.numel()
         device = self.density.device
         if step < self.warmup_steps:
             return torch.arange(n_cells, device=device)
-        quarter = max(n_cells // 4, 1)
-        cells = torch.randperm(n_cells, device=device)[:quarter]
+        share = max(int(n_cells * self.update_fraction), 1)
+        cells = torch.randperm(n_cells, device=device)[:share]
         occupied = self.occupied.nonzero().squeeze(-1)
         if not self.update_occupied or len(occupied) == 0:
             return cells
-        drawn = occupied[torch.randint(len(occupied), (quarter,), device=device)]
+        drawn = occupied[torch.randint(len(occupied), (share,), device=device)]
         return torch.unique(torch.cat([cells, drawn]))
 
     def cell_thresholds(self) -> Tensor | float:
