@@ -1,12 +1,10 @@
 """The Scene base class: the defaults a format may leave out, and where the occupancy grid's box comes from."""
 
-import math
-
 import pytest
 import torch
 
 from nerfexp.data.base import Scene
-from nerfexp.data.procedural import CAMERA_ANGLE_X, ProceduralScene, objects_box, scene_cameras
+from nerfexp.data.procedural import ProceduralScene, objects_box, scene_cameras
 from nerfexp.data.views import Views
 from nerfexp.errors import ConfigError
 from nerfexp.geometry.boxes import frustum_aabb
@@ -35,9 +33,10 @@ def test_a_scene_that_leaves_the_optional_members_out_gets_their_defaults():
 def test_the_box_comes_from_the_config_then_the_scene_then_the_cameras():
     box = objects_box()  # slab [-0.75, 0.75]^2 x [-0.7, -0.5], the rods reach z = 0.6
     torch.testing.assert_close(box, torch.tensor([[-0.75, -0.75, -0.7], [0.75, 0.75, 0.6]]))
-    footprint = FAR * 2 * math.tan(CAMERA_ANGLE_X / 2) / 64  # one pixel at the far bound, 64 x 64 views
-    padded = torch.stack([box[0] - footprint, box[1] + footprint])
-    torch.testing.assert_close(ProceduralScene(image_size=64).box(None, NEAR, FAR), padded)
+    # the scene's own: Blender's [-1.5, 1.5]^3, the objects with at least 0.75 of room on every side
+    scene_box = ProceduralScene(image_size=64).box(None, NEAR, FAR)
+    assert scene_box.tolist() == [[-1.5] * 3, [1.5] * 3]
+    assert (box[0] - scene_box[0] >= 0.75).all() and (scene_box[1] - box[1] >= 0.75).all()
     explicit = ProceduralScene(aabb=[[-1, -2, -3], [1, 2, 3]])
     assert explicit.box(None, NEAR, FAR).tolist() == [[-1, -2, -3], [1, 2, 3]]
     with pytest.raises(ConfigError, match="data.aabb: expected"):

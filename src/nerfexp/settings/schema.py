@@ -163,6 +163,8 @@ SCHEMA: dict[str, Rule] = {
     "camera_opt.correction": NULL,  # camera_opt=off
     "camera_opt.coarse_to_fine": FRACTION,  # the window it asks of the positional encoding (encoding.position)
     "encoding.grid_march_steps": optional(COUNT, "the cell's diagonal"),  # what it asks of acceleration=occupancy
+    "encoding.grid_resolution": COUNT,  # the same: acceleration.grid.resolution
+    "encoding.grid_update_fraction": real(0, 1, above=True),  # the same: acceleration.grid.update_fraction
     "test_cameras.fit": NULL,  # test_cameras=given
     "datamodule.pose_noise": optional(POSE_NOISE, "the poses as the data gives them"),
     "contraction.function": NULL,  # contraction=none
