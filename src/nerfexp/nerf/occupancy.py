@@ -52,25 +52,23 @@ def density_threshold(opacity: float, cell_diagonal: float) -> float:
 class OccupancyGrid(Bounded):
     """A binary grid of occupied cells over the box ``aabb``, kept up to date from the density field.
 
-    Every ``update_every`` training steps (``update``), the density of the networks is evaluated at one
-    uniformly jittered point in each of a set of cells: all cells during the first ``warmup_steps``
-    steps, afterwards a random share ``update_fraction`` of them (nerfacc's quarter: each cell on average every
-    fourth update) and, with
-    ``update_occupied``, as many again drawn from the occupied cells (nerfacc's and Instant-NGP's rule: a cell
-    that holds density is looked at about twice as often, so it forgets a density that went away sooner). During the
-    warm-up a cell's estimate is its latest evaluation; afterwards it becomes max(decay * old, new): it
-    remembers a density it has seen (a jittered point can miss a thin surface once) and forgets it at rate
-    ``decay`` per evaluation when the density goes away. The warm-up keeps no memory because what it would
-    remember is the untrained field: its density everywhere (softplus(-1) = 0.31 with the default field)
-    lies above the threshold of a cell a few hundredths of the box wide, and forgetting it at ``decay``
-    per evaluation, one evaluation every ``4 update_every`` steps, takes longer than a short run. A
-    cell is occupied when its estimate exceeds min(sigma_t, mean of all estimates), where sigma_t is the
-    density at which light crossing the cell along its diagonal loses the fraction ``threshold``
-    (``density_threshold``); the mean guards the first updates, when the whole field is faint.
-    Until the first update every cell is occupied. With ``march_steps`` = n, the length light crosses is not
-    the cell's diagonal but a step of 1/n of the box's diagonal (Instant-NGP and nerfacc: 1024 steps; their
-    grids hold the optical thickness over one marching step): a cell is occupied only where one sample's
-    interval of that length would absorb ``threshold``, so sigma_t is resolution / n times the diagonal's.
+    Every ``update_every`` training steps (``update``), the density of the networks is evaluated at one uniformly
+    jittered point in each of a set of cells: all cells during the first ``warmup_steps`` steps, afterwards a random
+    share ``update_fraction`` of them (nerfacc's quarter: each cell on average every fourth update) and, with
+    ``update_occupied``, as many again drawn from the occupied cells (nerfacc's and Instant-NGP's rule: a cell that
+    holds density is looked at about twice as often, so it forgets a density that went away sooner). During the
+    warm-up a cell's estimate is its latest evaluation; afterwards it becomes max(decay * old, new): it remembers a
+    density it has seen (a jittered point can miss a thin surface once) and forgets it at rate ``decay`` per
+    evaluation when the density goes away. The warm-up keeps no memory because what it would remember is the
+    untrained field: its density everywhere (softplus(-1) = 0.31 with the default field) lies above the threshold of
+    a cell a few hundredths of the box wide, and forgetting it at ``decay`` per evaluation, one evaluation every
+    ``update_every / update_fraction`` steps, takes longer than a short run. A cell is occupied when its estimate
+    exceeds min(sigma_t, mean of all estimates), where sigma_t is the density at which light crossing the cell along
+    its diagonal loses the fraction ``threshold`` (``density_threshold``); the mean guards the first updates, when
+    the whole field is faint. Until the first update every cell is occupied. With ``march_steps`` = n, the length
+    light crosses is not the cell's diagonal but a step of 1/n of the box's diagonal (Instant-NGP and nerfacc: 1024
+    steps; their grids hold the optical thickness over one marching step): a cell is occupied only where one
+    sample's interval of that length would absorb ``threshold``, so sigma_t is resolution / n times the diagonal's.
 
     ``alpha_threshold`` (nerfacc's ``alpha_thre``) is read by the renderer: a sample in an occupied cell whose
     alpha = 1 - exp(-sigma delta) over its own interval is below it gets no colour evaluation and absorbs
@@ -133,7 +131,8 @@ class OccupancyGrid(Bounded):
                       "update_fraction": update_fraction}
             raise ValueError(f"acceleration.grid.{bad[0]}: expected resolution >= 1, 0 < threshold < 1, "
                              f"0 <= decay <= 1, warmup_steps >= 0, update_every >= 1, 0 <= early_stop_transmittance "
-                             f"< 1, segments >= 1, 0 <= alpha_threshold < 1, march_steps >= 1 or null, 0 < update_fraction <= 1; "
+                             f"< 1, segments >= 1, 0 <= alpha_threshold < 1, march_steps >= 1 or null, "
+                             f"0 < update_fraction <= 1; "
                              f"got {bad[0]}={values[bad[0]]}")
         self.resolution = resolution
         self.threshold = threshold
@@ -193,8 +192,9 @@ class OccupancyGrid(Bounded):
 
     def cells_to_update(self, step: int) -> Tensor:
         """The flat indices [N] of the cells an update at ``step`` re-evaluates: all of them during the warm-up,
-        afterwards a random ``update_fraction`` of them and, with ``update_occupied``, as many drawn (with repetition) from the occupied
-        ones, without duplicates: a cell drawn twice is evaluated once. Draws from torch's global random numbers."""
+        afterwards a random share ``update_fraction`` of them and, with ``update_occupied``, as many drawn (with
+        repetition) from the occupied ones, without duplicates: a cell drawn twice is evaluated once. Draws from
+        torch's global random numbers."""
         n_cells = self.density.numel()
         device = self.density.device
         if step < self.warmup_steps:
