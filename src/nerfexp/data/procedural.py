@@ -401,7 +401,6 @@ class ProceduralScene(Scene):
         """[2, 3]: Blender's [-1.5, 1.5]^3, the box of the synthetic scenes whose cameras this scene follows: it
         holds the objects (``objects_box``) with 0.75 to 0.9 of room on every side. The room matters to the
         occupancy grid: over the objects' box widened by one pixel's footprint (an edge pixel's ray can pass just
-        outside the object it partly shows) the complete model trained through the grid scored 0.9 dB below no
-        grid, four seeds paired; with the room, within a tenth of a dB (docs/acceleration.md, the grid's quality
-        loss)."""
+        outside the object it partly shows) the complete model trained through the grid scored lower than without
+        it, and with the room it does not (measured: docs/acceleration.md, the grid's quality loss)."""
         return torch.tensor([[-BLENDER_HALF_SIDE] * 3, [BLENDER_HALF_SIDE] * 3])
