@@ -32,7 +32,7 @@ RESULTS = Path(__file__).parent / "results"
 GRID = ["acceleration=occupancy", "trainer.precision=32-true"]
 HASHGRID = ["encoding=hashgrid", *GRID]
 ALPHA = "acceleration.grid.alpha_threshold=0.01"  # nerfacc's value for its unbounded scenes
-MARCH = "acceleration.grid.march_steps=256"  # Instant-NGP's ratio: 1024 steps over a 128-cell grid, here 32 cells
+MARCH = "acceleration.grid.march_steps=256"  # Instant-NGP's ratio: 1024 steps over a 128-cell grid, at 32 cells
 OCCUPIED = "acceleration.grid.update_occupied=true"
 VARIANTS = {
     "posenc_grid": ["encoding=posenc", *GRID],
@@ -41,6 +41,7 @@ VARIANTS = {
     "sparsity_1e-5": [*HASHGRID, "model.renderer.sparsity_weight=1e-5"],
     "sparsity_1e-4": [*HASHGRID, "model.renderer.sparsity_weight=1e-4"],
     "march_steps": [*HASHGRID, MARCH],
+    "march_steps_96": [*HASHGRID, "acceleration.grid.march_steps=96"],
     "march_steps_128": [*HASHGRID, "acceleration.grid.march_steps=128"],
     "march_steps_64": [*HASHGRID, "acceleration.grid.march_steps=64"],
     "march_steps_64_alpha": [*HASHGRID, "acceleration.grid.march_steps=64", ALPHA],
