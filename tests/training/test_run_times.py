@@ -85,15 +85,13 @@ def test_a_run_records_its_cpu_time_the_others_load_its_cpus_and_threads(tmp_pat
 @pytest.mark.parametrize(("overrides", "expected"), [
     ([], []),  # the positional encoding runs no fused kernel
     (["encoding=hashgrid"], ["hash_encoding"]),
-    (["acceleration=occupancy"], ["occupancy_lookup"]),  # the grid's lookup, whatever the encoding
-    (["encoding=hashgrid", "acceleration=occupancy"], ["hash_encoding", "occupancy_lookup"]),
     (["encoding=hashgrid", "encoding.position.sparse_gradients=true",
       "model.optimizer._target_=nerfexp.training.optimizers.LazyAdam"], ["hash_encoding", "lazy_adam"]),
 ])
 def test_a_model_names_the_kernels_its_training_runs_on_a_cpu(overrides, expected):
     model = instantiate(tiny_config(*overrides).model)
     assert model.kernels() == expected
-    model.to(torch.float64)  # tables and the grid's box no longer float32: the fused kernels would not run
+    model.to(torch.float64)  # tables no longer float32: the fused kernels would not run
     assert model.kernels() == []
 
 

@@ -18,13 +18,10 @@ import torch
 from torch import Tensor
 
 from nerfexp.domains import BOOLEAN, COUNT, FRACTION, NONNEGATIVE_COUNT, Applies, Memory, Rule, optional, real
-from nerfexp.kernels import kernel
 from nerfexp.nerf.bounds import Bounded
 from nerfexp.sizes import grid_bytes
 
 log = logging.getLogger(__name__)
-
-LOOKUP_KERNEL = "occupancy_lookup"  # the fused kernel of ``OccupancyGrid.occupied_at``
 
 
 def cell_indices(points: Tensor, aabb: Tensor, resolution: int) -> tuple[Tensor, Tensor]:
@@ -161,30 +158,10 @@ class OccupancyGrid(Bounded):
         return (self.aabb[1] - self.aabb[0]) / self.resolution
 
     def occupied_at(self, points: Tensor) -> Tensor:
-        """Whether each point [..., 3] lies in an occupied cell inside the box: bool [...]. The fused kernel
-        (``lookup_kernel``) where it computes this, else ``cell_indices``, its reference, bit for bit the same."""
+        """Whether each point [..., 3] lies in an occupied cell inside the box: bool [...]."""
         self.require_bounds()
-        fused = self.lookup_kernel(points)
-        if fused is not None:
-            flat = points.detach().reshape(-1, 3).contiguous()
-            return fused.occupied_at(flat, self.aabb.contiguous(), self.occupied, self.resolution).reshape(
-                points.shape[:-1])
         index, inside = cell_indices(points, self.aabb.to(points.dtype), self.resolution)
         return inside & self.occupied[index]
-
-    def kernels(self) -> tuple[str, ...]:
-        """The fused kernels (``nerfexp.kernels``) its lookups will run where the grid now is: occupancy_lookup for
-        a float32 box on a CPU (``lookup_kernel``'s own condition on it), so that a run builds it before its training
-        clock starts."""
-        return (LOOKUP_KERNEL,) if self.occupied.device.type == "cpu" and self.aabb.dtype == torch.float32 else ()
-
-    def lookup_kernel(self, points: Tensor):
-        """The fused CPU kernel (``nerfexp.kernels``, occupancy_lookup.cpp) where it computes ``occupied_at``:
-        float32 points and box on a CPU, not traced by ``torch.compile``; else None (the torch path runs)."""
-        if (points.device.type != "cpu" or points.dtype != torch.float32 or self.aabb.dtype != torch.float32
-                or self.occupied.device.type != "cpu" or torch.compiler.is_compiling()):
-            return None
-        return kernel(LOOKUP_KERNEL)
 
     def due(self, step: int) -> bool:
         """Whether ``update`` re-evaluates cells at training step ``step``."""

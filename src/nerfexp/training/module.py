@@ -16,7 +16,6 @@ from nerfexp.errors import ConfigError
 from nerfexp.nerf.appearance import FULL_IMAGE, CodeFit
 from nerfexp.nerf.bounds import Bounded
 from nerfexp.nerf.encodings import Encoding
-from nerfexp.nerf.occupancy import OccupancyGrid
 from nerfexp.nerf.poses import PoseCorrection, PoseFit
 from nerfexp.nerf.schedules import warmup_exponential_decay
 from nerfexp.nerf.volume_renderer import VolumeRenderer, final_output
@@ -159,15 +158,13 @@ class NeRFModule(L.LightningModule):
 
     def kernels(self) -> list[str]:
         """The fused kernels (``nerfexp.kernels``) this module's training runs where its parameters now are, each
-        once: its encodings' own (``Encoding.kernels``), its occupancy grid's (``OccupancyGrid.kernels``), and the
-        sparse update of the parameters of those whose gradients are sparse
-        (``nerfexp.training.optimizers.update_kernels``); ``RunRecorder`` builds them before its training clock
-        starts."""
+        once: its encodings' own (``Encoding.kernels``), and the sparse update of the parameters of those whose
+        gradients are sparse (``nerfexp.training.optimizers.update_kernels``); ``RunRecorder`` builds them before
+        its training clock starts."""
         encodings = [m for m in self.renderer.modules() if isinstance(m, Encoding)]
         sparse = [p for encoding in encodings if encoding.sparse_gradients for p in encoding.parameters()]
-        grids = [m for m in self.renderer.modules() if isinstance(m, OccupancyGrid)]
         return list(dict.fromkeys([*(name for encoding in encodings for name in encoding.kernels()),
-                                   *(name for grid in grids for name in grid.kernels()), *update_kernels(sparse)]))
+                                   *update_kernels(sparse)]))
 
     def setup(self, stage: str) -> None:
         """Build the LPIPS scorer (``nerfexp.training.perceptual.lpips_scorer``), once per process: before
