@@ -96,3 +96,7 @@ def test_unscorable_names_why():
     mask[2, SSIM_CROP:-SSIM_CROP, SSIM_CROP:-SSIM_CROP] = False  # only the border, which SSIM leaves out
     assert unscorable(12, 12, mask) == (2, "keeps no pixel more than 5 pixels from its edges, where SSIM is scored")
     assert unscorable(SSIM_WINDOW, SSIM_WINDOW, mask[:1, :SSIM_WINDOW, :SSIM_WINDOW]) is None
+    mask[1] = False  # an earlier image without a scored pixel is named first, whatever the reason of a later one
+    assert unscorable(12, 12, mask) == (1, "keeps no pixel (its mask)")
+    mask[0, SSIM_CROP:-SSIM_CROP, SSIM_CROP:-SSIM_CROP] = False
+    assert unscorable(12, 12, mask) == (0, "keeps no pixel more than 5 pixels from its edges, where SSIM is scored")

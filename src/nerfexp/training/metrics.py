@@ -49,10 +49,11 @@ def unscorable(height: int, width: int, mask: Tensor | None) -> tuple[int, str] 
         return 0, f"is {width}x{height} pixels, smaller than SSIM's {SSIM_WINDOW}x{SSIM_WINDOW} window"
     if mask is None:
         return None
-    inner = mask[:, SSIM_CROP:-SSIM_CROP, SSIM_CROP:-SSIM_CROP]
-    for kept, why in ((mask, "keeps no pixel (its mask)"),
-                      (inner, f"keeps no pixel more than {SSIM_CROP} pixels from its edges, where SSIM is scored")):
-        empty = ~kept.flatten(1).any(1)  # [N]
-        if empty.any():
-            return int(torch.nonzero(empty)[0]), why
-    return None
+    kept_none = ~mask.flatten(1).any(1)  # [N]
+    kept_none_inside = ~mask[:, SSIM_CROP:-SSIM_CROP, SSIM_CROP:-SSIM_CROP].flatten(1).any(1)  # [N], kept_none's too
+    if not kept_none_inside.any():
+        return None
+    first = int(torch.nonzero(kept_none_inside)[0])
+    if kept_none[first]:
+        return first, "keeps no pixel (its mask)"
+    return first, f"keeps no pixel more than {SSIM_CROP} pixels from its edges, where SSIM is scored"
