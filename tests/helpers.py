@@ -16,6 +16,7 @@ import socket
 import subprocess
 import sys
 import threading
+import time
 import traceback
 import warnings
 from collections.abc import Callable, Iterator
@@ -308,6 +309,17 @@ class NanTargets(L.Callback):
     def on_train_batch_start(self, trainer, pl_module, batch, batch_idx):
         if trainer.global_step == 0:
             batch["rgb"].fill_(float("nan"))
+
+
+class PacedSteps(L.Callback):
+    """Sleeps ``seconds`` after each training step: a run that must last (until a time limit ends it) then
+    leaves the machine's cores to the tests running beside it."""
+
+    def __init__(self, seconds: float):
+        self.seconds = seconds
+
+    def on_train_batch_end(self, trainer, pl_module, outputs, batch, batch_idx):
+        time.sleep(self.seconds)
 
 
 def nan_targets() -> list[str]:

@@ -96,9 +96,11 @@ def test_the_array_runs_its_jobs_two_at_a_time_and_a_failing_job_stops_no_other(
 
 
 def test_a_job_at_its_time_limit_records_sigterm_and_resume_continues_it(cluster, tmp_path):
-    # a minute's limit (SLURM's least), its notice (submitit's USR2) 10 s before: SLURM sends both while it trains
+    # a minute's limit (SLURM's least), its notice (submitit's USR2) 10 s before: SLURM sends both while it trains,
+    # a step each 0.1 s (PacedSteps), which leaves the cores to the tests beside it for that minute and more
     first = run_nerfexp(*ON_SLURM, "trainer.devices=2", "scale.steps=1000000", "hydra.launcher.timeout_min=1",
-                        "hydra.launcher.signal_delay_s=10", f"hydra.sweep.dir={tmp_path / 'first'}", cwd=tmp_path,
+                        "hydra.launcher.signal_delay_s=10", "+callbacks.paced._target_=tests.helpers.PacedSteps",
+                        "+callbacks.paced.seconds=0.1", f"hydra.sweep.dir={tmp_path / 'first'}", cwd=tmp_path,
                         new_process=True)
     run_dir = tmp_path / "first" / "0"
     checkpoint = run_dir / "checkpoints" / "last.ckpt"

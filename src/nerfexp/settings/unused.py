@@ -22,7 +22,7 @@ from omegaconf import DictConfig, OmegaConf
 
 from nerfexp.config_keys import entries, reference
 from nerfexp.errors import ConfigError
-from nerfexp.settings.components import ROOTS, components
+from nerfexp.settings.components import ROOTS, components, walked_once
 from nerfexp.settings.schema import component_class, matching
 
 
@@ -43,6 +43,9 @@ def scene_reason(cfg: DictConfig, key: str, chosen: Mapping) -> str | None:
     (``REPLACES_SCENE``), or it is one the scene holds for other components (``SERVES``) and none built reads it
     (``SCENE_FIELDS``); None where neither."""
     section, _, argument = key.rpartition(".")
+    node = OmegaConf.select(cfg, section, throw_on_resolution_failure=False) if section else None
+    if not isinstance(node, DictConfig) or not hasattr(component_class(node.get("_target_")), "SERVES"):
+        return None  # not a scene's setting (most keys): no component needs asking
     built = list(components(cfg))
     if not any(c.key == section and hasattr(c.cls, "SERVES") for c in built):
         return None
@@ -181,12 +184,13 @@ def unused_settings(cfg: DictConfig, overrides: list[str]) -> list[tuple[str, st
     with the reason: [(override, reason)]. Defaults the user did not set are never listed."""
     chosen, plain = group_choices(cfg), OmegaConf.to_container(cfg, resolve=False)
     unused = []
-    for override in overrides:
-        key = overridden_key(override)
-        if key in chosen or key.split(".")[0] == "hydra" or not has_key(plain, key):
-            continue  # a group's option, Hydra's own, or a key removed by a later override (~key)
-        if reason := unused_reason(cfg, key, chosen, plain):
-            unused.append((override, reason))
+    with walked_once(cfg):  # each key asks the components again, of a config that stays as it is
+        for override in overrides:
+            key = overridden_key(override)
+            if key in chosen or key.split(".")[0] == "hydra" or not has_key(plain, key):
+                continue  # a group's option, Hydra's own, or a key removed by a later override (~key)
+            if reason := unused_reason(cfg, key, chosen, plain):
+                unused.append((override, reason))
     return unused
 
 
