@@ -191,6 +191,14 @@ def test_an_override_that_does_not_apply_is_named_with_the_reason(hydra_configs)
     assert unused_settings(proposal, ["proposal.n_final=16", "proposal.network.width=32"]) == []
     assert [o for o, _ in unused_settings(proposal, ["scale.n_fine=64", "scale.n_single=8"])] \
         == ["scale.n_fine=64", "scale.n_single=8"]
+    # the scene's box serves the grids alone (the scene's SERVES, their SCENE_FIELDS): unused without one, used with
+    # either; the scene's other keys are its own
+    box = "data.aabb=[[0,0,0],[1,1,1]]"
+    assert unused_settings(composed(), [box, "data.n_train=10"]) == [
+        (box, "acceleration=none (acceleration=occupancy reads data.aabb); encoding=posenc (encoding=hashgrid reads "
+              "data.aabb)")]
+    assert unused_settings(composed("acceleration=occupancy"), [box]) == []
+    assert unused_settings(composed("encoding=hashgrid"), [box]) == []
     # a contraction's grids work in its own box: the scene's box does nothing
     contracted = composed("contraction=mipnerf360", "acceleration=occupancy")
     assert unused_settings(contracted, ["data.aabb=[[0,0,0],[1,1,1]]", "data.far=100"]) == [

@@ -16,7 +16,8 @@ from nerfexp.config_keys import entries, reference
 from nerfexp.errors import ConfigError
 from nerfexp.memory import machine_bytes
 from nerfexp.settings.checks import check_settings
-from nerfexp.settings.components import components
+from nerfexp.settings import components as components_module
+from nerfexp.settings.components import components, walked_once
 from tests.components.toy import PowerEncoding
 from tests.helpers import TINY
 
@@ -138,3 +139,22 @@ def test_a_component_that_is_not_built_is_not_asked(hydra_configs):
     check_settings(toy("proposal.network.skips=[5]"))
     with pytest.raises(ConfigError, match=r"^proposal.network.skips=\[5\], proposal.network.depth=2: expected"):
         check_settings(toy("hierarchical=proposal", "proposal.network.skips=[5]"))
+
+
+def test_a_config_held_is_walked_once_and_a_hold_within_a_hold_keeps_the_outer_walk(hydra_configs, monkeypatch):
+    cfg = toy()
+    fresh = [(c.key, c.cls) for c in components(cfg)]
+    walks = []
+    walk = components_module.walk
+    monkeypatch.setattr(components_module, "walk", lambda config: walks.append(config) or walk(config))
+    with walked_once(cfg):
+        first = [(c.key, c.cls) for c in components(cfg)]
+        with walked_once(cfg):  # unused_settings inside a check that holds the same config
+            inner = [(c.key, c.cls) for c in components(cfg)]
+        after = [(c.key, c.cls) for c in components(cfg)]
+        assert len(walks) == 1
+        other = toy("hierarchical=proposal")  # another config is walked as it is, each time
+        assert [c.key for c in components(other)] == [c.key for c in components(other)]
+        assert len(walks) == 3
+    assert first == inner == after == fresh
+    assert [(c.key, c.cls) for c in components(cfg)] == fresh and len(walks) == 4  # outside: walked anew

@@ -50,7 +50,12 @@ _WALKS: dict[int, list] = {}
 @contextmanager
 def walked_once(cfg: DictConfig) -> Iterator[None]:
     """Within it, ``components(cfg)`` walks ``cfg`` once, at its first call, and gives the same components after
-    (the settings check asks the components many times and changes nothing of the config)."""
+    (the settings check asks the components many times and changes nothing of the config). Inside another for the
+    same ``cfg`` it keeps that one's walk, and leaves it to that one to end."""
+    held = _WALKS.get(id(cfg))
+    if held is not None and held[0] is cfg:
+        yield
+        return
     _WALKS[id(cfg)] = [cfg, None]
     try:
         yield
