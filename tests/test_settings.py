@@ -194,7 +194,8 @@ def test_an_override_that_does_not_apply_is_named_with_the_reason(hydra_configs)
     # the scene's box serves the grids alone (the scene's SERVES, their SCENE_FIELDS): unused without one, used with
     # either; the scene's other keys are its own
     box = "data.aabb=[[0,0,0],[1,1,1]]"
-    assert unused_settings(composed(), [box, "data.n_train=10"]) == [
+    with_choices = compose("config", overrides=[*TINY, "trainer.default_root_dir=."], return_hydra_config=True)
+    assert unused_settings(with_choices, [box, "data.n_train=10"]) == [
         (box, "acceleration=none (acceleration=occupancy reads data.aabb); encoding=posenc (encoding=hashgrid reads "
               "data.aabb)")]
     assert unused_settings(composed("acceleration=occupancy"), [box]) == []
