@@ -30,38 +30,14 @@ def cluster(tmp_path_factory) -> dict:
         yield env
 
 
-TIME_LIMITED = "time_limited"  # the job name of the run at its time limit (``time_limited``), beside the sweep
-
-
 def running_jobs(env: dict) -> set[str]:
-    """The ids of the sweep's jobs running now (array tasks one by one): the time-limited run's aside."""
-    listing = subprocess.run(["squeue", "-h", "-r", "-t", "R", "-o", "%i %j"], capture_output=True, text=True,
-                             env=env)
-    return {job for job, name in (line.split(maxsplit=1) for line in listing.stdout.splitlines())
-            if name != TIME_LIMITED}
+    """The ids of the jobs running now (array tasks one by one)."""
+    listing = subprocess.run(["squeue", "-h", "-r", "-t", "R", "-o", "%i"], capture_output=True, text=True, env=env)
+    return set(listing.stdout.split())
 
 
 @pytest.fixture(scope="module")
-def time_limited(cluster, tmp_path_factory) -> dict:
-    """A run of two DDP processes at a minute's limit (SLURM's least), its notice (submitit's USR2) 10 s before,
-    submitted before the sweep (``sweep`` asks for it) so that its minute passes while the sweep runs: a step each
-    0.1 s (``PacedSteps``), which leaves the cores to the sweep and the tests beside it. Its nerfexp process
-    (which waits for the job) is asked for its end by ``test_a_job_at_its_time_limit_...``."""
-    root = tmp_path_factory.mktemp("slurm_time_limit")
-    argv, env = command("nerfexp", *ON_SLURM, "trainer.devices=2", "scale.steps=1000000", "hydra.launcher.timeout_min=1",
-                        "hydra.launcher.signal_delay_s=10", f"hydra.launcher.name={TIME_LIMITED}",
-                        "+callbacks.paced._target_=tests.helpers.PacedSteps", "+callbacks.paced.seconds=0.1",
-                        f"hydra.sweep.dir={root / 'first'}")
-    with open(root / "stdout", "w") as stdout, open(root / "stderr", "w") as stderr:
-        process = subprocess.Popen(argv, cwd=root, env=env, stdout=stdout, stderr=stderr, text=True)
-    yield {"root": root, "process": process}
-    if process.poll() is None:  # a test that failed before it waited
-        process.kill()
-        process.wait()
-
-
-@pytest.fixture(scope="module")
-def sweep(cluster, time_limited, tmp_path_factory) -> dict:
+def sweep(cluster, tmp_path_factory) -> dict:
     """A sweep of four jobs, each two DDP processes (srun's tasks), at most two jobs at once
     (``array_parallelism=2``); the two with ``NanTargets`` fail at their first step. The scheduler's
     running jobs are sampled while it runs. It is submitted from a shell that exports a MASTER_ADDR and
@@ -119,19 +95,22 @@ def test_the_array_runs_its_jobs_two_at_a_time_and_a_failing_job_stops_no_other(
     assert last.startswith("nerfexp: error: step 0: the coarse network's colour loss is nan"), sweep["stderr"][-2000:]
 
 
-def test_a_job_at_its_time_limit_records_sigterm_and_resume_continues_it(time_limited, tmp_path):
-    root = time_limited["root"]
-    returncode = time_limited["process"].wait(timeout=600)  # SLURM sends the notice and SIGTERM while it trains
-    stderr = (root / "stderr").read_text()
-    run_dir = root / "first" / "0"
+def test_a_job_at_its_time_limit_records_sigterm_and_resume_continues_it(cluster, tmp_path):
+    # a minute's limit (SLURM's least), its notice (submitit's USR2) 10 s before: SLURM sends both while it trains,
+    # a step each 0.1 s (PacedSteps), which leaves the cores to the tests beside it for that minute and more
+    first = run_nerfexp(*ON_SLURM, "trainer.devices=2", "scale.steps=1000000", "hydra.launcher.timeout_min=1",
+                        "hydra.launcher.signal_delay_s=10", "+callbacks.paced._target_=tests.helpers.PacedSteps",
+                        "+callbacks.paced.seconds=0.1", f"hydra.sweep.dir={tmp_path / 'first'}", cwd=tmp_path,
+                        new_process=True)
+    run_dir = tmp_path / "first" / "0"
     checkpoint = run_dir / "checkpoints" / "last.ckpt"
-    assert returncode == 1, stderr[-3000:]
-    assert stderr.strip().splitlines()[-1] == (
+    assert first.returncode == 1, first.stderr[-3000:]
+    assert first.stderr.strip().splitlines()[-1] == (
         f"nerfexp: error: {run_dir}: ended by SIGTERM (on SLURM: a time limit, scancel or preemption); "
         f"the job's overrides with resume={checkpoint} continue it")
     status = read_json(run_dir / "status.json")
     assert (status["state"], status["signal"], status["error"]) == ("failed", "SIGTERM", "ended by SIGTERM")
-    task_logs = "".join(p.read_text() for p in (root / "first").glob(".submitit/*/*_log.*"))
+    task_logs = "".join(p.read_text() for p in (tmp_path / "first").glob(".submitit/*/*_log.*"))
     assert "DUE TO TIME LIMIT" in task_logs  # slurmstepd's own record of why it ended the job
     assert "SIGUSR2: SLURM's notice that the job nears its time limit" in (run_dir / "nerfexp.log").read_text()
     step = torch.load(checkpoint, map_location="cpu", weights_only=True)["global_step"]
