@@ -149,7 +149,7 @@ def test_a_config_held_is_walked_once_and_a_hold_within_a_hold_keeps_the_outer_w
     monkeypatch.setattr(components_module, "walk", lambda config: walks.append(config) or walk(config))
     with walked_once(cfg):
         first = [(c.key, c.cls) for c in components(cfg)]
-        with walked_once(cfg):  # unused_settings inside a check that holds the same config
+        with walked_once(cfg):  # as unused_settings would be, called inside a check holding the same config
             inner = [(c.key, c.cls) for c in components(cfg)]
         after = [(c.key, c.cls) for c in components(cfg)]
         assert len(walks) == 1
