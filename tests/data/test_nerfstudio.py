@@ -211,7 +211,7 @@ def test_a_training_frame_in_the_test_list_is_refused_before_any_image_is_read(t
 def test_a_training_frame_listed_in_another_spelling_is_the_same_frame(tmp_path, rendered, listed, split):
     write(tmp_path, rendered)
     edit_transforms(tmp_path, lambda c: c.update({f"{split}_filenames": [listed]}))
-    with pytest.raises(DatasetError, match=f"both list the frame 'images/train_0001.png'"):
+    with pytest.raises(DatasetError, match="both list the frame 'images/train_0001.png'"):
         NerfstudioScene(root=str(tmp_path)).capture()
 
 
@@ -250,6 +250,23 @@ def test_ten_thousand_spellings_of_two_images_are_refused_at_once(tmp_path, rend
     remove_images(tmp_path)
     with pytest.raises(DatasetError, match=r"name one file: one view counted twice"):
         NerfstudioScene(root=str(tmp_path)).capture()
+
+
+def test_frames_whose_images_are_missing_are_counted_in_one_line_before_any_image_is_read(tmp_path, rendered,
+                                                                                          monkeypatch):
+    # Instant-NGP's fox lists 67 frames for the 50 images its repository keeps (its loader drops the others); the
+    # first missing in file_path order (the frames' order) is named, by its place in the file
+    write(tmp_path, rendered)
+    for name in ("test_0001.png", "train_0002.png"):
+        (tmp_path / "images" / name).unlink()
+    monkeypatch.setattr("nerfexp.data.nerfstudio.read_image", lambda *args: pytest.fail("an image was read"))
+    with pytest.raises(DatasetError) as caught:
+        NerfstudioScene(root=str(tmp_path)).views("train")  # a test view's image missing: refused all the same
+    assert str(caught.value) == (
+        f"image {tmp_path / 'images' / 'test_0001.png'} does not exist (named by {tmp_path / TRANSFORMS}: frame 8 "
+        "(images/test_0001.png)'s file_path), nor do the images of 1 more of the file's 9 frames: nerfexp reads "
+        "every frame the file lists (Instant-NGP's loader skips such frames); remove them from the file or bring "
+        "their images")
 
 
 @pytest.mark.parametrize("link", [os.symlink, os.link], ids=["symbolic", "hard"])

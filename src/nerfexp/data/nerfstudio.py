@@ -16,6 +16,9 @@ Reading (``NerfstudioScene``):
   entries are matched to frames by ``spelling`` (``images//a.png`` is ``images/a.png``), a frame listed twice or
   in ``train_filenames`` and another list is refused (validation may list test frames), and so are two frames
   whose images are one file under any spelling or link (``check_shared_file``), before any image is read;
+- every frame a file lists is read: frames whose image files do not exist are refused in one line, all of them
+  counted, before any image of any split is read (``check_images_exist``; Instant-NGP's own loader drops them where
+  its frames carry ``sharpness``, and its fox lists 67 frames for 50 images);
 - poses: camera centres moved and scaled to lie within ``bound`` of the origin (``normalize_centres``, as
   for COLMAP scenes);
 - ray bounds: ``near`` and ``far`` where given, else from what the capture holds, the first that bounds the
@@ -131,6 +134,18 @@ def posed_capture(root: Path, transforms: str, downscale: int, bound: float) -> 
         raise DatasetError(f"{path}: the scene box of 'aabb_scale', 'scale' and 'offset', moved and scaled "
                            f"as the poses are (data.bound={bound}), {box.tolist()}, {problem}")
     return PosedCapture(capture, normalized, centre, scale)
+
+
+def check_images_exist(images: list[Source]) -> None:
+    """A DatasetError naming the first of the frames' image files (``images``) that does not exist, and how many
+    more do not, where any does not: one line for all of them, before any image is read."""
+    missing = [image for image in images if not image.path.is_file()]
+    if missing:
+        more = (f", nor do the images of {len(missing) - 1} more of the file's {len(images)} frames" if missing[1:]
+                else "")
+        raise DatasetError(f"image {missing[0].path} does not exist (named by {missing[0].name}'s file_path){more}: "
+                           "nerfexp reads every frame the file lists (Instant-NGP's loader skips such frames); "
+                           "remove them from the file or bring their images")
 
 
 def image_file(root: Path, frame: Frame, downscale: int) -> tuple[Path, int, int]:
@@ -378,6 +393,8 @@ class NerfstudioScene(Scene):
         posed = self.posed()
         root = Path(self.root)
         index = self.split_index(split).tolist()
+        check_images_exist([Source(frame.where, image_file(root, frame, self.downscale)[0])
+                            for frame in posed.capture.frames])  # every split's, before any image is read
         images, checked = [], set()  # checked: the invertible lenses (``check_invertible``)
         for i in tqdm(index, desc=f"loading {split}", unit="image", disable=None):
             images.append(read_frame(root, posed.capture.frames[i], posed.capture.defaults, self.downscale, checked))
