@@ -43,6 +43,12 @@ from tests.helpers import one_error_line, run_nerfexp
     # issue 39 section 4: extreme values, one line each (traceback and overflow before)
     (["data.far=1e308"], "data.far=1e+308 (which sets model.renderer.far): expected a finite number > 0 and <= 2^24, "
                          "or null (from the scene)"),
+    # a thread count beyond any machine: refused before torch is asked for it (OpenMP aborted the process, with no
+    # line, and left the run's status.json saying running; torch overflowed past 2^31 - 1)
+    (["threads=1000000000"], "threads=1000000000: expected a whole number in [1, 65536], or null (auto: the CPUs "
+                             "this process may use over the jobs run at once)"),
+    (["threads=9223372036854775807"], "threads=9223372036854775807: expected a whole number in [1, 65536], or null "
+                                      "(auto: the CPUs this process may use over the jobs run at once)"),
     (["hierarchical=false", "scale.n_fine=64"], "scale.n_fine=64: not used with hierarchical=false (one network of "
                                                 "sampler.n_single samples; set scale.n_single)"),
     (["acceleration=occupancy", "acceleration.grid.segments=8"],

@@ -82,6 +82,23 @@ def test_a_run_records_its_cpu_time_the_others_load_its_cpus_and_threads(tmp_pat
     assert results["kernel_build_s"] == 0.0  # the default model runs no fused kernel
 
 
+def test_a_thread_count_above_the_cpus_asked_for_by_omp_num_threads_is_capped_with_a_line(tmp_path, tiny,
+                                                                                         monkeypatch):
+    # OMP_NUM_THREADS, which torch and OpenMP read too, is not refused: a run caps it at the CPUs and says so (10^9
+    # threads made OpenMP abort the process, leaving its status.json saying running)
+    monkeypatch.setenv("OMP_NUM_THREADS", "1000000000")
+    saved = torch.get_num_threads()
+    try:
+        results, _, output = train(tmp_path, tiny)
+    finally:
+        torch.set_num_threads(saved)
+    cpus = available_cpus()
+    assert results["torch_threads"] == cpus and f"torch threads: {cpus} (asked for" in output
+    assert (f"OMP_NUM_THREADS=1000000000: more threads than the {cpus} CPUs this process may use; {cpus} run"
+            in output)
+    assert json.loads((tmp_path / "status.json").read_text())["state"] == "finished"
+
+
 @pytest.mark.parametrize(("overrides", "expected"), [
     ([], []),  # the positional encoding runs no fused kernel
     (["encoding=hashgrid"], ["hash_encoding"]),

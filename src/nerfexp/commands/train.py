@@ -91,8 +91,9 @@ def train(cfg: DictConfig) -> dict | None:
     launcher = OmegaConf.to_container(HydraConfig.get().launcher, resolve=True) if sweep else None
     threads = start_threads(cfg.threads, launcher)  # one line each, before any work
     log.info("%s", threads.line)
-    if threads.busy is not None:
-        log.warning("%s", threads.busy)
+    for warning in (threads.capped, threads.busy):
+        if warning is not None:
+            log.warning("%s", warning)
     fill_precision(cfg)  # with the run's threads: auto may time the run's field (on forked random numbers)
     runtime = HydraConfig.get().runtime
     choices = {k: v for k, v in runtime.choices.items() if not k.startswith("hydra") and v is not None}

@@ -67,9 +67,11 @@ from nerfexp.domains import (
     PATH,
     POSITION_LIMIT,
     TEXT,
+    THREADS,
     Applies,
     Rule,
     choice,
+    expected,
     optional,
     real,
     whole,
@@ -152,7 +154,7 @@ def image_lenses(reconstruction, image_ids: list[int], where: Path) -> tuple[Int
     return Intrinsics.stack([lenses[reconstruction.images[i].camera_id] for i in image_ids]), width, height
 
 
-C_INT_LIMIT = 2 ** 31 - 1  # COLMAP's counts (features per image, threads): its C ints
+C_INT_LIMIT = 2 ** 31 - 1  # COLMAP's counts (features per image): its C ints
 
 
 
@@ -259,8 +261,9 @@ class ColmapScene(Scene):
         "camera_model": TEXT,  # COLMAP's model names (checked against pycolmap's list when it runs)
         "matcher": optional(choice("exhaustive", "sequential"), "sequential for a video, else exhaustive"),
         "max_features": whole(1, C_INT_LIMIT),
-        "threads": (f"-1 (every core) or a whole number in [1, {C_INT_LIMIT}]",
-                    lambda v: v == -1 or whole(1, C_INT_LIMIT)[1](v)),
+        # at most THREAD_LIMIT (more than any machine); above the CPUs this process may use: capped at them
+        "threads": (f"-1 (every CPU this process may use) or {expected(THREADS)}",
+                    lambda v: v == -1 or THREADS[1](v)),
         "min_registered": real(0, 1, above=True),
         "verbose": BOOLEAN,
     }

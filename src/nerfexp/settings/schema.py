@@ -31,6 +31,7 @@ from nerfexp.domains import (
     NULL,
     PATH,
     TEXT,
+    THREADS,
     Rule,
     choice,
     is_real,
@@ -117,7 +118,8 @@ SCHEMA: dict[str, Rule] = {
     "notes": NOTES,
     "hierarchical": HIERARCHY,
     "resume": optional(PATH, "train from scratch"),
-    "threads": optional(COUNT, "auto: the CPUs this process may use over the jobs run at once"),
+    # at most THREAD_LIMIT (more than any machine); above the CPUs this process may use: capped at them (nerfexp.cpus)
+    "threads": optional(THREADS, "auto: the CPUs this process may use over the jobs run at once"),
     "test_budgets": TEST_BUDGETS,
     # scale: the sizes the groups read (each checked again where it lands)
     "scale.steps": COUNT,
