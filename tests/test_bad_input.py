@@ -49,6 +49,12 @@ from tests.helpers import one_error_line, run_nerfexp
                              "this process may use over the jobs run at once)"),
     (["threads=9223372036854775807"], "threads=9223372036854775807: expected a whole number in [1, 65536], or null "
                                       "(auto: the CPUs this process may use over the jobs run at once)"),
+    # a setting with a physical meaning has a range that means something: pose noise in degrees up to the largest
+    # turn and a fraction of the cameras' radius up to 1 ([1e9,1e9] moved every camera 4e9 units away, scored as any
+    # other run)
+    (["datamodule.pose_noise=[1e9,1e9]"], "datamodule.pose_noise=[1000000000.0, 1000000000.0]: expected [degrees, "
+                                          "fraction of the cameras' radius], degrees a finite number in [0, 180] and "
+                                          "fraction one in [0, 1], or null (the poses as the data gives them)"),
     (["hierarchical=false", "scale.n_fine=64"], "scale.n_fine=64: not used with hierarchical=false (one network of "
                                                 "sampler.n_single samples; set scale.n_single)"),
     (["acceleration=occupancy", "acceleration.grid.segments=8"],

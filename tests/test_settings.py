@@ -158,7 +158,23 @@ def composed(*overrides):
     (["contraction=mipnerf360", "contraction.function.radius=0"], "contraction.function.radius=0: expected a "
                                                                   "finite number > 0"),
     (["contraction=mipnerf360", "contraction.function.centre=[0,1]"], "contraction.function.centre=[0, 1]: "
-                                                                      "expected a list of 3 finite numbers"),
+                                                                      "expected a list of 3 items, each a finite "
+                                                                      "number within +-2^24, or null"),
+    # a point and a distance in scene units: within 2^24, where float32 positions still resolve a unit
+    (["contraction=mipnerf360", "contraction.function.centre=[0,0,1e30]"], "contraction.function.centre=[0, 0, "
+                                                                           "1e+30]: expected a list of 3 items, each "
+                                                                           "a finite number within +-2^24"),
+    (["contraction=mipnerf360", "contraction.function.radius=1e30"], "contraction.function.radius=1e+30: expected "
+                                                                     "a finite number > 0 and <= 2^24"),
+    # counts of threads and processes per node beyond any machine's CPUs (2^16), physical quantities in their ranges
+    (["threads=65537"], "threads=65537: expected a whole number in [1, 65536], or null (auto: the CPUs"),
+    (["threads=0"], "threads=0: expected a whole number in [1, 65536]"),
+    (["trainer.devices=1000000"], "trainer.devices=1000000: expected a whole number in [1, 65536], a list of device "
+                                  "indices, or auto"),
+    (["datamodule.pose_noise=[181,0]"], "datamodule.pose_noise=[181, 0]: expected [degrees, fraction of the cameras' "
+                                        "radius], degrees a finite number in [0, 180] and fraction one in [0, 1]"),
+    (["datamodule.pose_noise=[2,1.5]"], "datamodule.pose_noise=[2, 1.5]: expected [degrees, fraction of the "
+                                        "cameras' radius]"),
     (["contraction=mipnerf360", "contraction.function.far=1"], "contraction.function.far=1: expected a finite "
                                                                "number > 1"),
 ])
@@ -166,6 +182,26 @@ def test_a_value_out_of_its_domain_is_one_error_naming_the_key(hydra_configs, ov
     with pytest.raises(ConfigError) as error:
         check_settings(composed(*overrides))
     assert str(error.value).startswith(message), str(error.value)
+
+
+@pytest.mark.parametrize(("value", "message"), [
+    (100000, "data.threads=100000: expected -1 (every CPU this process may use) or a whole number in [1, 65536]"),
+    (0, "data.threads=0: expected -1"),
+    (-2, "data.threads=-2: expected -1"),
+])
+def test_colmaps_thread_count_is_bounded_as_torchs(hydra_configs, value, message):
+    with pytest.raises(ConfigError) as error:
+        check_settings(compose("config", overrides=["data=colmap", "data.root=/nowhere", f"data.threads={value}"]))
+    assert str(error.value).startswith(message), str(error.value)
+
+
+@pytest.mark.parametrize("overrides", [
+    ["threads=65536"], ["threads=1"], ["trainer.devices=2"], ["trainer.devices=[0]"], ["trainer.devices=auto"],
+    ["datamodule.pose_noise=[180,1]"], ["datamodule.pose_noise=[0,0]"], ["datamodule.pose_noise=null"],
+    ["contraction=mipnerf360", "contraction.function.centre=[0,0,16777216]", "contraction.function.radius=16777216"],
+])
+def test_the_bounds_themselves_are_settings(hydra_configs, overrides):
+    check_settings(composed(*overrides))
 
 
 def test_a_contraction_of_ndc_rays_is_refused_in_one_line(hydra_configs):
