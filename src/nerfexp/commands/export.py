@@ -34,6 +34,7 @@ from nerfexp.commands.arguments import (
     command_parser,
     fitting,
     positive,
+    say_unfinished,
 )
 from nerfexp.commands.console import run_command
 from nerfexp.data.base import Scene
@@ -83,6 +84,7 @@ def export_run(run: Path, overrides: list[str], resolution: int, threshold: floa
     of its test views) and ``mesh.ply`` (``extract_mesh`` at ``threshold``; None: ``field_threshold`` at the
     points). Returns a one-line summary."""
     (run_dir, checkpoint, _, module, step), scene = trained_run(run, overrides, chunk)
+    say_unfinished("nerfexp-export", run_dir, checkpoint, step)
     out_dir = run_dir / EXPORT_DIR
     check_export_folder(run_dir)
     renderer = module.renderer

@@ -3,8 +3,6 @@ a file that cannot be read as nerfexp writes it (``nerfexp.rundir.records``: eve
 and bounded) makes the run damaged, never a wrong number. A finished run is ranked and compared only with its
 test scores: one whose training collapsed, or whose results hold no finite test score, is listed as such."""
 
-
-import socket
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -24,10 +22,10 @@ from nerfexp.rundir.layout import (
     RESULTS,
     STATUS,
     find_run_dirs,
-    process_alive,
     read_json,
     read_metrics,
 )
+from nerfexp.rundir.state import status_state
 
 
 @dataclass
@@ -120,7 +118,8 @@ def job_overrides(path: Path) -> list[str] | None:
 
 def read_run(path: Path) -> Run:
     """What a run directory says about its job. A job whose status still says running but whose
-    process is gone from this host was killed (out of memory, a time limit, a signal). A run with a file
+    process is gone from this host was killed (out of memory, a time limit, a signal: ``nerfexp.rundir.state``,
+    which every reader of a status shares). A run with a file
     that cannot be read as nerfexp writes it (``Damaged``) is listed as damaged with its overrides where
     they can be read (``job_overrides``; else none, and it joins no variant), and none of its numbers is
     used. Its labels are those of its results, else of its status."""
@@ -131,16 +130,9 @@ def read_run(path: Path) -> Run:
     except Damaged as damage:
         return Run(path, "damaged", job_overrides(path), str(damage))
     overrides = status.get("overrides", (results or {}).get("overrides", []))
-    state = status.get("state", "finished" if results is not None else "unknown")
-    detail = status.get("error", "")
+    state, detail = status_state(status)[:2] if status else ("finished" if results is not None else "unknown", "")
     if state == "finished" and results is None:
         state, detail = "failed", f"status says finished but {RESULTS} is missing"
-    if state == "running":
-        here, pid = status.get("host") == socket.gethostname(), status.get("pid")
-        if here and pid is not None and not process_alive(pid, status.get("process_start")):
-            state, detail = "killed", f"process {pid} is gone (killed before it finished)"
-        else:
-            detail = f"on {status.get('host')}, process {pid}" + ("" if here else " (not checked)")
     try:
         curve = read_curve(path, ended=state != "running")
     except Damaged as damage:

@@ -21,6 +21,7 @@ from nerfexp.reading import UnreadableFile, read_yaml_text
 from nerfexp.rundir.layout import LAST_CHECKPOINT, REFINED_POSES, RESULTS, RUN_CONFIG, read_json, sha256
 from nerfexp.rundir.records import checkpoint_problem
 from nerfexp.rundir.saved_configs import as_data, check_resolved
+from nerfexp.rundir.state import read_state, unfinished_words
 
 # Where the classes of a run's config lived before the package was split into layers (and the data group
 # held the field's density noise), and the hash grid before it had a module of its own (nerfexp.nerf.hashgrid): a
@@ -60,7 +61,10 @@ OLD_SCALE_KEYS = ("scale.hash_log2_table_size", "scale.hash_finest")
 def find_run(path: str | Path) -> tuple[Path, Path]:
     """``(run directory, checkpoint)`` of ``path``: a run directory (the checkpoint its final test scored,
     as ``results.json`` records it, checked against its SHA-256; else ``checkpoints/last.ckpt``) or a
-    checkpoint file in one (``RUN_DIR/checkpoints/NAME.ckpt``: the run directory two levels up)."""
+    checkpoint file in one (``RUN_DIR/checkpoints/NAME.ckpt``: the run directory two levels up). A run that saved
+    no checkpoint is a NerfexpError saying so, and where its status says it did not finish, how
+    (``nerfexp.rundir.state.unfinished_words``: killed, failed, still running); a reader of a checkpoint of such a
+    run says so too (``nerfexp.rundir.state.unfinished_line``)."""
     path = Path(path)
     if not path.exists():
         raise NerfexpError(f"{path} does not exist: expected a run directory or a checkpoint file in one")
@@ -77,7 +81,9 @@ def find_run(path: str | Path) -> tuple[Path, Path]:
             raise NerfexpError(f"{checkpoint} is not the checkpoint the run's test scored (its SHA-256 differs "
                                f"from {run_dir / RESULTS}'s): name a checkpoint file to use it anyway")
     if not checkpoint.is_file():
-        raise NerfexpError(f"{checkpoint} does not exist: the run in {run_dir} has saved no checkpoint")
+        ended = unfinished_words(read_state(run_dir))  # why, where its status says (nerfexp.rundir.state)
+        raise NerfexpError(f"{checkpoint} does not exist: the run in {run_dir} has saved no checkpoint"
+                           + ("" if ended is None else f"; it {ended}"))
     return run_dir, checkpoint
 
 
