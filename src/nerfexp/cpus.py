@@ -5,8 +5,8 @@ A count asked for above the CPUs this process may use (``threads=64``, ``OMP_NUM
 on a machine, or under a scheduler's affinity, that grants 16) is capped at them, with a line saying so, rather than
 refused: threads beyond the CPUs only wait on each other, so the count decides how fast the work goes, not what it
 computes (but for the last digits of a parallel sum, whose order it may change; a resumed run may change it too:
-``nerfexp.training.resume``), and a config written for a larger node still runs on a smaller one. A count beyond any machine (``nerfexp.domains.THREAD_LIMIT``) is a mistake, which the settings
-check refuses before any work.
+``nerfexp.training.resume``), and a config written for a larger node still runs on a smaller one. A count beyond
+any machine (``nerfexp.domains.THREAD_LIMIT``) is a mistake, which the settings check refuses before any work.
 """
 
 import os
@@ -30,8 +30,8 @@ def capped_line(asked: str, requested: int, cpus: int) -> str | None:
     """The line saying that ``requested`` threads (asked for by ``asked``, as the user wrote it) are capped at the
     ``cpus`` this process may use; None where they are no more than those.
 
-    >>> capped_line("threads=64", 64, 2)
-    'threads=64: more threads than the 2 CPUs this process may use; 2 run (threads beyond the CPUs only wait on each other)'
+    >>> capped_line("threads=64", 64, 2).split(" (")[0]
+    'threads=64: more threads than the 2 CPUs this process may use; 2 run'
     >>> capped_line("threads=2", 2, 16) is None
     True
     """

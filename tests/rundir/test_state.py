@@ -38,7 +38,8 @@ def statuses(ended: tuple[int, int]) -> dict[str, tuple[dict, RunState]]:
     me, my_start = os.getpid(), process_start(os.getpid())
     running = {"state": "running", "overrides": ["seed=0"], "host": HOST}
     return {
-        "finished": ({"state": "finished", "overrides": ["seed=0"], "host": HOST, "pid": pid}, RunState("finished", "")),
+        "finished": ({"state": "finished", "overrides": ["seed=0"], "host": HOST, "pid": pid},
+                     RunState("finished", "")),
         "failed": ({"state": "failed", "overrides": ["seed=0"], "host": HOST, "pid": pid, "error": "OSError: full"},
                    RunState("failed", "OSError: full")),
         "running here": ({**running, "pid": me, "process_start": my_start},
@@ -47,8 +48,8 @@ def statuses(ended: tuple[int, int]) -> dict[str, tuple[dict, RunState]]:
                                                                           here=True)),
         "killed": ({**running, "pid": pid, "process_start": started},
                    RunState("killed", f"process {pid} is gone; its status.json still says running")),
-        "killed, start not recorded": ({**running, "pid": pid},
-                                       RunState("killed", f"process {pid} is gone; its status.json still says running")),
+        "killed, start not recorded": ({**running, "pid": pid}, RunState(
+            "killed", f"process {pid} is gone; its status.json still says running")),
         # the pid is alive, but another process started then: the run's own is gone
         "killed, pid reused": ({**running, "pid": me, "process_start": my_start + 1},
                                RunState("killed", f"process {me} is gone; its status.json still says running")),
@@ -96,7 +97,7 @@ def test_every_reader_of_a_status_reads_the_state_it_is(ended, tmp_path, case):
     if ended_unfinished(run_dir):
         assert admit_run(run_dir, None) == [".hydra/config.yaml", "nerfexp.log", "status.json"]
     else:
-        with pytest.raises(NerfexpError, match=f"holds a running run \\(seed=0\\): choose another directory"):
+        with pytest.raises(NerfexpError, match="holds a running run \\(seed=0\\): choose another directory"):
             admit_run(run_dir, None)
     # the commands that read a run back: a run with no checkpoint says how it ended; one with a checkpoint is read,
     # with a line saying what the checkpoint holds
@@ -113,7 +114,7 @@ def test_every_reader_of_a_status_reads_the_state_it_is(ended, tmp_path, case):
     if state.state == "killed":  # its checkpoint is the run's to continue, named in the refusal as a killed run's
         (run_dir / LAST_CHECKPOINT).parent.mkdir()
         (run_dir / LAST_CHECKPOINT).write_bytes(b"")
-        with pytest.raises(NerfexpError, match=f"holds a killed run \\(seed=0\\): continue it with resume="):
+        with pytest.raises(NerfexpError, match="holds a killed run \\(seed=0\\): continue it with resume="):
             admit_run(run_dir, None)
         assert admit_run(run_dir, str(run_dir / LAST_CHECKPOINT)) is None  # resume=: continued in its directory
 

@@ -153,10 +153,9 @@ def reconstruct(root, camera_model: str = "SIMPLE_RADIAL", matcher: str = "exhau
     ``camera_model`` camera shared by all images, a progress bar over the images), then matching
     (``exhaustive`` or ``sequential``) and incremental mapping, each a step of a second bar
     (``verbose``: COLMAP's own log too). ``threads``: ``colmap_threads``' (-1: every CPU this process may use).
-    COLMAP's random choices are seeded
-    (``SEED``), so that a reconstruction does not depend on the draw (with several threads their order may
-    still differ). Raises a DatasetError, and
-    keeps nothing, when fewer than ``min_registered`` of the images are registered.
+    COLMAP's random choices are seeded (``SEED``), so that a reconstruction does not depend on the draw (with
+    several threads their order may still differ). Raises a DatasetError, and keeps nothing, when fewer than
+    ``min_registered`` of the images are registered.
     """
     root = Path(root)
     image_dir = root / "images" if image_dir is None else Path(image_dir)
