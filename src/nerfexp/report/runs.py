@@ -1,6 +1,7 @@
 """Reading a sweep's runs back: each job's state, overrides, results and validation curve, as data;
 a file that cannot be read as nerfexp writes it (``nerfexp.rundir.records``: every field the report uses, typed
-and bounded) makes the run damaged, never a wrong number. A finished run is ranked and compared only with its
+and bounded, and a results.json's fields as they stand to each other, ``relations_problem``) makes the run damaged,
+never a wrong number. A finished run is ranked and compared only with its
 test scores: one whose training collapsed, or whose results hold no finite test score, is listed as such."""
 
 
