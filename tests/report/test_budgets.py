@@ -331,7 +331,7 @@ def test_the_difference_plot_and_the_paretos_budget_points_are_drawn(tmp_path):
     assert "<h2>At equal training time</h2>" in html
 
 
-def test_a_report_of_runs_of_10001_budgets_takes_seconds(tmp_path):
+def test_a_report_of_runs_of_10001_budgets_takes_seconds_and_says_each_step_of_its_work(tmp_path, capsys):
     # b 0.5 dB under a at every one of 10,001 budgets (steps 1, 2, ..., seconds 1, 2, ...): every step and every
     # matched time compared. Each budget was once looked up by a walk over every budget of every run: hours of work
     n = 10_001
@@ -341,6 +341,13 @@ def test_a_report_of_runs_of_10001_budgets_takes_seconds(tmp_path):
     started = time.process_time()
     main([str(tmp_path), "--reference", "encoding=a"])
     assert time.process_time() - started < 120  # CPU seconds of this process: a few here
+    assert capsys.readouterr().err.splitlines() == [
+        f"nerfexp-report: reading the runs under {tmp_path}",
+        "nerfexp-report: comparing 2 variants; runs: 2 (2 finished); 20,002 test budgets",
+        "nerfexp-report: drawing the plots",
+        "nerfexp-report: writing the pictures of 0 test views",
+        "nerfexp-report: writing the page",
+        f"2 variants; report in {tmp_path / 'report.md'} and {tmp_path / 'report.html'}"]
     rows = read_rows(tmp_path / "report_budgets.csv")
     steps = [row for row in rows if (row["kind"], row["metric"]) == ("step", "psnr")]
     assert [int(row["budget"]) for row in steps] == list(range(1, n + 1))

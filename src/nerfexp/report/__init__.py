@@ -38,4 +38,7 @@ variant named by ``--reference``; without either the report has no differences.
 A variant is the set of a run's command-line overrides without the keys averaged over (``--over``,
 default ``seed``) and the run's tags and notes (``nerfexp.rundir.labels``), leaving out overrides every run
 shares. report.md, report.csv and report.html show each variant's tags (those of all its runs) and notes.
+
+The report is written whole or not at all, and says each step of its work as it begins
+(``nerfexp.report.folder.write_report``).
 """
