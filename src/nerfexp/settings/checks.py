@@ -22,6 +22,7 @@ from nerfexp.extras import SETTINGS_NEEDING, TARGETS_NEEDING, require
 from nerfexp.kernels import enabled
 from nerfexp.memory import network_bytes, require_memory
 from nerfexp.settings.components import argument_keys, asked, components, walked_once
+from nerfexp.settings.groups import check_group_values
 from nerfexp.settings.rows import check_row
 from nerfexp.settings.schema import PASSED_ON, REFERENCES, matching, rule_of
 from nerfexp.settings.unused import check_used
@@ -251,16 +252,32 @@ def check_run_settings(cfg: DictConfig, scoring: bool = False) -> None:
     check_settings(cfg, training=False, scoring=scoring)
 
 
+def check_composition(cfg: DictConfig, hydra: DictConfig) -> None:
+    """A ConfigError where what Hydra composed for a run (``cfg``; ``hydra``: its ``hydra`` section, or
+    ``HydraConfig.get()``) would not be what the run records: a config group given what is not one of its options
+    (``nerfexp.settings.groups.check_group_values``), as a sweep's override sets it for any of its jobs too. First
+    of the checks: the others read the groups' choices."""
+    check_group_values(hydra)
+
+
 class SettingsCheck(Callback):
-    """Hydra callback (``hydra.callbacks.settings``): ``check_settings`` and ``check_used`` on a single
-    run's config before Hydra creates its directory, so that a bad value leaves nothing behind; each job of
-    a sweep is checked by ``nerfexp.commands.train`` (the sweep's values differ per job). It stops with
+    """Hydra callback (``hydra.callbacks.settings``): ``check_composition``, ``check_settings`` and ``check_used``
+    on a single run's config before Hydra creates its directory, so that a bad value leaves nothing behind; a
+    sweep's config (what its jobs share) gets ``check_composition`` before the sweep's directory is made, and each
+    job is checked by ``nerfexp.commands.train`` (the sweep's values differ per job). It stops with
     ``SystemExit``: Hydra turns a callback's exceptions into warnings and goes on."""
 
     def on_run_start(self, config: DictConfig, **kwargs) -> None:
         try:
+            check_composition(config, config.hydra)
             check_settings(config)
             check_row(config, config.hydra.runtime.choices, list(config.hydra.overrides.task))
             check_used(config, list(config.hydra.overrides.task))
+        except ConfigError as error:
+            raise SystemExit(f"nerfexp: error: {error}") from None
+
+    def on_multirun_start(self, config: DictConfig, **kwargs) -> None:
+        try:
+            check_composition(config, config.hydra)
         except ConfigError as error:
             raise SystemExit(f"nerfexp: error: {error}") from None
