@@ -77,7 +77,7 @@ def train(cfg: DictConfig) -> dict | None:
 
     sweep = HydraConfig.get().mode == RunMode.MULTIRUN
     if sweep:
-        check_composition(cfg, HydraConfig.get())  # the job's group values, before the others read them
+        check_composition(cfg, HydraConfig.get())  # the job's group values and labels, before the others read them
         check_settings(cfg)  # missing mandatory values first
         check_row(cfg, HydraConfig.get().runtime.choices, list(HydraConfig.get().overrides.task))
     unused = unused_settings(cfg, list(HydraConfig.get().overrides.task))  # a sweep's job: recorded as null
