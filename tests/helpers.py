@@ -28,6 +28,7 @@ import numpy as np
 import torch
 from hydra import compose, initialize_config_module
 from hydra.core.global_hydra import GlobalHydra
+from omegaconf import open_dict
 
 from nerfexp.geometry.cameras import look_at
 from nerfexp.training.perceptual import ALEXNET_SHA256
@@ -48,6 +49,15 @@ def tiny_config(*overrides: str):
     """The real config, shrunk by ``TINY``, with ``overrides`` after it (composed without Hydra's runtime)."""
     with initialize_config_module("nerfexp.conf", version_base=None):
         return compose("config", overrides=[*TINY, *overrides])
+
+
+def without_overrides(cfg):
+    """A copy of the composed config ``cfg`` (with Hydra's section) as if what its overrides chose had come from a
+    config file (a sweep's, a preset's defaults list): ``hydra.overrides.task`` empty, the choices kept."""
+    cfg = cfg.copy()
+    with open_dict(cfg):
+        cfg.hydra.overrides.task = []
+    return cfg
 
 
 # HTTPS through a proxy where nothing listens (port 9, discard): a test's command downloads nothing, e.g. AlexNet's

@@ -12,9 +12,9 @@ from hypothesis import given
 from hypothesis import strategies as st
 from PIL import Image
 
-from nerfexp.commands.train import check_group_choices
-from nerfexp.errors import ConfigError
 from nerfexp.domains import FLOAT32_TOP_OCTAVE
+from nerfexp.errors import ConfigError
+from nerfexp.settings.groups import check_group_overrides, is_nerfexp_group
 from tests.helpers import one_error_line, run_nerfexp
 
 
@@ -288,7 +288,11 @@ def test_a_command_that_stops_at_bad_input_or_help_does_not_import_lightning(ent
 
 
 # A config group's choice is an option's name: null, a number, a mapping or a range there is one line (a
-# ValueError's traceback from Hydra before), and GROUP=null is refused rather than read as no option.
+# ValueError's traceback from Hydra before), and GROUP=null is refused rather than read as no option; a list or a
+# path, which Hydra composes and records as another choice (none, or the path), too (every group:
+# tests/settings/test_groups.py).
+LIST = "; a list is not one (Hydra would compose each config it names and record no choice)"
+PATH = "; a path is not one (Hydra would compose whatever config it leads to, in another group too)"
 
 @pytest.mark.parametrize(("arguments", "message"), [
     (["experiment=null"], "experiment=null: a config group takes an option's name (choose from fast); none is "
@@ -302,6 +306,21 @@ def test_a_command_that_stops_at_bad_input_or_help_does_not_import_lightning(ent
     (["-m", "experiment=fast,null"], "experiment=fast,null: a config group takes an option's name (choose from "
                                      "fast); none is experiment's default: leave it out for none"),
     (["-m", "scale=range(0,2)"], "scale=range(0,2): a config group takes an option's name (choose from cpu, paper)"),
+    (["experiment=[fast]"], f"experiment=[fast]: a config group takes an option's name (choose from fast){LIST}"),
+    (["experiment=../ablation/no_posenc"], "experiment=../ablation/no_posenc: a config group takes an option's name "
+                                           f"(choose from fast){PATH}"),
+    (["experiment=/ablation/no_posenc"], "experiment=/ablation/no_posenc: a config group takes an option's name "
+                                         f"(choose from fast){PATH}"),
+    (["experiment=fast/../fast"], f"experiment=fast/../fast: a config group takes an option's name (choose from fast)"
+                                  f"{PATH}"),
+    (["scale=./paper"], f"scale=./paper: a config group takes an option's name (choose from cpu, paper){PATH}"),
+    (["-m", "seed=0,1", "experiment=fast,../ablation/no_posenc"],
+     f"experiment=fast,../ablation/no_posenc: a config group takes an option's name (choose from fast){PATH}"),
+    (["-m", "encoding=[none],[posenc]"], "encoding=[none],[posenc]: a config group takes an option's name (choose "
+                                         f"from hashgrid, none, posenc){LIST}"),
+    (["+sweeps=[smoke]"], "+sweeps=[smoke]: a config group takes an option's name (choose from budgets, components, "
+                          "cpu_ablation, optuna, paper_ablation, precision, real, smoke, sparse_tables, "
+                          f"successors){LIST}"),
 ])
 def test_a_group_given_what_is_not_an_option_is_one_line_before_anything_is_made(tmp_path, arguments, message):
     result = run_nerfexp(*arguments, f"hydra.run.dir={tmp_path / 'run'}", f"hydra.sweep.dir={tmp_path / 'sweep'}",
@@ -311,8 +330,10 @@ def test_a_group_given_what_is_not_an_option_is_one_line_before_anything_is_made
 
 
 def test_removing_a_group_or_choosing_its_options_is_not_refused():
-    check_group_choices(["~experiment", "experiment=fast", "encoding=[posenc]", "-m", "encoding=posenc,none",
-                         "encoding=glob(*)", "scale.lr=0.1", "data.root=/x=y", "--cfg", "job"])
+    check_group_overrides(["~experiment", "~experiment=fast", "experiment=fast", "-m", "encoding=posenc,none",
+                           "encoding=glob(*)", "scale.lr=0.1", "data.root=/x=y", "hydra.run.dir=/a/b", "--cfg", "job",
+                           "hydra/launcher=submitit_local", "+encoding/hashgrid_sizes=paper", "tags=[a/b]"],
+                          is_nerfexp_group)
 
 
 @given(st.sampled_from(["experiment", "+experiment", "++encoding", "view_dependence", "hydra/launcher"]),
@@ -323,5 +344,5 @@ def test_any_value_but_an_options_name_at_a_group_is_refused(key, value):
         "{" + ",".join(f"{k}:{v}" for k, v in value.items()) + "}")
     argument = f"{key}={text}"
     with pytest.raises(ConfigError) as raised:
-        check_group_choices([argument, "encoding=posenc"])
+        check_group_overrides([argument, "encoding=posenc"], is_nerfexp_group)
     assert str(raised.value).startswith(f"{argument}: a config group takes an option's name")

@@ -97,6 +97,12 @@ def yaml_word(value) -> str:
     return "null" if value is None else str(value).lower() if isinstance(value, bool) else str(value)
 
 
+def one_line(value) -> object:
+    """``value`` as an error's one line shows it: a text with a character that does not print (a newline, an escape
+    sequence) quoted and escaped, as a list's texts are; anything else as it is."""
+    return repr(value) if isinstance(value, str) and not value.isprintable() else value
+
+
 def choice(*values) -> Rule:
     """One of ``values`` (strings or booleans: 1 and 0, equal to True and False, are neither)."""
     return f"one of {', '.join(map(yaml_word, values))}", lambda v: isinstance(v, str | bool) and v in values

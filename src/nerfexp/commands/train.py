@@ -8,15 +8,11 @@ import os
 import re
 import sys
 from collections.abc import Iterator
-from importlib.resources import files
 from pathlib import Path
 from typing import TYPE_CHECKING
 
 import hydra
-import yaml
 from hydra.core.hydra_config import HydraConfig
-from hydra.core.override_parser.overrides_parser import OverridesParser
-from hydra.core.override_parser.types import ChoiceSweep, Glob
 from hydra.errors import HydraException, InstantiationException, MissingConfigException, OverrideParseException
 from hydra.types import RunMode
 from hydra.utils import instantiate
@@ -41,7 +37,8 @@ from nerfexp.rundir.layout import (
     read_json,
     write_status,
 )
-from nerfexp.settings.checks import check_settings
+from nerfexp.settings.checks import check_composition, check_settings
+from nerfexp.settings.groups import check_group_overrides, is_nerfexp_group
 from nerfexp.settings.rows import check_row
 from nerfexp.settings.schema import PASSED_ON, matching
 from nerfexp.settings.unused import unused_settings, without_unused
@@ -80,6 +77,7 @@ def train(cfg: DictConfig) -> dict | None:
 
     sweep = HydraConfig.get().mode == RunMode.MULTIRUN
     if sweep:
+        check_composition(cfg, HydraConfig.get())  # the job's group values and labels, before the others read them
         check_settings(cfg)  # missing mandatory values first
         check_row(cfg, HydraConfig.get().runtime.choices, list(HydraConfig.get().overrides.task))
     unused = unused_settings(cfg, list(HydraConfig.get().overrides.task))  # a sweep's job: recorded as null
@@ -265,47 +263,6 @@ def check_launcher(arguments: list[str]) -> None:
             require("hydra_plugins.hydra_submitit_launcher", argument)
 
 
-def group_options(group: str) -> list[str]:
-    """The options nerfexp's own ``conf/`` holds for the config group ``group`` (its folder's YAML files)."""
-    folder = files("nerfexp.conf").joinpath(*group.split("/"))
-    return sorted(path.name.removesuffix(".yaml") for path in folder.iterdir() if path.name.endswith(".yaml"))
-
-
-def names_options(value: object) -> bool:
-    """Whether all that an override's ``value`` would choose are options' names (strings): ``value`` itself, or
-    each item of its list or choice sweep (``a,b`` under -m)."""
-    items = value.list if isinstance(value, ChoiceSweep) else value if isinstance(value, list) else [value]
-    return all(isinstance(item, str | Glob) for item in items)
-
-
-def unchosen_groups() -> set[str]:
-    """The config groups ``config.yaml``'s defaults leave without an option (``experiment: null``)."""
-    defaults = yaml.safe_load((files("nerfexp.conf") / "config.yaml").read_text())["defaults"]
-    return {group for entry in defaults if isinstance(entry, dict) for group, option in entry.items() if option is None}
-
-
-def check_group_choices(arguments: list[str]) -> None:
-    """A ConfigError where a command-line override gives a config group (a folder of ``conf/``, or a key with
-    a ``/``: ``hydra/launcher``) something other than an option's name: ``null``, a number, a boolean, a mapping,
-    a range (Hydra would end in a ValueError's traceback, or say there is no such key). ``GROUP=null`` is refused
-    rather than read as no option: a group that has none by default (``experiment``, ``ablation``) is left out of
-    the command line for none. An override that does not parse is Hydra's to say."""
-    top = {path.name for path in files("nerfexp.conf").iterdir() if path.is_dir()}
-    for argument in arguments:
-        if argument.startswith("-") or "=" not in argument:
-            continue
-        try:
-            (override,) = OverridesParser.create().parse_overrides([argument])
-        except HydraException:
-            continue
-        group = override.key_or_group
-        if override.is_delete() or not ("/" in group or group in top) or names_options(override.value()):
-            continue
-        listed = f" (choose from {', '.join(group_options(group))})" if group in top else ""
-        none = f"; none is {group}'s default: leave it out for none" if group in unchosen_groups() else ""
-        raise ConfigError(f"{argument}: a config group takes an option's name{listed}{none}")
-
-
 def cli() -> None:
     """The ``nerfexp`` command: ``main``, where SIGTERM or SIGINT (a SLURM time limit, ``kill``, Ctrl-C)
     ends a run or a sweep with exit status 128 + the signal, after the job's ``status.json`` says
@@ -314,7 +271,7 @@ def cli() -> None:
     sys.stdout.reconfigure(line_buffering=True)
     try:
         check_launcher(sys.argv[1:])
-        check_group_choices(sys.argv[1:])
+        check_group_overrides(sys.argv[1:], is_nerfexp_group)
     except NerfexpError as error:
         sys.exit(f"nerfexp: error: {error}")
     with ending_signals("nerfexp"), thread_file_errors("nerfexp"), hydra_errors_in_one_line():

@@ -16,12 +16,15 @@ from hydra.experimental.callback import Callback
 from omegaconf import MISSING, DictConfig, OmegaConf
 
 from nerfexp.config_keys import entries, leaves, reference, source_key
-from nerfexp.domains import breaks
+from nerfexp.domains import breaks, one_line
 from nerfexp.errors import ConfigError
 from nerfexp.extras import SETTINGS_NEEDING, TARGETS_NEEDING, require
 from nerfexp.kernels import enabled
 from nerfexp.memory import network_bytes, require_memory
+from nerfexp.rundir.labels import check_plain_labels
 from nerfexp.settings.components import argument_keys, asked, components, walked_once
+from nerfexp.settings.groups import check_group_values
+from nerfexp.settings.overrides import override_values, task_overrides
 from nerfexp.settings.rows import check_row
 from nerfexp.settings.schema import PASSED_ON, REFERENCES, matching, rule_of
 from nerfexp.settings.unused import check_used
@@ -45,7 +48,7 @@ def named(cfg: DictConfig, key: str, value) -> str:
     interpolations (``${scale.lr}``, ``nerfexp.config_keys.source_key``), that key, and which key it
     sets; else ``key`` itself. A text with a character that does not print (a newline) is quoted, escaped."""
     source = source_key(cfg, key)
-    value = repr(value) if isinstance(value, str) and not value.isprintable() else value  # one line, as it is
+    value = one_line(value)
     return f"{key}={value}" if source == key else f"{source}={value} (which sets {key})"
 
 
@@ -251,16 +254,34 @@ def check_run_settings(cfg: DictConfig, scoring: bool = False) -> None:
     check_settings(cfg, training=False, scoring=scoring)
 
 
+def check_composition(cfg: DictConfig, hydra: DictConfig) -> None:
+    """A ConfigError where what Hydra composed for a run (``cfg``; ``hydra``: its ``hydra`` section, or
+    ``HydraConfig.get()``) would not be what the run records: a config group given what is not one of its options
+    (``nerfexp.settings.groups.check_group_values``), or a label that is not plain text
+    (``nerfexp.rundir.labels.check_plain_labels``), each as a sweep's override sets it for any of its jobs too.
+    First of the checks: the others read the groups' choices, and resolve the labels."""
+    check_group_values(hydra)
+    check_plain_labels(cfg, override_values(task_overrides(hydra)))  # a sweep's: every job's values
+
+
 class SettingsCheck(Callback):
-    """Hydra callback (``hydra.callbacks.settings``): ``check_settings`` and ``check_used`` on a single
-    run's config before Hydra creates its directory, so that a bad value leaves nothing behind; each job of
-    a sweep is checked by ``nerfexp.commands.train`` (the sweep's values differ per job). It stops with
+    """Hydra callback (``hydra.callbacks.settings``): ``check_composition``, ``check_settings`` and ``check_used``
+    on a single run's config before Hydra creates its directory, so that a bad value leaves nothing behind; a
+    sweep's config (what its jobs share) gets ``check_composition`` before the sweep's directory is made, and each
+    job is checked by ``nerfexp.commands.train`` (the sweep's values differ per job). It stops with
     ``SystemExit``: Hydra turns a callback's exceptions into warnings and goes on."""
 
     def on_run_start(self, config: DictConfig, **kwargs) -> None:
         try:
+            check_composition(config, config.hydra)
             check_settings(config)
             check_row(config, config.hydra.runtime.choices, list(config.hydra.overrides.task))
             check_used(config, list(config.hydra.overrides.task))
+        except ConfigError as error:
+            raise SystemExit(f"nerfexp: error: {error}") from None
+
+    def on_multirun_start(self, config: DictConfig, **kwargs) -> None:
+        try:
+            check_composition(config, config.hydra)
         except ConfigError as error:
             raise SystemExit(f"nerfexp: error: {error}") from None
