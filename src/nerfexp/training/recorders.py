@@ -421,9 +421,14 @@ class RunRecorder(L.Callback):
             "config": self.run_config, "resumes": self.resumes,
             "test_budgets": budgets, "budget_scoring_s": scoring_seconds(budgets),
         }
-        rule = trainer.datamodule.scene.split_rule() if trainer.datamodule is not None else None
+        scene = trainer.datamodule.scene if trainer.datamodule is not None else None
+        rule = scene.split_rule() if scene is not None else None
         if rule is not None:  # how the views were split, where a rule made the split
             results["split"] = rule
+        if scene is not None:  # a scene by name: its archive's digest; the frames left out for their missing images
+            for key, record in (("scene", scene.source()), ("frames_left_out", scene.frames_left_out())):
+                if record is not None:
+                    results[key] = record
         if self.bounds is not None:  # where near and far came from, where the scene found them
             results["bounds"] = self.bounds
         if trainer.ckpt_path is not None:  # the weights scored: the checkpoint the test loaded
