@@ -64,9 +64,9 @@ def test_a_scene_by_name_trains_records_its_digest_and_is_read_back_offline(tmp_
     assert server.requests == [(PATH, None)]
     results = read_json(tmp_path / "run" / "results.json")
     digest = hashlib.sha256(ARCHIVE).hexdigest()
-    assert {key: results["scene"][key] for key in ("name", "sha256", "checksum", "url", "catalog")} == {
+    assert {key: results["scene"][key] for key in ("name", "sha256", "checksum", "url", "catalog", "folder")} == {
         "name": "mylab/chair", "sha256": digest, "checksum": "pinned", "url": f"https://scenes.mylab.example{PATH}",
-        "catalog": catalogue}
+        "catalog": catalogue, "folder": str(scene_folder(cache, "mylab/chair"))}
     assert results["config"]["data"]["scene"] == "mylab/chair" and math.isfinite(results["test_psnr"])
     assert (cache / "archives" / digest).read_bytes() == ARCHIVE
     tried = no_network(monkeypatch)  # offline: the run read back finds its scene in the cache (no LPIPS download)

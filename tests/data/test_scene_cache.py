@@ -74,7 +74,7 @@ def test_a_scene_is_downloaded_verified_unpacked_and_recorded_then_found_offline
     assert record == {"name": "mylab/chair", "catalog": "lab.yaml", "url": f"https://lab.example{PATH}",
                       "downloaded_from": server.url(PATH), "path": "chair", "sha256": digest, "size": len(ARCHIVE),
                       "checksum": "pinned", "sha256_from": "given by its catalogue", "recorded": record["recorded"],
-                      "unpacked": record["unpacked"]}
+                      "unpacked": record["unpacked"], "folder": str(scene_folder(cache, "mylab/chair"))}
     assert server.requests == [(PATH, None)]
     expected = {i.name.removeprefix("chair/"): i.data for i in scene_items("chair")
                 if i.name.startswith("chair/") and i.kind == "file"}

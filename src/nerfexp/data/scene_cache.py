@@ -8,7 +8,7 @@ Where: ``$NERFEXP_DATA``, else ``$XDG_CACHE_HOME/nerfexp/data`` (``~/.cache/nerf
                           of the SHA-256 of the entry's first address)
     scenes/NAME/          a scene, unpacked (NAME with '/' as '+'): what data.root is for a scene by name
     scenes/NAME.json      its record (``SCENE_KEYS``): the name, the source, the archive's SHA-256 and size, how that
-                          digest was established (pinned, or recorded on first download) and when
+                          digest was established (pinned, or recorded on first download) and when, the folder
     downloads/KEY.part    a download under way, or one a signal or a killed process left (the next one continues it)
 
 A fetch (``fetch_scene``) holds an ``flock`` of the cache's folder, so that the jobs of a sweep take turns (the
@@ -52,7 +52,7 @@ ARCHIVE_BYTES = TOTAL_BYTES  # an archive of unknown size is downloaded up to th
 RECORD_BYTES = 64 << 10  # a record is a few hundred bytes
 PINNED, RECORDED = "pinned", "recorded on first download"  # how an archive's digest was established
 SCENE_KEYS = ("name", "catalog", "url", "downloaded_from", "path", "sha256", "size", "checksum", "sha256_from",
-              "recorded", "unpacked")
+              "recorded", "unpacked", "folder")
 DISK_FULL = (errno.ENOSPC, errno.EDQUOT)
 
 log = logging.getLogger(__name__)
@@ -201,6 +201,8 @@ def fetch_scene(entry: Entry, mirror: str | None = None, cache: Path | None = No
     with cache_lock(cache):
         record = scene_record(cache, entry)
         if record is not None:
+            log.info("scene %s: in the cache, %s (its archive's SHA-256 %s, %s)", entry.name, record["folder"],
+                     record["sha256"], record["checksum"])
             return record
         try:
             return fetch(entry, mirror, cache)
@@ -261,7 +263,8 @@ def committed(entry: Entry, cache: Path, archive: Path, digest: str, url: str | 
             recorded = record["recorded"]
     record = {"name": entry.name, "catalog": entry.catalog, "url": entry.urls[0], "downloaded_from": url,
               "path": entry.path, "sha256": digest, "size": size, "checksum": checksum,
-              "sha256_from": entry.sha256_from, "recorded": recorded, "unpacked": now()}
+              "sha256_from": entry.sha256_from, "recorded": recorded, "unpacked": now(),
+              "folder": str(scene_folder(cache, entry.name))}
     atomic_write(scene_record_path(cache, entry.name), json.dumps(record, indent=1).encode())
     log.info("scene %s: %s bytes unpacked into %s from an archive of SHA-256 %s (%s)", entry.name, f"{total:,}",
              scene_folder(cache, entry.name), digest, how if entry.sha256 is not None else checksum)

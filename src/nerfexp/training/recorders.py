@@ -130,6 +130,9 @@ class RunRecorder(L.Callback):
     saved as ``test/r_{i}.png``, ``r_{i}_target.png``, ``r_{i}_error.png``, with ``r_{i}_depth.png``. Every
     file it writes is recorded in the run's manifest as it is written (``nerfexp.manifest``). Where every test
     view rendered nothing, ``results.json``'s ``collapse`` says so (``collapse_record``), whatever the guard did.
+    Where the scene says where its files came from (a scene by name: ``Scene.source``, its archive's digest) or which
+    frames it left out for their missing images (``Scene.frames_left_out``), ``results.json`` holds them as ``scene``
+    and ``frames_left_out``.
 
     The fused kernels the module's training runs (``NeRFModule.kernels``) are built, or read from the cache, as
     training starts and before its clock does (``nerfexp.kernels.prepare``), logged once; a kernel first asked
