@@ -5,6 +5,7 @@ import argparse
 import contextlib
 import errno
 import hashlib
+import importlib
 import io
 import json
 import logging
@@ -17,6 +18,7 @@ import subprocess
 import sys
 import threading
 import time
+import tomllib
 import traceback
 import warnings
 from collections.abc import Callable, Iterator
@@ -103,8 +105,7 @@ def run_in_this_process(script: str, *args: str, cwd: Path) -> subprocess.Comple
     prints it), a traceback and status 1 for any other exception, and what it wrote to stdout and stderr.
     What the command changes of the process is put back afterwards (``isolated``)."""
     assert not NEEDS_A_PROCESS.search(" ".join(args)), f"{args}: run with run_nerfexp(..., new_process=True)"
-    (entry,) = entry_points(group="console_scripts", name=script)
-    main = entry.load()
+    main = entry_point(script)
     out, err = (io.TextIOWrapper(io.BytesIO(), encoding="utf-8", write_through=True) for _ in range(2))
     status = 0
     with isolated(cwd, [script, *args]), contextlib.redirect_stdout(out), contextlib.redirect_stderr(err):
@@ -120,6 +121,17 @@ def run_in_this_process(script: str, *args: str, cwd: Path) -> subprocess.Comple
             status = 1
     return subprocess.CompletedProcess([script, *args], status, out.buffer.getvalue().decode(),
                                        err.buffer.getvalue().decode())
+
+
+def entry_point(script: str) -> Callable:
+    """Console script ``script``'s entry point: as nerfexp was installed, else as this tree's pyproject.toml declares
+    it (a script added since the install, which only a new install puts on the PATH)."""
+    installed = entry_points(group="console_scripts", name=script)
+    if installed:
+        (entry,) = installed
+        return entry.load()
+    module, _, name = tomllib.loads((REPO / "pyproject.toml").read_text())["project"]["scripts"][script].partition(":")
+    return getattr(importlib.import_module(module), name)
 
 
 def all_loggers() -> list[logging.Logger]:

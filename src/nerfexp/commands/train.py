@@ -84,6 +84,7 @@ def train(cfg: DictConfig) -> dict | None:
     for override, reason in unused:
         log.warning("%s: not used with %s; results.json records it as null", override, reason)
     quiet_dependencies()
+    instantiate(cfg.data).fetch()  # a scene by name (data.scene): into the cache where it is not there, before any read
     bounds = fill_ray_bounds(cfg)
     L.seed_everything(cfg.seed, workers=True, verbose=False)
     launcher = OmegaConf.to_container(HydraConfig.get().launcher, resolve=True) if sweep else None

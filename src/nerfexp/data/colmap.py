@@ -47,7 +47,7 @@ import torch
 from torch import Tensor
 from tqdm import tqdm
 
-from nerfexp.data.base import Scene
+from nerfexp.data.base import FolderScene
 from nerfexp.data.colmap_sfm import (
     find_model,
     image_files,
@@ -242,7 +242,7 @@ def read_views(data: ColmapData, index: Tensor, downscale: int = 1, max_side: in
 
 
 @dataclass
-class ColmapScene(Scene):
+class ColmapScene(FolderScene):
     """Photographs, or the frames of a video, posed by COLMAP (``data=colmap``); see the module's
     docstring for the cache, the conventions and the normalization. ``video``: a video file relative to
     ``root`` (or absolute) whose sharpest frame of each 1/``fps`` seconds is taken instead of
@@ -252,7 +252,7 @@ class ColmapScene(Scene):
     points (``ray_bounds()``)."""
 
     DOMAINS: ClassVar[dict[str, Rule]] = {
-        **Scene.DOMAINS,
+        **FolderScene.DOMAINS,
         "video": optional(PATH, "the photographs in images/"),
         "fps": real(*FPS_RANGE),
         "downscale": COUNT,
@@ -268,10 +268,10 @@ class ColmapScene(Scene):
         "verbose": BOOLEAN,
     }
     APPLIES: ClassVar[dict[str, Applies]] = {  # nerfexp.domains: when an argument does nothing
+        **FolderScene.APPLIES,
         "fps": lambda scene: None if scene.get("video") is not None else "data.video=null (photographs, not a video)",
     }
 
-    root: str
     video: str | None = None
     fps: float = 2.0
     downscale: int = 1
@@ -303,7 +303,7 @@ class ColmapScene(Scene):
         if not self.bound > 0:
             raise DatasetError(f"data.bound must be positive, got {self.bound}")
         if self._data is None:
-            self._data = load_colmap(self.root, self.bound, self.camera_model, self.matcher, self.max_features,
+            self._data = load_colmap(self.folder(), self.bound, self.camera_model, self.matcher, self.max_features,
                                      self.threads, self.min_registered, self.verbose, self.video, self.fps)
         return self._data
 

@@ -32,7 +32,7 @@ import torch
 from torch import Tensor
 from tqdm import tqdm
 
-from nerfexp.data.base import Scene
+from nerfexp.data.base import FolderScene
 from nerfexp.data.images import downscale_rgba, fit_factor, read_image
 from nerfexp.data.views import IMAGE_SUFFIXES, Source, Views, check_shared_file, holdout_split
 from nerfexp.domains import BOOLEAN, COUNT, INTEGER_LIMIT, POSITION_LIMIT, Rule, whole
@@ -253,7 +253,7 @@ def check_forward_facing(views: Views) -> None:
 
 
 @dataclass
-class LLFFScene(Scene):
+class LLFFScene(FolderScene):
     """An LLFF-format scene (``data=llff``): test views every ``holdout``-th image, training views the
     first ``n_train`` of the rest (None: all), validation the first ``n_val`` test views.
 
@@ -262,7 +262,7 @@ class LLFFScene(Scene):
     units, which must enclose the scaled depth bounds.
     """
 
-    DOMAINS: ClassVar[dict[str, Rule]] = {**Scene.DOMAINS, "factor": COUNT, "holdout": whole(2, INTEGER_LIMIT),
+    DOMAINS: ClassVar[dict[str, Rule]] = {**FolderScene.DOMAINS, "factor": COUNT, "holdout": whole(2, INTEGER_LIMIT),
                                           "ndc": BOOLEAN}
 
     @staticmethod
@@ -270,7 +270,6 @@ class LLFFScene(Scene):
         """``ndc`` where set: its rays are NDC rays; world rays need ``near`` and ``far`` instead."""
         return (("ndc",), ("near", "far")) if config.get("ndc") else ((), ())
 
-    root: str
     factor: int = 4
     max_side: int | None = None
     holdout: int = 8
@@ -287,7 +286,7 @@ class LLFFScene(Scene):
     def load(self) -> LLFFData:
         """All images and poses, loaded once and kept."""
         if self._data is None:
-            data = load_llff(self.root, self.factor, self.holdout, self.n_val, self.max_side, self.n_train)
+            data = load_llff(self.folder(), self.factor, self.holdout, self.n_val, self.max_side, self.n_train)
             if self.ndc:
                 check_forward_facing(data.views)
             else:

@@ -36,14 +36,14 @@ import uuid
 from collections.abc import Iterator
 from contextlib import contextmanager
 from pathlib import Path
-from urllib.error import HTTPError, URLError
 from urllib.parse import urlsplit
 
 import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
-from nerfexp.errors import ConfigError, NerfexpError
+from nerfexp.downloads import DownloadFailed, failure_reason
+from nerfexp.errors import ConfigError
 from nerfexp.pixels import quantize
 from nerfexp.reading import UnreadableFile, read_bytes
 from nerfexp.rundir.trained import load_as_data
@@ -74,11 +74,6 @@ log = logging.getLogger(__name__)
 
 class ImageTooSmall(ConfigError):
     """An image below ``MIN_SIDE`` pixels on a side, which AlexNet's strides and pools reduce to nothing."""
-
-
-class DownloadFailed(NerfexpError):
-    """A weights file that could not be downloaded, or whose download failed its hash check; the message says
-    why in a few words (``download_failure``)."""
 
 
 def alexnet_features() -> nn.Sequential:
@@ -150,22 +145,13 @@ def hub_weights_file() -> Path:
 
 
 def download_failure(error: Exception) -> str:
-    """Why a download failed, in a few words, from the error ``torch.hub.download_url_to_file`` raised: an HTTP
-    status, a failed name lookup (no network), a refused or broken connection, a failed hash check (which is
-    also what a body cut short gives: urllib stops reading at its end without an error), or the system's
-    words for a local failure (a full disk, a cache directory it may not write)."""
-    if isinstance(error, HTTPError):
-        return f"HTTP {error.code} {error.reason}"
-    if isinstance(error, URLError):
-        reason = error.reason
-        if isinstance(reason, socket.gaierror):
-            return f"name lookup failed: {reason.strerror}"
-        return (reason.strerror or str(reason)) if isinstance(reason, OSError) else str(reason)
+    """Why a download failed, in a few words, from the error ``torch.hub.download_url_to_file`` raised: a failed
+    hash check (which is also what a body cut short gives: urllib stops reading at its end without an error), else
+    what ``nerfexp.downloads.failure_reason`` says of it (an HTTP status, no network, a broken connection, a full
+    disk)."""
     if isinstance(error, RuntimeError):  # the only one download_url_to_file raises: its hash check
         return "SHA-256 check failed: a truncated or altered download"
-    if isinstance(error, http.client.HTTPException):  # before OSError: RemoteDisconnected is both
-        return f"the connection broke off ({type(error).__name__})"
-    return (error.strerror if isinstance(error, OSError) else None) or str(error)
+    return failure_reason(error)
 
 
 @contextmanager

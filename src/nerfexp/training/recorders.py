@@ -130,6 +130,9 @@ class RunRecorder(L.Callback):
     saved as ``test/r_{i}.png``, ``r_{i}_target.png``, ``r_{i}_error.png``, with ``r_{i}_depth.png``. Every
     file it writes is recorded in the run's manifest as it is written (``nerfexp.manifest``). Where every test
     view rendered nothing, ``results.json``'s ``collapse`` says so (``collapse_record``), whatever the guard did.
+    Where the scene says where its files came from (a scene by name: ``Scene.source``, its archive's digest) or which
+    frames it left out for their missing images (``Scene.frames_left_out``), ``results.json`` holds them as ``scene``
+    and ``frames_left_out``.
 
     The fused kernels the module's training runs (``NeRFModule.kernels``) are built, or read from the cache, as
     training starts and before its clock does (``nerfexp.kernels.prepare``), logged once; a kernel first asked
@@ -421,9 +424,14 @@ class RunRecorder(L.Callback):
             "config": self.run_config, "resumes": self.resumes,
             "test_budgets": budgets, "budget_scoring_s": scoring_seconds(budgets),
         }
-        rule = trainer.datamodule.scene.split_rule() if trainer.datamodule is not None else None
+        scene = trainer.datamodule.scene if trainer.datamodule is not None else None
+        rule = scene.split_rule() if scene is not None else None
         if rule is not None:  # how the views were split, where a rule made the split
             results["split"] = rule
+        if scene is not None:  # a scene by name: its archive's digest; the frames left out for their missing images
+            for key, record in (("scene", scene.source()), ("frames_left_out", scene.frames_left_out())):
+                if record is not None:
+                    results[key] = record
         if self.bounds is not None:  # where near and far came from, where the scene found them
             results["bounds"] = self.bounds
         if trainer.ckpt_path is not None:  # the weights scored: the checkpoint the test loaded

@@ -46,6 +46,7 @@ MAY_DIFFER = (
     "callbacks",  # checkpoints (where, how often) and the guards, which act only on a failing step
     "trainer.default_root_dir",  # the run's directory
     "data.root",  # where the scene lies, not what it is
+    "data.catalog", "data.mirror",  # where a scene by name is looked up and downloaded from (its digest is checked)
     # where it runs: the processes share each global batch, the same objective (nerfexp.data.rays.RandomRays)
     "trainer.accelerator", "trainer.devices", "trainer.num_nodes", "trainer.strategy",
     "threads",  # torch's threads: how fast, not what is trained
