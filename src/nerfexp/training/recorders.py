@@ -18,7 +18,7 @@ import torch
 
 from nerfexp import manifest
 from nerfexp.files import atomic_write
-from nerfexp.kernels import prepare, seconds_spent
+from nerfexp.kernels import prepare, prepared_line, seconds_spent
 from nerfexp.pixels import depth_image, png_bytes, to_uint8
 from nerfexp.rundir.labels import NO_LABELS
 from nerfexp.rundir.layout import (
@@ -132,8 +132,9 @@ class RunRecorder(L.Callback):
     view rendered nothing, ``results.json``'s ``collapse`` says so (``collapse_record``), whatever the guard did.
 
     The fused kernels the module's training runs (``NeRFModule.kernels``) are built, or read from the cache, as
-    training starts and before its clock does (``nerfexp.kernels.prepare``), logged once; a kernel first asked
-    for inside the clock is taken out of it all the same (``nerfexp.kernels.seconds_spent``). ``results.json``
+    training starts and before its clock does (``nerfexp.kernels.prepare``), what each came to said in one line
+    (built, loaded from the cache, not built and why, or off: never "ready" for one the run will not use); a
+    kernel first asked for inside the clock is taken out of it all the same (``nerfexp.kernels.seconds_spent``). ``results.json``
     records those seconds apart, ``kernel_build_s``, never in ``train_time_s``; beside them ``cpu_time_s``,
     ``other_load``, ``cpus`` (``nerfexp.training.machine_share.share_record``) and ``torch_threads``.
 
@@ -217,10 +218,9 @@ class RunRecorder(L.Callback):
         """The kernels the training runs, built or read now, then the clock started."""
         names = pl_module.kernels()
         if names:
-            prepare(names)  # a build is said by its own line, with its seconds (nerfexp.kernels)
+            outcomes = prepare(names)  # built, loaded, not built (why) or off: what each came to
             if trainer.is_global_zero:
-                log.info("kernels %s ready before the training clock started (the seconds: results.json's "
-                         "kernel_build_s)", ", ".join(names))
+                log.info("%s", prepared_line(outcomes))
         self.torch_threads = torch.get_num_threads()
         self._start_clock()
 
