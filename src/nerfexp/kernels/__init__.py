@@ -3,8 +3,8 @@ cache (``TORCH_EXTENSIONS_DIR``, else ``~/.cache/torch_extensions``), so that an
 machine without one runs the pure torch path: ``kernel(name)`` is the built module, or None where
 ``NERFEXP_KERNELS=off`` or after one log line saying why (no compiler, a failed build, a cache others can write). A
 cached build is imported only where it is the one nerfexp built here (``nerfexp.kernels.cache``: a record beside
-it, checked first); anything else is rebuilt. Why C++ rather than numba or ``torch.compile``: ``benchmarks/kernel_tools.py``
-(docs/acceleration.md).
+it, checked first); anything else is rebuilt. Why C++ rather than numba or ``torch.compile``:
+``benchmarks/kernel_tools.py`` (docs/acceleration.md).
 
 A build takes about a minute, once per machine and source: it is no part of a run's training time. A run builds
 (or reads from the cache) the kernels its components will use before its training clock starts (``prepare``,
@@ -118,8 +118,8 @@ def prepare(names: list[str]) -> dict[str, str]:
 def prepared_line(outcomes: dict[str, str]) -> str:
     """One line of what ``prepare`` came to, kernel by kernel.
 
-    >>> prepared_line({"hash_encoding": "loaded from the cache", "lazy_adam": "built in 61 s (cached for later runs)"})
-    'kernels, before the training clock started: hash_encoding loaded from the cache; lazy_adam built in 61 s (cached for later runs)'
+    >>> prepared_line({"hash_encoding": "loaded from the cache", "lazy_adam": "built in 61 s"})
+    'kernels, before the training clock started: hash_encoding loaded from the cache; lazy_adam built in 61 s'
     """
     return "kernels, before the training clock started: " + "; ".join(
         f"{name} {text}" for name, text in outcomes.items())

@@ -134,9 +134,10 @@ class RunRecorder(L.Callback):
     The fused kernels the module's training runs (``NeRFModule.kernels``) are built, or read from the cache, as
     training starts and before its clock does (``nerfexp.kernels.prepare``), what each came to said in one line
     (built, loaded from the cache, not built and why, or off: never "ready" for one the run will not use); a
-    kernel first asked for inside the clock is taken out of it all the same (``nerfexp.kernels.seconds_spent``). ``results.json``
-    records those seconds apart, ``kernel_build_s``, never in ``train_time_s``; beside them ``cpu_time_s``,
-    ``other_load``, ``cpus`` (``nerfexp.training.machine_share.share_record``) and ``torch_threads``.
+    kernel first asked for inside the clock is taken out of it all the same (``nerfexp.kernels.seconds_spent``).
+    ``results.json`` records those seconds apart, ``kernel_build_s``, never in ``train_time_s``; beside them
+    ``cpu_time_s``, ``other_load``, ``cpus`` (``nerfexp.training.machine_share.share_record``) and
+    ``torch_threads``.
 
     The elapsed time (and CPU time, others' CPU time and kernel seconds) and the last validation PSNR are part of
     the checkpoint, so a resumed run keeps
