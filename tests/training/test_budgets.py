@@ -1,6 +1,8 @@
 """Test scores at several budgets of one run (``test_budgets``, nerfexp.training.budgets): each budget's scores are
 those ``nerfexp-eval`` gives the checkpoint of its step, scoring them changes nothing that is trained, and
-``results.json`` lists them in step order with the final test's last, kept across a resume."""
+``results.json`` lists them in step order with the final test's last, kept across a resume. Their cost is measured
+before it is paid: under ``auto`` (the default) budgets that would cost more than a quarter of the training are
+not scored, with a line; a list given is scored as set."""
 
 import json
 import math

@@ -8,12 +8,13 @@ taken when it is scored (the weights after that many). Scoring never changes wha
 random streams are forked around it (``score_test_views``), so that a run with budgets trains the same weights,
 bit for bit, as one without.
 
-A budget costs what the final test costs, which a test protocol that fits something per view (``test_cameras=
-refined``) makes many times a short run's training. So a budget's cost is measured before it is paid: the first
-budget's first view is timed and multiplied by the views (a later budget: the last one's scoring), and under
-``test_budgets=auto`` (``DEFAULT_FRACTIONS``) the budgets are scored only while what they cost in all stays within
-``COST_SHARE`` of the training's estimated wall time (``affordable_budgets``); the others are not scored, said in
-one line (``reduced_line``). A list the user gives is scored whatever it costs, with a line where it costs more.
+A budget costs what the final test costs, which a test protocol that fits something per view
+(``test_cameras=refined``) makes many times a short run's training. So a budget's cost is measured before it is
+paid: the first budget's first view is timed and multiplied by the views (a later budget: the last one's
+scoring), and under ``test_budgets=auto`` (``DEFAULT_FRACTIONS``) the budgets are scored only while what they cost
+in all stays within ``COST_SHARE`` of the training's estimated wall time (``affordable_budgets``); the others are
+not scored, said in one line (``reduced_line``). A list the user gives is scored whatever it costs, with a line
+where it costs more.
 """
 
 import contextlib
