@@ -115,7 +115,7 @@ def train(cfg: DictConfig) -> dict | None:
         check_weights(resumed.weights, model, Path(cfg.resume))
     overrides = list(HydraConfig.get().overrides.task)
     recorder = RunRecorder(runtime.output_dir, choices, recorded, overrides, settings, resumes, run_labels(cfg),
-                           bounds, test_budgets=list(cfg.test_budgets))
+                           bounds, test_budgets=cfg.test_budgets)
     callbacks = [instantiate(c) for c in cfg.callbacks.values()] + [recorder] + progress_bars(cfg.trainer)
     if threads.follows_load:  # an automatic count follows the machine (the changes: results.json's thread_changes)
         callbacks.append(ThreadsFollowLoad(available_cpus(), recorder.thread_changes))

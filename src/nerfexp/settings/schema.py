@@ -46,6 +46,7 @@ from nerfexp.data.pose_noise import POSE_NOISE_SETTING
 from nerfexp.nerf.appearance import PROTOCOLS
 from nerfexp.nerf.hierarchy import HIERARCHIES
 from nerfexp.rundir.labels import NOTES, TAGS
+from nerfexp.training.budgets import AUTO as AUTO_BUDGETS
 from nerfexp.training.guard_actions import COLLAPSE_ACTIONS, NONFINITE_ACTIONS
 from nerfexp.training.perceptual import SETTINGS as LPIPS_SETTINGS
 
@@ -104,10 +105,11 @@ SKIPS = whole_list(0)
 HIERARCHY = choice(*HIERARCHIES)
 
 # The fractions of training's steps at which the test views are scored too (nerfexp.training.budgets): each strictly
-# inside (0, 1), the end being the final test's, in increasing order, so that each names one point of training once
-TEST_BUDGETS = ("a list of fractions of the steps, each a finite number > 0 and < 1, strictly increasing (e.g. "
-                "[0.25, 0.5]; [] scores the end alone)",
-                lambda v: isinstance(v, list) and all(is_real(f) and 0 < f < 1 for f in v)
+# inside (0, 1), the end being the final test's, in increasing order, so that each names one point of training once;
+# or auto (1/4 and 1/2, as many as their cost allows)
+TEST_BUDGETS = ("auto, or a list of fractions of the steps, each a finite number > 0 and < 1, strictly increasing "
+                "(e.g. [0.25, 0.5]; [] scores the end alone)",
+                lambda v: v == AUTO_BUDGETS or isinstance(v, list) and all(is_real(f) and 0 < f < 1 for f in v)
                 and all(a < b for a, b in zip(v, v[1:])))
 
 # Every key of the composed config (fnmatch patterns, the first that matches rules), hydra.* aside.
