@@ -16,7 +16,8 @@ from scipy.spatial import cKDTree
 from torch import Tensor, nn
 
 from nerfexp import manifest
-from nerfexp.commands.export import build_parser, main, trained_run
+from nerfexp.commands import export
+from nerfexp.commands.export import DENSITY_LIMIT, build_parser, main, trained_run
 from nerfexp.data.procedural import (
     CAMERA_ANGLE_X,
     FAR,
@@ -310,6 +311,30 @@ def test_an_export_replaces_its_own_folder_and_refuses_one_holding_a_users_file(
             "folder as a whole")
         assert digests(run_dir / "export") == before and not list(run_dir.glob(".export*"))
         (run_dir / "export" / name).rename(tmp_path / name)  # moved: the next one is refused alone
+
+
+@pytest.mark.parametrize("given", [True, False])
+def test_a_threshold_that_no_density_crosses_is_one_line_naming_it_and_the_densities(tiny_run, tmp_path, monkeypatch,
+                                                                                     given):
+    # above every density: given, or read from the field as a briefly trained field's default can miss a coarse
+    # grid's densities, which the line names as the default (the user gave no --threshold)
+    run_dir = shutil.copytree(tiny_run, tmp_path / "run", ignore=shutil.ignore_patterns("export"))
+    before = digests(run_dir)
+    if given:
+        argv, named = ["--threshold", f"{DENSITY_LIMIT!r}"], f"--threshold {DENSITY_LIMIT:g}"
+    else:
+        monkeypatch.setattr(export, "field_threshold", lambda field, points, batch, device: DENSITY_LIMIT)
+        argv = []
+        named = (f"the default --threshold {DENSITY_LIMIT:g} (the {THRESHOLD_QUANTILE:g} quantile of the density at "
+                 "the test views' depths)")
+    with pytest.raises(SystemExit) as refused:
+        main([str(run_dir), "--resolution", "4", *argv])
+    line = refused.value.code
+    match = re.fullmatch(rf"nerfexp-export: error: no surface at {re.escape(named)}: the field's densities on the "
+                         r"5 x 5 x 5 grid over the box \[\[.*\]\] lie in \[(\S+), (\S+)\]; choose a threshold "
+                         "between them", line)
+    assert match and float(match[1]) < float(match[2]), line
+    assert digests(run_dir) == before and not list(run_dir.glob(".export*"))
 
 
 @pytest.mark.slow
