@@ -32,6 +32,7 @@ from hydra import compose, initialize_config_module
 from hydra.core.global_hydra import GlobalHydra
 from omegaconf import open_dict
 
+from nerfexp.commands import export
 from nerfexp.geometry.cameras import look_at
 from nerfexp.training.perceptual import ALEXNET_SHA256
 
@@ -483,3 +484,33 @@ def read_ply(data: bytes) -> tuple[list[str], dict[str, np.ndarray]]:
         offset += count * dtype.itemsize
     assert offset == len(data), f"{len(data) - offset} bytes after the last element"
     return comments, elements
+
+
+# nerfexp-export's line for a given threshold that no density on its grid crosses: the densities' range, to 4 digits
+NO_SURFACE = re.compile(r"no surface at --threshold \S+: the field's densities on the \d+ x \d+ x \d+ grid over the "
+                        r"box .* lie in \[(\S+), (\S+)\]; choose a threshold between them$")
+
+
+def threshold_between(message: str) -> float:
+    """A threshold half-way between the densities that nerfexp-export's ``NO_SURFACE`` line ``message`` gives, as the
+    line advises: one that the field crosses on that grid."""
+    match = NO_SURFACE.search(message)
+    assert match, message
+    low, high = (float(v) for v in match.groups())
+    assert low < high, message  # a grid of one density (to 4 digits) has no surface to find
+    return (low + high) / 2
+
+
+def crossed_threshold(run: Path, resolution: int) -> str:
+    """A ``--threshold`` that the field of the run at ``run`` crosses on nerfexp-export's grid of ``resolution``
+    cells (``threshold_between`` the densities that an export refused for its largest threshold names), and so on
+    every grid holding that one's points (over a cube, such as the tiny run's box: a multiple of ``resolution``
+    cells). For a test that needs a mesh of a briefly trained run and is not about the default threshold: where such
+    a field's default falls against a coarse grid's densities depends on the CPU that trained it
+    (``trainer.precision=auto`` trains in bf16 where the CPU has bf16 units and a step measured faster in it, in
+    float32 elsewhere)."""
+    try:
+        export.main([str(run), "--resolution", f"{resolution}", "--threshold", f"{export.DENSITY_LIMIT!r}"])
+    except SystemExit as refused:
+        return f"{threshold_between(str(refused.code))}"
+    raise AssertionError(f"nerfexp-export {run} found a surface at --threshold {export.DENSITY_LIMIT!r}")

@@ -21,6 +21,7 @@ from nerfexp.report import folder as report_folder
 from nerfexp.rundir.layout import REPORT_FILES
 from tests.helpers import (
     command,
+    crossed_threshold,
     digests,
     fault_at,
     fill_disk,
@@ -118,11 +119,12 @@ def test_a_full_disk_ends_an_export_in_one_line_and_the_last_export_stays(tiny_r
     with small_disk(tmp_path / "disk") as disk:
         run = disk / "run"
         shutil.copytree(tiny_run, run)
-        export.main([str(run), "--resolution", "16"])
+        threshold = crossed_threshold(run, 8)  # a mesh on any CPU, on the grids of 16 and 24 cells too
+        export.main([str(run), "--resolution", "16", "--threshold", threshold])
         before = digests(run)
         fill_disk(disk / "filler")
         with pytest.raises(SystemExit) as exit:
-            export.main([str(run), "--resolution", "24"])
+            export.main([str(run), "--resolution", "24", "--threshold", threshold])
         assert exit.value.code == f"nerfexp-export: error: {run / 'export'}: {FULL}"
         assert digests(run) == before
 
@@ -161,12 +163,13 @@ def test_sigint_while_an_export_writes_is_one_line_and_the_last_export_stays(tin
                                                                               capsys):
     run = tmp_path / "run"
     shutil.copytree(tiny_run, run)
-    export.main([str(run), "--resolution", "16"])
+    threshold = crossed_threshold(run, 8)  # a mesh on any CPU, on the grids of 16 and 24 cells too
+    export.main([str(run), "--resolution", "16", "--threshold", threshold])
     before = digests(run)
     seen = interrupt_inside(monkeypatch, export, "ply_bytes", run, call=2)  # mesh.ply written, points.ply next
     capsys.readouterr()
     with pytest.raises(SystemExit) as exit:
-        export.main([str(run), "--resolution", "24"])
+        export.main([str(run), "--resolution", "24", "--threshold", threshold])
     assert len(seen) == 1 and seen[0] and seen[0][0].startswith(".export.")  # inside the write
     assert exit.value.code == 130 and capsys.readouterr().err == "nerfexp-export: stopped (SIGINT)\n"
     assert digests(run) == before
@@ -248,9 +251,10 @@ def test_sigint_to_the_nerfexp_export_command_while_it_writes_a_large_mesh(tiny_
     128 steps: a mesh of tens of MB, written for a good part of a second)."""
     run = tmp_path / "run"
     shutil.copytree(tiny_run, run)
-    export.main([str(run), "--resolution", "16"])
+    threshold = crossed_threshold(run, 16)  # a mesh on any CPU, on the grid of 128 cells too
+    export.main([str(run), "--resolution", "16", "--threshold", threshold])
     before = digests(run)
-    argv, env = command("nerfexp-export", str(run), "--resolution", "128")
+    argv, env = command("nerfexp-export", str(run), "--resolution", "128", "--threshold", threshold)
     process = subprocess.Popen(argv, cwd=tmp_path, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
                                env=env)
     try:

@@ -93,11 +93,13 @@ def export_run(run: Path, overrides: list[str], resolution: int, threshold: floa
     points, point_colours = view_points(module, scene, views, min_opacity)
     # the field is evaluated as many points at a time as a chunk of rays evaluates: the memory of rendering
     batch = module.chunk * renderer.samples_per_ray
-    source = "given"
+    default = None  # how the threshold was read, where none is given
     if threshold is None:
         threshold = field_threshold(final_field(renderer), points, batch, module.device)
-        source = f"the {THRESHOLD_QUANTILE:g} quantile of the density at the test views' depths"
-    mesh, mesh_colours = extract_mesh(final_field(renderer), box, resolution, threshold, batch, module.device)
+        default = f"the {THRESHOLD_QUANTILE:g} quantile of the density at the test views' depths"
+    mesh, mesh_colours = extract_mesh(final_field(renderer), box, resolution, threshold, batch, module.device,
+                                      default=default)
+    source = default or "given"
 
     shape = " x ".join(map(str, grid_shape(box, resolution)))
     made = f"nerfexp-export of {checkpoint} (step {step})"
