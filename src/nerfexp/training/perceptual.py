@@ -36,6 +36,7 @@ import uuid
 from collections.abc import Iterator
 from contextlib import contextmanager, suppress
 from pathlib import Path
+from urllib.error import URLError
 from urllib.parse import urlsplit
 
 import torch
@@ -156,7 +157,8 @@ def download_failure(error: Exception, path: Path | None = None) -> str:
     HTTP status, no network, a broken connection)."""
     if isinstance(error, RuntimeError):  # the only one download_url_to_file raises: its hash check
         return "SHA-256 check failed: a truncated or altered download"
-    if isinstance(error, OSError) and error.filename is not None and path is not None:  # a temporary file's
+    local = isinstance(error, OSError) and not isinstance(error, URLError)  # HTTPError is an OSError with a filename
+    if local and error.filename is not None and path is not None:  # a temporary file's
         return f"cannot write {path} ({error.strerror or error})"
     return failure_reason(error)
 
