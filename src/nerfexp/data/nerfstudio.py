@@ -58,7 +58,7 @@ from nerfexp.data.transforms_file import (
     read_capture,
     scene_file,
 )
-from nerfexp.data.views import Source, Views, check_shared_file, holdout_split, shrink_mask
+from nerfexp.data.views import Source, Views, check_shared_file, holdout_split, is_named_file, shrink_mask
 from nerfexp.domains import COUNT, FAR, INTEGER_LIMIT, TEXT, Rule, whole
 from nerfexp.errors import DatasetError
 from nerfexp.geometry.boxes import box_problem
@@ -125,8 +125,7 @@ def posed_capture(root: Path, transforms: str, downscale: int, bound: float) -> 
         raise DatasetError(f"{path} does not exist: data.root must be a folder holding {transforms} "
                            f"(nerfstudio's format; data.transforms names another file in it)")
     capture = read_capture(path)
-    check_shared_file([Source(frame.where, downscaled_file(root, frame.file_path, "images", downscale)[0])
-                       for frame in capture.frames])
+    check_shared_file([Source(frame.where, image_file(root, frame, downscale)[0]) for frame in capture.frames])
     c2w = torch.stack([frame.c2w for frame in capture.frames])
     normalized, _, centre, scale = normalize_centres(c2w, torch.zeros(0, 3, dtype=c2w.dtype), bound)
     box = None if capture.box is None else (capture.box - centre) * scale  # as bounding_box gives it
@@ -139,7 +138,7 @@ def posed_capture(root: Path, transforms: str, downscale: int, bound: float) -> 
 def check_images_exist(images: list[Source]) -> None:
     """A DatasetError naming the first of the frames' image files (``images``) that does not exist, and how many
     more do not, where any does not: one line for all of them, before any image is read."""
-    missing = [image for image in images if not image.path.is_file()]
+    missing = [image for image in images if not is_named_file(image.path, f"{image.name}'s file_path")]
     if missing:
         more = (f", nor do the images of {len(missing) - 1} more of the file's {len(images)} frames" if missing[1:]
                 else "")
@@ -152,7 +151,7 @@ def image_file(root: Path, frame: Frame, downscale: int) -> tuple[Path, int, int
     """(path, shrink, stored): the image file to read for ``frame`` at ``downscale`` (``downscaled_file``), the
     factor still to shrink it by, and the factor it is stored smaller than its recorded ``w, h`` by (a folder's
     ``images_{d}`` are stored d times smaller)."""
-    path, shrink = downscaled_file(root, frame.file_path, "images", downscale)
+    path, shrink = downscaled_file(root, frame.file_path, "images", downscale, f"{frame.where}'s file_path")
     return path, shrink, (downscale if shrink == 1 else 1)
 
 
@@ -197,7 +196,7 @@ def frame_mask(root: Path, frame: Frame, downscale: int) -> Tensor | None:
     shrunk), or None where the frame has none."""
     if frame.mask_path is None:
         return None
-    path, shrink = downscaled_file(root, frame.mask_path, "masks", downscale)
+    path, shrink = downscaled_file(root, frame.mask_path, "masks", downscale, f"{frame.where}'s mask_path")
     mask = read_mask(path, f"{frame.where}'s mask_path")[None]  # [1, H, W]
     return mask if shrink == 1 else shrink_mask(mask, (mask.shape[1] // shrink, mask.shape[2] // shrink))
 
@@ -354,7 +353,7 @@ class NerfstudioScene(Scene):
         root = Path(self.root)
         if capture.ply_file is not None:
             path = scene_file(root, capture.ply_file)
-            if not path.is_file():
+            if not is_named_file(path, f"{capture.path}'s 'ply_file_path'"):
                 raise DatasetError(f"{path} does not exist (named by {capture.path}'s 'ply_file_path')")
             points = (read_ply_points(path) - posed.centre) * posed.scale
             seen = in_view(points, normalized, self.frame_views())  # [N, P]

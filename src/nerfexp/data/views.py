@@ -6,7 +6,6 @@ views may be test views (``holdout_split`` takes the first test views): validati
 score is chosen by it.
 """
 
-import os
 from collections.abc import Sequence
 from dataclasses import dataclass, replace
 from pathlib import Path
@@ -17,6 +16,7 @@ from torch import Tensor
 
 from nerfexp.errors import DatasetError
 from nerfexp.geometry.lenses import Intrinsics
+from nerfexp.reading import UnreadableFile, file_status, is_file
 
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".tif", ".tiff", ".bmp")  # what a folder of photographs may hold
 SPLIT_NAMES = {"train": "training", "val": "validation", "test": "test"}
@@ -109,12 +109,29 @@ def holdout_split(n: int, holdout: int, n_val: int, n_train: int | None = None) 
 
 def file_identity(path: Path) -> tuple[int, int] | None:
     """The file ``path`` resolves to, as (device, inode): one for every spelling of it (``a//b``, ``a/./b``), every
-    symbolic link to it and every hard link; None where it cannot be looked up (missing: its reader says so)."""
+    symbolic link to it and every hard link; None where nothing is there (missing: its reader says so); an
+    ``UnreadableFile`` where it cannot be looked up (``nerfexp.reading.file_status``: a NUL byte, a name too long)."""
+    status = file_status(path)
+    return None if status is None else (status.st_dev, status.st_ino)
+
+
+def source_identity(source: Source) -> tuple[int, int] | None:
+    """``file_identity`` of ``source``'s file; a DatasetError naming the file and the view where it cannot be looked
+    up."""
     try:
-        status = os.stat(path)
-    except OSError:
-        return None
-    return status.st_dev, status.st_ino
+        return file_identity(source.path)
+    except UnreadableFile as error:
+        raise DatasetError(f"{error} (named by {source.name})") from None
+
+
+def is_named_file(path: Path, named_by: str) -> bool:
+    """Whether ``path``, a file that ``named_by`` names (a frame's key, a row), is a regular file
+    (``nerfexp.reading.is_file``); a DatasetError naming both where it cannot be looked up (a NUL byte, a name too
+    long), never a traceback."""
+    try:
+        return is_file(path)
+    except UnreadableFile as error:
+        raise DatasetError(f"{error} (named by {named_by})") from None
 
 
 def check_shared_file(sources: Sequence[Source]) -> None:
@@ -123,7 +140,7 @@ def check_shared_file(sources: Sequence[Source]) -> None:
     only, so a reader calls it before it reads any image."""
     seen: dict[tuple[int, int], Source] = {}
     for source in sources:
-        identity = file_identity(source.path)
+        identity = source_identity(source)
         if identity in seen:
             raise DatasetError(f"{seen[identity].name} and {source.name} name one file ({seen[identity].path}): "
                                "one view counted twice; list each image once")
