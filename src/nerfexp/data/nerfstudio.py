@@ -62,7 +62,7 @@ from nerfexp.data.views import Source, Views, check_shared_file, holdout_split, 
 from nerfexp.domains import COUNT, FAR, INTEGER_LIMIT, TEXT, Rule, whole
 from nerfexp.errors import DatasetError
 from nerfexp.geometry.boxes import box_problem
-from nerfexp.geometry.cameras import normalize_centres
+from nerfexp.geometry.cameras import centre_spread, normalize_centres
 from nerfexp.geometry.frusta import box_reach, in_view, view_planes
 from nerfexp.geometry.lens_records import read_lens_record
 from nerfexp.geometry.lenses import Intrinsics, inversion_problem
@@ -90,12 +90,12 @@ def colmap_point_bounds(model: Path, frames: list[Frame], c2w: Tensor) -> tuple[
     ids = [i for _, i in matched]
     centres = colmap_to_c2w(cam_from_world(reconstruction, ids))[:, :3, 3]
     ours = c2w[[k for k, _ in matched], :3, 3]
-    spread = [torch.linalg.vector_norm(c - c.mean(0), dim=-1).square().mean().sqrt() for c in (ours, centres)]
+    spread = [centre_spread(c) for c in (ours, centres)]
     if not spread[1] > 0:
         return None
     points, observed = model_points(reconstruction, ids)
     bounds = near_far(centres, points, observed)
-    ratio = (spread[0] / spread[1]).item()
+    ratio = spread[0] / spread[1]
     return None if bounds is None else (bounds[0] * ratio, bounds[1] * ratio)
 
 
