@@ -2,6 +2,8 @@
 the user set (or the file) and what was expected, no traceback, and nothing written that should not be."""
 
 import json
+import re
+import shutil
 import struct
 import subprocess
 import sys
@@ -148,6 +150,27 @@ def add_test_frame(scene, form: str, frame: dict) -> tuple[Path, int]:
         content["test_filenames"].append(frame["file_path"])
     transforms.write_text(json.dumps(content))
     return transforms, place
+
+
+@pytest.mark.parametrize("form", ["blender", "nerfstudio"])
+def test_a_near_copy_of_a_training_view_in_the_test_split_stops_the_run_before_its_first_step(tmp_path, tiny, form):
+    # a training image copied to another file, at that view's pose plus 1e-6 on one translation entry
+    scene, overrides = blender_scene(tmp_path, tiny, form)
+    train = scene / ("transforms_train.json" if form == "blender" else "transforms.json")
+    frame = json.loads(train.read_text())["frames"][4]
+    image = scene / (f"{frame['file_path']}.png" if form == "blender" else frame["file_path"])
+    shutil.copy(image, image.with_name("copy.png"))
+    frame["transform_matrix"][0][3] += 1e-6
+    name = ("./train/copy" if form == "blender" else "images/copy.png")
+    transforms, place = add_test_frame(scene, form, {**frame, "file_path": name})
+    result = run_nerfexp(*overrides, f"hydra.run.dir={tmp_path / 'run'}", cwd=tmp_path)
+    expected = re.escape(f"nerfexp: error: the test view {transforms}: frame {place} ({name}) and the training view "
+                         f"{train}: frame 4 ({frame['file_path']}) are one view (their cameras ") + r"[0-9.e-]+" + \
+        re.escape(" of the cameras' spread and 0 degrees apart, their images identical: one view is cameras within "
+                  "0.01 of the spread and 0.5 degrees, images at 20 dB or more): a score on views training saw is no "
+                  "test score; keep it in one split")
+    assert re.fullmatch(expected, one_error_line(result))
+    assert not (tmp_path / "run" / "metrics.jsonl").exists() and not (tmp_path / "run" / "checkpoints").exists()
 
 
 @pytest.mark.parametrize("form", ["blender", "nerfstudio"])
