@@ -217,7 +217,7 @@ NAMING = [("nerfstudio", "file_path"), ("nerfstudio", "mask_path"), ("nerfstudio
 
 
 @pytest.mark.parametrize("problem", UNNAMEABLE)
-@pytest.mark.parametrize(("form", "key"), NAMING, ids="-".join)
+@pytest.mark.parametrize(("form", "key"), NAMING, ids=[f"{form}-{key}" for form, key in NAMING])
 def test_a_file_path_no_file_can_have_is_one_line_naming_the_file_and_frame(tmp_path, form, key, problem):
     scene, name, where, named_by = {"nerfstudio": nerfstudio_naming, "blender": blender_naming,
                                     "colmap": colmap_naming}[form](tmp_path, key, UNNAMEABLE[problem])
