@@ -2,10 +2,13 @@
 the user set (or the file) and what was expected, no traceback, and nothing written that should not be."""
 
 import json
+import re
+import shutil
 import struct
 import subprocess
 import sys
 import zlib
+from pathlib import Path
 
 import pytest
 from hypothesis import given
@@ -101,15 +104,15 @@ def test_eight_times_lower_positions_allow_three_more_octaves(tmp_path):
     assert "expected at most 22 frequencies with input_scale 0.125" in one_error_line(result)
 
 
-def blender_scene(tmp_path, tiny) -> tuple:
-    """A Blender-format scene of 10 training, 1 validation and 2 test views written by nerfexp-scene, and
-    the tiny run's overrides for it."""
+def blender_scene(tmp_path, tiny, form: str = "blender") -> tuple:
+    """A scene of 10 training, 1 validation and 2 test views written by nerfexp-scene in ``form`` (Blender's or
+    nerfstudio's format), and the tiny run's overrides for it."""
     scene = tmp_path / "scene"
     exported = run_nerfexp(str(scene), "--resolution", "24", "--n-train", "10", "--n-val", "1", "--n-test", "2",
-                           cwd=tmp_path, script="nerfexp-scene")
+                           "--format", form, cwd=tmp_path, script="nerfexp-scene")
     assert exported.returncode == 0, exported.stderr[-2000:]
     overrides = [o for o in tiny if not o.startswith(("data.", "scale.image_size"))]
-    return scene, ["data=blender", f"data.root={scene}", "data.n_val=1", *overrides]
+    return scene, [f"data={form}", f"data.root={scene}", "data.n_val=1", *overrides]
 
 
 def test_more_training_views_than_a_scene_has_is_one_line(tmp_path, tiny):
@@ -145,6 +148,53 @@ def test_a_test_split_naming_a_training_image_stops_the_run_before_its_first_ste
         f"{scene / 'transforms_train.json'}: frame 4 (./train/r_4) are one view (they name one file "
         f"({scene / 'train' / 'r_4.png'})): a score on views training saw is no test score; keep it in one split")
     assert not (tmp_path / "run" / "metrics.jsonl").exists() and not (tmp_path / "run" / "checkpoints").exists()
+
+
+def add_test_frame(scene, form: str, frame: dict) -> tuple[Path, int]:
+    """``frame`` added to the test split of an exported scene (``blender_scene``) where it is scored (Blender's:
+    first, a test view at every ``scale.test_stride``; nerfstudio's: last, listed in ``test_filenames``); its
+    transforms file and its place there."""
+    transforms = scene / ("transforms_test.json" if form == "blender" else "transforms.json")
+    content = json.loads(transforms.read_text())
+    place = 0 if form == "blender" else len(content["frames"])
+    content["frames"].insert(place, frame)
+    if form == "nerfstudio":
+        content["test_filenames"].append(frame["file_path"])
+    transforms.write_text(json.dumps(content))
+    return transforms, place
+
+
+@pytest.mark.parametrize("form", ["blender", "nerfstudio"])
+def test_a_near_copy_of_a_training_view_in_the_test_split_stops_the_run_before_its_first_step(tmp_path, tiny, form):
+    # a training image copied to another file, at that view's pose plus 1e-6 on one translation entry
+    scene, overrides = blender_scene(tmp_path, tiny, form)
+    train = scene / ("transforms_train.json" if form == "blender" else "transforms.json")
+    frame = json.loads(train.read_text())["frames"][4]
+    image = scene / (f"{frame['file_path']}.png" if form == "blender" else frame["file_path"])
+    shutil.copy(image, image.with_name("copy.png"))
+    frame["transform_matrix"][0][3] += 1e-6
+    name = ("./train/copy" if form == "blender" else "images/copy.png")
+    transforms, place = add_test_frame(scene, form, {**frame, "file_path": name})
+    result = run_nerfexp(*overrides, f"hydra.run.dir={tmp_path / 'run'}", cwd=tmp_path)
+    expected = re.escape(f"nerfexp: error: the test view {transforms}: frame {place} ({name}) and the training view "
+                         f"{train}: frame 4 ({frame['file_path']}) are one view (their cameras ") + r"[0-9.e-]+" + \
+        re.escape(" of the cameras' spread and 0 degrees apart, their images identical: one view is cameras within "
+                  "0.01 of the spread and 0.5 degrees, images at 20 dB or more): a score on views training saw is no "
+                  "test score; keep it in one split")
+    assert re.fullmatch(expected, one_error_line(result))
+    assert not (tmp_path / "run" / "metrics.jsonl").exists() and not (tmp_path / "run" / "checkpoints").exists()
+
+
+@pytest.mark.parametrize("form", ["blender", "nerfstudio"])
+def test_a_file_path_holding_a_nul_byte_is_one_line_before_any_image_is_read(tmp_path, tiny, form):
+    scene, overrides = blender_scene(tmp_path, tiny, form)
+    frame = json.loads((scene / ("transforms_train.json" if form == "blender" else "transforms.json")).read_text())
+    name = "images/a\x00.png"
+    transforms, place = add_test_frame(scene, form, {**frame["frames"][0], "file_path": name})
+    result = run_nerfexp(*overrides, f"hydra.run.dir={tmp_path / 'run'}", cwd=tmp_path)
+    assert one_error_line(result) == (f"nerfexp: error: {transforms}: frame {place}: 'file_path' holds a NUL "
+                                      "byte, which no file name can, got 'images/a\\x00.png'")
+    assert not (tmp_path / "run" / "metrics.jsonl").exists()
 
 
 @pytest.mark.parametrize("mode", ["run", "sweep"])

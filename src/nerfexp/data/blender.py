@@ -29,7 +29,7 @@ from nerfexp.files import atomic_write
 from nerfexp.geometry.cameras import POSE_LISTS, focal_from_fov, pose_problem
 from nerfexp.geometry.lenses import Intrinsics
 from nerfexp.pixels import png_bytes, to_uint8
-from nerfexp.reading import UnreadableFile, read_json
+from nerfexp.reading import UnreadableFile, name_problem, read_json
 
 TRANSFORMS = "transforms_{split}.json"
 BLENDER_HALF_SIDE = 1.5  # the synthetic scenes' objects lie in [-1.5, 1.5]^3
@@ -101,6 +101,8 @@ def read_transforms(path: Path) -> tuple[float, list[tuple[str, Tensor]]]:
     for where, frame in checked_frames(path, content):
         if not isinstance(frame["file_path"], str):
             raise DatasetError(f"{where}: 'file_path' must be a string, got {frame['file_path']!r:.80}")
+        if (problem := name_problem(frame["file_path"])) is not None:
+            raise DatasetError(f"{where}: 'file_path' {problem}, got {frame['file_path']!r:.80}")
         parsed.append((frame["file_path"], pose_matrix(frame["transform_matrix"], where)))
     return float(angle), parsed
 

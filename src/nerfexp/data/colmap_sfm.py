@@ -18,6 +18,7 @@ from nerfexp.data.views import IMAGE_SUFFIXES
 from nerfexp.errors import DatasetError
 from nerfexp.files import atomic_directory
 from nerfexp.geometry.lenses import PARAMETERS
+from nerfexp.reading import name_problem
 
 log = logging.getLogger(__name__)
 
@@ -50,15 +51,32 @@ def find_model(root: Path) -> Path | None:
 
 
 def read_model(path):
-    """A ``pycolmap.Reconstruction`` read from the folder ``path`` (binary or text files)."""
+    """A ``pycolmap.Reconstruction`` read from the folder ``path`` (binary or text files), its images' names
+    checked (``check_image_names``)."""
     path = Path(path)
     if not is_model(path):
         raise DatasetError(f"{path} holds no COLMAP sparse model: expected cameras, images and points3D, "
                            f"all .bin or all .txt")
     try:
-        return pycolmap.Reconstruction(path)
+        reconstruction = pycolmap.Reconstruction(path)
     except Exception as error:  # pycolmap raises plain exceptions for malformed files
         raise DatasetError(f"{path}: cannot read the COLMAP model ({error})") from None
+    check_image_names(reconstruction, path)
+    return reconstruction
+
+
+def check_image_names(reconstruction, path: Path) -> None:
+    """A DatasetError naming the model ``path`` and the image whose name (a file's path below the images' folder)
+    no file can have: text that is not UTF-8 (pycolmap decodes names strictly), a NUL byte or a lone surrogate
+    (``nerfexp.reading.name_problem``). Names are the paths nerfexp opens: checked once, where the model is read."""
+    for image_id, image in reconstruction.images.items():
+        try:
+            name = image.name
+        except UnicodeDecodeError as error:
+            raise DatasetError(f"{path}: image {image_id}: its name is not UTF-8 text ({error.reason} at byte "
+                               f"{error.start})") from None
+        if (problem := name_problem(name)) is not None:
+            raise DatasetError(f"{path}: image {image_id}: its name {problem}, got {name!r:.80}")
 
 
 @contextlib.contextmanager

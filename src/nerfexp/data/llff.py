@@ -40,7 +40,7 @@ from nerfexp.errors import ConfigError, DatasetError
 from nerfexp.files import atomic_write
 from nerfexp.geometry.cameras import look_at, pose_problem
 from nerfexp.geometry.lens_records import FOCAL_RANGE
-from nerfexp.geometry.lenses import Intrinsics, pixel_rays
+from nerfexp.geometry.lenses import Intrinsics, corner_pixels, pixel_rays
 from nerfexp.geometry.ndc import ndc_rays
 from nerfexp.pixels import png_bytes, to_uint8
 
@@ -241,8 +241,7 @@ def check_forward_facing(views: Views) -> None:
     A ray's d_z is linear in the pixel position, so the four corner pixels' rays decide it.
     """
     H, W = views.height, views.width
-    centres = torch.tensor([[0.5, 0.5], [W - 0.5, 0.5], [0.5, H - 0.5], [W - 0.5, H - 0.5]], dtype=torch.float64)
-    corners = pixel_rays(centres, views.intrinsics.unsqueeze(1))  # [N, 4, 3]: the corner pixels' rays
+    corners = pixel_rays(corner_pixels(H, W), views.intrinsics.unsqueeze(1))  # [N, 4, 3]: the corner pixels' rays
     dz = (views.c2w[:, None, 2, :3] * corners.to(views.c2w.dtype)).sum(-1)  # [N, 4]: the world z of each corner ray
     bad = (dz >= 0).any(-1)
     if bad.any():

@@ -61,11 +61,11 @@ from nerfexp.data.transforms_file import (
     read_capture,
     scene_file,
 )
-from nerfexp.data.views import Source, Views, check_shared_file, holdout_split, shrink_mask
+from nerfexp.data.views import Source, Views, check_shared_file, holdout_split, is_named_file, shrink_mask
 from nerfexp.domains import COUNT, FAR, INTEGER_LIMIT, TEXT, Rule, choice, whole
 from nerfexp.errors import DatasetError
 from nerfexp.geometry.boxes import box_problem
-from nerfexp.geometry.cameras import normalize_centres
+from nerfexp.geometry.cameras import centre_spread, normalize_centres
 from nerfexp.geometry.frusta import box_reach, in_view, view_planes
 from nerfexp.geometry.lens_records import read_lens_record
 from nerfexp.geometry.lenses import Intrinsics, inversion_problem
@@ -96,12 +96,12 @@ def colmap_point_bounds(model: Path, frames: list[Frame], c2w: Tensor) -> tuple[
     ids = [i for _, i in matched]
     centres = colmap_to_c2w(cam_from_world(reconstruction, ids))[:, :3, 3]
     ours = c2w[[k for k, _ in matched], :3, 3]
-    spread = [torch.linalg.vector_norm(c - c.mean(0), dim=-1).square().mean().sqrt() for c in (ours, centres)]
+    spread = [centre_spread(c) for c in (ours, centres)]
     if not spread[1] > 0:
         return None
     points, observed = model_points(reconstruction, ids)
     bounds = near_far(centres, points, observed)
-    ratio = (spread[0] / spread[1]).item()
+    ratio = spread[0] / spread[1]
     return None if bounds is None else (bounds[0] * ratio, bounds[1] * ratio)
 
 
@@ -131,7 +131,8 @@ def with_images(capture: Capture, root: Path, downscale: int, missing: str) -> t
     ``file_path``s in the file's order. A DatasetError where no frame's image exists."""
     if missing == "refuse":
         return capture, ()
-    absent = [frame for frame in capture.frames if not image_file(root, frame, downscale)[0].is_file()]
+    absent = [frame for frame in capture.frames
+              if not is_named_file(image_file(root, frame, downscale)[0], f"{frame.where}'s file_path")]
     if not absent:
         return capture, ()
     if len(absent) == len(capture.frames):
@@ -157,8 +158,7 @@ def posed_capture(root: Path, transforms: str, downscale: int, bound: float, mis
         raise DatasetError(f"{path} does not exist: data.root must be a folder holding {transforms} "
                            f"(nerfstudio's format; data.transforms names another file in it)")
     capture, left_out = with_images(read_capture(path), root, downscale, missing)
-    check_shared_file([Source(frame.where, downscaled_file(root, frame.file_path, "images", downscale)[0])
-                       for frame in capture.frames])
+    check_shared_file([Source(frame.where, image_file(root, frame, downscale)[0]) for frame in capture.frames])
     c2w = torch.stack([frame.c2w for frame in capture.frames])
     normalized, _, centre, scale = normalize_centres(c2w, torch.zeros(0, 3, dtype=c2w.dtype), bound)
     box = None if capture.box is None else (capture.box - centre) * scale  # as bounding_box gives it
@@ -171,7 +171,7 @@ def posed_capture(root: Path, transforms: str, downscale: int, bound: float, mis
 def check_images_exist(images: list[Source]) -> None:
     """A DatasetError naming the first of the frames' image files (``images``) that does not exist, and how many
     more do not, where any does not: one line for all of them, before any image is read."""
-    missing = [image for image in images if not image.path.is_file()]
+    missing = [image for image in images if not is_named_file(image.path, f"{image.name}'s file_path")]
     if missing:
         more = (f", nor do the images of {len(missing) - 1} more of the file's {len(images)} frames" if missing[1:]
                 else "")
@@ -185,7 +185,7 @@ def image_file(root: Path, frame: Frame, downscale: int) -> tuple[Path, int, int
     """(path, shrink, stored): the image file to read for ``frame`` at ``downscale`` (``downscaled_file``), the
     factor still to shrink it by, and the factor it is stored smaller than its recorded ``w, h`` by (a folder's
     ``images_{d}`` are stored d times smaller)."""
-    path, shrink = downscaled_file(root, frame.file_path, "images", downscale)
+    path, shrink = downscaled_file(root, frame.file_path, "images", downscale, f"{frame.where}'s file_path")
     return path, shrink, (downscale if shrink == 1 else 1)
 
 
@@ -230,7 +230,7 @@ def frame_mask(root: Path, frame: Frame, downscale: int) -> Tensor | None:
     shrunk), or None where the frame has none."""
     if frame.mask_path is None:
         return None
-    path, shrink = downscaled_file(root, frame.mask_path, "masks", downscale)
+    path, shrink = downscaled_file(root, frame.mask_path, "masks", downscale, f"{frame.where}'s mask_path")
     mask = read_mask(path, f"{frame.where}'s mask_path")[None]  # [1, H, W]
     return mask if shrink == 1 else shrink_mask(mask, (mask.shape[1] // shrink, mask.shape[2] // shrink))
 
@@ -392,7 +392,7 @@ class NerfstudioScene(FolderScene):
         root = self.folder()
         if capture.ply_file is not None:
             path = scene_file(root, capture.ply_file)
-            if not path.is_file():
+            if not is_named_file(path, f"{capture.path}'s 'ply_file_path'"):
                 raise DatasetError(f"{path} does not exist (named by {capture.path}'s 'ply_file_path')")
             points = (read_ply_points(path) - posed.centre) * posed.scale
             seen = in_view(points, normalized, self.frame_views())  # [N, P]

@@ -495,6 +495,8 @@ class RunRecorder(L.Callback):
                     results[key] = record
         if self.bounds is not None:  # where near and far came from, where the scene found them
             results["bounds"] = self.bounds
+        if trainer.datamodule is not None and trainer.datamodule.split_check is not None:  # no view seen in training
+            results["split_check"] = trainer.datamodule.split_check
         if trainer.ckpt_path is not None:  # the weights scored: the checkpoint the test loaded
             results["checkpoint"] = checkpoint_record(self.output_dir, Path(trainer.ckpt_path))
         write_json(self.output_dir / RESULTS, results)
