@@ -319,10 +319,15 @@ def test_the_commands_reading_a_run_back_check_its_overrides_as_nerfexp_does(sav
 def test_a_run_of_an_earlier_nerfexp_with_a_key_no_rule_covers_is_still_read_back(saved_run):
     cfg = run_config(saved_run)
     with open_dict(cfg):
-        cfg.data.retired_setting = 3  # a key an earlier version wrote and this one no longer reads
+        cfg.scale.retired_setting = 3  # a key an earlier version wrote and this one no longer reads
     check_run_settings(cfg)  # the run's own key, not a user's mistake
-    with pytest.raises(ConfigError, match="^data.retired_setting=3: not a setting nerfexp reads"):
+    with pytest.raises(ConfigError, match="^scale.retired_setting=3: not a setting nerfexp reads"):
         check_settings(cfg)  # a new run's config is the user's: there it is a typo
+    with open_dict(cfg):
+        cfg.data.retired_setting = 3  # but an argument the scene's class no longer takes cannot build it
+    with pytest.raises(ConfigError, match=r"^data.retired_setting: ProceduralScene takes no argument retired_setting "
+                                          r"\(it takes image_size, n_train, "):
+        check_run_settings(cfg)
 
 
 def test_lpips_weights_are_looked_for_only_by_the_command_that_scores(saved_run, tmp_path, monkeypatch):
