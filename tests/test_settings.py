@@ -399,9 +399,13 @@ def test_the_precisions_named_are_lightnings_own():
         L.Trainer(precision="bogus", accelerator="cpu", logger=False, enable_checkpointing=False)
 
 
-def test_a_test_time_fit_is_estimated_where_it_has_rays_and_one_without_leaves_its_class_default(saved_run):
-    check_run_settings(run_config(saved_run, ["model.appearance_fit={steps: 1}"]))  # CodeFit's 256 rays: fits
-    with pytest.raises(ConfigError, match=r"^model.appearance_fit.rays=1099511627776, scale.n_coarse=16 .*: a step "
-                                          "of the test images' appearance fit of 1099511627776 rays"):
-        check_run_settings(run_config(saved_run, ["model.appearance_fit={_target_: nerfexp.nerf.appearance.CodeFit, "
-                                                  "rays: 1099511627776}"]))
+def test_a_test_time_fit_is_estimated_where_it_has_rays_and_one_without_leaves_its_class_default(hydra_configs,
+                                                                                                tmp_path):
+    cfg = composed("appearance=embedding")
+    del cfg.appearance.fit.rays  # a fit given without its rays: CodeFit's own 256, which fit
+    check_settings(cfg)
+    (tmp_path / RUN_CONFIG).parent.mkdir()
+    OmegaConf.save(composed("appearance=embedding"), tmp_path / RUN_CONFIG)  # a run read back estimates it alike
+    with pytest.raises(ConfigError, match=r"^appearance.fit.rays=1099511627776, scale.n_coarse=16 .*: a step of the "
+                                          "test images' appearance fit of 1099511627776 rays"):
+        check_run_settings(run_config(tmp_path, ["appearance.fit.rays=1099511627776"]))
