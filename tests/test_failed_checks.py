@@ -3,6 +3,8 @@
 before the run directory is made, and any exception a check raises (Hydra's callbacks, the settings check of a run
 read back) stops the command in one line, never Hydra's warning followed by the run."""
 
+import json
+
 import pytest
 import yaml
 from omegaconf import OmegaConf
@@ -87,3 +89,15 @@ def test_a_check_that_fails_stops_a_command_reading_a_run_back_in_one_line(tmp_p
     result = run_nerfexp(str(run_dir), "data.n_test=1", cwd=tmp_path, script="nerfexp-eval")
     assert one_error_line(result, "nerfexp-eval") == ("nerfexp-eval: error: the settings check failed on this config "
                                                       "(Broken: 'n_samples')")
+
+
+def test_a_sweeps_job_with_such_an_option_fails_in_that_line_before_any_work(tmp_path):
+    group, content, message = OPTIONS["the proposal sampler bare"]
+    (tmp_path / "conf" / group).mkdir(parents=True)
+    (tmp_path / "conf" / group / "mine.yaml").write_text(yaml.safe_dump(content))
+    result = run_nerfexp("-m", *TINY, f"hydra.searchpath=[file://{tmp_path / 'conf'}]", f"{group}=mine",
+                         f"hydra.sweep.dir={tmp_path / 'sweep'}", cwd=tmp_path)
+    assert one_error_line(result) == f"nerfexp: error: {message}"  # the job's directory is Hydra's, made first
+    status = json.loads((tmp_path / "sweep" / "0" / "status.json").read_text())
+    assert status["state"] == "failed" and status["error"] == f"ConfigError: {message}"
+    assert not (tmp_path / "sweep" / "0" / "checkpoints").exists()
