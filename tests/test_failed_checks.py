@@ -10,6 +10,7 @@ import yaml
 from omegaconf import OmegaConf
 
 import nerfexp.rundir.claim
+import nerfexp.rundir.trained
 import nerfexp.settings.checks
 import nerfexp.training.resume
 from nerfexp.rundir.layout import LAST_CHECKPOINT, RUN_CONFIG
@@ -79,16 +80,27 @@ def test_a_check_that_fails_stops_a_run_in_one_line_before_its_directory_is_made
     assert not (tmp_path / "run").exists()
 
 
-def test_a_check_that_fails_stops_a_command_reading_a_run_back_in_one_line(tmp_path, monkeypatch):
+# Each check of a run read back before its checkpoint is read: (the module and the name of a function it calls, made to
+# raise; the check, as the refusal names it: RUN, the run's directory)
+READ_BACK_CHECKS = {
+    "the check of its saved config": (nerfexp.rundir.trained, "check_own_shapes",
+                                      "the check of {run}/.hydra/config.yaml"),
+    "the settings check": (nerfexp.settings.checks, "check_world_rays", "the settings check"),
+}
+
+
+@pytest.mark.parametrize("case", READ_BACK_CHECKS)
+def test_a_check_that_fails_stops_a_command_reading_a_run_back_in_one_line(tmp_path, monkeypatch, case):
+    module, name, check = READ_BACK_CHECKS[case]
     run_dir = tmp_path / "run"
     (run_dir / RUN_CONFIG).parent.mkdir(parents=True)
     OmegaConf.save(tiny_config(), run_dir / RUN_CONFIG)
     (run_dir / LAST_CHECKPOINT).parent.mkdir()
     (run_dir / LAST_CHECKPOINT).write_bytes(b"never read: the check comes first")
-    monkeypatch.setattr(nerfexp.settings.checks, "check_world_rays", broken)
+    monkeypatch.setattr(module, name, broken)
     result = run_nerfexp(str(run_dir), "data.n_test=1", cwd=tmp_path, script="nerfexp-eval")
-    assert one_error_line(result, "nerfexp-eval") == ("nerfexp-eval: error: the settings check failed on this config "
-                                                      "(Broken: 'n_samples')")
+    assert one_error_line(result, "nerfexp-eval") == (f"nerfexp-eval: error: {check.format(run=run_dir)} failed on "
+                                                      "this config (Broken: 'n_samples')")
 
 
 def test_a_sweeps_job_with_such_an_option_fails_in_that_line_before_any_work(tmp_path):

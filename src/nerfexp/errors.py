@@ -33,12 +33,12 @@ def failure_text(check: str, error: BaseException) -> str:
 
 @contextlib.contextmanager
 def failures_refused(check: str) -> Iterator[None]:
-    """Inside the block, which checks the user's input before any work, an exception other than a NerfexpError is a
-    ConfigError saying that ``check`` failed (``failure_text``): a check that fails refuses, never lets the work go
-    on unchecked."""
+    """Inside the block, which checks the user's input before any work, an exception other than a NerfexpError or
+    an OSError (a file that cannot be read, which the commands say in one line naming it) is a ConfigError saying
+    that ``check`` failed (``failure_text``): a check that fails refuses, never lets the work go on unchecked."""
     try:
         yield
-    except NerfexpError:
+    except (NerfexpError, OSError):
         raise
     except Exception as error:
         raise ConfigError(failure_text(check, error)) from error

@@ -66,12 +66,14 @@ def refusal(command: str, arguments: list[str], folder: Path, monkeypatch) -> st
 def test_a_keys_shape_is_what_it_is_references_followed_and_lists_are_values():
     cfg = OmegaConf.create({"grid": {"_target_": "a.B", "_partial_": True, "size": [1, 2]}, "uses": "${grid}",
                             "none": None, "width": "${grid.size}", "plain": {"x": 1}, "lost": "${nowhere}"})
-    assert shapes(cfg) == {
+    found = shapes(cfg)
+    assert found == {
         "grid": Shape(SECTION, "a.B", True), "grid._target_": Shape(VALUE), "grid._partial_": Shape(VALUE),
         "grid.size": Shape(VALUE), "none": Shape(VALUE), "plain": Shape(SECTION), "plain.x": Shape(VALUE),
-        # reached through a reference: after the keys written where they are, so that a key is named where set
         "uses": Shape(SECTION, "a.B", True), "uses._target_": Shape(VALUE), "uses._partial_": Shape(VALUE),
         "uses.size": Shape(VALUE), "width": Shape(VALUE)}  # "lost" leads nowhere: resolving the config names it
+    # reached through a reference: after the keys written where they are, so that a key is named where it is set
+    assert list(found)[-5:] == ["uses", "uses._target_", "uses._partial_", "uses.size", "width"]
 
 
 def test_a_reference_into_a_section_on_its_way_ends_the_walk():

@@ -16,7 +16,7 @@ import yaml
 from omegaconf import DictConfig, OmegaConf, open_dict
 from omegaconf.errors import OmegaConfBaseException
 
-from nerfexp.errors import ConfigError, NerfexpError
+from nerfexp.errors import ConfigError, NerfexpError, failures_refused
 from nerfexp.geometry.cameras import poses_problem
 from nerfexp.reading import UnreadableFile, read_yaml_text
 from nerfexp.rundir.config_shapes import check_own_shapes, with_overrides
@@ -177,20 +177,21 @@ def run_config(run_dir: Path, overrides: list[str] = ()) -> DictConfig:
     that resolves to text holding ``${`` (``check_resolved``), is a ConfigError naming the key, before anything is
     built. The file is read bounded (``nerfexp.reading.read_yaml_text``: its size, no YAML aliases)."""
     source = Path(run_dir) / RUN_CONFIG
-    try:
-        cfg = _current(read_yaml_text(source), source)
-    except UnreadableFile as error:
-        raise ConfigError(f"{source}: not a config nerfexp can read ({error.reason})") from None
-    except (OmegaConfBaseException, yaml.YAMLError) as error:
-        raise ConfigError(f"{source}: not a config nerfexp can read ({str(error).splitlines()[0]})") from None
-    OmegaConf.set_struct(cfg, True)  # an override of a key the run does not have is a typo, not a new key
-    cfg = with_overrides(cfg, list(overrides), source)
-    try:
-        resolved = OmegaConf.to_container(cfg, resolve=True)  # plain references only (and the overrides'): nothing runs
-    except OmegaConfBaseException as error:
-        where = f" at {error.full_key}" if error.full_key else ""
-        raise ConfigError(f"{source}: cannot resolve the config{where}: {str(error).splitlines()[0]}") from None
-    check_resolved(resolved, source)
+    with failures_refused(f"the check of {source}"):  # whatever the checks below raise, a refusal
+        try:
+            cfg = _current(read_yaml_text(source), source)
+        except UnreadableFile as error:
+            raise ConfigError(f"{source}: not a config nerfexp can read ({error.reason})") from None
+        except (OmegaConfBaseException, yaml.YAMLError) as error:
+            raise ConfigError(f"{source}: not a config nerfexp can read ({str(error).splitlines()[0]})") from None
+        OmegaConf.set_struct(cfg, True)  # an override of a key the run does not have is a typo, not a new key
+        cfg = with_overrides(cfg, list(overrides), source)
+        try:
+            resolved = OmegaConf.to_container(cfg, resolve=True)  # plain references (and the overrides'): nothing runs
+        except OmegaConfBaseException as error:
+            where = f" at {error.full_key}" if error.full_key else ""
+            raise ConfigError(f"{source}: cannot resolve the config{where}: {str(error).splitlines()[0]}") from None
+        check_resolved(resolved, source)
     return cfg
 
 
