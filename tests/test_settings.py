@@ -355,10 +355,15 @@ def test_the_commands_reading_a_run_back_check_its_overrides_as_nerfexp_does(sav
 def test_a_run_of_an_earlier_nerfexp_with_a_key_no_rule_covers_is_still_read_back(saved_run):
     cfg = run_config(saved_run)
     with open_dict(cfg):
-        cfg.data.retired_setting = 3  # a key an earlier version wrote and this one no longer reads
+        cfg.scale.retired_setting = 3  # a key an earlier version wrote and this one no longer reads
     check_run_settings(cfg)  # the run's own key, not a user's mistake
-    with pytest.raises(ConfigError, match="^data.retired_setting=3: not a setting nerfexp reads"):
+    with pytest.raises(ConfigError, match="^scale.retired_setting=3: not a setting nerfexp reads"):
         check_settings(cfg)  # a new run's config is the user's: there it is a typo
+    with open_dict(cfg):
+        cfg.data.retired_setting = 3  # but an argument the scene's class no longer takes cannot build it
+    with pytest.raises(ConfigError, match=r"^data.retired_setting: ProceduralScene takes no argument retired_setting "
+                                          r"\(it takes image_size, n_train, "):
+        check_run_settings(cfg)
 
 
 def test_lpips_weights_are_looked_for_only_by_the_command_that_scores(saved_run, tmp_path, monkeypatch):
@@ -430,9 +435,13 @@ def test_the_precisions_named_are_lightnings_own():
         L.Trainer(precision="bogus", accelerator="cpu", logger=False, enable_checkpointing=False)
 
 
-def test_a_test_time_fit_is_estimated_where_it_has_rays_and_one_without_leaves_its_class_default(saved_run):
-    check_run_settings(run_config(saved_run, ["model.appearance_fit={steps: 1}"]))  # CodeFit's 256 rays: fits
-    with pytest.raises(ConfigError, match=r"^model.appearance_fit.rays=1099511627776, scale.n_coarse=16 .*: a step "
-                                          "of the test images' appearance fit of 1099511627776 rays"):
-        check_run_settings(run_config(saved_run, ["model.appearance_fit={_target_: nerfexp.nerf.appearance.CodeFit, "
-                                                  "rays: 1099511627776}"]))
+def test_a_test_time_fit_is_estimated_where_it_has_rays_and_one_without_leaves_its_class_default(hydra_configs,
+                                                                                                tmp_path):
+    cfg = composed("appearance=embedding")
+    del cfg.appearance.fit.rays  # a fit given without its rays: CodeFit's own 256, which fit
+    check_settings(cfg)
+    (tmp_path / RUN_CONFIG).parent.mkdir()
+    OmegaConf.save(composed("appearance=embedding"), tmp_path / RUN_CONFIG)  # a run read back estimates it alike
+    with pytest.raises(ConfigError, match=r"^appearance.fit.rays=1099511627776, scale.n_coarse=16 .*: a step of the "
+                                          "test images' appearance fit of 1099511627776 rays"):
+        check_run_settings(run_config(tmp_path, ["appearance.fit.rays=1099511627776"]))

@@ -90,7 +90,8 @@ def test_eval_of_a_missing_run_is_one_clear_line(tmp_path, make):
         path.mkdir()
     if make in ("no_checkpoint", "typo_override"):
         (path / ".hydra").mkdir()
-        (path / ".hydra" / "config.yaml").write_text("model:\n  chunk: 8\n")
+        (path / ".hydra" / "config.yaml").write_text("model:\n  _target_: nerfexp.training.module.NeRFModule\n"
+                                                     "  chunk: 8\n")
     if make == "typo_override":
         (path / "checkpoints").mkdir()
         (path / "checkpoints" / "last.ckpt").write_bytes(b"")

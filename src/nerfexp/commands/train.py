@@ -22,7 +22,7 @@ from omegaconf.errors import ConfigAttributeError, ConfigKeyError, OmegaConfBase
 from nerfexp.commands.console import file_error_line, quiet_dependencies, thread_file_errors
 from nerfexp.commands.signals import JobSignalled, ending_signals, in_launcher_job, job_signals, received_signal
 from nerfexp.data.rays import rank_slice
-from nerfexp.errors import ConfigError, NerfexpError
+from nerfexp.errors import ConfigError, NerfexpError, failures_refused
 from nerfexp.extras import require
 from nerfexp.manifest import record_matching
 from nerfexp.reading import UnreadableFile
@@ -76,11 +76,12 @@ def train(cfg: DictConfig) -> dict | None:
     from nerfexp.training.resume import check_resume, checkpoint_settings, group_choices, read_resumed, resume_record
 
     sweep = HydraConfig.get().mode == RunMode.MULTIRUN
-    if sweep:
-        check_composition(cfg, HydraConfig.get())  # the job's group values and labels, before the others read them
-        check_settings(cfg)  # missing mandatory values first
-        check_row(cfg, HydraConfig.get().runtime.choices, list(HydraConfig.get().overrides.task))
-    unused = unused_settings(cfg, list(HydraConfig.get().overrides.task))  # a sweep's job: recorded as null
+    with failures_refused("the settings check"):  # a check that fails refuses the job, as it refuses a single run
+        if sweep:
+            check_composition(cfg, HydraConfig.get())  # the job's group values and labels, before the others read them
+            check_settings(cfg)  # missing mandatory values first
+            check_row(cfg, HydraConfig.get().runtime.choices, list(HydraConfig.get().overrides.task))
+        unused = unused_settings(cfg, list(HydraConfig.get().overrides.task))  # a sweep's job: recorded as null
     for override, reason in unused:
         log.warning("%s: not used with %s; results.json records it as null", override, reason)
     quiet_dependencies()

@@ -14,7 +14,7 @@ from hydra.experimental.callback import Callback
 from omegaconf import DictConfig
 
 from nerfexp import manifest
-from nerfexp.errors import NerfexpError
+from nerfexp.errors import NerfexpError, callback_refusals
 from nerfexp.files import folder_entries, foreign_message, is_made
 from nerfexp.rundir.layout import (
     LAST_CHECKPOINT,
@@ -158,42 +158,43 @@ class RunDirectoryGuard(Callback):
     claims the directory
     (``claim``). A multirun stops unless ``hydra.sweep.dir`` is new or empty.
     In a distributed job started by SLURM every process runs this; global rank 0 checks and claims.
-    It stops with ``SystemExit``: Hydra turns a callback's exceptions into warnings and goes on."""
+    It stops with ``SystemExit``, whatever the check raised (``nerfexp.errors.callback_refusals``): Hydra turns a
+    callback's exceptions into warnings and goes on."""
 
     def on_run_start(self, config: DictConfig, **kwargs) -> None:
         if not is_global_zero():
             return
         run_dir = Path(config.hydra.run.dir)
-        try:
-            replaced = admit_run(run_dir, config.get("resume"))
-            if replaced is None:  # the run continued
-                return
-            if replaced:
-                print(f"nerfexp: {run_dir} holds a run that ended unfinished and saved no checkpoint: replacing it, "
-                      f"removing its {len(replaced)} files ({', '.join(replaced[:3])}{', ...' * (len(replaced) > 3)})",
-                      file=sys.stderr)
-                remove_entries(run_dir, replaced)
-            if not claim(run_dir, list(config.hydra.overrides.task)):
-                raise NerfexpError(f"{run_dir} holds a run that started at the same time: choose another "
-                                   "directory (hydra.run.dir=...)")
-        except NerfexpError as error:
-            raise SystemExit(f"nerfexp: error: {error}") from None
-        except OSError as error:
-            raise SystemExit(f"nerfexp: error: cannot write the run directory {run_dir}: {error.strerror} "
-                             "(choose another with hydra.run.dir=...)") from None
+        with callback_refusals("the run directory's check"):
+            try:
+                replaced = admit_run(run_dir, config.get("resume"))
+                if replaced is None:  # the run continued
+                    return
+                if replaced:
+                    print(f"nerfexp: {run_dir} holds a run that ended unfinished and saved no checkpoint: replacing "
+                          f"it, removing its {len(replaced)} files ({', '.join(replaced[:3])}"
+                          f"{', ...' * (len(replaced) > 3)})", file=sys.stderr)
+                    remove_entries(run_dir, replaced)
+                if not claim(run_dir, list(config.hydra.overrides.task)):
+                    raise NerfexpError(f"{run_dir} holds a run that started at the same time: choose another "
+                                       "directory (hydra.run.dir=...)")
+            except OSError as error:
+                raise SystemExit(f"nerfexp: error: cannot write the run directory {run_dir}: {error.strerror} "
+                                 "(choose another with hydra.run.dir=...)") from None
 
     def on_multirun_start(self, config: DictConfig, **kwargs) -> None:
         sweep_dir = Path(config.hydra.sweep.dir)
-        try:
-            sweep_dir.mkdir(parents=True, exist_ok=True)
-            tempfile.TemporaryFile(dir=sweep_dir).close()  # writable, before any job starts
-        except OSError as error:
-            raise SystemExit(f"nerfexp: error: cannot write the sweep directory {sweep_dir}: {error.strerror} "
-                             "(choose another with hydra.sweep.dir=...)") from None
-        runs = find_run_dirs(sweep_dir)
-        if runs:
-            raise SystemExit(f"nerfexp: error: {sweep_dir} holds the runs of an earlier sweep ({len(runs)}): choose "
-                             f"another directory (hydra.sweep.dir=...)")
-        if entries := folder_entries(sweep_dir):
-            raise SystemExit("nerfexp: error: " + foreign_message(
-                sweep_dir, entries, "this sweep", "choose a new or empty directory (hydra.sweep.dir=...)"))
+        with callback_refusals("the sweep directory's check"):
+            try:
+                sweep_dir.mkdir(parents=True, exist_ok=True)
+                tempfile.TemporaryFile(dir=sweep_dir).close()  # writable, before any job starts
+            except OSError as error:
+                raise SystemExit(f"nerfexp: error: cannot write the sweep directory {sweep_dir}: {error.strerror} "
+                                 "(choose another with hydra.sweep.dir=...)") from None
+            runs = find_run_dirs(sweep_dir)
+            if runs:
+                raise SystemExit(f"nerfexp: error: {sweep_dir} holds the runs of an earlier sweep ({len(runs)}): "
+                                 "choose another directory (hydra.sweep.dir=...)")
+            if entries := folder_entries(sweep_dir):
+                raise SystemExit("nerfexp: error: " + foreign_message(
+                    sweep_dir, entries, "this sweep", "choose a new or empty directory (hydra.sweep.dir=...)"))
