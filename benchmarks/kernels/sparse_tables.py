@@ -17,7 +17,7 @@ in both variants; the table rows of the hashed levels, and the rows one step tou
 gives the commands), read from their directories (``--runs DIR ...``): test PSNR per seed, the paired
 differences (lazy - dense) with their 95% t interval (``nerfexp.report``), and training seconds per step.
 
-    python benchmarks/sparse_tables.py [--log2-table-sizes 14 16 19 22] [--repeats 10] [--warmup 3]
+    python benchmarks/kernels/sparse_tables.py [--log2-table-sizes 14 16 19 22] [--repeats 10] [--warmup 3]
                                        [--threads N] [--runs DIR]
 """
 
@@ -40,7 +40,7 @@ from nerfexp.nerf.hashgrid import HashGridEncoding
 from nerfexp.report.runs import find_runs
 from nerfexp.report.variants import difference, group_variants
 
-RESULTS = Path(__file__).parent / "results"
+RESULTS = Path(__file__).parents[1] / "results"  # benchmarks/results
 VARIANTS = {
     "dense": ["model.optimizer._target_=torch.optim.Adam", "encoding.position.sparse_gradients=false"],
     "lazy": ["model.optimizer._target_=nerfexp.training.optimizers.LazyAdam",
@@ -148,7 +148,7 @@ def markdown(report: dict, args) -> str:
                      f"{lazy['rows_touched']} | {row['dense_level_entries']} | {dense['step_s']:.3f} | "
                      f"{lazy['step_s']:.3f} | {row['lazy_over_dense']:.2f} | {dense['optimizer_s']:.3f} | "
                      f"{lazy['optimizer_s']:.3f} |")
-    lines += ["", f"Command: `python benchmarks/sparse_tables.py --log2-table-sizes "
+    lines += ["", f"Command: `python benchmarks/kernels/sparse_tables.py --log2-table-sizes "
               f"{' '.join(map(str, args.log2_table_sizes))} --repeats {args.repeats} --warmup {args.warmup}"
               + (f" --threads {args.threads}" if args.threads else "")
               + (" --runs " + " ".join(map(str, args.runs)) if args.runs else "") + "`."]
