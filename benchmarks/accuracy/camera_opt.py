@@ -165,10 +165,10 @@ def run_gap(args: argparse.Namespace) -> None:
     atomic_write(args.results / "camera_opt.json", json.dumps(record, indent=2).encode())
 
     text = "\n".join([
-        f"`{record['command']}` on {record['machine']['device']}: {args.size} x {args.size} images, {args.steps} steps, seeds "
-        f"{args.seeds}, training poses perturbed by {args.noise[0]:g} degrees and {args.noise[1]:.0%} of the "
-        "cameras' radius (each run in `camera_opt.json`). Test PSNR (dB), means over seeds; share: (refined - "
-        "perturbed) / (true - perturbed).", "",
+        f"`{record['command']}` on {record['machine']['device']}: {args.size} x {args.size} images, "
+        f"{args.steps} steps, seeds {args.seeds}, training poses perturbed by {args.noise[0]:g} degrees and "
+        f"{args.noise[1]:.0%} of the cameras' radius (each run in `camera_opt.json`). Test PSNR (dB), means over "
+        "seeds; share: (refined - perturbed) / (true - perturbed).", "",
         "| test cameras | true poses | perturbed | perturbed, refined (`camera_opt=so3xr3`) | share of the gap |",
         "|---|---|---|---|---|", *rows, "",
         f"Training poses (means over the refined runs, after a similarity): rotation {before['rotation_deg']:.3f} -> "
@@ -220,12 +220,12 @@ def run_schedules(args: argparse.Namespace) -> None:
                 f"{v['seeds']} | {rotation} | {paired} |")
 
     text = "\n".join([
-        f"`{record['command']}` on {record['machine']['device']}: the {args.model} model, {args.size} x {args.size} images, "
-        f"{args.steps} steps, seeds {args.seeds}, training poses perturbed by {args.noise[0]:g} degrees and "
-        f"{args.noise[1]:.0%} of the cameras' radius (but `true`), test cameras as given (each run in "
-        "`camera_opt_schedules.json`). Test PSNR (dB), means over seeds; collapsed: seeds whose test views all "
-        f"rendered nothing; rotation: the training poses' error after refinement (degrees, after a similarity); "
-        f"paired by seed against `{REFERENCE}` as configured, 95% t-intervals.", "",
+        f"`{record['command']}` on {record['machine']['device']}: the {args.model} model, "
+        f"{args.size} x {args.size} images, {args.steps} steps, seeds {args.seeds}, training poses perturbed by "
+        f"{args.noise[0]:g} degrees and {args.noise[1]:.0%} of the cameras' radius (but `true`), test cameras as "
+        "given (each run in `camera_opt_schedules.json`). Test PSNR (dB), means over seeds; collapsed: seeds whose "
+        "test views all rendered nothing; rotation: the training poses' error after refinement (degrees, after a "
+        f"similarity); paired by seed against `{REFERENCE}` as configured, 95% t-intervals.", "",
         "| variant | overrides | test PSNR | collapsed | rotation | minus so3xr3 |",
         "|---|---|---|---|---|---|", *(row(v) for v in args.variants), "",
         f"Best refinement none of whose seeds collapsed: {best or 'none'}.", "",

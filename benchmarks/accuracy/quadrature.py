@@ -15,7 +15,8 @@ machine load affects all alike (torch threads as the machine sets them). Writes
 ``benchmarks/results/quadrature.json``, ``.md`` (tables) and ``.png`` (error against wall time and
 against network evaluations per ray, log-log, one line per method).
 
-    python -m benchmarks.accuracy.quadrature [--rays 2048] [--repeats 7]   # from the repository root (it imports tests.analytic)
+    python -m benchmarks.accuracy.quadrature [--rays 2048] [--repeats 7]   # from the repository root
+                                                                            # (it imports tests.analytic)
 """
 
 import argparse
@@ -126,9 +127,9 @@ def markdown(report: dict) -> str:
     lines = [
         "# Quadrature error against cost",
         "",
-        f"`python -m benchmarks.accuracy.quadrature`: {settings['rays']} rays per field, deterministic sampling, float32, "
-        f"near {NEAR}, far {FAR}, {BACKGROUND} background; times are the median of {settings['repeats']} renders "
-        f"of the whole batch. Machine: {report['machine']['device']} on {report['machine']['host']}, torch "
+        f"`python -m benchmarks.accuracy.quadrature`: {settings['rays']} rays per field, deterministic sampling, "
+        f"float32, near {NEAR}, far {FAR}, {BACKGROUND} background; times are the median of {settings['repeats']} "
+        f"renders of the whole batch. Machine: {report['machine']['device']} on {report['machine']['host']}, torch "
         f"{report['torch']}; load average {report['load_average']['start']} at the start, "
         f"{report['load_average']['end']} at the end.",
         "",

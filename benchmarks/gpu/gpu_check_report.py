@@ -108,8 +108,8 @@ def markdown(record: dict) -> str:
                       f"{tests['seconds']} s."]
         lines += [f"- failed: `{name}`" for name in tests["failed"]]
     if record["steps"]:
-        lines += ["", "Training steps (Lightning's loop, `benchmarks/profiles/step_profile.py`: the mean over the timed window, "
-                      "on a GPU the clock synchronized with it at both ends):", "",
+        lines += ["", "Training steps (Lightning's loop, `benchmarks/profiles/step_profile.py`: the mean over the "
+                      "timed window, on a GPU the clock synchronized with it at both ends):", "",
                   "| variant | overrides | device | precision | ms / step | steps / s | evaluations / ray |",
                   "|---|---|---|---|---|---|---|"]
         lines += [f"| {name} | `{' '.join(s['overrides'])}` | {s['device']} | {s['precision']} | {s['ms_per_step']} | "

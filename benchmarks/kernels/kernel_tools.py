@@ -280,7 +280,8 @@ def main() -> None:
     record = {"points": args.points, "repeats": args.repeats, "cpu": cpu_model(), "machine": machine(),
               "threads": torch.get_num_threads(), "forward_backward_ms": results,
               "speedup_over_torch": {k: reference / v for k, v in results.items()}, "first_call_s": compile_s,
-              "command": "python benchmarks/kernels/kernel_tools.py" + (f" --threads {args.threads}" if args.threads else "")}
+              "command": "python benchmarks/kernels/kernel_tools.py"
+                         + (f" --threads {args.threads}" if args.threads else "")}
     lines = [f"# Kernel tools: the hash encoding's forward + backward at {args.points} points", "",
              f"`{record['command']}` on {record['cpu']}, {record['threads']} torch threads, float32, median of "
              f"{args.repeats} after a warm-up; outputs and table gradients checked against the torch path first.", "",

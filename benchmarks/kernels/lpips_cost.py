@@ -73,9 +73,9 @@ def main() -> None:
     RESULTS.mkdir(exist_ok=True)
     atomic_write(RESULTS / "lpips_cost.json", (json.dumps(record, indent=2) + "\n").encode())
     lines = ["# Scoring one image: LPIPS beside SSIM and PSNR", "",
-             f"`python benchmarks/kernels/lpips_cost.py` on {name}, torch {torch.__version__}; median of {args.repeats} "
-             "calls after one untimed, seconds per image (render and target on the device; SSIM and PSNR "
-             "on the CPU as nerfexp computes them).", "",
+             f"`python benchmarks/kernels/lpips_cost.py` on {name}, torch {torch.__version__}; median of "
+             f"{args.repeats} calls after one untimed, seconds per image (render and target on the device; SSIM and "
+             "PSNR on the CPU as nerfexp computes them).", "",
              "| image | LPIPS (s) | SSIM (s) | PSNR (s) |", "|---|---|---|---|"]
     lines += [f"| {r['size']} x {r['size']} | {r['lpips_s']:.4f} | {r['ssim_s']:.4f} | {r['psnr_s']:.4f} |"
               for r in rows]

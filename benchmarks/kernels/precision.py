@@ -452,7 +452,8 @@ def main() -> None:
     chosen = [c for c in components() if args.only is None or c.name in args.only]
     rows = [measure(c, device, args.warmup, args.repeats) for device in devices for c in chosen]
     machine = machine_info()
-    command = "python benchmarks/kernels/precision.py" + (f" --repeats {args.repeats}" if args.repeats != 21 else "") + (
+    command = "python benchmarks/kernels/precision.py" + (
+        f" --repeats {args.repeats}" if args.repeats != 21 else "") + (
         f" --warmup {args.warmup}" if args.warmup != 2 else "") + (f" --threads {args.threads}") + (
         f" --only {' '.join(args.only)}" if args.only else "")
     report = {"command": command, "source": source(), "repeats": args.repeats, "warmup": args.warmup,
