@@ -1,6 +1,6 @@
-"""The user's guide and docs/ as documentation: every relative link lands on a file (and a heading, where it names
-one), and no page outside docs/results dates itself by a commit (measurements and their commits live in
-docs/results and benchmarks/results; history lives in git)."""
+"""The user's guide, docs/ and benchmarks/README.md as documentation: every relative link lands on a file (and a
+heading, where it names one), and no page outside docs/results dates itself by a commit (measurements and their
+commits live in docs/results and benchmarks/results; history lives in git)."""
 
 import re
 from pathlib import Path
@@ -9,7 +9,7 @@ import pytest
 
 from tests.helpers import REPO
 
-PAGES = sorted([REPO / "README.md", *(REPO / "docs").rglob("*.md")])
+PAGES = sorted([REPO / "README.md", REPO / "benchmarks" / "README.md", *(REPO / "docs").rglob("*.md")])
 GUIDES = sorted((REPO / "docs").glob("*.md"))  # docs/results/ holds measurements, which name their commits
 LINK = re.compile(r"\]\(([^)\s]+)\)")
 # a commit as git abbreviates it: 7 to 40 hexadecimal digits, with a letter and a digit among them
