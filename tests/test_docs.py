@@ -1,6 +1,6 @@
-"""The user's guide and docs/ as documentation: every relative link lands on a file (and a heading, where it names
-one); every file of the repository and every module of nerfexp a guide (README.md, docs/*.md outside docs/results)
-names exists; and a guide says what is true now, never when it became so.
+"""The user's guide, docs/ and benchmarks/README.md as documentation: every relative link lands on a file (and a
+heading, where it names one); every file of the repository and every module of nerfexp a guide (README.md,
+docs/*.md outside docs/results) names exists; and a guide says what is true now, never when it became so.
 
 What a guide may not name, and how each is told from legitimate text:
 
@@ -33,7 +33,7 @@ import pytest
 
 from tests.helpers import REPO
 
-PAGES = sorted([REPO / "README.md", *(REPO / "docs").rglob("*.md")])
+PAGES = sorted([REPO / "README.md", REPO / "benchmarks" / "README.md", *(REPO / "docs").rglob("*.md")])
 # the README and the guides; docs/results/ holds measurements, which name their commits and dates
 GUIDES = [REPO / "README.md", *sorted((REPO / "docs").glob("*.md"))]
 LINK = re.compile(r"\]\(([^)\s]+)\)")

@@ -2,8 +2,8 @@
 (``datamodule.pose_noise``), trained with and without ``camera_opt=so3xr3``, against training on the true poses,
 and each scored with the test cameras as given and refined with the networks frozen (``test_cameras``).
 
-    python benchmarks/camera_opt.py [--steps 1000] [--seeds 0 1 2] [--size 24] [--noise 2 0.02]
-    python benchmarks/camera_opt.py --study schedules --model default --size 64 --steps 1500 --seeds 0 1 2
+    python benchmarks/accuracy/camera_opt.py [--steps 1000] [--seeds 0 1 2] [--size 24] [--noise 2 0.02]
+    python benchmarks/accuracy/camera_opt.py --study schedules --model default --size 64 --steps 1500 --seeds 0 1 2
 
 ``--study gap`` (the default). Variants (each x ``test_cameras=given,refined``): ``true`` (the true poses,
 ``camera_opt=off``), ``perturbed`` (perturbed poses, off), ``refined`` (perturbed poses, ``camera_opt=so3xr3``
@@ -38,13 +38,11 @@ import subprocess
 import sys
 from pathlib import Path
 
-from precision import cpu_model  # benchmarks/precision.py: the CPU's model name
-
 from nerfexp.files import atomic_write
 from nerfexp.report.comparison import paired_difference
 from nerfexp.rundir.layout import machine
 
-DOCS_RESULTS = Path(__file__).parents[1] / "docs" / "results"
+DOCS_RESULTS = Path(__file__).parents[2] / "docs" / "results"
 # every run: 16 training and 4 test views, float32; a run that renders nothing goes to its end and says so
 EVERY_RUN = ["data.n_train=16", "data.n_val=1", "data.n_test=4", "trainer.precision=32-true", "logger=none",
          "model.lpips=false", "trainer.enable_progress_bar=false", "callbacks.guard.on_collapse=warn"]
@@ -161,16 +159,16 @@ def run_gap(args: argparse.Namespace) -> None:
     refined_runs = [r for r in runs if r["variant"] == "refined" and r["pose_errors"]]
     before, after = ({k: statistics.mean(r["pose_errors"][when][k] for r in refined_runs)
                       for k in ("rotation_deg", "centre")} for when in ("before", "after"))
-    record = {"command": "python " + " ".join(sys.argv), "machine": machine(), "cpu": cpu_model(),
+    record = {"command": "python " + " ".join(sys.argv), "machine": machine(),
               "steps": args.steps, "seeds": args.seeds, "size": args.size, "noise": args.noise, "runs": runs,
               "differences": comparisons, "pose_errors_before": before, "pose_errors_after": after}
     atomic_write(args.results / "camera_opt.json", json.dumps(record, indent=2).encode())
 
     text = "\n".join([
-        f"`{record['command']}` on {record['cpu']}: {args.size} x {args.size} images, {args.steps} steps, seeds "
-        f"{args.seeds}, training poses perturbed by {args.noise[0]:g} degrees and {args.noise[1]:.0%} of the "
-        "cameras' radius (each run in `camera_opt.json`). Test PSNR (dB), means over seeds; share: (refined - "
-        "perturbed) / (true - perturbed).", "",
+        f"`{record['command']}` on {record['machine']['device']}: {args.size} x {args.size} images, "
+        f"{args.steps} steps, seeds {args.seeds}, training poses perturbed by {args.noise[0]:g} degrees and "
+        f"{args.noise[1]:.0%} of the cameras' radius (each run in `camera_opt.json`). Test PSNR (dB), means over "
+        "seeds; share: (refined - perturbed) / (true - perturbed).", "",
         "| test cameras | true poses | perturbed | perturbed, refined (`camera_opt=so3xr3`) | share of the gap |",
         "|---|---|---|---|---|", *rows, "",
         f"Training poses (means over the refined runs, after a similarity): rotation {before['rotation_deg']:.3f} -> "
@@ -207,7 +205,7 @@ def run_schedules(args: argparse.Namespace) -> None:
                                 psnrs(variant), psnrs(REFERENCE))}
     candidates = [v for v in args.variants if v not in ("true", "perturbed") and not summary[v]["collapsed"]]
     best = max(candidates, key=lambda v: summary[v]["psnr"]) if candidates else None
-    record = {"command": "python " + " ".join(sys.argv), "machine": machine(), "cpu": cpu_model(),
+    record = {"command": "python " + " ".join(sys.argv), "machine": machine(),
               "model": args.model, "steps": args.steps, "seeds": args.seeds, "size": args.size, "noise": args.noise,
               "warmup": args.warmup, "variants": {v: [o.format(warmup=args.warmup) for o in SCHEDULES[v]]
                                                   for v in args.variants},
@@ -222,12 +220,12 @@ def run_schedules(args: argparse.Namespace) -> None:
                 f"{v['seeds']} | {rotation} | {paired} |")
 
     text = "\n".join([
-        f"`{record['command']}` on {record['cpu']}: the {args.model} model, {args.size} x {args.size} images, "
-        f"{args.steps} steps, seeds {args.seeds}, training poses perturbed by {args.noise[0]:g} degrees and "
-        f"{args.noise[1]:.0%} of the cameras' radius (but `true`), test cameras as given (each run in "
-        "`camera_opt_schedules.json`). Test PSNR (dB), means over seeds; collapsed: seeds whose test views all "
-        f"rendered nothing; rotation: the training poses' error after refinement (degrees, after a similarity); "
-        f"paired by seed against `{REFERENCE}` as configured, 95% t-intervals.", "",
+        f"`{record['command']}` on {record['machine']['device']}: the {args.model} model, "
+        f"{args.size} x {args.size} images, {args.steps} steps, seeds {args.seeds}, training poses perturbed by "
+        f"{args.noise[0]:g} degrees and {args.noise[1]:.0%} of the cameras' radius (but `true`), test cameras as "
+        "given (each run in `camera_opt_schedules.json`). Test PSNR (dB), means over seeds; collapsed: seeds whose "
+        "test views all rendered nothing; rotation: the training poses' error after refinement (degrees, after a "
+        f"similarity); paired by seed against `{REFERENCE}` as configured, 95% t-intervals.", "",
         "| variant | overrides | test PSNR | collapsed | rotation | minus so3xr3 |",
         "|---|---|---|---|---|---|", *(row(v) for v in args.variants), "",
         f"Best refinement none of whose seeds collapsed: {best or 'none'}.", "",

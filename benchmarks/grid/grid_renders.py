@@ -1,6 +1,6 @@
 """Where the occupancy grid's quality loss lives: trained runs' test views rendered through other grids.
 
-    python benchmarks/grid_renders.py --grid-runs RUN... --plain-runs RUN... [--points 16] [--out PATH]
+    python benchmarks/grid/grid_renders.py --grid-runs RUN... --plain-runs RUN... [--points 16] [--out PATH]
 
 A run trained with ``acceleration=occupancy`` (``--grid-runs``) is rendered through its own grid (its test score),
 a grid rebuilt from its networks now (``--points`` jittered points per cell, the largest density of its networks,
@@ -31,7 +31,7 @@ from nerfexp.rundir.layout import machine
 from nerfexp.training.denormals import set_flush_denormal_everywhere
 from nerfexp.training.metrics import psnr
 
-RESULTS = Path(__file__).parent / "results"
+RESULTS = Path(__file__).parents[1] / "results"  # benchmarks/results
 CHUNK = 1 << 16  # points per density evaluation
 
 

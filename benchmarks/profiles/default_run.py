@@ -5,7 +5,7 @@ settings, each in its own process, and writes ``benchmarks/results/default_run.j
 wall time of the whole command, training steps per second, training rays and network samples per
 second, the process's peak resident memory, and final test PSNR/SSIM.
 
-    python benchmarks/default_run.py [extra overrides...]
+    python benchmarks/profiles/default_run.py [extra overrides...]
 """
 
 import json
@@ -21,7 +21,7 @@ import torch
 
 from nerfexp.files import atomic_write
 
-RESULTS = Path(__file__).parent / "results"
+RESULTS = Path(__file__).parents[1] / "results"  # benchmarks/results
 
 
 def run(overrides: list[str]) -> dict:

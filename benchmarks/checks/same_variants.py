@@ -1,9 +1,9 @@
 """Check that a change leaves what every existing variant computes as it was: train the same variants with two
 installs of nerfexp (clean clones, each with its own environment) and compare their scores and test images.
 
-    python benchmarks/same_variants.py run BEFORE_VENV/bin/nerfexp OUT/before
-    python benchmarks/same_variants.py run AFTER_VENV/bin/nerfexp OUT/after
-    python benchmarks/same_variants.py compare OUT/before OUT/after
+    python benchmarks/checks/same_variants.py run BEFORE_VENV/bin/nerfexp OUT/before
+    python benchmarks/checks/same_variants.py run AFTER_VENV/bin/nerfexp OUT/after
+    python benchmarks/checks/same_variants.py compare OUT/before OUT/after
 
 ``run`` trains each variant of ``VARIANTS`` (300 steps; the default experiment at its own length) into
 ``OUT/NAME``, one process at a time; run it alone on the machine: beside another process that trained, the
@@ -21,7 +21,7 @@ from pathlib import Path
 
 from nerfexp.files import atomic_write
 
-RESULTS = Path(__file__).parent / "results"
+RESULTS = Path(__file__).parents[1] / "results"  # benchmarks/results
 SHORT = ["scale.steps=300", "scale.val_every=300"]
 VARIANTS = {
     "default": [],  # the README's default experiment, the paper's complete model at scale=cpu
@@ -75,7 +75,7 @@ def compare(before: Path, after: Path) -> None:
     record = {"cpu": cpu, "before": str(before), "after": str(after), "variants": rows}
     atomic_write(RESULTS / "same_variants.json", (json.dumps(record, indent=1) + "\n").encode())
     lines = [f"# Variants before and after a change ({cpu})", "",
-             f"`python benchmarks/same_variants.py compare {before} {after}`", "",
+             f"`python benchmarks/checks/same_variants.py compare {before} {after}`", "",
              "| variant | overrides | test PSNR before | after | scores | test images |", "|---|---|---|---|---|---|"]
     for r in rows:
         scores = "identical" if not r["scores_differ"] else "differ: " + ", ".join(r["scores_differ"])

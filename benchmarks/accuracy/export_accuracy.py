@@ -15,7 +15,7 @@ Distances are in scene units and in grid cells. Writes ``benchmarks/results/expo
 ``.md``; nothing is written into the run.
 
     nerfexp hydra.run.dir=outputs/default            # the default experiment (8 minutes on 2 cores)
-    python benchmarks/export_accuracy.py outputs/default [--resolution 128] [--thresholds 5 20 50]
+    python benchmarks/accuracy/export_accuracy.py outputs/default [--resolution 128] [--thresholds 5 20 50]
 """
 
 import argparse
@@ -33,7 +33,7 @@ from nerfexp.geometry.cameras import camera_rays
 from nerfexp.products.mesh import box_text, export_box, extract_mesh, final_field, view_points
 from nerfexp.rundir.layout import machine
 
-RESULTS = Path(__file__).parent / "results"
+RESULTS = Path(__file__).parents[1] / "results"  # benchmarks/results
 QUANTILES = (0.5, 0.9, 0.99)
 
 
@@ -84,7 +84,7 @@ def markdown(result: dict) -> str:
 
     thresholds = " ".join(f"{row['threshold']:g}" for row in result["meshes"])
     lines = ["# How near an export lies to the built-in scene's true surface", "",
-             f"    python benchmarks/export_accuracy.py {result['run']} --resolution {result['resolution']} "
+             f"    python benchmarks/accuracy/export_accuracy.py {result['run']} --resolution {result['resolution']} "
              f"--thresholds {thresholds}", "",
              f"Checkpoint `{result['checkpoint']}` (step {result['step']}); grid of {result['resolution']} cells along "
              f"the box's longest edge, cells of {cell:.4f}; box {box_text(torch.tensor(result['box']))}. Distances "

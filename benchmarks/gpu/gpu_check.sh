@@ -1,12 +1,12 @@
 #!/usr/bin/env bash
 # nerfexp on a CUDA GPU, in one run of at most 8 minutes (docs/acceleration.md, "On a GPU"):
-#   1. the machine: GPU, driver, torch, CUDA (benchmarks/gpu_check_report.py machine);
+#   1. the machine: GPU, driver, torch, CUDA (benchmarks/gpu/gpu_check_report.py machine);
 #   2. the device-independent tests on the GPU: pytest -m on_device with NERFEXP_TEST_DEVICE=cuda (every test that
 #      takes the `device` fixture of tests/conftest.py, and the GPU's precision rule);
-#   3. training steps timed by benchmarks/step_profile.py on the GPU, one process per variant: the paper's model
+#   3. training steps timed by benchmarks/profiles/step_profile.py on the GPU, one process per variant: the paper's model
 #      (scale=paper, precision auto), the same with the occupancy grid (acceleration=occupancy), the fast preset
 #      (experiment=fast) and the fast preset at the paper's batch (experiment=fast scale=paper);
-#   4. OUT/gpu_check.json and OUT/gpu_check.md (benchmarks/gpu_check_report.py summary), the whole log in
+#   4. OUT/gpu_check.json and OUT/gpu_check.md (benchmarks/gpu/gpu_check_report.py summary), the whole log in
 #      OUT/gpu_check.log, and the summary printed.
 # Each stage runs under `timeout` (at most 460 s together); one that fails or times out is recorded, and the others
 # still run.
@@ -17,17 +17,17 @@
 # (made here first with --prepare, where the package registry is reached) and is installed into /tmp, not into the
 # machine's Python. nerfexp itself runs from src/ (PYTHONPATH): nothing is installed.
 #
-#   bash benchmarks/gpu_check.sh --prepare            # here, once: the wheels into .whl/ (git ignores it)
-#   OUT=DIR bash benchmarks/gpu_check.sh              # on the GPU machine (its device tool sets OUT)
-#   bash benchmarks/gpu_check.sh --dry-run            # here, on the CPU, tiny sizes: every stage's commands start
+#   bash benchmarks/gpu/gpu_check.sh --prepare            # here, once: the wheels into .whl/ (git ignores it)
+#   OUT=DIR bash benchmarks/gpu/gpu_check.sh              # on the GPU machine (its device tool sets OUT)
+#   bash benchmarks/gpu/gpu_check.sh --dry-run            # here, on the CPU, tiny sizes: every stage's commands start
 set -u -o pipefail
-cd "$(dirname "$0")/.." || exit 2
+cd "$(dirname "$0")/../.." || exit 2
 ROOT=$PWD
 WHEELS=$ROOT/.whl
 MODE=${1:-gpu}
 case $MODE in
   gpu | --dry-run | --prepare) ;;
-  *) echo "usage: OUT=DIR bash benchmarks/gpu_check.sh [--dry-run | --prepare]" >&2; exit 2 ;;
+  *) echo "usage: OUT=DIR bash benchmarks/gpu/gpu_check.sh [--dry-run | --prepare]" >&2; exit 2 ;;
 esac
 
 if [ "$MODE" = --prepare ]; then
@@ -87,7 +87,7 @@ if [ "$MODE" = gpu ] && compgen -G "$WHEELS/*.whl" >/dev/null; then
 fi
 export PYTHONPATH=$SITE$ROOT/src
 stage imports 30 python3 -c 'import torch, lightning, hydra, omegaconf, nerfexp.training.module'
-stage machine 30 python3 benchmarks/gpu_check_report.py machine "$WORK/machine.json"
+stage machine 30 python3 benchmarks/gpu/gpu_check_report.py machine "$WORK/machine.json"
 # the CPU kernels are not what runs on a GPU (its tensors take the torch path): not built here
 stage tests 120 env NERFEXP_KERNELS=off python3 -m pytest -q -p no:randomly -p no:cacheprovider -m on_device \
   --junitxml="$WORK/tests.xml" "${TESTS[@]}"
@@ -99,7 +99,7 @@ variant() {
   local limit=$1 name=$2
   shift 2
   VARIANTS=$((VARIANTS + 1))
-  stage "steps: $name" "$limit" python3 benchmarks/step_profile.py "${STEPS[@]}" --out "$WORK/step_$VARIANTS" \
+  stage "steps: $name" "$limit" python3 benchmarks/profiles/step_profile.py "${STEPS[@]}" --out "$WORK/step_$VARIANTS" \
     --variant "$name" "$@" "trainer.accelerator=$ACCELERATOR" "${SHRINK[@]}"
 }
 variant 75 "paper" scale=paper
@@ -107,5 +107,5 @@ variant 75 "paper, occupancy grid" scale=paper acceleration=occupancy
 variant 50 "fast" experiment=fast
 variant 50 "fast, paper batch" experiment=fast scale=paper
 
-python3 benchmarks/gpu_check_report.py summary "$WORK" "$OUT" | tee -a "$LOG"
+python3 benchmarks/gpu/gpu_check_report.py summary "$WORK" "$OUT" | tee -a "$LOG"
 rm -rf "$WORK"

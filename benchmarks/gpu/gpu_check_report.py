@@ -1,9 +1,9 @@
-"""What ``benchmarks/gpu_check.sh`` found, in one record: the machine (GPU, driver, torch, CUDA), each stage's exit
+"""What ``benchmarks/gpu/gpu_check.sh`` found, in one record: the machine (GPU, driver, torch, CUDA), each stage's exit
 status and seconds, the device tests' counts (pytest's JUnit XML), and each timed variant's seconds per step, steps
-per second and network evaluations per ray (``benchmarks/step_profile.py``'s files).
+per second and network evaluations per ray (``benchmarks/profiles/step_profile.py``'s files).
 
-    python benchmarks/gpu_check_report.py machine WORK/machine.json
-    python benchmarks/gpu_check_report.py summary WORK OUT      # OUT/gpu_check.json and OUT/gpu_check.md
+    python benchmarks/gpu/gpu_check_report.py machine WORK/machine.json
+    python benchmarks/gpu/gpu_check_report.py summary WORK OUT      # OUT/gpu_check.json and OUT/gpu_check.md
 
 WORK holds what the stages wrote: ``machine.json``, ``stages.tsv`` (stage, exit status, seconds: one line each),
 ``tests.xml`` and ``step_N.json`` (N: the variants' order). A stage that failed or timed out (exit status 124) is
@@ -95,7 +95,7 @@ def read_steps(work: Path) -> dict:
 
 def markdown(record: dict) -> str:
     m = record["machine"]
-    lines = ["# benchmarks/gpu_check.sh", "",
+    lines = ["# benchmarks/gpu/gpu_check.sh", "",
              f"GPU: {m.get('gpu', 'none')} (compute capability {m.get('compute_capability', '-')}, "
              f"{m.get('gpu_memory_gib', '-')} GiB; nvidia-smi: {m.get('nvidia_smi')}); torch {m.get('torch')}, "
              f"CUDA {m.get('cuda')}, cuDNN {m.get('cudnn')}, Lightning {m.get('lightning')}, "
@@ -108,8 +108,8 @@ def markdown(record: dict) -> str:
                       f"{tests['seconds']} s."]
         lines += [f"- failed: `{name}`" for name in tests["failed"]]
     if record["steps"]:
-        lines += ["", "Training steps (Lightning's loop, `benchmarks/step_profile.py`: the mean over the timed window, "
-                      "on a GPU the clock synchronized with it at both ends):", "",
+        lines += ["", "Training steps (Lightning's loop, `benchmarks/profiles/step_profile.py`: the mean over the "
+                      "timed window, on a GPU the clock synchronized with it at both ends):", "",
                   "| variant | overrides | device | precision | ms / step | steps / s | evaluations / ray |",
                   "|---|---|---|---|---|---|---|"]
         lines += [f"| {name} | `{' '.join(s['overrides'])}` | {s['device']} | {s['precision']} | {s['ms_per_step']} | "

@@ -2,7 +2,7 @@
 one scene (the glossy scene by default, ``acceleration=occupancy``, float32), then their grids and the samples
 they let through compared.
 
-    python benchmarks/grid_skipping.py [--steps 1000] [--scene DIR] [--threads 2] [--out grid_skipping]
+    python benchmarks/grid/grid_skipping.py [--steps 1000] [--scene DIR] [--threads 2] [--out grid_skipping]
 
 For each encoding: network evaluations per ray (training mean, and over a fixed batch of test rays now), the
 share of cells occupied, the density limit the grid used (min(sigma_t, mean estimate): which of the two), how
@@ -30,7 +30,7 @@ from nerfexp.nerf.occupancy import cell_indices
 from nerfexp.rundir.layout import machine
 from nerfexp.training.callbacks import FlushDenormals
 
-RESULTS = Path(__file__).parent / "results"
+RESULTS = Path(__file__).parents[1] / "results"  # benchmarks/results
 ENCODINGS = {"posenc": ["encoding=posenc"], "hashgrid": ["encoding=hashgrid"]}
 WASTED = 1e-4  # a sample whose rendering weight is below this absorbs almost nothing
 

@@ -5,7 +5,7 @@ AlexNet's cost does not depend on its weights, so the network gets random ones i
 ImageNet file needed). Each score is timed ``--repeats`` times after one untimed call; the median is kept.
 Writes ``benchmarks/results/lpips_cost.json`` and ``.md``.
 
-    python benchmarks/lpips_cost.py
+    python benchmarks/kernels/lpips_cost.py
 """
 
 import argparse
@@ -22,7 +22,7 @@ from nerfexp.files import atomic_write
 from nerfexp.training.metrics import psnr, ssim
 from nerfexp.training.perceptual import ALEXNET_FILE, LpipsScorer, alexnet_features, lpips_network
 
-RESULTS = Path(__file__).parent / "results"
+RESULTS = Path(__file__).parents[1] / "results"  # benchmarks/results
 SIZES = (100, 200, 400, 800)
 
 
@@ -73,9 +73,9 @@ def main() -> None:
     RESULTS.mkdir(exist_ok=True)
     atomic_write(RESULTS / "lpips_cost.json", (json.dumps(record, indent=2) + "\n").encode())
     lines = ["# Scoring one image: LPIPS beside SSIM and PSNR", "",
-             f"`python benchmarks/lpips_cost.py` on {name}, torch {torch.__version__}; median of {args.repeats} "
-             "calls after one untimed, seconds per image (render and target on the device; SSIM and PSNR "
-             "on the CPU as nerfexp computes them).", "",
+             f"`python benchmarks/kernels/lpips_cost.py` on {name}, torch {torch.__version__}; median of "
+             f"{args.repeats} calls after one untimed, seconds per image (render and target on the device; SSIM and "
+             "PSNR on the CPU as nerfexp computes them).", "",
              "| image | LPIPS (s) | SSIM (s) | PSNR (s) |", "|---|---|---|---|"]
     lines += [f"| {r['size']} x {r['size']} | {r['lpips_s']:.4f} | {r['ssim_s']:.4f} | {r['psnr_s']:.4f} |"
               for r in rows]

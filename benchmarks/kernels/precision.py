@@ -23,7 +23,7 @@ each (``torch.profiler``) names the operators whose time grew most.
 
 Runs on the CPU, and on the GPU too where ``torch.cuda.is_available()``.
 
-    python benchmarks/precision.py [--repeats 21] [--warmup 2] [--threads N] [--only NAME ...]
+    python benchmarks/kernels/precision.py [--repeats 21] [--warmup 2] [--threads N] [--only NAME ...]
 """
 
 import argparse
@@ -53,7 +53,7 @@ from nerfexp.nerf.bounds import Bounded
 from nerfexp.rundir import layout
 from nerfexp.training.module import NeRFModule
 
-RESULTS = Path(__file__).parent / "results"
+RESULTS = Path(__file__).parents[1] / "results"  # benchmarks/results
 BOX = [[-1.5, -1.5, -1.5], [1.5, 1.5, 1.5]]  # the hash grid's and the occupancy grid's box, around the built-in scene
 CLOSE = 0.02  # the largest relative difference of bf16's outputs from float32's that counts as the same output
 # (bf16 rounds to 2^-8 = 0.4 %: this is a few roundings, far below what a wrong kernel would give)
@@ -452,7 +452,8 @@ def main() -> None:
     chosen = [c for c in components() if args.only is None or c.name in args.only]
     rows = [measure(c, device, args.warmup, args.repeats) for device in devices for c in chosen]
     machine = machine_info()
-    command = "python benchmarks/precision.py" + (f" --repeats {args.repeats}" if args.repeats != 21 else "") + (
+    command = "python benchmarks/kernels/precision.py" + (
+        f" --repeats {args.repeats}" if args.repeats != 21 else "") + (
         f" --warmup {args.warmup}" if args.warmup != 2 else "") + (f" --threads {args.threads}") + (
         f" --only {' '.join(args.only)}" if args.only else "")
     report = {"command": command, "source": source(), "repeats": args.repeats, "warmup": args.warmup,

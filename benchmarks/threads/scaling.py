@@ -7,8 +7,8 @@ step (strong scaling: n processes each render batch_rays / n rays). ``StepTimer`
 callback) times the optimizer steps after a warm-up, with no validation inside the window; throughput is
 batch_rays x timed steps / seconds. Writes ``benchmarks/results/scaling.json`` and ``.md``.
 
-    python benchmarks/scaling.py                      # CPU: 1 and 2 processes; GPUs: 1 and all
-    python benchmarks/scaling.py --steps 40 --warmup 10 --cpu-only   # a quick check
+    python benchmarks/threads/scaling.py                      # CPU: 1 and 2 processes; GPUs: 1 and all
+    python benchmarks/threads/scaling.py --steps 40 --warmup 10 --cpu-only   # a quick check
 """
 
 import argparse
@@ -26,8 +26,8 @@ import torch
 
 from nerfexp.files import atomic_write
 
-HERE = Path(__file__).parent
-RESULTS = HERE / "results"
+HERE = Path(__file__).parent  # on the child's PYTHONPATH: its callback is scaling.StepTimer
+RESULTS = HERE.parent / "results"  # benchmarks/results
 TIMER = "step_timer.json"
 
 # The CPU setting: the default model (scale=cpu) with a batch big enough to split over two processes.

@@ -15,7 +15,8 @@ machine load affects all alike (torch threads as the machine sets them). Writes
 ``benchmarks/results/quadrature.json``, ``.md`` (tables) and ``.png`` (error against wall time and
 against network evaluations per ray, log-log, one line per method).
 
-    python -m benchmarks.quadrature [--rays 2048] [--repeats 7]   # from the repository root (it imports tests.analytic)
+    python -m benchmarks.accuracy.quadrature [--rays 2048] [--repeats 7]   # from the repository root
+                                                                            # (it imports tests.analytic)
 """
 
 import argparse
@@ -37,7 +38,7 @@ from nerfexp.nerf.hierarchy import HierarchyChoice
 from nerfexp.nerf.volume_renderer import VolumeRenderer, final_output
 from nerfexp.rundir.layout import machine
 
-RESULTS = Path(__file__).parent / "results"
+RESULTS = Path(__file__).parents[1] / "results"  # benchmarks/results
 NEAR, FAR, BACKGROUND = 2.0, 6.0, "white"
 FIELDS = {  # name: (field, how rays are aimed at it: see tests.analytic.aimed_rays)
     "slab": (Slab(), dict(impact=0.0, distance=(3.5, 4.5), cone_degrees=60.0)),  # |z| < 0.5, density 3
@@ -126,9 +127,9 @@ def markdown(report: dict) -> str:
     lines = [
         "# Quadrature error against cost",
         "",
-        f"`python -m benchmarks.quadrature`: {settings['rays']} rays per field, deterministic sampling, float32, "
-        f"near {NEAR}, far {FAR}, {BACKGROUND} background; times are the median of {settings['repeats']} renders "
-        f"of the whole batch. Machine: {report['machine']['device']} on {report['machine']['host']}, torch "
+        f"`python -m benchmarks.accuracy.quadrature`: {settings['rays']} rays per field, deterministic sampling, "
+        f"float32, near {NEAR}, far {FAR}, {BACKGROUND} background; times are the median of {settings['repeats']} "
+        f"renders of the whole batch. Machine: {report['machine']['device']} on {report['machine']['host']}, torch "
         f"{report['torch']}; load average {report['load_average']['start']} at the start, "
         f"{report['load_average']['end']} at the end.",
         "",

@@ -18,7 +18,7 @@ import torch
 from nerfexp.files import atomic_write
 from nerfexp.nerf.encodings import PositionalEncoding
 
-OUT = Path(__file__).parent / "results"
+OUT = Path(__file__).parents[1] / "results"  # benchmarks/results
 L_MAX = 24
 
 
@@ -47,7 +47,7 @@ def main() -> None:
                      "nerfexp_max": (ours[:, k] - reference[:, k]).abs().max().item(),
                      "input_rounding_mean": input_error[:, k].mean().item(),
                      "input_rounding_max": input_error[:, k].max().item()})
-    lines = ["# Float32 positional encoding against float64 (`python benchmarks/encoding_precision.py`)", "",
+    lines = ["# Float32 positional encoding against float64 (`python benchmarks/accuracy/encoding_precision.py`)", "",
              f"{n} points o + t d on rays of the built-in scene's geometry (|x| < 10), torch {torch.__version__}.",
              "Error of sin(2^k pi x), the largest over the points (input rounding: mean / largest).", "",
              "| k (L = k + 1) | textbook float32 | nerfexp float32 | rounding of the point itself |",

@@ -19,7 +19,7 @@ The reference: ``PositionalEncoding(10)`` followed by the 4 x 128 MLP of ``scale
 and the network it feeds, since the positional encoding alone costs nothing). The hash grid's own MLP
 (one layer of 64) is timed with it. Every formulation is checked against ``nerfexp``'s output first.
 
-    python benchmarks/hashgrid.py [--points 24576] [--repeats 10] [--threads N]
+    python benchmarks/kernels/hashgrid.py [--points 24576] [--repeats 10] [--threads N]
 """
 
 import argparse
@@ -40,7 +40,7 @@ from nerfexp.nerf import hashgrid
 from nerfexp.nerf.encodings import PositionalEncoding
 from nerfexp.nerf.hashgrid import HASH_PRIMES, HashGridEncoding, interpolate_rows
 
-OUT = Path(__file__).parent / "results"
+OUT = Path(__file__).parents[1] / "results"  # benchmarks/results
 CORNERS = torch.tensor([[(c >> 2) & 1, (c >> 1) & 1, c & 1] for c in range(8)])  # [8, 3]: (i, j, k) offsets
 
 
@@ -179,7 +179,7 @@ def main() -> None:
     lines += [f"| {k} | {v:.1f} | {v / reference:.2f} |" for k, v in timings.items()]
     lines += ["", "The backward's sums per table entry of the hashed levels (the entries the batch read, in the "
               "encoding's order), ms: " + ", ".join(f"`{k}` {v:.1f}" for k, v in scatter.items()) + "."]
-    lines += ["", f"Machine: {machine}. Command: `python benchmarks/hashgrid.py"
+    lines += ["", f"Machine: {machine}. Command: `python benchmarks/kernels/hashgrid.py"
               + (f" --points {args.points}" if args.points != 256 * 96 else "")
               + (f" --threads {args.threads}" if args.threads else "") + "`."]
     args.out.mkdir(parents=True, exist_ok=True)

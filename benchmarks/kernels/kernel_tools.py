@@ -19,7 +19,7 @@ and the unit positions [N, 3] (mapped into the box and clamped by torch, as the 
 (256 rays x 96 samples). Times are medians of ``--repeats`` after a warm-up, forward + backward, float32 (the
 encoding runs outside autocast, so the bf16 column of the issue is the same code path here).
 
-    python benchmarks/kernel_tools.py [--points 24576] [--repeats 20] [--threads N]
+    python benchmarks/kernels/kernel_tools.py [--points 24576] [--repeats 20] [--threads N]
 
 Writes ``benchmarks/results/kernel_tools.{json,md}`` with the CPU's model and flags.
 """
@@ -32,8 +32,8 @@ from pathlib import Path
 
 import numpy as np
 import torch
-from hashgrid import median_ms  # benchmarks/hashgrid.py
-from precision import cpu_model  # benchmarks/precision.py: the CPU's model name
+from hashgrid import median_ms  # benchmarks/kernels/hashgrid.py
+from precision import cpu_model  # benchmarks/kernels/precision.py: the CPU's model name
 from torch import nn
 
 from nerfexp.files import atomic_write
@@ -41,7 +41,7 @@ from nerfexp.kernels import SWITCH
 from nerfexp.nerf.hashgrid import HASH_PRIMES, HashGridEncoding
 from nerfexp.rundir.layout import machine
 
-OUT = Path(__file__).parent / "results"
+OUT = Path(__file__).parents[1] / "results"  # benchmarks/results
 
 CPP = r"""
 #include <torch/extension.h>
@@ -280,7 +280,8 @@ def main() -> None:
     record = {"points": args.points, "repeats": args.repeats, "cpu": cpu_model(), "machine": machine(),
               "threads": torch.get_num_threads(), "forward_backward_ms": results,
               "speedup_over_torch": {k: reference / v for k, v in results.items()}, "first_call_s": compile_s,
-              "command": "python benchmarks/kernel_tools.py" + (f" --threads {args.threads}" if args.threads else "")}
+              "command": "python benchmarks/kernels/kernel_tools.py"
+                         + (f" --threads {args.threads}" if args.threads else "")}
     lines = [f"# Kernel tools: the hash encoding's forward + backward at {args.points} points", "",
              f"`{record['command']}` on {record['cpu']}, {record['threads']} torch threads, float32, median of "
              f"{args.repeats} after a warm-up; outputs and table gradients checked against the torch path first.", "",

@@ -1,7 +1,7 @@
 """Sparse hash-table gradients with LazyAdam against dense gradients with torch.optim.Adam: the cost of a
-training step as the table grows, and the quality of whole runs. Writes benchmarks/results/sparse_tables.{json,md}.
+training step as the table grows. Writes benchmarks/results/sparse_tables.{json,md}.
 
-(a) Speed: one training step of the hash grid's field from the real config (``encoding=hashgrid`` at
+One training step of the hash grid's field from the real config (``encoding=hashgrid`` at
 ``scale=cpu``: 16 levels of 2 features, 16 to 256 cells, its 1 x 64 network and the colour head of
 ``view_dependence``), one network of 96 samples per ray (``hierarchical=false``) on ``--rays`` rays of the
 built-in scene: render, colour loss, backward, optimizer step, with the optimizer's parameter groups
@@ -13,12 +13,11 @@ same batches, their steps alternating; the forward and backward pass and the opt
 apart. Levels whose vertices fit the table are dense (``F.grid_sample`` volumes) and keep dense gradients
 in both variants; the table rows of the hashed levels, and the rows one step touches, are counted.
 
-(b) Quality: runs of the real ``nerfexp`` command (both variants, seeds 0, 1, 2, alternating; ``RUNS``
-gives the commands), read from their directories (``--runs DIR ...``): test PSNR per seed, the paired
-differences (lazy - dense) with their 95% t interval (``nerfexp.report``), and training seconds per step.
+The quality of whole runs is a sweep and the report: ``nerfexp +sweeps=sparse_tables`` (its file says how
+to report it; docs/results/sparse_tables/).
 
-    python benchmarks/sparse_tables.py [--log2-table-sizes 14 16 19 22] [--repeats 10] [--warmup 3]
-                                       [--threads N] [--runs DIR]
+    python benchmarks/kernels/sparse_tables.py [--log2-table-sizes 14 16 19 22] [--repeats 10] [--warmup 3]
+                                               [--threads N]
 """
 
 import argparse
@@ -37,19 +36,14 @@ from hydra.utils import instantiate
 from nerfexp.files import atomic_write
 from nerfexp.nerf.bounds import Bounded
 from nerfexp.nerf.hashgrid import HashGridEncoding
-from nerfexp.report.runs import find_runs
-from nerfexp.report.variants import difference, group_variants
 
-RESULTS = Path(__file__).parent / "results"
+RESULTS = Path(__file__).parents[1] / "results"  # benchmarks/results
 VARIANTS = {
     "dense": ["model.optimizer._target_=torch.optim.Adam", "encoding.position.sparse_gradients=false"],
     "lazy": ["model.optimizer._target_=nerfexp.training.optimizers.LazyAdam",
              "encoding.position.sparse_gradients=true"],
 }
 SAMPLES = 96  # per ray: scale=cpu's hierarchical model evaluates 24 + (24 + 48)
-RUNS = ("for seed in 0 1 2; do  # alternating, so that the machine's drifts touch both variants alike",
-        *(f"  nerfexp encoding=hashgrid {' '.join(overrides)} seed=$seed trainer.enable_progress_bar=false "
-          f"hydra.run.dir=DIR/{name}/$seed" for name, overrides in VARIANTS.items()), "done")
 
 
 def model_and_optimizer(log2_table_size: int, variant: str, rays: int):
@@ -120,24 +114,8 @@ def speed(args) -> list[dict]:
     return rows
 
 
-def quality(directories: list[Path]) -> dict:
-    """Each variant's test PSNR by seed and training seconds per step, and the paired difference lazy - dense."""
-    variants = {("lazy" if any(o == VARIANTS["lazy"][1] for o in v.runs[0].overrides) else "dense"): v
-                for v in group_variants(find_runs(directories))}
-    out = {}
-    for name, variant in variants.items():
-        runs = sorted(variant.finished, key=lambda run: run.overrides)
-        out[name] = {"label": variant.label,
-                     "test_psnr": {o: run.results["test_psnr"] for run in runs for o in run.overrides
-                                   if o.startswith("seed=")},
-                     "s_per_step": statistics.fmean(run.results["time_per_step_s"] for run in runs)}
-    diff = difference(variants["lazy"], variants["dense"])
-    out["lazy_minus_dense_psnr"] = {"mean": diff.mean, "interval_95": diff.interval, "pairs": diff.n}
-    return out
-
-
 def markdown(report: dict, args) -> str:
-    lines = [f"(a) One training step of the hash grid's field ({args.rays} rays x {SAMPLES} samples, "
+    lines = [f"One training step of the hash grid's field ({args.rays} rays x {SAMPLES} samples, "
              f"`encoding=hashgrid` at `scale=cpu`, one network): median of {args.repeats} after {args.warmup} "
              "warm-up steps, seconds.", "",
              "| log2 T | hashed levels | table rows | rows touched | dense-level entries | dense Adam step | "
@@ -148,25 +126,9 @@ def markdown(report: dict, args) -> str:
                      f"{lazy['rows_touched']} | {row['dense_level_entries']} | {dense['step_s']:.3f} | "
                      f"{lazy['step_s']:.3f} | {row['lazy_over_dense']:.2f} | {dense['optimizer_s']:.3f} | "
                      f"{lazy['optimizer_s']:.3f} |")
-    lines += ["", f"Command: `python benchmarks/sparse_tables.py --log2-table-sizes "
+    lines += ["", f"Command: `python benchmarks/kernels/sparse_tables.py --log2-table-sizes "
               f"{' '.join(map(str, args.log2_table_sizes))} --repeats {args.repeats} --warmup {args.warmup}"
-              + (f" --threads {args.threads}" if args.threads else "")
-              + (" --runs " + " ".join(map(str, args.runs)) if args.runs else "") + "`."]
-    if "quality" in report:
-        q = report["quality"]
-        seeds = sorted(q["dense"]["test_psnr"])
-        lines += ["", "(b) `encoding=hashgrid` on the built-in scene (`scale=cpu`, its 4,000 steps), test PSNR (dB):",
-                  "", "| variant | " + " | ".join(seeds) + " | s/step |", "|---|" + "---|" * (len(seeds) + 1)]
-        for name in VARIANTS:
-            v = q[name]
-            lines.append(f"| {name}: {v['label']} | " + " | ".join(f"{v['test_psnr'][s]:.2f}" for s in seeds)
-                         + f" | {v['s_per_step']:.4f} |")
-        d = q["lazy_minus_dense_psnr"]
-        low, high = d["interval_95"] or (float("nan"), float("nan"))
-        lines += ["", f"Paired difference lazy - dense over {d['pairs']} seeds: {d['mean']:+.3f} dB, "
-                  f"95% t interval [{low:+.3f}, {high:+.3f}].", "",
-                  "The runs (DIR a folder of their own), one process at a time:", ""]
-        lines += [f"    {line}" for line in RUNS]
+              + (f" --threads {args.threads}" if args.threads else "") + "`."]
     lines += ["", f"Machine: {report['machine']}."]
     return "\n".join(lines) + "\n"
 
@@ -178,7 +140,6 @@ def main() -> None:
     parser.add_argument("--repeats", type=int, default=10)
     parser.add_argument("--warmup", type=int, default=3)
     parser.add_argument("--threads", type=int, default=None)
-    parser.add_argument("--runs", type=Path, nargs="+", default=None, help="the folder of the runs of (b)")
     parser.add_argument("--out", type=Path, default=RESULTS)
     args = parser.parse_args()
     if args.threads:
@@ -188,8 +149,6 @@ def main() -> None:
                "processor": platform.processor() or platform.machine(), "torch": torch.__version__}
     report = {"machine": machine, "rays": args.rays, "samples": SAMPLES, "repeats": args.repeats,
               "warmup": args.warmup, "speed": speed(args)}
-    if args.runs:
-        report["quality"] = quality(args.runs)
     text = markdown(report, args)
     args.out.mkdir(parents=True, exist_ok=True)
     atomic_write(args.out / "sparse_tables.json", (json.dumps(report, indent=2) + "\n").encode())

@@ -16,7 +16,7 @@ whose reflections are faint, are the control: their depth error should be about 
 
 Writes ``benchmarks/results/view_dependence.{json,md}`` (``--out``):
 
-    python benchmarks/view_dependence.py RUN_DIR [RUN_DIR ...]
+    python benchmarks/accuracy/view_dependence.py RUN_DIR [RUN_DIR ...]
 """
 
 import argparse
@@ -33,7 +33,7 @@ from nerfexp.products.trained import load_module
 from nerfexp.rundir.layout import RESULTS, read_json
 from nerfexp.rundir.trained import find_run, run_config
 
-OUT = Path(__file__).parent / "results"
+OUT = Path(__file__).parents[1] / "results"  # benchmarks/results
 OBJECTS = ("base", "mirror", "torus", "background")  # intersect_glossy's indices, then the misses
 QUARTILES = torch.tensor([0.25, 0.5, 0.75], dtype=torch.float64)
 
@@ -91,7 +91,7 @@ def markdown(runs: list[dict]) -> str:
               "distance along the pixel's centre ray, median [quartiles], in scene units.",
               "", f"Pixels per object (all test views): {runs[0]['pixels_by_object']}. The mirror's radius is "
               f"{radius}: a virtual image of distant things lies up to {radius / 2} behind its surface.",
-              "", "Command: `python benchmarks/view_dependence.py " + " ".join(r["run"] for r in runs) + "`."]
+              "", "Command: `python benchmarks/accuracy/view_dependence.py " + " ".join(r["run"] for r in runs) + "`."]
     return "\n".join(lines) + "\n"
 
 

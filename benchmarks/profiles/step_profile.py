@@ -14,10 +14,10 @@ On a GPU (the config's ``trainer.accelerator``: auto takes one where there is on
 requires it) the clock waits for the GPU's queued work at both ends of the window, and the operators are
 ranked by their kernels' device time.
 
-Unlike ``benchmarks/precision.py`` (fixed inputs), the networks here see the batches of training: with
+Unlike ``benchmarks/kernels/precision.py`` (fixed inputs), the networks here see the batches of training: with
 ``acceleration=occupancy`` a packed batch of another size every step.
 
-    python benchmarks/step_profile.py [--steps 1000] [--window 200] [--profile 20] [--threads N]
+    python benchmarks/profiles/step_profile.py [--steps 1000] [--window 200] [--profile 20] [--threads N]
                                       [--variant NAME OVERRIDE ...]... [--out NAME_OR_PATH]
 
 Default variants: the ``cpu_ablation`` sweep's complete model in float32 and in bf16. Writes
@@ -47,7 +47,7 @@ from nerfexp.training import machine_share
 from nerfexp.training.callbacks import FlushDenormals
 from nerfexp.training.precision import fill_precision
 
-RESULTS = Path(__file__).parent / "results"
+RESULTS = Path(__file__).parents[1] / "results"  # benchmarks/results
 ABLATION = ["+sweeps=cpu_ablation", "ablation=complete", "seed=0"]
 VARIANTS = {"cpu_ablation complete, float32": [*ABLATION, "trainer.precision=32-true"],
             "cpu_ablation complete, bf16": [*ABLATION, "trainer.precision=bf16-mixed"]}
@@ -158,7 +158,7 @@ def main() -> None:
     commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True,
                             cwd=Path(nerfexp.__file__).parent).stdout.strip() if shutil.which("git") else ""
     meta = {"steps": args.steps, "window": args.window, "profile": args.profile, "commit": commit,
-            "command": "python benchmarks/step_profile.py " + " ".join(sys.argv[1:]),
+            "command": "python benchmarks/profiles/step_profile.py " + " ".join(sys.argv[1:]),
             "machine": {"device": machine_record()["device"], "cpu_count": os.cpu_count(), "torch_threads": torch.get_num_threads(),
                         "processor": platform.processor() or platform.machine(), "torch": torch.__version__,
                         "cuda": torch.version.cuda,

@@ -11,10 +11,10 @@ load (other processes' mean busy CPUs while it trained, ``nerfexp.training.machi
 with. Writes ``benchmarks/results/busy_machine.json`` and ``.md`` (``--out`` elsewhere), with the CPU model. Run it
 alone on the machine: the "alone" cases must be.
 
-    python benchmarks/busy_machine.py                       # 300 steps, 2 busy processes, threads 2, 1, auto
-    python benchmarks/busy_machine.py --change-after 0      # without the arriving and leaving neighbours
-    python benchmarks/busy_machine.py --no-steady           # only those
-    python benchmarks/busy_machine.py --steps 10 --out /tmp/busy   # a smoke run
+    python benchmarks/threads/busy_machine.py                       # 300 steps, 2 busy processes, threads 2, 1, auto
+    python benchmarks/threads/busy_machine.py --change-after 0      # without the arriving and leaving neighbours
+    python benchmarks/threads/busy_machine.py --no-steady           # only those
+    python benchmarks/threads/busy_machine.py --steps 10 --out /tmp/busy   # a smoke run
 """
 
 import argparse
@@ -31,7 +31,7 @@ from nerfexp.files import atomic_write
 from nerfexp.rundir.layout import cpu_model
 from nerfexp.training.machine_share import available_cpus
 
-RESULTS = Path(__file__).parent / "results"
+RESULTS = Path(__file__).parents[1] / "results"  # benchmarks/results
 SPIN = "while True: pass"  # one busy CPU, single-threaded
 SETTLE_S = 1.0  # seconds the busy processes run before a case starts
 
