@@ -1,7 +1,10 @@
 """benchmarks/: each script one line of benchmarks/README.md, every script a file names there to be run, and each
 script's imports found from where it lies (a script moved without its neighbours, or a neighbour retired, fails
-here rather than when someone runs it)."""
+here rather than when someone runs it). A script that runs in another tool's environment says so in its docstring
+("Runs in nerfstudio's own environment"): its imports are that environment's, so it is not loaded here, and it
+imports nothing of nerfexp, which that environment does not hold."""
 
+import ast
 import re
 import runpy
 import subprocess
@@ -19,12 +22,33 @@ SCRIPTS = sorted(path for path in BENCHMARKS.rglob("*")
 # a script as a file names it: its path (lower case: FOLDER/NAME.py is a placeholder), or the module python -m runs
 NAMED = re.compile(r"benchmarks/[a-z0-9_/]+\.(?:py|sh)\b|(?<=-m )benchmarks(?:\.\w+)+")
 TEXT = (".md", ".py", ".sh", ".yaml", ".toml", ".cfg", ".txt", ".gitignore")  # not .json: records of runs
+# how a script's docstring says that it runs in another tool's environment, not nerfexp's; the tool's name captured
+ELSEWHERE = re.compile(r"\bRuns in ([\w.-]+)'s own environment\b")
 
 
 def named_scripts(text: str) -> set[str]:
     """The benchmark scripts ``text`` names, as paths relative to the repository: ``benchmarks.accuracy.quadrature``
     (a module, for ``python -m``) is ``benchmarks/accuracy/quadrature.py``."""
     return {name if "/" in name else name.replace(".", "/") + ".py" for name in NAMED.findall(text)}
+
+
+def environment(script: Path) -> str | None:
+    """The other tool whose environment ``script`` runs in, as its docstring says (``ELSEWHERE``); None where it runs
+    in nerfexp's. Read from the source, not imported."""
+    doc = " ".join((ast.get_docstring(ast.parse(script.read_text())) or "").split())
+    found = ELSEWHERE.search(doc)
+    return found[1] if found and found[1] != "nerfexp" else None
+
+
+def imported_modules(script: Path) -> set[str]:
+    """Every module ``script`` imports, at any depth of its code: ``from a.b import c`` imports ``a.b``."""
+    found = set()
+    for node in ast.walk(ast.parse(script.read_text())):
+        if isinstance(node, ast.Import):
+            found.update(alias.name for alias in node.names)
+        elif isinstance(node, ast.ImportFrom) and node.module and not node.level:
+            found.add(node.module)
+    return found
 
 
 def naming_files() -> list[Path]:
@@ -67,11 +91,36 @@ def test_scripts_live_in_folders_of_what_they_measure():
     assert not loose, f"scripts directly in benchmarks/, outside a folder of what they measure: {loose}"
 
 
+@pytest.mark.parametrize(
+    "doc, found",
+    [
+        ("Runs in nerfstudio's own environment (``pip install nerfstudio``), not nerfexp's.", "nerfstudio"),
+        ("the peer half.\nRuns in\nnerfstudio's own environment, not nerfexp's", "nerfstudio"),  # across lines
+        ("Runs in nerfexp's own environment.", None),
+        ("its test views rendered in the peer's environment (``--peer-python``)", None),
+        ("", None),
+    ],
+    ids=["one line", "across lines", "nerfexp's own", "another environment's words", "no docstring"],
+)
+def test_environment_is_read_from_the_docstring(doc, found, tmp_path):
+    script = tmp_path / "script.py"
+    script.write_text(f'"""{doc}"""\n\nimport no_such_module_here\n' if doc else "import no_such_module_here\n")
+    assert environment(script) == found
+
+
+def test_imported_modules_finds_every_absolute_import(tmp_path):
+    script = tmp_path / "script.py"
+    script.write_text("import a.b, c\nfrom nerfexp.x import y\nfrom . import z\n\ndef f():\n    import nerfexp\n")
+    assert imported_modules(script) == {"a.b", "c", "nerfexp.x", "nerfexp"}
+
+
 @pytest.mark.parametrize("script", [s for s in SCRIPTS if s.suffix == ".py"], ids=lambda s: s.stem)
 def test_each_python_script_loads_from_where_it_lies(script, monkeypatch):
     """Its module-level code (the imports, of nerfexp and of its neighbours, and the constants) runs as
     ``python benchmarks/FOLDER/NAME.py`` runs it, its own folder first on the path; what runs under
-    ``__name__ == "__main__"`` does not."""
+    ``__name__ == "__main__"`` does not. A script of another tool's environment is skipped (the module's docstring)."""
+    if other := environment(script):
+        pytest.skip(f"{script.relative_to(REPO)} runs in {other}'s own environment, whose imports this one lacks")
     monkeypatch.syspath_prepend(str(script.parent))
     before = set(sys.modules)
     try:
@@ -81,6 +130,12 @@ def test_each_python_script_loads_from_where_it_lies(script, monkeypatch):
             if script.parent in Path(getattr(sys.modules[name], "__file__", None) or "/").parents:
                 del sys.modules[name]
     assert found["__doc__"], f"{script.relative_to(REPO)}: no docstring saying what it answers"
+
+
+@pytest.mark.parametrize("script", [s for s in SCRIPTS if s.suffix == ".py" and environment(s)], ids=lambda s: s.stem)
+def test_a_script_of_another_environment_imports_nothing_of_nerfexp(script):
+    ours = sorted(name for name in imported_modules(script) if name.split(".")[0] == "nerfexp")
+    assert not ours, f"{script.relative_to(REPO)} runs in {environment(script)}'s environment, yet imports {ours}"
 
 
 @pytest.mark.parametrize("script", [s for s in SCRIPTS if s.suffix == ".sh"], ids=lambda s: s.stem)
