@@ -5,6 +5,7 @@ import argparse
 import contextlib
 import errno
 import hashlib
+import importlib
 import io
 import json
 import logging
@@ -17,6 +18,7 @@ import subprocess
 import sys
 import threading
 import time
+import tomllib
 import traceback
 import warnings
 from collections.abc import Callable, Iterator
@@ -28,7 +30,9 @@ import numpy as np
 import torch
 from hydra import compose, initialize_config_module
 from hydra.core.global_hydra import GlobalHydra
+from omegaconf import open_dict
 
+from nerfexp.commands import export
 from nerfexp.geometry.cameras import look_at
 from nerfexp.training.perceptual import ALEXNET_SHA256
 
@@ -48,6 +52,15 @@ def tiny_config(*overrides: str):
     """The real config, shrunk by ``TINY``, with ``overrides`` after it (composed without Hydra's runtime)."""
     with initialize_config_module("nerfexp.conf", version_base=None):
         return compose("config", overrides=[*TINY, *overrides])
+
+
+def without_overrides(cfg):
+    """A copy of the composed config ``cfg`` (with Hydra's section) as if what its overrides chose had come from a
+    config file (a sweep's, a preset's defaults list): ``hydra.overrides.task`` empty, the choices kept."""
+    cfg = cfg.copy()
+    with open_dict(cfg):
+        cfg.hydra.overrides.task = []
+    return cfg
 
 
 # HTTPS through a proxy where nothing listens (port 9, discard): a test's command downloads nothing, e.g. AlexNet's
@@ -93,8 +106,7 @@ def run_in_this_process(script: str, *args: str, cwd: Path) -> subprocess.Comple
     prints it), a traceback and status 1 for any other exception, and what it wrote to stdout and stderr.
     What the command changes of the process is put back afterwards (``isolated``)."""
     assert not NEEDS_A_PROCESS.search(" ".join(args)), f"{args}: run with run_nerfexp(..., new_process=True)"
-    (entry,) = entry_points(group="console_scripts", name=script)
-    main = entry.load()
+    main = entry_point(script)
     out, err = (io.TextIOWrapper(io.BytesIO(), encoding="utf-8", write_through=True) for _ in range(2))
     status = 0
     with isolated(cwd, [script, *args]), contextlib.redirect_stdout(out), contextlib.redirect_stderr(err):
@@ -110,6 +122,17 @@ def run_in_this_process(script: str, *args: str, cwd: Path) -> subprocess.Comple
             status = 1
     return subprocess.CompletedProcess([script, *args], status, out.buffer.getvalue().decode(),
                                        err.buffer.getvalue().decode())
+
+
+def entry_point(script: str) -> Callable:
+    """Console script ``script``'s entry point: as nerfexp was installed, else as this tree's pyproject.toml declares
+    it (a script added since the install, which only a new install puts on the PATH)."""
+    installed = entry_points(group="console_scripts", name=script)
+    if installed:
+        (entry,) = installed
+        return entry.load()
+    module, _, name = tomllib.loads((REPO / "pyproject.toml").read_text())["project"]["scripts"][script].partition(":")
+    return getattr(importlib.import_module(module), name)
 
 
 def all_loggers() -> list[logging.Logger]:
@@ -461,3 +484,33 @@ def read_ply(data: bytes) -> tuple[list[str], dict[str, np.ndarray]]:
         offset += count * dtype.itemsize
     assert offset == len(data), f"{len(data) - offset} bytes after the last element"
     return comments, elements
+
+
+# nerfexp-export's line for a given threshold that no density on its grid crosses: the densities' range, to 4 digits
+NO_SURFACE = re.compile(r"no surface at --threshold \S+: the field's densities on the \d+ x \d+ x \d+ grid over the "
+                        r"box .* lie in \[(\S+), (\S+)\]; choose a threshold between them$")
+
+
+def threshold_between(message: str) -> float:
+    """A threshold half-way between the densities that nerfexp-export's ``NO_SURFACE`` line ``message`` gives, as the
+    line advises: one that the field crosses on that grid."""
+    match = NO_SURFACE.search(message)
+    assert match, message
+    low, high = (float(v) for v in match.groups())
+    assert low < high, message  # a grid of one density (to 4 digits) has no surface to find
+    return (low + high) / 2
+
+
+def crossed_threshold(run: Path, resolution: int) -> str:
+    """A ``--threshold`` that the field of the run at ``run`` crosses on nerfexp-export's grid of ``resolution``
+    cells (``threshold_between`` the densities that an export refused for its largest threshold names), and so on
+    every grid holding that one's points (over a cube, such as the tiny run's box: a multiple of ``resolution``
+    cells). For a test that needs a mesh of a briefly trained run and is not about the default threshold: where such
+    a field's default falls against a coarse grid's densities depends on the CPU that trained it
+    (``trainer.precision=auto`` trains in bf16 where the CPU has bf16 units and a step measured faster in it, in
+    float32 elsewhere)."""
+    try:
+        export.main([str(run), "--resolution", f"{resolution}", "--threshold", f"{export.DENSITY_LIMIT!r}"])
+    except SystemExit as refused:
+        return f"{threshold_between(str(refused.code))}"
+    raise AssertionError(f"nerfexp-export {run} found a surface at --threshold {export.DENSITY_LIMIT!r}")

@@ -2,19 +2,22 @@
 the user set (or the file) and what was expected, no traceback, and nothing written that should not be."""
 
 import json
+import re
+import shutil
 import struct
 import subprocess
 import sys
 import zlib
+from pathlib import Path
 
 import pytest
 from hypothesis import given
 from hypothesis import strategies as st
 from PIL import Image
 
-from nerfexp.commands.train import check_group_choices
-from nerfexp.errors import ConfigError
 from nerfexp.domains import FLOAT32_TOP_OCTAVE
+from nerfexp.errors import ConfigError
+from nerfexp.settings.groups import check_group_overrides, is_nerfexp_group
 from tests.helpers import one_error_line, run_nerfexp
 
 
@@ -43,6 +46,18 @@ from tests.helpers import one_error_line, run_nerfexp
     # issue 39 section 4: extreme values, one line each (traceback and overflow before)
     (["data.far=1e308"], "data.far=1e+308 (which sets model.renderer.far): expected a finite number > 0 and <= 2^24, "
                          "or null (from the scene)"),
+    # a thread count beyond any machine: refused before torch is asked for it (OpenMP aborted the process, with no
+    # line, and left the run's status.json saying running; torch overflowed past 2^31 - 1)
+    (["threads=1000000000"], "threads=1000000000: expected a whole number in [1, 65536], or null (auto: the CPUs "
+                             "this process may use over the jobs run at once)"),
+    (["threads=9223372036854775807"], "threads=9223372036854775807: expected a whole number in [1, 65536], or null "
+                                      "(auto: the CPUs this process may use over the jobs run at once)"),
+    # a setting with a physical meaning has a range that means something: pose noise in degrees up to the largest
+    # turn and a fraction of the cameras' radius up to 1 ([1e9,1e9] moved every camera 4e9 units away, scored as any
+    # other run)
+    (["datamodule.pose_noise=[1e9,1e9]"], "datamodule.pose_noise=[1000000000.0, 1000000000.0]: expected [degrees, "
+                                          "fraction of the cameras' radius], degrees a finite number in [0, 180] and "
+                                          "fraction one in [0, 1], or null (the poses as the data gives them)"),
     (["hierarchical=false", "scale.n_fine=64"], "scale.n_fine=64: not used with hierarchical=false (one network of "
                                                 "sampler.n_single samples; set scale.n_single)"),
     (["acceleration=occupancy", "acceleration.grid.segments=8"],
@@ -89,15 +104,15 @@ def test_eight_times_lower_positions_allow_three_more_octaves(tmp_path):
     assert "expected at most 22 frequencies with input_scale 0.125" in one_error_line(result)
 
 
-def blender_scene(tmp_path, tiny) -> tuple:
-    """A Blender-format scene of 10 training, 1 validation and 2 test views written by nerfexp-scene, and
-    the tiny run's overrides for it."""
+def blender_scene(tmp_path, tiny, form: str = "blender") -> tuple:
+    """A scene of 10 training, 1 validation and 2 test views written by nerfexp-scene in ``form`` (Blender's or
+    nerfstudio's format), and the tiny run's overrides for it."""
     scene = tmp_path / "scene"
     exported = run_nerfexp(str(scene), "--resolution", "24", "--n-train", "10", "--n-val", "1", "--n-test", "2",
-                           cwd=tmp_path, script="nerfexp-scene")
+                           "--format", form, cwd=tmp_path, script="nerfexp-scene")
     assert exported.returncode == 0, exported.stderr[-2000:]
     overrides = [o for o in tiny if not o.startswith(("data.", "scale.image_size"))]
-    return scene, ["data=blender", f"data.root={scene}", "data.n_val=1", *overrides]
+    return scene, [f"data={form}", f"data.root={scene}", "data.n_val=1", *overrides]
 
 
 def test_more_training_views_than_a_scene_has_is_one_line(tmp_path, tiny):
@@ -133,6 +148,53 @@ def test_a_test_split_naming_a_training_image_stops_the_run_before_its_first_ste
         f"{scene / 'transforms_train.json'}: frame 4 (./train/r_4) are one view (they name one file "
         f"({scene / 'train' / 'r_4.png'})): a score on views training saw is no test score; keep it in one split")
     assert not (tmp_path / "run" / "metrics.jsonl").exists() and not (tmp_path / "run" / "checkpoints").exists()
+
+
+def add_test_frame(scene, form: str, frame: dict) -> tuple[Path, int]:
+    """``frame`` added to the test split of an exported scene (``blender_scene``) where it is scored (Blender's:
+    first, a test view at every ``scale.test_stride``; nerfstudio's: last, listed in ``test_filenames``); its
+    transforms file and its place there."""
+    transforms = scene / ("transforms_test.json" if form == "blender" else "transforms.json")
+    content = json.loads(transforms.read_text())
+    place = 0 if form == "blender" else len(content["frames"])
+    content["frames"].insert(place, frame)
+    if form == "nerfstudio":
+        content["test_filenames"].append(frame["file_path"])
+    transforms.write_text(json.dumps(content))
+    return transforms, place
+
+
+@pytest.mark.parametrize("form", ["blender", "nerfstudio"])
+def test_a_near_copy_of_a_training_view_in_the_test_split_stops_the_run_before_its_first_step(tmp_path, tiny, form):
+    # a training image copied to another file, at that view's pose plus 1e-6 on one translation entry
+    scene, overrides = blender_scene(tmp_path, tiny, form)
+    train = scene / ("transforms_train.json" if form == "blender" else "transforms.json")
+    frame = json.loads(train.read_text())["frames"][4]
+    image = scene / (f"{frame['file_path']}.png" if form == "blender" else frame["file_path"])
+    shutil.copy(image, image.with_name("copy.png"))
+    frame["transform_matrix"][0][3] += 1e-6
+    name = ("./train/copy" if form == "blender" else "images/copy.png")
+    transforms, place = add_test_frame(scene, form, {**frame, "file_path": name})
+    result = run_nerfexp(*overrides, f"hydra.run.dir={tmp_path / 'run'}", cwd=tmp_path)
+    expected = re.escape(f"nerfexp: error: the test view {transforms}: frame {place} ({name}) and the training view "
+                         f"{train}: frame 4 ({frame['file_path']}) are one view (their cameras ") + r"[0-9.e-]+" + \
+        re.escape(" of the cameras' spread and 0 degrees apart, their images identical: one view is cameras within "
+                  "0.01 of the spread and 0.5 degrees, images at 20 dB or more): a score on views training saw is no "
+                  "test score; keep it in one split")
+    assert re.fullmatch(expected, one_error_line(result))
+    assert not (tmp_path / "run" / "metrics.jsonl").exists() and not (tmp_path / "run" / "checkpoints").exists()
+
+
+@pytest.mark.parametrize("form", ["blender", "nerfstudio"])
+def test_a_file_path_holding_a_nul_byte_is_one_line_before_any_image_is_read(tmp_path, tiny, form):
+    scene, overrides = blender_scene(tmp_path, tiny, form)
+    frame = json.loads((scene / ("transforms_train.json" if form == "blender" else "transforms.json")).read_text())
+    name = "images/a\x00.png"
+    transforms, place = add_test_frame(scene, form, {**frame["frames"][0], "file_path": name})
+    result = run_nerfexp(*overrides, f"hydra.run.dir={tmp_path / 'run'}", cwd=tmp_path)
+    assert one_error_line(result) == (f"nerfexp: error: {transforms}: frame {place}: 'file_path' holds a NUL "
+                                      "byte, which no file name can, got 'images/a\\x00.png'")
+    assert not (tmp_path / "run" / "metrics.jsonl").exists()
 
 
 @pytest.mark.parametrize("mode", ["run", "sweep"])
@@ -276,7 +338,11 @@ def test_a_command_that_stops_at_bad_input_or_help_does_not_import_lightning(ent
 
 
 # A config group's choice is an option's name: null, a number, a mapping or a range there is one line (a
-# ValueError's traceback from Hydra before), and GROUP=null is refused rather than read as no option.
+# ValueError's traceback from Hydra before), and GROUP=null is refused rather than read as no option; a list or a
+# path, which Hydra composes and records as another choice (none, or the path), too (every group:
+# tests/settings/test_groups.py).
+LIST = "; a list is not one (Hydra would compose each config it names and record no choice)"
+PATH = "; a path is not one (Hydra would compose whatever config it leads to, in another group too)"
 
 @pytest.mark.parametrize(("arguments", "message"), [
     (["experiment=null"], "experiment=null: a config group takes an option's name (choose from fast); none is "
@@ -290,6 +356,21 @@ def test_a_command_that_stops_at_bad_input_or_help_does_not_import_lightning(ent
     (["-m", "experiment=fast,null"], "experiment=fast,null: a config group takes an option's name (choose from "
                                      "fast); none is experiment's default: leave it out for none"),
     (["-m", "scale=range(0,2)"], "scale=range(0,2): a config group takes an option's name (choose from cpu, paper)"),
+    (["experiment=[fast]"], f"experiment=[fast]: a config group takes an option's name (choose from fast){LIST}"),
+    (["experiment=../ablation/no_posenc"], "experiment=../ablation/no_posenc: a config group takes an option's name "
+                                           f"(choose from fast){PATH}"),
+    (["experiment=/ablation/no_posenc"], "experiment=/ablation/no_posenc: a config group takes an option's name "
+                                         f"(choose from fast){PATH}"),
+    (["experiment=fast/../fast"], f"experiment=fast/../fast: a config group takes an option's name (choose from fast)"
+                                  f"{PATH}"),
+    (["scale=./paper"], f"scale=./paper: a config group takes an option's name (choose from cpu, paper){PATH}"),
+    (["-m", "seed=0,1", "experiment=fast,../ablation/no_posenc"],
+     f"experiment=fast,../ablation/no_posenc: a config group takes an option's name (choose from fast){PATH}"),
+    (["-m", "encoding=[none],[posenc]"], "encoding=[none],[posenc]: a config group takes an option's name (choose "
+                                         f"from hashgrid, none, posenc){LIST}"),
+    (["+sweeps=[smoke]"], "+sweeps=[smoke]: a config group takes an option's name (choose from budgets, components, "
+                          "cpu_ablation, optuna, paper_ablation, precision, real, smoke, sparse_tables, "
+                          f"successors){LIST}"),
 ])
 def test_a_group_given_what_is_not_an_option_is_one_line_before_anything_is_made(tmp_path, arguments, message):
     result = run_nerfexp(*arguments, f"hydra.run.dir={tmp_path / 'run'}", f"hydra.sweep.dir={tmp_path / 'sweep'}",
@@ -299,8 +380,10 @@ def test_a_group_given_what_is_not_an_option_is_one_line_before_anything_is_made
 
 
 def test_removing_a_group_or_choosing_its_options_is_not_refused():
-    check_group_choices(["~experiment", "experiment=fast", "encoding=[posenc]", "-m", "encoding=posenc,none",
-                         "encoding=glob(*)", "scale.lr=0.1", "data.root=/x=y", "--cfg", "job"])
+    check_group_overrides(["~experiment", "~experiment=fast", "experiment=fast", "-m", "encoding=posenc,none",
+                           "encoding=glob(*)", "scale.lr=0.1", "data.root=/x=y", "hydra.run.dir=/a/b", "--cfg", "job",
+                           "hydra/launcher=submitit_local", "+encoding/hashgrid_sizes=paper", "tags=[a/b]"],
+                          is_nerfexp_group)
 
 
 @given(st.sampled_from(["experiment", "+experiment", "++encoding", "view_dependence", "hydra/launcher"]),
@@ -311,5 +394,5 @@ def test_any_value_but_an_options_name_at_a_group_is_refused(key, value):
         "{" + ",".join(f"{k}:{v}" for k, v in value.items()) + "}")
     argument = f"{key}={text}"
     with pytest.raises(ConfigError) as raised:
-        check_group_choices([argument, "encoding=posenc"])
+        check_group_overrides([argument, "encoding=posenc"], is_nerfexp_group)
     assert str(raised.value).startswith(f"{argument}: a config group takes an option's name")

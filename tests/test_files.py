@@ -1,14 +1,15 @@
 """A write that fails names what could not be written, never its temporary, and leaves what was there
-whole (nerfexp.files: WriteError, atomic_file, atomic_directory). The faults are real where the machine
-permits: a full tmpfs, a read-only bind mount (tests.helpers)."""
+whole (nerfexp.files: WriteError, atomic_file, atomic_directory, files staged to be replaced together). The
+faults are real where the machine permits: a full tmpfs, a read-only bind mount (tests.helpers)."""
 
 import errno
 import os
+import signal
 from pathlib import Path
 
 import pytest
 
-from nerfexp.files import WriteError, atomic_directory, atomic_write, written_name
+from nerfexp.files import WriteError, atomic_directory, atomic_write, staged, written_name
 from tests.helpers import digests, fill_disk, make_read_only, small_disk, unmount
 
 
@@ -84,3 +85,59 @@ def test_a_signal_between_the_two_renames_of_a_replaced_folder_puts_the_previous
     assert sorted(p.name for p in tmp_path.iterdir()) == ["report_images"]  # no .tmp or .old left
     assert [p.name for p in out.iterdir()] == ["view0.png"]
     assert (out / "view0.png").read_bytes() == b"the previous picture"
+
+
+def staged_report(root: Path, fail: bool = False) -> None:
+    """A page and its pictures' folder staged into ``root`` together (a report's shape); ``fail``: the block fails
+    once both are written beside their places."""
+    with staged(root) as staging:
+        staging.file("page.html", b"the next page, naming view1.png")
+        with staging.folder("pictures") as folder:
+            (folder / "view1.png").write_bytes(b"the next picture")
+        if fail:
+            raise RuntimeError("stopped while it worked")
+
+
+def previous_report(root: Path) -> dict[str, str]:
+    (root / "pictures").mkdir(parents=True)
+    (root / "pictures" / "view0.png").write_bytes(b"the previous picture")
+    (root / "page.html").write_bytes(b"the previous page, naming view0.png")
+    return digests(root)
+
+
+def test_files_staged_together_replace_the_previous_ones_only_once_all_are_written(tmp_path):
+    before = previous_report(tmp_path)
+    with pytest.raises(RuntimeError):
+        staged_report(tmp_path, fail=True)
+    assert digests(tmp_path) == before  # the previous page and pictures, and no temporary
+    staged_report(tmp_path)
+    assert (tmp_path / "page.html").read_bytes() == b"the next page, naming view1.png"
+    assert [p.name for p in (tmp_path / "pictures").iterdir()] == ["view1.png"]  # the folder replaced as a whole
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["page.html", "pictures"]
+
+
+def test_a_signal_while_staged_files_move_into_place_takes_effect_once_all_are_there(tmp_path, monkeypatch):
+    previous_report(tmp_path)
+    replace, stops = os.replace, []
+
+    def signalled_after_the_first(source, target):  # SIGINT as the page is moved in, before its pictures
+        replace(source, target)
+        if not stops:
+            stops.append(Path(target).name)
+            os.kill(os.getpid(), signal.SIGINT)
+
+    def stop(signum, frame):
+        raise RuntimeError("stopped by SIGINT")
+
+    monkeypatch.setattr(os, "replace", signalled_after_the_first)
+    before = signal.signal(signal.SIGINT, stop)
+    try:
+        with pytest.raises(RuntimeError, match="stopped by SIGINT"):
+            staged_report(tmp_path)
+        assert signal.getsignal(signal.SIGINT) is stop  # the handler from before the moves, back
+    finally:
+        signal.signal(signal.SIGINT, before)
+    assert stops == ["page.html"]
+    assert (tmp_path / "page.html").read_bytes() == b"the next page, naming view1.png"
+    assert [p.name for p in (tmp_path / "pictures").iterdir()] == ["view1.png"]  # moved too, before the stop
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["page.html", "pictures"]

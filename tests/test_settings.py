@@ -158,7 +158,23 @@ def composed(*overrides):
     (["contraction=mipnerf360", "contraction.function.radius=0"], "contraction.function.radius=0: expected a "
                                                                   "finite number > 0"),
     (["contraction=mipnerf360", "contraction.function.centre=[0,1]"], "contraction.function.centre=[0, 1]: "
-                                                                      "expected a list of 3 finite numbers"),
+                                                                      "expected a list of 3 items, each a finite "
+                                                                      "number within +-2^24, or null"),
+    # a point and a distance in scene units: within 2^24, where float32 positions still resolve a unit
+    (["contraction=mipnerf360", "contraction.function.centre=[0,0,1e30]"], "contraction.function.centre=[0, 0, "
+                                                                           "1e+30]: expected a list of 3 items, each "
+                                                                           "a finite number within +-2^24"),
+    (["contraction=mipnerf360", "contraction.function.radius=1e30"], "contraction.function.radius=1e+30: expected "
+                                                                     "a finite number > 0 and <= 2^24"),
+    # counts of threads and processes per node beyond any machine's CPUs (2^16), physical quantities in their ranges
+    (["threads=65537"], "threads=65537: expected a whole number in [1, 65536], or null (auto: the CPUs"),
+    (["threads=0"], "threads=0: expected a whole number in [1, 65536]"),
+    (["trainer.devices=1000000"], "trainer.devices=1000000: expected a whole number in [1, 65536], a list of device "
+                                  "indices, or auto"),
+    (["datamodule.pose_noise=[181,0]"], "datamodule.pose_noise=[181, 0]: expected [degrees, fraction of the cameras' "
+                                        "radius], degrees a finite number in [0, 180] and fraction one in [0, 1]"),
+    (["datamodule.pose_noise=[2,1.5]"], "datamodule.pose_noise=[2, 1.5]: expected [degrees, fraction of the "
+                                        "cameras' radius]"),
     (["contraction=mipnerf360", "contraction.function.far=1"], "contraction.function.far=1: expected a finite "
                                                                "number > 1"),
 ])
@@ -166,6 +182,26 @@ def test_a_value_out_of_its_domain_is_one_error_naming_the_key(hydra_configs, ov
     with pytest.raises(ConfigError) as error:
         check_settings(composed(*overrides))
     assert str(error.value).startswith(message), str(error.value)
+
+
+@pytest.mark.parametrize(("value", "message"), [
+    (100000, "data.threads=100000: expected -1 (every CPU this process may use) or a whole number in [1, 65536]"),
+    (0, "data.threads=0: expected -1"),
+    (-2, "data.threads=-2: expected -1"),
+])
+def test_colmaps_thread_count_is_bounded_as_torchs(hydra_configs, value, message):
+    with pytest.raises(ConfigError) as error:
+        check_settings(compose("config", overrides=["data=colmap", "data.root=/nowhere", f"data.threads={value}"]))
+    assert str(error.value).startswith(message), str(error.value)
+
+
+@pytest.mark.parametrize("overrides", [
+    ["threads=65536"], ["threads=1"], ["trainer.devices=2"], ["trainer.devices=[0]"], ["trainer.devices=auto"],
+    ["datamodule.pose_noise=[180,1]"], ["datamodule.pose_noise=[0,0]"], ["datamodule.pose_noise=null"],
+    ["contraction=mipnerf360", "contraction.function.centre=[0,0,16777216]", "contraction.function.radius=16777216"],
+])
+def test_the_bounds_themselves_are_settings(hydra_configs, overrides):
+    check_settings(composed(*overrides))
 
 
 def test_a_contraction_of_ndc_rays_is_refused_in_one_line(hydra_configs):
@@ -319,10 +355,15 @@ def test_the_commands_reading_a_run_back_check_its_overrides_as_nerfexp_does(sav
 def test_a_run_of_an_earlier_nerfexp_with_a_key_no_rule_covers_is_still_read_back(saved_run):
     cfg = run_config(saved_run)
     with open_dict(cfg):
-        cfg.data.retired_setting = 3  # a key an earlier version wrote and this one no longer reads
+        cfg.scale.retired_setting = 3  # a key an earlier version wrote and this one no longer reads
     check_run_settings(cfg)  # the run's own key, not a user's mistake
-    with pytest.raises(ConfigError, match="^data.retired_setting=3: not a setting nerfexp reads"):
+    with pytest.raises(ConfigError, match="^scale.retired_setting=3: not a setting nerfexp reads"):
         check_settings(cfg)  # a new run's config is the user's: there it is a typo
+    with open_dict(cfg):
+        cfg.data.retired_setting = 3  # but an argument the scene's class no longer takes cannot build it
+    with pytest.raises(ConfigError, match=r"^data.retired_setting: ProceduralScene takes no argument retired_setting "
+                                          r"\(it takes image_size, n_train, "):
+        check_run_settings(cfg)
 
 
 def test_lpips_weights_are_looked_for_only_by_the_command_that_scores(saved_run, tmp_path, monkeypatch):
@@ -394,9 +435,13 @@ def test_the_precisions_named_are_lightnings_own():
         L.Trainer(precision="bogus", accelerator="cpu", logger=False, enable_checkpointing=False)
 
 
-def test_a_test_time_fit_is_estimated_where_it_has_rays_and_one_without_leaves_its_class_default(saved_run):
-    check_run_settings(run_config(saved_run, ["model.appearance_fit={steps: 1}"]))  # CodeFit's 256 rays: fits
-    with pytest.raises(ConfigError, match=r"^model.appearance_fit.rays=1099511627776, scale.n_coarse=16 .*: a step "
-                                          "of the test images' appearance fit of 1099511627776 rays"):
-        check_run_settings(run_config(saved_run, ["model.appearance_fit={_target_: nerfexp.nerf.appearance.CodeFit, "
-                                                  "rays: 1099511627776}"]))
+def test_a_test_time_fit_is_estimated_where_it_has_rays_and_one_without_leaves_its_class_default(hydra_configs,
+                                                                                                tmp_path):
+    cfg = composed("appearance=embedding")
+    del cfg.appearance.fit.rays  # a fit given without its rays: CodeFit's own 256, which fit
+    check_settings(cfg)
+    (tmp_path / RUN_CONFIG).parent.mkdir()
+    OmegaConf.save(composed("appearance=embedding"), tmp_path / RUN_CONFIG)  # a run read back estimates it alike
+    with pytest.raises(ConfigError, match=r"^appearance.fit.rays=1099511627776, scale.n_coarse=16 .*: a step of the "
+                                          "test images' appearance fit of 1099511627776 rays"):
+        check_run_settings(run_config(tmp_path, ["appearance.fit.rays=1099511627776"]))

@@ -97,6 +97,12 @@ def yaml_word(value) -> str:
     return "null" if value is None else str(value).lower() if isinstance(value, bool) else str(value)
 
 
+def one_line(value) -> object:
+    """``value`` as an error's one line shows it: a text with a character that does not print (a newline, an escape
+    sequence) quoted and escaped, as a list's texts are; anything else as it is."""
+    return repr(value) if isinstance(value, str) and not value.isprintable() else value
+
+
 def choice(*values) -> Rule:
     """One of ``values`` (strings or booleans: 1 and 0, equal to True and False, are neither)."""
     return f"one of {', '.join(map(yaml_word, values))}", lambda v: isinstance(v, str | bool) and v in values
@@ -148,11 +154,17 @@ RAW_LIMIT = math.floor(math.log((2 - 2.0 ** -23) * 2.0 ** 127))
 # resolution of their sum, and training ignores the images
 LOSS_WEIGHT_LIMIT = 2.0 ** 24
 FLOAT32_TOP_OCTAVE = 18  # the largest k of sin(2^k pi x) still meaningful for float32 positions
+# Threads a setting asks for (torch's, COLMAP's) at most 2^16, more CPUs than any machine has (Linux addresses a few
+# thousand at most): a larger count is a mistake, never a machine, and OpenMP, asked for it, tries to allocate for
+# every thread and aborts the process without a line (torch takes no count past 2^31 - 1 at all). Within it, a count
+# above the CPUs this process may use is capped at them where it is applied, with a line (``nerfexp.cpus``).
+THREAD_LIMIT = 2 ** 16
 
 NEAR = real(0, POSITION_LIMIT)  # distances along rays, in scene units
 FAR = real(0, POSITION_LIMIT, above=True)
 RAW_OFFSET = real(-RAW_LIMIT, RAW_LIMIT)
 LOSS_WEIGHT = real(0, LOSS_WEIGHT_LIMIT)
+THREADS = whole(1, THREAD_LIMIT)
 # Adam moves each weight by about the learning rate per step: above 1 a step outweighs the weights themselves
 # (initialised within +-1)
 LEARNING_RATE = real(0, 1, above=True)

@@ -4,8 +4,10 @@ import contextlib
 import fnmatch
 import os
 import shutil
+import signal
 import tempfile
-from collections.abc import Iterator
+import threading
+from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import BinaryIO
 
@@ -78,27 +80,40 @@ def writing(path: Path) -> Iterator[None]:
 
 
 @contextlib.contextmanager
+def temporary_file(path: Path) -> Iterator[tuple[BinaryIO, Path]]:
+    """A new file beside ``path`` to fill, and its name: ``.NAME.*.tmp`` in ``path``'s folder (the same file system,
+    whatever ``TMPDIR`` says: a rename across file systems is a copy, which a kill can cut short). Once the block
+    succeeds it is flushed to the disk and readable by all, ready to be renamed over ``path``; if the block fails it
+    is removed (it is this block's own: nothing else is touched)."""
+    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
+    try:
+        with os.fdopen(fd, "wb") as file:
+            yield file, Path(tmp)
+            file.flush()
+            os.fsync(file.fileno())
+        os.chmod(tmp, 0o644)  # mkstemp's is 0o600
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
+
+
+@contextlib.contextmanager
 def atomic_file(path: Path) -> Iterator[BinaryIO]:
     """A binary file to stream ``path``'s new contents into, so that a reader, or a process killed at any
     moment, finds the old file or the new one, never a part.
 
-    The file is a temporary one beside ``path``, always in its folder (the same file system, whatever
-    ``TMPDIR`` says: a rename across file systems is a copy, which a kill can cut short). Once the block
-    succeeds it is flushed to the disk and renamed over ``path``; if the block fails it is removed (it is
-    this block's own: nothing else is touched). An OSError of the write is a ``WriteError`` naming ``path``."""
+    The file is a temporary one beside ``path`` (``temporary_file``). Once the block succeeds it is flushed to the
+    disk and renamed over ``path``; if the block fails it is removed (it is this block's own: nothing else is
+    touched). An OSError of the write is a ``WriteError`` naming ``path``."""
     path = Path(path)
     with writing(path):
         path.parent.mkdir(parents=True, exist_ok=True)
-        fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
+        with temporary_file(path) as (file, tmp):
+            yield file
         try:
-            with os.fdopen(fd, "wb") as file:
-                yield file
-                file.flush()
-                os.fsync(file.fileno())
-            os.chmod(tmp, 0o644)  # mkstemp's is 0o600
             os.replace(tmp, path)
         except BaseException:
-            Path(tmp).unlink(missing_ok=True)
+            tmp.unlink(missing_ok=True)
             raise
     sync_folder(path.parent)
 
@@ -111,41 +126,154 @@ def atomic_write(path: Path, data: bytes) -> None:
 
 
 @contextlib.contextmanager
-def atomic_directory(path: Path, replace: bool = False) -> Iterator[Path]:
-    """A new, empty folder beside ``path`` to fill (never under ``TMPDIR``, see ``atomic_file``); once the
-    block succeeds its contents are flushed to the disk (``sync_tree``) and it is renamed to ``path``, and
-    if the block fails it is removed (it is this block's own: nothing else is touched).
+def temporary_folder(path: Path) -> Iterator[Path]:
+    """A new, empty folder beside ``path`` to fill (``.NAME.*.tmp``, never under ``TMPDIR``: see
+    ``temporary_file``); once the block succeeds its contents are flushed to the disk (``sync_tree``), ready to be
+    renamed to ``path`` (``move_folder``); if the block fails it is removed (it is this block's own)."""
+    new = Path(tempfile.mkdtemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp"))
+    try:
+        os.chmod(new, 0o755)  # mkdtemp's is 0o700
+        yield new
+        sync_tree(new)
+    except BaseException:
+        shutil.rmtree(new, ignore_errors=True)
+        raise
 
-    ``replace``: a previous ``path`` is moved aside and deleted after the new folder took its place, so
-    a reader sees the old folder or the new one, never a part of one (for an instant between the two
-    renames, none). Otherwise the rename fails where ``path`` is a folder that is not empty. An OSError of
-    the write is a ``WriteError`` naming ``path``, or the file under it that could not be written.
-    """
+
+def move_folder(new: Path, path: Path, replace: bool) -> None:
+    """The folder ``new`` renamed to ``path``. ``replace``: a previous ``path`` is moved aside and deleted after the
+    new folder took its place, so a reader sees the old folder or the new one, never a part of one (for an instant
+    between the two renames, none); an error or a signal between the renames puts the previous one back. Otherwise
+    the rename fails where ``path`` is a folder that is not empty."""
+    if not (replace and path.exists()):
+        os.rename(new, path)
+        return
+    trash = Path(tempfile.mkdtemp(dir=path.parent, prefix=f".{path.name}.", suffix=".old"))
+    try:
+        os.replace(path, trash / path.name)
+        os.replace(new, path)
+    except BaseException:  # an error or a signal between the renames: the previous folder back
+        if not os.path.lexists(path) and os.path.lexists(trash / path.name):
+            os.replace(trash / path.name, path)
+        raise
+    finally:
+        shutil.rmtree(trash, ignore_errors=True)
+
+
+@contextlib.contextmanager
+def atomic_directory(path: Path, replace: bool = False) -> Iterator[Path]:
+    """A new, empty folder beside ``path`` to fill (``temporary_folder``); once the block succeeds its contents are
+    flushed to the disk and it is renamed to ``path`` (``move_folder``: with ``replace``, as a whole over a previous
+    one), and if the block fails it is removed (it is this block's own: nothing else is touched). An OSError of the
+    write is a ``WriteError`` naming ``path``, or the file under it that could not be written."""
     path = Path(path)
     with writing(path):
         path.parent.mkdir(parents=True, exist_ok=True)
-        new = Path(tempfile.mkdtemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp"))
-        try:
-            os.chmod(new, 0o755)  # mkdtemp's is 0o700
+        with temporary_folder(path) as new:
             yield new
-            sync_tree(new)
-            if replace and path.exists():
-                trash = Path(tempfile.mkdtemp(dir=path.parent, prefix=f".{path.name}.", suffix=".old"))
-                try:
-                    os.replace(path, trash / path.name)
-                    os.replace(new, path)
-                except BaseException:  # an error or a signal between the renames: the previous folder back
-                    if not os.path.lexists(path) and os.path.lexists(trash / path.name):
-                        os.replace(trash / path.name, path)
-                    raise
-                finally:
-                    shutil.rmtree(trash, ignore_errors=True)
-            else:
-                os.rename(new, path)
+        try:
+            move_folder(new, path, replace)
         except BaseException:
             shutil.rmtree(new, ignore_errors=True)
             raise
     sync_folder(path.parent)
+
+
+STOPPING = (signal.SIGINT, signal.SIGTERM)  # the signals that stop a command (nerfexp.commands.signals)
+
+
+@contextlib.contextmanager
+def held_signals() -> Iterator[None]:
+    """Inside the block SIGINT and SIGTERM wait: one received takes effect as the block ends, sent again to this
+    process once the handler from before the block is back, so that what the block does (a few renames) is done
+    whole. Outside the main thread, where Python sets no handler, nothing changes."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    held: list[int] = []
+    previous = {signum: signal.signal(signum, lambda signum, frame: held.append(signum)) for signum in STOPPING}
+    try:
+        yield
+    finally:
+        for signum, handler in previous.items():
+            signal.signal(signum, signal.SIG_DFL if handler is None else handler)  # None: a handler set outside Python
+        if held:
+            signal.raise_signal(held[0])
+
+
+class Staging:
+    """New files and folders of the folder ``root``, each filled beside its place under a temporary name (``file``,
+    ``folder``) and moved into place with the others (``staged``); ``files`` and ``folders`` name them
+    (``/``-separated, relative to ``root``) in the order staged."""
+
+    def __init__(self, root: Path):
+        self.root = Path(root)
+        self.files: list[str] = []
+        self.folders: list[str] = []
+        self._moves: list[tuple[Path, str]] = []  # (a temporary, the entry it becomes), in the order staged
+
+    def file(self, entry: str, data: bytes) -> None:
+        """``data`` staged as the file ``entry``: written beside it (``temporary_file``). An OSError of the write
+        is a ``WriteError`` naming ``root/entry``."""
+        path = self.root / entry
+        with writing(path):
+            path.parent.mkdir(parents=True, exist_ok=True)
+            with temporary_file(path) as (file, tmp):
+                file.write(data)
+        self._moves.append((tmp, entry))
+        self.files.append(entry)
+
+    @contextlib.contextmanager
+    def folder(self, entry: str) -> Iterator[Path]:
+        """A new, empty folder to fill, staged as the folder ``entry`` (``temporary_folder``), which it replaces as
+        a whole. An OSError of the block's writes is a ``WriteError`` naming ``root/entry``, or its file."""
+        path = self.root / entry
+        with writing(path):
+            path.parent.mkdir(parents=True, exist_ok=True)
+            with temporary_folder(path) as new:
+                yield new
+        self._moves.append((new, entry))
+        self.folders.append(entry)
+
+    def move(self) -> None:
+        """Each staged file and folder moved into place, in the order staged: a file renamed over its previous one,
+        a folder replacing its previous one as a whole (``move_folder``)."""
+        while self._moves:
+            tmp, entry = self._moves[0]
+            path = self.root / entry
+            with writing(path):
+                if tmp.is_dir():
+                    move_folder(tmp, path, replace=True)
+                else:
+                    os.replace(tmp, path)
+            self._moves.pop(0)
+        sync_folder(self.root)
+
+    def discard(self) -> None:
+        """Every staged file and folder not moved into place removed (nothing else is touched)."""
+        for tmp, _ in self._moves:
+            if tmp.is_dir():
+                shutil.rmtree(tmp, ignore_errors=True)
+            else:
+                tmp.unlink(missing_ok=True)
+        self._moves.clear()
+
+
+@contextlib.contextmanager
+def staged(root: Path, moved: Callable[[Staging], None] = lambda staging: None) -> Iterator[Staging]:
+    """A ``Staging`` of ``root`` to fill: once the block succeeds, every file and folder staged is moved into place
+    (``Staging.move``) and then ``moved(staging)`` is called, with SIGINT and SIGTERM held until both are done
+    (``held_signals``), so that a command stopped before leaves ``root`` as it was and one stopped while they move
+    stops once all are in place: the files are replaced together or not at all. If the block fails, what it staged
+    is removed and nothing else is touched."""
+    staging = Staging(root)
+    try:
+        yield staging
+        with held_signals():
+            staging.move()
+            moved(staging)
+    finally:
+        staging.discard()
 
 
 def folder_entries(folder: Path) -> list[str]:

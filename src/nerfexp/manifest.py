@@ -25,7 +25,7 @@ from collections.abc import Iterable, Iterator
 from pathlib import Path
 
 from nerfexp.errors import NerfexpError
-from nerfexp.files import atomic_write, folder_entries, is_made
+from nerfexp.files import Staging, atomic_write, folder_entries, is_made, staged
 from nerfexp.reading import UnreadableFile, parse_json, read_bytes, sha256
 
 MANIFEST = "nerfexp-manifest.json"
@@ -111,6 +111,21 @@ def write(root: Path, entry: str, data: bytes) -> None:
     (``nerfexp.files.atomic_write``), then recorded in ``root``'s manifest (``record``)."""
     atomic_write(Path(root) / entry, data)
     record(root, [entry])
+
+
+@contextlib.contextmanager
+def written_together(root: Path) -> Iterator[Staging]:
+    """A ``nerfexp.files.Staging`` of ``root`` to fill (``nerfexp.files.staged``): once the block succeeds its files
+    and folders are moved into place together and recorded in ``root``'s manifest (``record``; a folder's records
+    replaced as a whole, ``record_folder``) before a SIGINT or SIGTERM takes effect, so that a command stopped at any
+    moment leaves the set of files, and their records, all as they were or all new."""
+    def recorded(staging: Staging) -> None:
+        record(root, staging.files)
+        for folder in staging.folders:
+            record_folder(root, folder)
+
+    with staged(root, recorded) as staging:
+        yield staging
 
 
 def folder_files(root: Path, folder: str) -> list[str]:

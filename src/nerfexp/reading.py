@@ -35,10 +35,46 @@ class UnreadableFile(NerfexpError):
         self.reason = reason
 
 
+def name_problem(name: str) -> str | None:
+    """Why the file path ``name`` (text from a file) can name no file, or None: a NUL byte (the system's calls end a
+    name there), or characters the file system's encoding cannot write (a lone surrogate, which JSON's ``\\ud800``
+    spells). Other limits (a name too long) are the file system's own: ``file_status`` meets them."""
+    if "\0" in name:
+        return "holds a NUL byte, which no file name can"
+    try:
+        os.fsencode(name)
+    except UnicodeError as error:
+        return f"holds characters no file name can ({error.reason} at character {error.start})"
+    return None
+
+
+def file_status(path: Path) -> os.stat_result | None:
+    """``os.stat`` of ``path`` (links followed), or None where nothing is there (no such file, or a folder on its
+    way missing or not a folder); an ``UnreadableFile`` naming it where it cannot be looked up: a name no file can
+    have (``name_problem``), a name too long, a loop of links, a folder that may not be searched."""
+    if (problem := name_problem(os.fspath(path))) is not None:
+        raise UnreadableFile(ascii(os.fspath(path)), problem)
+    try:
+        return os.stat(path)
+    except (FileNotFoundError, NotADirectoryError):
+        return None
+    except OSError as error:
+        raise UnreadableFile(path, f"cannot be looked up ({error.strerror or error})") from None
+
+
+def is_file(path: Path) -> bool:
+    """Whether ``path`` is a regular file (links followed); an ``UnreadableFile`` where it cannot be looked up
+    (``file_status``), where ``Path.is_file`` would raise or say False for a name no file can have."""
+    status = file_status(path)
+    return status is not None and stat.S_ISREG(status.st_mode)
+
+
 def read_bytes(path: Path, limit: int) -> bytes:
     """The bytes of ``path``, refused (``UnreadableFile``) where it is not a regular file (a named pipe
     would block the reader, a device never end), holds more than ``limit`` bytes or cannot be read. At most
     ``limit + 1`` bytes are ever read, whatever the file claims its size is."""
+    if (problem := name_problem(os.fspath(path))) is not None:
+        raise UnreadableFile(ascii(os.fspath(path)), problem)
     try:
         fd = os.open(path, os.O_RDONLY | getattr(os, "O_NONBLOCK", 0))  # a pipe opens without a writer
         with os.fdopen(fd, "rb") as file:

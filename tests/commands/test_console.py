@@ -17,7 +17,7 @@ import pytest
 import torch
 from torch.utils.data import DataLoader, IterableDataset
 
-from nerfexp.commands import evaluate, render, report, scene, view
+from nerfexp.commands import data, evaluate, render, report, scene, view
 from nerfexp.commands.console import one_line_errors
 from nerfexp.files import WriteError
 from nerfexp.training.progress import StepProgressBar
@@ -40,12 +40,12 @@ def test_nerfexp_help_says_what_it_is_its_groups_sweeps_other_commands_and_outpu
             assert groups[folder.name] == sorted(p.stem for p in folder.glob("*.yaml")), folder.name
     assert "+sweeps=NAME" in text and "nerfexp -m " in text
     for other in ("nerfexp-report", "nerfexp-eval", "nerfexp-render", "nerfexp-scene", "nerfexp-export",
-                  "nerfexp-view"):
+                  "nerfexp-view", "nerfexp-data"):
         assert f"  {other} " in text
     assert "outputs/DATE/TIME/" in text and "multirun/DATE/TIME/N/" in text
 
 
-@pytest.mark.parametrize("module", [evaluate, render, report, scene, view], ids=lambda m: m.__name__)
+@pytest.mark.parametrize("module", [data, evaluate, render, report, scene, view], ids=lambda m: m.__name__)
 def test_every_commands_help_reads_cleanly(module):
     parser = module.build_parser()
     text = parser.format_help()

@@ -16,7 +16,8 @@ from scipy.spatial import cKDTree
 from torch import Tensor, nn
 
 from nerfexp import manifest
-from nerfexp.commands.export import build_parser, main, trained_run
+from nerfexp.commands import export
+from nerfexp.commands.export import DENSITY_LIMIT, build_parser, main, trained_run
 from nerfexp.data.procedural import (
     CAMERA_ANGLE_X,
     FAR,
@@ -48,7 +49,7 @@ from nerfexp.products.mesh import (
     final_field,
     view_points,
 )
-from tests.helpers import digests, read_ply, run_nerfexp, undocumented_arguments
+from tests.helpers import crossed_threshold, digests, read_ply, run_nerfexp, threshold_between, undocumented_arguments
 
 F64 = torch.float64
 THRESHOLD = 50.0  # nerfexp-export's default
@@ -220,10 +221,6 @@ def test_the_box_is_the_bounded_modules_else_the_scenes_and_the_field_the_fine_n
     assert export_box(gridded, configured).tolist() == [[-2, -1, -1], [2, 1, 0.25]]
 
 
-RANGE = re.compile(r"no surface at --threshold 1e\+09: the field's densities on the \d+ x \d+ x \d+ grid over the "
-                   r"box .* lie in \[(\S+), (\S+)\]; choose a threshold between them$")
-
-
 @pytest.mark.slow
 def test_exporting_a_trained_run_writes_a_mesh_and_points_that_read_back(tiny_run, tmp_path):
     # a threshold above every density is one line giving the densities' range; half-way up it is a surface
@@ -231,10 +228,8 @@ def test_exporting_a_trained_run_writes_a_mesh_and_points_that_read_back(tiny_ru
                            script="nerfexp-export")
     lines = too_high.stderr.strip().splitlines()
     assert too_high.returncode == 1 and len(lines) == 1, too_high.stderr[-2000:]
-    match = RANGE.search(lines[0])
-    assert lines[0].startswith("nerfexp-export: error: ") and match, lines[0]
-    low, high = (float(v) for v in match.groups())
-    threshold = (low + high) / 2
+    assert lines[0].startswith("nerfexp-export: error: no surface at --threshold 1e+09: "), lines[0]
+    threshold = threshold_between(lines[0])
 
     checkpoint = tiny_run / "checkpoints" / "last.ckpt"  # a checkpoint path works as a run directory does
     result = run_nerfexp(str(checkpoint), "--resolution", "16", "--threshold", f"{threshold}", "--chunk", "300",
@@ -301,20 +296,45 @@ def test_the_commands_help_explains_every_option():
 
 def test_an_export_replaces_its_own_folder_and_refuses_one_holding_a_users_file(tiny_run, tmp_path):
     run_dir = shutil.copytree(tiny_run, tmp_path / "run", ignore=shutil.ignore_patterns("export"))
-    main([str(run_dir), "--resolution", "4"])
-    main([str(run_dir), "--resolution", "4"])  # its own folder: replaced as a whole
+    threshold = crossed_threshold(run_dir, 4)  # a mesh on any CPU: the tiny run's default may miss so coarse a grid
+    main([str(run_dir), "--resolution", "4", "--threshold", threshold])
+    main([str(run_dir), "--resolution", "4", "--threshold", threshold])  # its own folder: replaced as a whole
     assert manifest.unproven(run_dir, ["export/mesh.ply", "export/points.ply"]) == []
     for name, content in (("mesh.obj", "mine"), ("mesh.ply", "a user's own mesh, in the name of an export's")):
         (run_dir / "export" / name).write_text(content)
         before = digests(run_dir / "export")
         with pytest.raises(SystemExit) as exit:
-            main([str(run_dir), "--resolution", "4"])
+            main([str(run_dir), "--resolution", "4", "--threshold", threshold])
         assert exit.value.code == (
             f"nerfexp-export: error: {run_dir / 'export' / name} is not a file nerfexp-export wrote (it is not in "
             f"{run_dir / manifest.MANIFEST}, or changed since): move it elsewhere: nerfexp-export replaces this "
             "folder as a whole")
         assert digests(run_dir / "export") == before and not list(run_dir.glob(".export*"))
         (run_dir / "export" / name).rename(tmp_path / name)  # moved: the next one is refused alone
+
+
+@pytest.mark.parametrize("given", [True, False])
+def test_a_threshold_that_no_density_crosses_is_one_line_naming_it_and_the_densities(tiny_run, tmp_path, monkeypatch,
+                                                                                     given):
+    # above every density: given, or read from the field as a briefly trained field's default can miss a coarse
+    # grid's densities, which the line names as the default (the user gave no --threshold)
+    run_dir = shutil.copytree(tiny_run, tmp_path / "run", ignore=shutil.ignore_patterns("export"))
+    before = digests(run_dir)
+    if given:
+        argv, named = ["--threshold", f"{DENSITY_LIMIT!r}"], f"--threshold {DENSITY_LIMIT:g}"
+    else:
+        monkeypatch.setattr(export, "field_threshold", lambda field, points, batch, device: DENSITY_LIMIT)
+        argv = []
+        named = (f"the default --threshold {DENSITY_LIMIT:g} (the {THRESHOLD_QUANTILE:g} quantile of the density at "
+                 "the test views' depths)")
+    with pytest.raises(SystemExit) as refused:
+        main([str(run_dir), "--resolution", "4", *argv])
+    line = refused.value.code
+    match = re.fullmatch(rf"nerfexp-export: error: no surface at {re.escape(named)}: the field's densities on the "
+                         r"5 x 5 x 5 grid over the box \[\[.*\]\] lie in \[(\S+), (\S+)\]; choose a threshold "
+                         "between them", line)
+    assert match and float(match[1]) < float(match[2]), line
+    assert digests(run_dir) == before and not list(run_dir.glob(".export*"))
 
 
 @pytest.mark.slow

@@ -4,6 +4,7 @@ one_line_errors, nerfexp.files' atomic writes and WriteError). Where the machine
 or chattr, the test is skipped saying so (tests.helpers)."""
 
 import os
+import re
 import shutil
 import signal
 import subprocess
@@ -13,16 +14,20 @@ from pathlib import Path
 import pytest
 import torch
 
+from nerfexp import manifest
 from nerfexp.commands import evaluate, export, report
 from nerfexp.files import folder_entries
 from nerfexp.report import folder as report_folder
+from nerfexp.rundir.layout import REPORT_FILES
 from tests.helpers import (
     command,
+    crossed_threshold,
     digests,
     fault_at,
     fill_disk,
     immutable,
     make_read_only,
+    make_run,
     read_json,
     run_nerfexp,
     small_disk,
@@ -114,11 +119,12 @@ def test_a_full_disk_ends_an_export_in_one_line_and_the_last_export_stays(tiny_r
     with small_disk(tmp_path / "disk") as disk:
         run = disk / "run"
         shutil.copytree(tiny_run, run)
-        export.main([str(run), "--resolution", "16"])
+        threshold = crossed_threshold(run, 8)  # a mesh on any CPU, on the grids of 16 and 24 cells too
+        export.main([str(run), "--resolution", "16", "--threshold", threshold])
         before = digests(run)
         fill_disk(disk / "filler")
         with pytest.raises(SystemExit) as exit:
-            export.main([str(run), "--resolution", "24"])
+            export.main([str(run), "--resolution", "24", "--threshold", threshold])
         assert exit.value.code == f"nerfexp-export: error: {run / 'export'}: {FULL}"
         assert digests(run) == before
 
@@ -157,28 +163,86 @@ def test_sigint_while_an_export_writes_is_one_line_and_the_last_export_stays(tin
                                                                               capsys):
     run = tmp_path / "run"
     shutil.copytree(tiny_run, run)
-    export.main([str(run), "--resolution", "16"])
+    threshold = crossed_threshold(run, 8)  # a mesh on any CPU, on the grids of 16 and 24 cells too
+    export.main([str(run), "--resolution", "16", "--threshold", threshold])
     before = digests(run)
     seen = interrupt_inside(monkeypatch, export, "ply_bytes", run, call=2)  # mesh.ply written, points.ply next
     capsys.readouterr()
     with pytest.raises(SystemExit) as exit:
-        export.main([str(run), "--resolution", "24"])
+        export.main([str(run), "--resolution", "24", "--threshold", threshold])
     assert len(seen) == 1 and seen[0] and seen[0][0].startswith(".export.")  # inside the write
     assert exit.value.code == 130 and capsys.readouterr().err == "nerfexp-export: stopped (SIGINT)\n"
     assert digests(run) == before
 
 
-def test_sigint_while_a_report_writes_is_one_line_and_its_files_are_whole(tiny_run, tmp_path, monkeypatch, capsys):
+# What write_report calls, in order, from reading the runs to the page: a stop after any leaves the previous report
+REPORT_STEPS = ("find_runs", "markdown", "budget_rows", "pareto_png", "view_tiles", "page_html")
+
+
+@pytest.mark.parametrize("step", REPORT_STEPS)
+def test_sigint_at_any_step_of_a_report_is_one_line_and_the_previous_report_stays_whole(tiny_run, tmp_path, monkeypatch,
+                                                                                         capsys, step):
     out = tmp_path / "report"
-    report.main([str(tiny_run), "--out", str(out)])
+    report.main([str(tiny_run), "--out", str(out), "--views", "0"])
     before = digests(out)
-    seen = interrupt_inside(monkeypatch, report_folder, "view_tiles", out)  # the pictures' folder filled
+    seen = interrupt_inside(monkeypatch, report_folder, step, out)
     capsys.readouterr()
     with pytest.raises(SystemExit) as exit:
-        report.main([str(tiny_run), "--out", str(out)])
-    assert len(seen) == 1 and seen[0] and seen[0][0].startswith(".report_images.")
-    assert exit.value.code == 130 and capsys.readouterr().err == "nerfexp-report: stopped (SIGINT)\n"
-    assert digests(out) == before  # each file the earlier one or its equal rewritten whole; no temporary
+        report.main([str(tiny_run), "--out", str(out), "--views", "1"])  # another report: other pictures, another page
+    assert len(seen) == 1
+    if step == "view_tiles":  # the pictures' folder filled, the files before it written: all beside their places
+        assert {entry.split(".")[1] for entry in seen[0]} >= {"report", "report_images", "pareto"}, seen[0]
+    assert exit.value.code == 130 and capsys.readouterr().err.splitlines()[-1] == "nerfexp-report: stopped (SIGINT)"
+    assert digests(out) == before  # the previous report, every file of it, and its manifest; no temporary
+
+
+def test_sigint_while_a_report_moves_into_place_takes_effect_once_it_is_all_there(tiny_run, tmp_path, monkeypatch,
+                                                                                  capsys):
+    out = tmp_path / "report"
+    report.main([str(tiny_run), "--out", str(out), "--views", "0"])
+    seen = interrupt_inside(monkeypatch, manifest, "record", out)  # the files moved, their records next
+    capsys.readouterr()
+    with pytest.raises(SystemExit) as exit:
+        report.main([str(tiny_run), "--out", str(out), "--views", "1"])
+    assert len(seen) == 1 and exit.value.code == 130
+    assert capsys.readouterr().err.splitlines()[-1] == "nerfexp-report: stopped (SIGINT)"
+    pictures = manifest.folder_files(out, "report_images")
+    assert pictures and all(picture.startswith("report_images/view1/") for picture in pictures)  # the new report's
+    assert manifest.unproven(out, [*REPORT_FILES, *pictures]) == []  # each recorded as it is
+    named = re.findall(r'<img src="(report_images/[^"]+)"', (out / "report.html").read_text())
+    assert named and set(named) <= set(pictures)  # the page names only pictures that are there
+    assert temporaries(out) == []
+
+
+@pytest.mark.slow
+def test_sigterm_to_the_nerfexp_report_command_while_it_compares_is_one_line_and_the_previous_report_stays(tmp_path):
+    """The console script itself, as a job's time limit stops it: SIGTERM once it says it compares two runs of
+    5,001 budgets each (seconds of work; the previous report, of the first 2 budgets, is another)."""
+    sweep = tmp_path / "sweep"
+    for label, offset in (("a", 0.0), ("b", -0.5)):
+        make_run(sweep, label, [f"encoding={label}", "seed=0"],
+                 test_budgets=[(i + 1, i + 1.0, 20.0 + offset, 0.8) for i in range(2)])
+    report.main([str(sweep), "--reference", "encoding=a"])
+    for label, offset in (("a", 0.0), ("b", -0.5)):
+        shutil.rmtree(sweep / label)
+        make_run(sweep, label, [f"encoding={label}", "seed=0"],
+                 test_budgets=[(i + 1, i + 1.0, 20.0 + offset, 0.8) for i in range(5_001)])
+    before = digests(sweep)
+    argv, env = command("nerfexp-report", str(sweep), "--reference", "encoding=a")
+    process = subprocess.Popen(argv, cwd=tmp_path, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True,
+                               env=env)
+    said = []
+    for line in process.stderr:  # its progress, a line as each step begins
+        said.append(line.rstrip("\n"))
+        if line.startswith("nerfexp-report: comparing"):
+            process.send_signal(signal.SIGTERM)
+            break
+    said += process.communicate(timeout=120)[1].splitlines()
+    assert process.returncode == 143 and "Traceback" not in "\n".join(said), said
+    assert said == [f"nerfexp-report: reading the runs under {sweep}",
+                    "nerfexp-report: comparing 2 variants; runs: 2 (2 finished); 10,002 test budgets",
+                    "nerfexp-report: stopped (SIGTERM)"]
+    assert digests(sweep) == before
 
 
 @pytest.mark.slow
@@ -187,9 +251,10 @@ def test_sigint_to_the_nerfexp_export_command_while_it_writes_a_large_mesh(tiny_
     128 steps: a mesh of tens of MB, written for a good part of a second)."""
     run = tmp_path / "run"
     shutil.copytree(tiny_run, run)
-    export.main([str(run), "--resolution", "16"])
+    threshold = crossed_threshold(run, 16)  # a mesh on any CPU, on the grid of 128 cells too
+    export.main([str(run), "--resolution", "16", "--threshold", threshold])
     before = digests(run)
-    argv, env = command("nerfexp-export", str(run), "--resolution", "128")
+    argv, env = command("nerfexp-export", str(run), "--resolution", "128", "--threshold", threshold)
     process = subprocess.Popen(argv, cwd=tmp_path, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
                                env=env)
     try:

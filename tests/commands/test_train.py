@@ -11,7 +11,7 @@ import torch
 from PIL import Image
 
 from nerfexp.commands.train import sweep_objective
-from nerfexp.data.procedural import load_procedural
+from nerfexp.data.procedural import load_procedural, scene_cameras
 from nerfexp.pixels import to_uint8
 from nerfexp.training.metrics import psnr
 from tests.helpers import TINY_SINGLE, read_json, run_nerfexp
@@ -266,6 +266,16 @@ def test_a_run_without_lpips_records_none_and_says_why_in_one_line(tiny_run):
     assert not [r for r in map(json.loads, (tiny_run / "metrics.jsonl").read_text().splitlines()) if "lpips" in r]
     lines = [line for line in (tiny_run / "nerfexp.log").read_text().splitlines() if "LPIPS" in line]
     assert len(lines) == 1 and "LPIPS not scored: " in lines[0], lines
+
+
+def test_a_run_records_the_check_that_its_test_views_are_unseen(tiny_run):
+    # TINY's scene: the built-in cameras of 12 training, 1 validation and 2 test views, none near another split's
+    centres = torch.cat([scene_cameras(split, n)[:, :3, 3] for split, n in (("train", 12), ("val", 1), ("test", 2))])
+    centres = centres.float().double().numpy()  # as the views hold them
+    spread = float(np.sqrt(np.mean(np.sum((centres - centres.mean(0)) ** 2, -1))))
+    assert read_json(tiny_run / "results.json")["split_check"] == {
+        "centre_fraction": 0.01, "centre_spread": pytest.approx(spread, rel=1e-9), "ray_degrees": 0.5,
+        "image_psnr_db": 20.0, "views": 15, "image_pairs": 0}
 
 
 def test_a_sweeper_never_takes_a_run_that_rendered_nothing_for_its_best():

@@ -1,6 +1,6 @@
-"""Image files, transforms files and poses_bounds.npy that are damaged or hostile: each either loads
-exactly what it holds or is a one-line DatasetError naming the file, never a traceback of another kind
-and never wrong values. The fuzz tests generate the inputs (hypothesis)."""
+"""Image files, transforms files, poses_bounds.npy and the file paths datasets name that are damaged or hostile:
+each either loads exactly what it holds or is a one-line DatasetError naming the file, never a traceback of
+another kind and never wrong values. The fuzz tests generate the inputs (hypothesis)."""
 
 import io
 import json
@@ -17,9 +17,14 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 from PIL import Image
 
-from nerfexp.data.blender import load_blender
+from nerfexp.data.blender import BlenderScene, load_blender, write_blender
+from nerfexp.data.colmap import ColmapScene
+from nerfexp.data.datamodule import RayDataModule
 from nerfexp.data.images import MAX_PIXELS, read_image
 from nerfexp.data.llff import read_poses_bounds
+from nerfexp.data.nerfstudio import NerfstudioScene
+from nerfexp.data.procedural import load_procedural
+from nerfexp.data.transforms_file import TRANSFORMS, write_nerfstudio
 from nerfexp.errors import DatasetError
 
 FUZZ = settings(max_examples=60, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
@@ -138,3 +143,93 @@ def test_fuzz_poses_bounds_load_exactly_or_fail_naming_the_file(tmp_path_factory
     else:  # loaded: exactly the numbers stored
         assert np.array_equal(poses.reshape(rows, 15).numpy(), array[:, :15])
         assert np.array_equal(bounds.numpy(), array[:, 15:])
+
+
+# A file path from a dataset's file that no file can have, or that the file system refuses to look up, put below the
+# scene's image folder: each the parsed name's one line naming the file, the frame and the key, or where only the
+# system can tell, the lookup's one line naming the file and what named it (nerfexp.reading.file_status)
+UNNAMEABLE = {"a NUL byte": "a\x00b.png", "a lone surrogate": "\ud800b.png", "a name too long": "a" * 300 + ".png",
+              "a path too long": "a/" * 2100 + "b.png"}
+
+
+def parsed_reason(name: str) -> str | None:
+    """Why ``name`` is refused where its file is parsed (None: only a lookup can tell)."""
+    if "\0" in name:
+        return "holds a NUL byte, which no file name can"
+    if "\ud800" in name:
+        return f"holds characters no file name can (surrogates not allowed at character {name.index(chr(0xd800))})"
+    return None
+
+
+def small_splits() -> dict:
+    return {split: load_procedural(split, n, 8, 8, supersample=1) for split, n in (("train", 3), ("val", 1),
+                                                                                    ("test", 1))}
+
+
+def nerfstudio_naming(root: Path, key: str, bare: str) -> tuple:
+    """A nerfstudio scene whose frame 1 (or the file, for 'ply_file_path') names ``images/{bare}`` under ``key``:
+    the scene, the name, its error's start where the file is parsed, and what named it in a lookup's."""
+    write_nerfstudio(root, small_splits().items())
+    path, name = root / TRANSFORMS, f"images/{bare}"
+    content = json.loads(path.read_text())
+    for split_list in ("train_filenames", "val_filenames", "test_filenames"):
+        content.pop(split_list)  # every 8th frame a test view: frame 1's file_path may be any name
+    if key == "ply_file_path":
+        content[key] = name
+        where, named_by = f"{path}: '{key}'", f"{path}'s 'ply_file_path'"
+    else:
+        frame = content["frames"][1]
+        where = f"{path}: frame 1: '{key}'"
+        named_by = f"{path}: frame 1 ({name})" if key == "file_path" else \
+            f"{path}: frame 1 ({frame['file_path']})'s mask_path"
+        frame[key] = name
+    path.write_text(json.dumps(content))
+    return NerfstudioScene(root=str(root)), name, where, named_by
+
+
+def blender_naming(root: Path, key: str, bare: str) -> tuple:
+    for split, views in small_splits().items():
+        write_blender(root, split, views, 0.7)
+    path, name = root / "transforms_train.json", f"train/{bare}"
+    content = json.loads(path.read_text())
+    content["frames"][1][key] = name
+    path.write_text(json.dumps(content))
+    return BlenderScene(root=str(root), n_val=1), name, f"{path}: frame 1: '{key}'", f"{path}: frame 1 ({name})"
+
+
+def colmap_naming(root: Path, key: str, bare: str) -> tuple:
+    """A COLMAP text model whose image 3 is called ``bare`` (a text file holds any name without a space; a lone
+    surrogate written as its UTF-8 bytes would be, which are no UTF-8 text)."""
+    from tests.data.photographs import hand_made_model, write_images  # pycolmap
+
+    model = root / "sparse" / "0"
+    model.mkdir(parents=True)
+    hand_made_model().write_text(model)
+    images = model / "images.txt"
+    images.write_bytes(images.read_bytes().replace(b"view_3.png", bare.encode("utf-8", "surrogatepass")))
+    write_images(root, ["view_1.png", "view_2.png", "view_4.png"])
+    return (ColmapScene(root=str(root), holdout=2, n_val=1), bare, f"{model}: image 3: its name",
+            str(root / "images" / bare))
+
+
+NAMING = [("nerfstudio", "file_path"), ("nerfstudio", "mask_path"), ("nerfstudio", "ply_file_path"),
+          ("blender", "file_path"), ("colmap", "name")]
+
+
+@pytest.mark.parametrize("problem", UNNAMEABLE)
+@pytest.mark.parametrize(("form", "key"), NAMING, ids=[f"{form}-{key}" for form, key in NAMING])
+def test_a_file_path_no_file_can_have_is_one_line_naming_the_file_and_frame(tmp_path, form, key, problem):
+    scene, name, where, named_by = {"nerfstudio": nerfstudio_naming, "blender": blender_naming,
+                                    "colmap": colmap_naming}[form](tmp_path, key, UNNAMEABLE[problem])
+    with pytest.raises(DatasetError) as caught:
+        RayDataModule(scene, batch_rays=64).setup("fit")
+        scene.ray_bounds()  # reads the sparse points' file, where 'ply_file_path' names one
+    message = str(caught.value)
+    if form == "colmap" and problem == "a lone surrogate":
+        error = pytest.raises(UnicodeDecodeError, name.encode("utf-8", "surrogatepass").decode).value
+        assert message == f"{where} is not UTF-8 text ({error.reason} at byte {error.start})"
+    elif (reason := parsed_reason(name)) is not None:
+        assert message == f"{where} {reason}, got {name!r:.80}"
+    else:
+        assert message.endswith(f": cannot be looked up (File name too long) (named by {named_by})"), message[-300:]
+    assert "\n" not in message and "\0" not in message

@@ -2,6 +2,7 @@
 cameras, models written as text (today's and COLMAP 3's layout) and binary, the conventions against
 hand-worked poses, the ray bounds, and the errors."""
 
+import logging
 import time
 
 import numpy as np
@@ -12,7 +13,7 @@ from hydra import compose, initialize_config_module
 from hydra.utils import instantiate
 from PIL import Image
 
-from nerfexp.data import procedural
+from nerfexp.data import colmap_sfm, procedural
 from nerfexp.data.colmap import ColmapScene, colmap_to_c2w
 from nerfexp.data.colmap_sfm import read_model
 from nerfexp.data.datamodule import RayDataModule, fill_ray_bounds
@@ -251,6 +252,32 @@ def test_too_few_registered_images(tmp_path, monkeypatch):
     with pytest.raises(DatasetError, match=message):
         ColmapScene(root=str(tmp_path)).load()
     assert sorted(p.name for p in tmp_path.iterdir()) == ["images"]
+
+
+@pytest.mark.parametrize(("threads", "expected", "capped"), [(64, 2, True), (-1, 2, False), (1, 1, False)])
+def test_colmap_runs_at_most_the_cpus_this_process_may_use_and_says_where_it_caps(tmp_path, monkeypatch, caplog,
+                                                                                 threads, expected, capped):
+    # each of COLMAP's stages is asked for its thread count (one per CPU this process may use for -1, where COLMAP's
+    # own -1 takes every core of the machine); what they did is beside the point: two images are registered
+    write_images(tmp_path, [f"{i:02d}.png" for i in range(2)])
+    asked = []
+    monkeypatch.setattr(colmap_sfm, "available_cpus", lambda: 2)
+    monkeypatch.setattr(pycolmap, "extract_features", lambda *args, extraction_options, **kwargs: asked.append(
+        extraction_options.num_threads))
+    monkeypatch.setattr(pycolmap, "match_exhaustive", lambda *args, matching_options, **kwargs: asked.append(
+        matching_options.num_threads))
+
+    def mapping(database_path, image_path, output_path, options):
+        asked.append(options.num_threads)
+        return {0: hand_made_model(ring=RING[:2])}
+
+    monkeypatch.setattr(pycolmap, "incremental_mapping", mapping)
+    with caplog.at_level(logging.WARNING, logger=colmap_sfm.__name__), pytest.raises(DatasetError):
+        ColmapScene(root=str(tmp_path), threads=threads).load()  # no model written: refused after the stages ran
+    assert asked == [expected] * 3
+    lines = [record.getMessage() for record in caplog.records]
+    assert lines == ([f"data.threads={threads}: more threads than the 2 CPUs this process may use; 2 run (threads "
+                      "beyond the CPUs only wait on each other)"] if capped else [])
 
 
 def test_unsupported_camera_model(tmp_path):

@@ -265,8 +265,40 @@ def test_frames_whose_images_are_missing_are_counted_in_one_line_before_any_imag
     assert str(caught.value) == (
         f"image {tmp_path / 'images' / 'test_0001.png'} does not exist (named by {tmp_path / TRANSFORMS}: frame 8 "
         "(images/test_0001.png)'s file_path), nor do the images of 1 more of the file's 9 frames: nerfexp reads "
-        "every frame the file lists (Instant-NGP's loader skips such frames); remove them from the file or bring "
-        "their images")
+        "every frame the file lists (Instant-NGP's loader skips such frames); remove them from the file, bring their "
+        "images, or leave them out with data.missing_images=skip")
+
+
+@pytest.mark.parametrize("lists", [True, False], ids=["split lists", "holdout"])
+def test_frames_whose_images_are_missing_are_left_out_with_skip_and_named_once(tmp_path, rendered, caplog, lists):
+    # as Instant-NGP's loader does (its fox: 67 frames, 50 images): the other frames are the scene, whole
+    write(tmp_path, rendered)
+    if not lists:
+        edit_transforms(tmp_path, lambda content: [content.pop(k) for k in ("train_filenames", "val_filenames",
+                                                                            "test_filenames")])
+    for name in ("train_0001.png", "test_0000.png"):
+        (tmp_path / "images" / name).unlink()
+    scene = NerfstudioScene(root=str(tmp_path), missing_images="skip")
+    with caplog.at_level("WARNING", "nerfexp"):
+        read = [scene.views(split) for split in ("train", "val", "test")]
+    left_out = ["images/test_0000.png", "images/train_0001.png"]  # in the file's order (file_path order)
+    assert scene.frames_left_out() == left_out
+    files = [source.path.name for views in read for source in views.sources]
+    assert not {"train_0001.png", "test_0000.png"} & set(files)
+    assert len(scene.posed().capture.frames) == len(set(files)) == 7  # every frame left read, in some split
+    assert caplog.text.count("frames do not exist") == 1 and (
+        f"{tmp_path / TRANSFORMS}: the images of 2 of its 9 frames do not exist (the first: images/test_0000.png): "
+        "those frames are left out (data.missing_images=skip; results.json's frames_left_out lists them)"
+        in caplog.text)
+    assert NerfstudioScene(root=str(tmp_path)).frames_left_out() is None  # refuse, the default, leaves none out
+
+
+def test_a_file_none_of_whose_images_exist_is_refused_with_skip(tmp_path, rendered):
+    write(tmp_path, rendered)
+    shutil.rmtree(tmp_path / "images")
+    with pytest.raises(DatasetError, match=r"transforms.json: none of the images of its 9 frames exists \(the "
+                                           r"first: .*images/test_0000.png\)$"):
+        NerfstudioScene(root=str(tmp_path), missing_images="skip").capture()
 
 
 @pytest.mark.parametrize("link", [os.symlink, os.link], ids=["symbolic", "hard"])

@@ -68,9 +68,30 @@ def test_perturbed_poses_move_every_camera_but_the_first_by_the_amounts_asked():
     assert 1.0 < errors["rotation_deg"] <= 2.0
 
 
-@pytest.mark.parametrize("value", [[2], [2, -1], ["a", 1], [float("nan"), 0.1], 3, [True, 0.1]])
+@pytest.mark.parametrize("value", [
+    [2], [2, -1], ["a", 1], [float("nan"), 0.1], 3, [True, 0.1],
+    [1e9, 1e9],  # every camera moved 10^9 radii away: scored as any other run, a number that meant nothing
+    [180.5, 0.02], [2, 1.01], [10 ** 400, 0],  # past the largest turn, past the cameras' radius; a whole number too
+])                                             # large for a float, compared, never converted
 def test_a_bad_pose_noise_is_one_line_naming_the_key(value):
-    with pytest.raises(ConfigError, match=r"^datamodule.pose_noise=.*: expected \[degrees, fraction"):
+    with pytest.raises(ConfigError, match=r"^datamodule.pose_noise=.*: expected \[degrees, fraction of the cameras' "
+                                          r"radius\], degrees a finite number in \[0, 180\] and fraction one in "
+                                          r"\[0, 1\], or null"):
         check_pose_noise(value)
-    assert check_pose_noise(None) is None
-    assert check_pose_noise([2, 0.02]) == (2.0, 0.02)
+
+
+@pytest.mark.parametrize(("value", "expected"), [(None, None), ([2, 0.02], (2.0, 0.02)), ([0, 0], (0.0, 0.0)),
+                                                 ([180, 1], (180.0, 1.0))])
+def test_a_pose_noise_within_its_bounds_is_read_as_degrees_and_a_fraction(value, expected):
+    assert check_pose_noise(value) == expected
+
+
+def test_the_largest_turn_and_shift_move_a_camera_by_exactly_that_much():
+    # 180 degrees: the largest turn (no other angle is a larger one, nor a turn about another axis by more); a shift
+    # of the cameras' radius puts a camera as far from its pose as the farthest camera is from their centroid
+    true = ring_cameras()
+    noisy = perturbed_poses(true, 180.0, 1.0, seed=0)
+    angles = torch.rad2deg(rotation_angle(noisy[1:, :3, :3] @ true[1:, :3, :3].transpose(-1, -2)))
+    shifts = torch.linalg.vector_norm(noisy[1:, :3, 3] - true[1:, :3, 3], dim=-1)
+    assert torch.allclose(angles, torch.full_like(angles, 180.0), atol=1e-6)
+    assert torch.allclose(shifts, torch.full_like(shifts, camera_radius(true)), atol=1e-12)

@@ -1,6 +1,9 @@
+import math
+
+import pytest
 import torch
 
-from nerfexp.geometry.cameras import camera_rays, focal_from_fov, look_at
+from nerfexp.geometry.cameras import camera_rays, centre_spread, focal_from_fov, look_at
 from nerfexp.geometry.lenses import Intrinsics
 
 
@@ -42,3 +45,17 @@ def test_look_at_camera_sees_the_target_in_the_image_centre():
 def test_focal_from_fov():
     # 90 degrees across 100 pixels: tan(45 deg) = 1, so f = 50.
     assert abs(focal_from_fov(100, torch.pi / 2) - 50.0) < 1e-12
+
+
+@pytest.mark.parametrize(("centres", "spread"), [
+    ([[0, 0, 0], [2, 0, 0]], 1.0),  # each 1 from their mean (1, 0, 0)
+    ([[1, 2, 3]], 0.0),  # one camera
+    ([[1, 2, 3], [1, 2, 3], [1, 2, 3]], 0.0),  # cameras at one point
+    ([[-1, 0, 0], [1, 0, 0], [0, 3, 0], [0, -3, 0]], math.sqrt((1 + 1 + 9 + 9) / 4)),  # mean at the origin
+])
+def test_the_spread_of_camera_centres_is_their_rms_distance_from_their_mean(centres, spread):
+    centres = torch.tensor(centres, dtype=torch.float64)
+    assert centre_spread(centres) == pytest.approx(spread, abs=1e-15)
+    rotation, _ = torch.linalg.qr(torch.randn(3, 3, dtype=torch.float64, generator=torch.Generator().manual_seed(0)))
+    moved = 2.5 * centres @ rotation.T + torch.tensor([4.0, -1.0, 7.0], dtype=torch.float64)  # a similarity
+    assert centre_spread(moved) == pytest.approx(2.5 * spread, abs=1e-12)

@@ -6,7 +6,9 @@ write, a lock left by a killed build); the switch ``NERFEXP_KERNELS`` read as a 
 import hashlib
 import json
 import os
+import re
 import shutil
+import socket
 import stat
 import subprocess
 import sys
@@ -22,6 +24,7 @@ from torch.utils.cpp_extension import get_cxx_compiler, is_ninja_available
 from nerfexp import kernels
 from nerfexp.errors import ConfigError
 from nerfexp.kernels import cache
+from nerfexp.training.module import NeRFModule
 from tests.helpers import TINY, run_nerfexp
 from tests.kernels.adam_step import adam_rows
 
@@ -312,6 +315,134 @@ def test_a_lock_held_longer_than_a_build_takes_is_named_in_one_line_never_waited
         os.close(holder)
 
 
+HOLDER = """
+import sys, time
+from pathlib import Path
+from nerfexp.kernels.cache import build_lock
+with build_lock(Path(sys.argv[1]), "lazy_adam"):
+    print("held", flush=True)
+    ends = time.monotonic() + float(sys.argv[2])
+    while time.monotonic() < ends and not Path(sys.argv[3]).exists():
+        time.sleep(0.05)
+"""  # holds the lazy Adam kernel's build lock ARGV[1] for ARGV[2] seconds, or until the file ARGV[3] exists
+
+
+def lock_of(root: Path) -> Path:
+    """The build lock of the lazy Adam kernel in the cache under ``root`` (made where missing)."""
+    with pytest.MonkeyPatch.context() as patch:
+        patch.setenv("TORCH_EXTENSIONS_DIR", str(root))
+        folder = cache.build_folder(cache.private_cache(cache.cache_root()), expected())
+    return folder.with_name(f"{folder.name}.lock")
+
+
+@needs_compiler
+def test_a_wait_for_another_process_s_build_is_said_at_once_and_at_intervals_naming_the_lock_and_process(
+        tmp_path, monkeypatch, caplog):
+    # another process (a real one, taking the lock as nerfexp does) holds the lock for HOLD seconds: this one says
+    # at once that it waits, for which lock and process and for how long at most, again every LOCK_SAY_S, and when
+    # it takes the lock; then it builds (a stand-in), and the lock names this process
+    hold = 3.0
+    lock = lock_of(tmp_path)
+    monkeypatch.setenv("TORCH_EXTENSIONS_DIR", str(tmp_path))
+    monkeypatch.setattr(cache, "LOCK_SAY_S", 1.0)
+    monkeypatch.setattr(cache, "LOCK_POLL", 0.05)
+    monkeypatch.setattr(cache, "build", lambda *args: "the module built after the wait")
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join(sys.path)}
+    holder = subprocess.Popen([sys.executable, "-c", HOLDER, str(lock), str(hold), str(tmp_path / "never")],
+                              stdout=subprocess.PIPE, text=True, env=env)
+    try:
+        assert holder.stdout.readline() == "held\n"
+        started = time.time()
+        with caplog.at_level("INFO", logger="nerfexp.kernels"):
+            module, now, _ = cache.cached_kernel(NAME, SOURCE)
+        waited = time.time() - started
+    finally:
+        holder.kill()
+        holder.wait()
+    assert (module, now) == ("the module built after the wait", True)
+    lines = [(record.created, record.getMessage()) for record in caplog.records
+             if record.name == "nerfexp.kernels.cache"]
+    waits = [(at, line) for at, line in lines if "waiting for" in line]
+    first_at, first = waits[0]
+    assert first_at - started < 1.0  # at once, not after a poll interval's worth of silence
+    assert first.startswith(f"kernel {NAME}: waiting for process {holder.pid}, which holds its build lock {lock} "
+                            f"(for ") and first.endswith(": building it), at most 20 min more, then the torch path "
+                                                         "runs")
+    again = [line for _, line in waits[1:]]
+    assert len(again) >= int(waited) - 1 >= 1, lines  # one a second while it waited, less the first's second
+    assert all(line.startswith(f"kernel {NAME}: still waiting for process {holder.pid} ({lock}), ") and
+               line.endswith(" so far, at most 20 min more") for line in again), again
+    (taken,) = [line for _, line in lines if "taken after" in line]
+    assert re.fullmatch(rf"kernel {NAME}: build lock {re.escape(str(lock))} taken after \d s of waiting", taken)
+    assert any(line.startswith(f"kernel {NAME}: building it in {lock.with_suffix('')}") for _, line in lines)
+    assert lock.read_bytes() == cache.holder_record()  # the lock now names this process
+
+
+@needs_compiler
+def test_a_run_waiting_for_a_build_says_so_on_its_console_and_in_its_log(tmp_path, monkeypatch):
+    # the issue's case: a run that needs a kernel while another live process builds it said nothing for up to 20 min
+    lock = lock_of(tmp_path / "extensions")
+    monkeypatch.setenv("TORCH_EXTENSIONS_DIR", str(tmp_path / "extensions"))
+    monkeypatch.setattr(cache, "build", lambda *args: object())  # a module nothing calls (the run uses posenc)
+    monkeypatch.setattr(NeRFModule, "kernels", lambda self: [NAME])
+    monkeypatch.setattr(kernels, "_SPENT", {})
+    monkeypatch.setattr(kernels, "_SAID", set())
+    monkeypatch.delenv(kernels.SWITCH, raising=False)
+    kernels._built.cache_clear()
+    release, said = tmp_path / "release", cache.waiting_line
+    monkeypatch.setattr(cache, "waiting_line", lambda *args: release.touch() or said(*args))  # once it has waited
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join(sys.path)}
+    holder = subprocess.Popen([sys.executable, "-c", HOLDER, str(lock), "120", str(release)], stdout=subprocess.PIPE,
+                              text=True, env=env)
+    try:
+        assert holder.stdout.readline() == "held\n"
+        result = run_nerfexp(*TINY, "scale.steps=4", "scale.val_every=2", f"hydra.run.dir={tmp_path / 'run'}",
+                             cwd=tmp_path)
+    finally:
+        holder.kill()
+        holder.wait()
+        kernels._built.cache_clear()
+    assert result.returncode == 0, result.stderr[-3000:]
+    waiting = f"kernel {NAME}: waiting for process {holder.pid}, which holds its build lock {lock}"
+    for said in (result.stdout, (tmp_path / "run" / "nerfexp.log").read_text()):
+        assert waiting in said and f"kernel {NAME}: building it in " in said
+        assert f"kernels, before the training clock started: {NAME} built in " in said
+
+
+def dead_pid() -> int:
+    """The id of a process that has ended (and been reaped)."""
+    ended = subprocess.run([sys.executable, "-c", "import os; print(os.getpid())"], capture_output=True, text=True)
+    return int(ended.stdout)
+
+
+@pytest.mark.parametrize(("record", "says"), [
+    (lambda pid, host: f"{pid} {host}\n", "process {pid}"),
+    (lambda pid, host: "4242 another-host\n", "process 4242 on another-host"),
+    (lambda pid, host: f"{dead_pid()} {host}\n", "another process (the lock file names process {dead}, which is not "
+                                                  "running)"),
+    (lambda pid, host: "", "another process (the lock file names none)"),  # taken, not written yet; or not nerfexp's
+    (lambda pid, host: "0 host\n", "another process (the lock file names none)"),
+    (lambda pid, host: "x\x00\xff", "another process (the lock file names none)"),
+])
+def test_the_holder_of_a_lock_is_named_as_its_file_records_it_where_that_is_true(record, says):
+    written = record(os.getpid(), socket.gethostname())
+    dead = written.split()[0] if written.strip() else None
+    assert cache.holder_text(written.encode("latin-1")) == says.format(pid=os.getpid(), dead=dead)
+
+
+@pytest.mark.parametrize(("held_s", "waited_s", "line"), [
+    (2.0, 0.0, "kernel k: waiting for process 7, which holds its build lock /c/k.lock (for 2 s so far: building it), "
+               "at most 20 min more, then the torch path runs"),
+    (600.0, 0.0, "kernel k: waiting for process 7, which holds its build lock /c/k.lock (for 10 min so far: "
+                 "building it), at most 10 min more, then the torch path runs"),
+    (660.0, 60.0, "kernel k: still waiting for process 7 (/c/k.lock), 60 s so far, at most 9 min more"),
+    (1300.0, 300.0, "kernel k: still waiting for process 7 (/c/k.lock), 5 min so far, at most 0 s more"),
+])
+def test_a_wait_says_the_longest_it_will_go_on(held_s, waited_s, line):
+    # 20 min (BUILD_LIMIT) less how long the lock has been held: then the torch path
+    assert cache.waiting_line("k", Path("/c/k.lock"), "process 7", held_s, waited_s) == line
+
+
 def test_a_cache_others_can_write_is_refused_and_a_sticky_one_above_it_is_not(tmp_path):
     shared = tmp_path / "shared"
     shared.mkdir()
@@ -358,8 +489,10 @@ def test_a_truncated_build_is_one_line_and_the_torch_path_never_a_crash(built, t
     env = {**os.environ, "TORCH_EXTENSIONS_DIR": str(root), "PATH": str(bin_), "CXX": "c++"}
     result = subprocess.run([sys.executable, "-c", NO_NINJA], capture_output=True, text=True, timeout=300, env=env)
     assert result.returncode == 0, result.stderr[-3000:]
-    said = [line for line in result.stderr.splitlines() if line.startswith("nerfexp.kernels")]
+    said = [line for line in result.stderr.splitlines() if line.startswith("nerfexp.kernels:")]
     assert len(said) == 1, result.stderr[-3000:]
+    (building,) = [line for line in result.stderr.splitlines() if line.startswith("nerfexp.kernels.cache:")]
+    assert f"kernel lazy_adam: building it in {folder} (" in building  # said as it starts: it takes a minute
     assert "kernel lazy_adam not built (" in said[0] and "torch path runs instead" in said[0]
     assert f"its cached build failed a check: {library(folder)} is not the file nerfexp wrote there" in said[0]
     assert json.loads(result.stdout) is False

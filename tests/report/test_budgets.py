@@ -5,6 +5,7 @@ time; run directories written by hand with known test scores, the intervals reco
 import csv
 import json
 import math
+import time
 from pathlib import Path
 
 import imageio.v3 as iio
@@ -12,6 +13,7 @@ import numpy as np
 import pytest
 from scipy import stats
 
+from nerfexp.commands.report import main
 from nerfexp.report.budgets import (
     Budget,
     budget_words,
@@ -327,3 +329,26 @@ def test_the_difference_plot_and_the_paretos_budget_points_are_drawn(tmp_path):
     html = (root / "report.html").read_text()
     assert '<img src="difference_vs_time.png"' in html and "<h2>Per budget</h2>" in html
     assert "<h2>At equal training time</h2>" in html
+
+
+def test_a_report_of_runs_of_10001_budgets_takes_seconds_and_says_each_step_of_its_work(tmp_path, capsys):
+    # b 0.5 dB under a at every one of 10,001 budgets (steps 1, 2, ..., seconds 1, 2, ...): every step and every
+    # matched time compared. Each budget was once looked up by a walk over every budget of every run: hours of work
+    n = 10_001
+    for label, offset in (("a", 0.0), ("b", -0.5)):
+        make_run(tmp_path, label, [f"encoding={label}", "seed=0"],
+                 test_budgets=[(i + 1, i + 1.0, 20.0 + offset + i / n, 0.8) for i in range(n)])
+    started = time.process_time()
+    main([str(tmp_path), "--reference", "encoding=a"])
+    assert time.process_time() - started < 120  # CPU seconds of this process: a few here
+    assert capsys.readouterr().err.splitlines() == [
+        f"nerfexp-report: reading the runs under {tmp_path}",
+        "nerfexp-report: comparing 2 variants; runs: 2 (2 finished); 20,002 test budgets",
+        "nerfexp-report: drawing the plots",
+        "nerfexp-report: writing the pictures of 0 test views",
+        "nerfexp-report: writing the page",
+        f"2 variants; report in {tmp_path / 'report.md'} and {tmp_path / 'report.html'}"]
+    rows = read_rows(tmp_path / "report_budgets.csv")
+    steps = [row for row in rows if (row["kind"], row["metric"]) == ("step", "psnr")]
+    assert [int(row["budget"]) for row in steps] == list(range(1, n + 1))
+    assert all(float(row["diff"]) == pytest.approx(-0.5) and row["n"] == "1" for row in steps)

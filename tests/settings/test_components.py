@@ -3,6 +3,7 @@
 
 import ast
 import re
+from collections.abc import Callable
 from pathlib import Path
 
 import pytest
@@ -158,3 +159,54 @@ def test_a_config_held_is_walked_once_and_a_hold_within_a_hold_keeps_the_outer_w
         assert len(walks) == 3
     assert first == inner == after == fresh
     assert [(c.key, c.cls) for c in components(cfg)] == fresh and len(walks) == 4  # outside: walked anew
+
+
+# A component's rules read the arguments it is built with; what builds a partial passes what its annotation says
+
+
+class Built:
+    """A component of two arguments, one with a default."""
+
+    def __init__(self, needed: int, optional: float = 0.5):
+        self.needed, self.optional = needed, optional
+
+
+def test_a_rule_reads_an_argument_not_given_as_its_default_and_one_it_needs_as_a_refusal():
+    config = components_module.Arguments({"optional": 2.0}, "somewhere.built", Built)
+    assert "needed" not in config and list(config) == ["optional"]  # what the config gives, as it gives it
+    assert config["optional"] == 2.0 and components_module.Arguments({}, "k", Built)["optional"] == 0.5
+    with pytest.raises(ConfigError, match=r"^somewhere.built: Built needs needed \(not given\)$"):
+        config["needed"]
+
+
+class Taker:
+    def __init__(self, one: Callable[[int], Built], none: Callable[[], Built] | None, two: Callable[[int, str], Built],
+                 any_: Callable[..., Built], built: Built, plain):
+        pass
+
+
+@pytest.mark.parametrize(("argument", "passed"), [("one", 1), ("none", 0), ("two", 2), ("any_", None),
+                                                  ("built", None), ("plain", None), ("absent", None)])
+def test_what_builds_a_partial_passes_is_what_its_annotation_says(argument, passed):
+    assert components_module.passed_by(Taker, argument) == passed
+    assert components_module.passed_by(None, argument) is None
+
+
+def test_nerfexps_own_takers_say_what_they_pass(hydra_configs):
+    # the field builds its colour head with its width; the renderer builds its sampler and fields with nothing more
+    passed = {c.key: c.passed for c in components(toy("hierarchical=proposal"))}
+    assert passed["view_dependence"] == 1 and passed["model.renderer.field"] == 0 and passed["proposal"] == 0
+    assert passed["model.renderer"] == 0 and passed["sampler"] == 0  # built whole, by Hydra
+
+
+@pytest.mark.parametrize(("override", "problem"), [
+    ("~view_dependence.direction_encoding", "view_dependence: ViewMLPHead needs direction_encoding (not given)"),
+    ("+model.renderer.field.retired=1", "model.renderer.field.retired: NeRFField takes no argument retired (it takes "
+                                        "position_encoding, view_head, depth, width, skips, density_activation, "
+                                        "density_bias, density_noise_std, appearance_dim)"),
+    ("~sampler.n_single", "sampler: HierarchyChoice needs n_single (not given)"),
+])
+def test_a_component_whose_config_does_not_fit_its_class_is_named(hydra_configs, override, problem):
+    found = [p for c in components(toy(override)) if (p := components_module.argument_problem(c)) is not None]
+    assert found == [problem]
+    assert [c for c in components(toy()) if components_module.argument_problem(c) is not None] == []

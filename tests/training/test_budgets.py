@@ -1,18 +1,35 @@
 """Test scores at several budgets of one run (``test_budgets``, nerfexp.training.budgets): each budget's scores are
 those ``nerfexp-eval`` gives the checkpoint of its step, scoring them changes nothing that is trained, and
-``results.json`` lists them in step order with the final test's last, kept across a resume."""
+``results.json`` lists them in step order with the final test's last, kept across a resume. Their cost is measured
+before it is paid: under ``auto`` (the default) budgets that would cost more than a quarter of the training are
+not scored, with a line; a list given is scored as set."""
 
 import json
 import math
+import re
+import time
 import types
+from collections.abc import Callable
 from pathlib import Path
 
 import pytest
 import torch
 
-from nerfexp.training.budgets import budget_entry, budget_steps, budget_text, score_test_views, scoring_seconds
+from nerfexp.training.budgets import (
+    AUTO,
+    COST_SHARE,
+    DEFAULT_FRACTIONS,
+    affordable_budgets,
+    budget_entry,
+    budget_steps,
+    budget_text,
+    score_test_views,
+    scoring_seconds,
+    training_estimate_s,
+)
+from nerfexp.training.module import NeRFModule
 from nerfexp.training.recorders import RunRecorder
-from tests.helpers import TINY, one_error_line, read_json, run_nerfexp
+from tests.helpers import TINY, one_error_line, read_json, run_nerfexp, tiny_config
 
 # a tiny run's checkpoints at every validation (steps 30 and 60) kept under their own names: the budget of 1/2
 # has one to be scored against
@@ -93,6 +110,21 @@ def test_scoring_the_test_views_leaves_the_random_streams_and_the_modes_as_they_
     assert sorted(scores) == [4, 7] and scores[7]["psnr"] == 21.0 and math.isnan(scores[7]["lpips"])
     assert module.seen == [(False, False, True, 0), (False, False, True, 1)]  # evaluation and inference mode
     assert module.training and module.head.training and not module.frozen.training  # each mode as it was
+
+
+def test_scoring_stops_after_the_view_where_it_is_told_to_and_leaves_everything_as_it_was():
+    # test_budgets=auto asks after the first view whether the budget is worth its cost (RunRecorder._affordable)
+    from lightning.pytorch.plugins.precision import Precision
+    views = [{"index": torch.tensor(i)} for i in (4, 7, 9)]
+    loader = torch.utils.data.DataLoader(views, batch_size=None, shuffle=False)
+    trainer = types.SimpleNamespace(precision_plugin=Precision(), global_step=3,
+                                    strategy=types.SimpleNamespace(batch_to_device=lambda batch: batch),
+                                    datamodule=types.SimpleNamespace(test_dataloader=lambda: loader))
+    module, asked = Scored().train(), []
+    before = torch.random.get_rng_state()
+    scores = score_test_views(trainer, module, lambda done, seconds, total: asked.append((done, total)) or done < 2)
+    assert sorted(scores) == [4, 7] and asked == [(1, 3), (2, 3)]  # the third view never scored
+    assert torch.equal(torch.random.get_rng_state(), before) and module.training
 
 
 def train(run_dir: Path, *overrides: str, tiny: list[str]) -> dict:
@@ -200,11 +232,148 @@ def test_a_finished_run_trained_further_keeps_each_budget_once(tmp_path):
 
 
 @pytest.mark.parametrize("value", ["0.5", "[0.5,0.25]", "[0.25,0.25]", "[0,0.5]", "[0.5,1]", "[abc]", "[1.5]",
-                                   "[-0.1]", "null", "[nan]"])
+                                   "[-0.1]", "null", "[nan]", "automatic", "AUTO"])
 def test_bad_budgets_are_refused_in_one_line_before_the_run_directory(tmp_path, tiny, value):
     result = run_nerfexp(*tiny, f"test_budgets={value}", f"hydra.run.dir={tmp_path / 'run'}", cwd=tmp_path)
     line = one_error_line(result)
     assert line.startswith("nerfexp: error: test_budgets=") and line.endswith(
-        "expected a list of fractions of the steps, each a finite number > 0 and < 1, strictly increasing (e.g. "
-        "[0.25, 0.5]; [] scores the end alone)"), line
+        "expected auto, or a list of fractions of the steps, each a finite number > 0 and < 1, strictly increasing "
+        "(e.g. [0.25, 0.5]; [] scores the end alone)"), line
     assert not (tmp_path / "run").exists()
+
+
+def test_the_default_budgets_are_auto_a_quarter_and_a_half_where_their_cost_allows():
+    assert tiny_config().test_budgets == AUTO and DEFAULT_FRACTIONS == (0.25, 0.5) and COST_SHARE == 0.25
+    assert RunRecorder("unused", {}, test_budgets=AUTO).test_budgets == [0.25, 0.5]
+
+
+@pytest.mark.parametrize(("pending", "cost_each_s", "spent_s", "training_s", "kept"), [
+    (2, 240.0, 0.0, 100.0, 0),  # the issue's: 240 s a budget against 25 s (a quarter of 100 s): none
+    (2, 10.0, 0.0, 100.0, 2),  # 20 s of 25 s: both
+    (2, 12.5, 0.0, 100.0, 2),  # exactly 25 s: both (at most the share)
+    (2, 13.0, 0.0, 100.0, 1),  # 26 s: one, 13 s
+    (4, 10.0, 0.0, 100.0, 2),  # 25 s pays two of four
+    (3, 10.0, 10.0, 100.0, 1),  # 10 s spent already: 15 s left, one
+    (2, 10.0, 30.0, 100.0, 0),  # spent more than the share already
+    (2, 2.0, 0.0, 1.0, 2),  # 4 s in all: under SMALL_COST_S (5 s), whatever the share
+    (2, 3.0, 0.0, 1.0, 1),  # 6 s: 5 s pays one
+    (2, 0.0, 0.0, 0.0, 2),  # costs nothing measurable
+])
+def test_auto_scores_as_many_budgets_as_a_quarter_of_the_training_pays_for(pending, cost_each_s, spent_s, training_s,
+                                                                          kept):
+    assert affordable_budgets(pending, cost_each_s, spent_s, training_s) == kept
+
+
+@pytest.mark.parametrize(("elapsed_s", "step", "max_steps", "estimate_s"), [
+    (25.0, 375, 1500, 100.0), (1.0, 15, 60, 4.0), (3.0, 30, 60, 6.0), (0.0, 1, 10, 0.0)])
+def test_the_training_time_is_estimated_from_its_clock_at_the_step(elapsed_s, step, max_steps, estimate_s):
+    assert training_estimate_s(elapsed_s, step, max_steps) == estimate_s
+
+
+def planning(recorder: RunRecorder, step: int, max_steps: int, elapsed_s: float) -> types.SimpleNamespace:
+    """A trainer of one process at ``step`` of ``max_steps``, ``recorder``'s clock at ``elapsed_s``."""
+    recorder.elapsed_s = elapsed_s
+    return types.SimpleNamespace(global_step=step, max_steps=max_steps, is_global_zero=True,
+                                 strategy=types.SimpleNamespace(broadcast=lambda value, src: value))
+
+
+@pytest.mark.parametrize(("scored", "cost_each_s", "paid", "dropped", "says"), [
+    # 1,600 steps, budgets 1/8 to 3/4 (steps 200 to 1200), 25 s of training at step 200: 200 s estimated, 50 s for
+    # the budgets in all
+    ([], 20.0, False, {800, 1200}, "1/2, 3/4 not scored, the test views scored at 1/8, 1/4 and the end"),
+    ([], 60.0, False, {200, 400, 800, 1200}, "1/8, 1/4, 1/2, 3/4 not scored, the test views scored at the end alone"),
+    ([], 60.0, True, {400, 800, 1200}, "1/4, 1/2, 3/4 not scored, the test views scored at 1/8 and the end"),
+    ([], 12.5, False, set(), None),  # 4 x 12.5 s: 50 s, the share exactly
+    ([(100, 30.0)], 10.0, False, {800, 1200}, "the test views scored at 1/16, 1/8, 1/4 and the end"),
+])
+def test_auto_drops_the_latest_budgets_it_cannot_pay_for_in_one_line(caplog, scored, cost_each_s, paid, dropped,
+                                                                     says):
+    recorder = RunRecorder("unused", {}, test_budgets=AUTO)
+    recorder.test_budgets = [0.0625, 0.125, 0.25, 0.5, 0.75]
+    recorder.budgets = [{"step": step, "score_s": score_s} for step, score_s in scored]
+    trainer = planning(recorder, 200, 1600, 25.0)
+    with caplog.at_level("INFO", logger="nerfexp"):
+        assert recorder._affordable(trainer, cost_each_s, "about N s (...)", paid) is (200 not in dropped)
+    assert recorder.dropped == dropped
+    lines = [record.getMessage() for record in caplog.records]
+    if says is None:
+        assert lines == []
+    else:
+        (line,) = lines
+        assert line.startswith("test_budgets=auto: a budget's scoring is estimated at about N s (...), and the "
+                               "budgets may cost 25% of the training's estimated 200 s in all: ") and says in line
+    recorder._affordable(trainer, cost_each_s, "about N s (...)", paid)  # asked again: nothing more dropped or said
+    assert recorder.dropped == dropped and len(caplog.records) == len(lines)
+
+
+def test_a_users_list_is_scored_whatever_it_costs_and_says_so_once(caplog):
+    recorder = RunRecorder("unused", {}, test_budgets=[0.25, 0.5])
+    trainer = planning(recorder, 15, 60, 1.0)  # 4 s of training estimated
+    with caplog.at_level("INFO", logger="nerfexp"):
+        assert recorder._affordable(trainer, 2000.0, "about 2000 s (...)")
+        assert recorder._affordable(planning(recorder, 30, 60, 2.0), 2000.0, "about 2000 s (...)")
+    assert recorder.dropped == set()
+    assert [record.getMessage() for record in caplog.records] == [
+        "test_budgets=[0.25, 0.5]: a budget's scoring is estimated at about 2000 s (...), about 4000 s in all, more "
+        "than 25% of the training's estimated 4 s: scored as set, outside the training clock (results.json's "
+        "budget_scoring_s)"]
+
+
+@pytest.fixture
+def slow_views(monkeypatch) -> Callable[[float], None]:
+    """Every test view's scoring made to take ``seconds`` on the clock (``time.perf_counter`` moved on as a test
+    camera fitted per view would: no waiting); the budgets' cost is measured on that clock."""
+    offset, real, scored = [0.0], time.perf_counter, NeRFModule.test_step
+    monkeypatch.setattr(time, "perf_counter", lambda: real() + offset[0])
+
+    def slow(seconds: float) -> None:
+        def test_step(self, batch, batch_idx):
+            offset[0] += seconds
+            return scored(self, batch, batch_idx)
+        monkeypatch.setattr(NeRFModule, "test_step", test_step)
+    return slow
+
+
+@pytest.mark.parametrize("budgets", ["auto", "[0.25,0.5]"])
+def test_budgets_whose_scoring_costs_more_than_a_quarter_of_training_are_not_scored_under_auto_only(
+        tmp_path, tiny, slow_views, budgets):
+    # the issue's case, on a clock: each test view costs 1000 s to score (two views: 2000 s a budget) against a
+    # training of seconds. auto says so and scores the end alone, after paying for one view; a list is scored as set
+    slow_views(1000.0)
+    run_dir = tmp_path / "run"
+    result = run_nerfexp(*tiny, f"test_budgets={budgets}", f"hydra.run.dir={run_dir}", cwd=tmp_path)
+    assert result.returncode == 0, result.stderr[-3000:]
+    results = read_json(run_dir / "results.json")
+    steps = [entry["step"] for entry in results["test_budgets"]]
+    tests = [json.loads(line) for line in (run_dir / "metrics.jsonl").read_text().splitlines()]
+    cost = r"about 2000 s \(its first view took 1000\.\d\d s, x 2 views\)"  # 1000 s and the real seconds
+    (said,) = [line for line in result.stdout.splitlines() if "test_budgets=" in line]
+    if budgets == "auto":
+        assert steps == [60] and results["budget_scoring_s"] == 0.0
+        assert [line["step"] for line in tests if line["split"] == "test"] == [60]
+        assert re.search(rf"test_budgets=auto: a budget's scoring is estimated at {cost}, and the budgets may cost "
+                         r"25% of the training's estimated \d+ s in all: 1/4, 1/2 not scored, the test views scored at "
+                         r"the end alone \(test_budgets=\[\.\.\.\] scores a list whatever it costs; "
+                         r"docs/after-training\.md\)$", said), said
+        assert "at a budget of" not in result.stdout
+    else:
+        assert steps == [15, 30, 60] and results["budget_scoring_s"] >= 4000.0
+        assert re.search(rf"test_budgets=\[0\.25, 0\.5\]: a budget's scoring is estimated at {cost}, about 400\d s "
+                         r"in all, more than 25% of the training's estimated \d+ s: scored as set", said), said
+    assert results["train_time_s"] < 1000.0  # never in the training clock
+
+
+@pytest.mark.slow
+def test_a_protocol_that_fits_each_test_camera_scores_fewer_budgets_under_auto_with_a_line(tmp_path, tiny):
+    # the issue's protocol on a tiny run: each test camera refitted (100 Adam steps of 1,024 rays) costs several
+    # times the whole training, so auto scores fewer budgets, said once, after the first view's fit
+    run_dir = tmp_path / "run"
+    result = run_nerfexp(*tiny, "camera_opt=so3xr3", "test_cameras=refined", f"hydra.run.dir={run_dir}",
+                         cwd=tmp_path)
+    assert result.returncode == 0, result.stderr[-3000:]
+    results = read_json(run_dir / "results.json")
+    (line,) = [line for line in result.stdout.splitlines() if "test_budgets=auto" in line]
+    assert "its first view took" in line and "x 2 views" in line and "not scored" in line
+    # which of 1/4 and 1/2 fit in a quarter of the training depends on the machine's speed: not both
+    scored_at = [entry["step"] for entry in results["test_budgets"]]
+    assert scored_at in ([60], [15, 60]), scored_at

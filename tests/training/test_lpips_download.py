@@ -5,10 +5,13 @@ first hex digits of its SHA-256, as torch hub's does (``name-<hex>.ext``), and t
 (``ALEXNET_SHA256``), so each test names what it serves by the SHA-256 of its bytes and gives that digest. However a
 download fails, the cache is left without the file and without a temporary one."""
 
+import contextlib
 import hashlib
 import io
+import json
 import socket
 import time
+from collections.abc import Iterator
 from pathlib import Path
 from urllib.error import HTTPError, URLError
 
@@ -30,6 +33,7 @@ from nerfexp.training.perceptual import (
     lpips_scorer,
     url_file_name,
 )
+from tests.helpers import immutable, one_error_line, run_nerfexp
 from tests.training.alexnet import alexnet_state
 from tests.training.weights_server import Cut, hashed_name, misnamed, refused_url, serving, silent
 
@@ -231,3 +235,79 @@ def test_nothing_is_downloaded_where_the_config_names_a_file_or_turns_lpips_off(
         assert lpips_scorer(False, None) == (None, "")
         check_weights_file("auto", None)  # auto downloads when LPIPS is set up, not when the config is checked
     assert server.requests == [] and files_in(empty_hub) == []
+
+
+# Each way the hub cache may fail to give AlexNet's weights (the issue's: TORCH_HOME a file, which stopped a default
+# run with a line naming a temporary ``.unchecked`` file), as (what goes wrong, what the line says of it): under
+# auto LPIPS is not scored, with one line naming the real file or folder; under true it is an error in those words
+HUB_FAILURES = ["TORCH_HOME a file", "cache folder not writable", "no network", "wrong digest", "file unreadable"]
+
+
+@contextlib.contextmanager
+def failing_hub(case: str, root: Path, monkeypatch) -> Iterator[tuple[Path, str]]:
+    """A torch hub cache under ``root`` (``TORCH_HOME``) from which AlexNet's weights cannot be had as ``case``
+    says, served (where served at all) from 127.0.0.1: (the cache's checkpoints folder, why a line must say)."""
+    data = alexnet_bytes()
+    name = hashed_name("alexnet-owt", data)
+    home = root / "torch"
+    checkpoints = home / "hub" / "checkpoints"
+    with serving({name: data[::-1] if case == "wrong digest" else data}) as server:
+        publish(monkeypatch, refused_url(name) if case == "no network" else server.url(name), data)
+        monkeypatch.setenv("TORCH_HOME", str(home))
+        if case == "TORCH_HOME a file":
+            home.write_text("not a folder")
+            yield checkpoints, f"({home} is not a folder)"
+        elif case == "cache folder not writable":
+            checkpoints.mkdir(parents=True)
+            with immutable(checkpoints):  # as root, a mode stops no write
+                yield checkpoints, f"(cannot write {checkpoints / name} (Operation not permitted))"
+        elif case == "file unreadable":
+            checkpoints.mkdir(parents=True)
+            (checkpoints / name).write_bytes(data)
+            monkeypatch.setattr(perceptual, "WEIGHTS_BYTES", 1000)  # as root, a mode stops no read: too large instead
+            yield checkpoints, f"{checkpoints / name}: larger than the 1,000 bytes nerfexp reads of such a file"
+        else:
+            yield checkpoints, {"no network": "(Connection refused)", "wrong digest": "(SHA-256 check failed"}[case]
+
+
+@pytest.mark.parametrize("case", HUB_FAILURES)
+def test_auto_without_the_hub_caches_weights_is_one_line_naming_the_real_place_and_true_refuses(tmp_path, monkeypatch,
+                                                                                                case):
+    with failing_hub(case, tmp_path, monkeypatch) as (checkpoints, why):
+        check_weights_file("auto", None)  # auto: nothing refused before any work
+        none, line = lpips_scorer("auto", None)
+        for check in (check_weights_file, lpips_scorer):
+            with pytest.raises(ConfigError) as error:
+                check(True, None)
+            refusal = str(error.value)
+            assert why in refusal and "\n" not in refusal and ".unchecked" not in refusal, refusal
+            assert ".partial" not in refusal
+        left = files_in(checkpoints)
+    assert none is None and line.startswith("LPIPS not scored: ") and why in line, line
+    assert "\n" not in line and ".unchecked" not in line and ".partial" not in line
+    assert line.endswith("model.lpips=false turns LPIPS off (docs/metrics.md)")
+    assert not [name for name in left if name.endswith((".unchecked", ".partial"))]  # no temporary file left
+
+
+@pytest.mark.parametrize("lpips", ["auto", "true"])
+def test_a_default_run_with_torch_home_a_file_trains_without_lpips_and_true_stops_in_one_line(tmp_path, tiny,
+                                                                                              monkeypatch, lpips):
+    # the issue's case, on the command line: TORCH_HOME pointing at a file
+    home = tmp_path / "torch_home"
+    home.write_text("not a folder")
+    monkeypatch.setenv("TORCH_HOME", str(home))
+    run_dir = tmp_path / "run"
+    result = run_nerfexp(*tiny, "scale.steps=2", "scale.val_every=2", "test_budgets=[]", f"model.lpips={lpips}",
+                         f"hydra.run.dir={run_dir}", cwd=tmp_path)
+    weights = home / "hub" / "checkpoints" / ALEXNET_FILE
+    if lpips == "auto":
+        assert result.returncode == 0, result.stderr[-3000:]
+        assert (f"LPIPS not scored: no AlexNet ImageNet weights at {weights}, and downloading them failed ({home} is "
+                "not a folder)") in result.stdout
+        assert "test_lpips" not in json.loads((run_dir / "results.json").read_text())
+    else:
+        line = one_error_line(result)
+        assert line.startswith(f"nerfexp: error: model.lpips=true: no AlexNet ImageNet weights at {weights}, and "
+                               f"downloading them failed ({home} is not a folder): put ")
+        assert not run_dir.exists()
+    assert ".unchecked" not in result.stdout + result.stderr

@@ -8,6 +8,7 @@ from types import SimpleNamespace
 import pytest
 import torch
 
+from nerfexp.domains import THREAD_LIMIT
 from nerfexp.training import callbacks, machine_share
 from nerfexp.training.callbacks import ThreadsFollowLoad
 from nerfexp.training.machine_share import (
@@ -94,7 +95,8 @@ def test_a_quiet_machine_or_one_without_counters_says_nothing():
     (2, 2, None, 1),  # two runs at once on 2 CPUs: one thread each
     (2, 3, None, 1),  # more jobs than CPUs: still one, never 0
     (16, 3, None, 5),  # 16 // 3
-    (2, 2, 4, 4),  # the user's number stands
+    (2, 2, 4, 2),  # the user's number, at most the CPUs (nerfexp.cpus)
+    (8, 2, 4, 4),  # the user's number stands
     (1, 1, None, 1),
 ])
 def test_threads_are_the_cpus_over_the_jobs_at_once_unless_asked_for(cpus, jobs, requested, expected):
@@ -120,7 +122,7 @@ def test_a_busy_start_sets_fewer_threads_and_says_why(monkeypatch, torch_threads
     monkeypatch.setattr(machine_share, "BUSY_SAMPLE_S", 0.0)
     samples = iter([Sample(10.0, 1.0, 100.0), Sample(10.5, 1.0, 101.0)])
     monkeypatch.setattr(machine_share, "sample", lambda: next(samples))
-    line, busy, _ = start_threads(None, None)
+    line, busy, _, _ = start_threads(None, None)
     assert torch.get_num_threads() == 1
     assert line == ("torch threads: 1 (auto: 2 CPUs this process may use, 2.0 of them busy with other processes; "
                     "threads=N sets it)")
@@ -145,6 +147,8 @@ def test_the_setting_wins_over_omp_num_threads_which_wins_over_auto():
     assert requested_threads(None, {"OMP_NUM_THREADS": "2"}) == 2
     assert requested_threads(None, {"OMP_NUM_THREADS": "0"}) is None  # not a thread count
     assert requested_threads(None, {"OMP_NUM_THREADS": "two"}) is None
+    assert requested_threads(None, {"OMP_NUM_THREADS": "\u0662"}) is None  # a digit, but not one OpenMP reads
+    assert requested_threads(None, {"OMP_NUM_THREADS": "1000000000"}) == 1000000000  # capped where it is applied
     assert requested_threads(None, {}) is None
 
 
@@ -159,10 +163,10 @@ def test_a_joblib_multirun_on_four_cpus_with_two_jobs_gives_each_two_threads(mon
     monkeypatch.delenv("OMP_NUM_THREADS", raising=False)
     monkeypatch.setattr(machine_share, "available_cpus", lambda: 4)
     monkeypatch.setattr(machine_share, "BUSY_SAMPLE_S", 0.0)
-    line, _, _ = start_threads(None, {"_target_": JOBLIB, "n_jobs": 2})
+    line, _, _, _ = start_threads(None, {"_target_": JOBLIB, "n_jobs": 2})
     assert torch.get_num_threads() == 2
     assert line == "torch threads: 2 (auto: 4 CPUs this process may use, 2 jobs at once; threads=N sets it)"
-    line, _, _ = start_threads(1, {"_target_": JOBLIB, "n_jobs": 2})
+    line, _, _, _ = start_threads(1, {"_target_": JOBLIB, "n_jobs": 2})
     assert torch.get_num_threads() == 1 and "asked for" in line
 
 
@@ -228,3 +232,38 @@ def test_a_run_follows_the_load_only_where_its_threads_were_chosen_for_it(monkey
     assert start_threads(None, None).follows_load
     assert not start_threads(2, None).follows_load  # the user's number stands
     assert not start_threads(None, {"_target_": JOBLIB, "n_jobs": 2}).follows_load  # a multirun's division stands
+
+
+@pytest.mark.parametrize(("setting", "environment", "asked"), [
+    (64, "1", "threads=64"),  # a config written for a larger node: the setting wins over OMP_NUM_THREADS
+    (THREAD_LIMIT, None, f"threads={THREAD_LIMIT}"),  # the most the settings check lets through
+    (None, "1000000000", "OMP_NUM_THREADS=1000000000"),  # OpenMP would try to allocate for each and abort the process
+    (None, str(2 ** 63 - 1), f"OMP_NUM_THREADS={2 ** 63 - 1}"),  # past what torch.set_num_threads takes
+])
+def test_a_thread_count_above_the_cpus_is_capped_at_them_with_a_line_naming_how_it_was_asked_for(
+        monkeypatch, torch_threads, setting, environment, asked):
+    monkeypatch.setattr(machine_share, "available_cpus", lambda: 2)
+    monkeypatch.setattr(machine_share, "BUSY_SAMPLE_S", 0.0)
+    if environment is None:
+        monkeypatch.delenv("OMP_NUM_THREADS", raising=False)
+    else:
+        monkeypatch.setenv("OMP_NUM_THREADS", environment)
+    choice = start_threads(setting, None)
+    assert torch.get_num_threads() == 2 and choice.line.startswith("torch threads: 2 (asked for")
+    assert choice.capped == (f"{asked}: more threads than the 2 CPUs this process may use; 2 run (threads beyond the "
+                             "CPUs only wait on each other)")
+    assert not choice.follows_load  # a number the user gave stands, capped
+
+
+@pytest.mark.parametrize(("setting", "environment"), [(2, None), (None, "2"), (None, None), (1, "64")])
+def test_a_thread_count_within_the_cpus_or_chosen_for_the_run_is_not_capped(monkeypatch, torch_threads, setting,
+                                                                             environment):
+    monkeypatch.setattr(machine_share, "available_cpus", lambda: 2)
+    monkeypatch.setattr(machine_share, "BUSY_SAMPLE_S", 0.0)
+    monkeypatch.setattr(machine_share, "sample", lambda: Sample(0.0, 0.0, None))
+    if environment is None:
+        monkeypatch.delenv("OMP_NUM_THREADS", raising=False)
+    else:
+        monkeypatch.setenv("OMP_NUM_THREADS", environment)
+    choice = start_threads(setting, None)
+    assert choice.capped is None and torch.get_num_threads() == (setting or 2)

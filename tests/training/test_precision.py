@@ -145,6 +145,20 @@ def test_a_measurement_is_kept_and_read_back_so_that_runs_of_one_config_choose_a
     assert len(measured) == 3
 
 
+def test_a_measurement_that_cannot_be_kept_says_so_naming_the_file(bf16_cpu, tmp_path, monkeypatch, caplog):
+    # auto's choice stands (the measurement is this run's own) and its line says the record was not kept
+    blocked = tmp_path / "a file"
+    blocked.write_text("not a folder")
+    monkeypatch.setenv(precision.CACHE_VARIABLE, str(blocked / "cache"))
+    monkeypatch.setattr(precision, "measure_field", lambda cfg: (2.0, 1.0, 7))
+    cfg = tiny_config("trainer.accelerator=cpu", "trainer.precision=auto")
+    with caplog.at_level(logging.INFO, logger="nerfexp"):
+        fill_precision(cfg)
+    record = blocked / "cache" / f"{precision.measured_key(cfg)}.json"
+    assert cfg.trainer.precision == "bf16-mixed"
+    assert f"(measured now, not kept: {record} cannot be written (Not a directory); bf16 where" in caplog.text
+
+
 def test_the_measured_step_is_the_runs_own_field_over_a_steps_points_on_forked_random_numbers(bf16_cpu):
     cfg = tiny_config("trainer.accelerator=cpu", "trainer.precision=auto")
     torch.manual_seed(3)

@@ -13,6 +13,8 @@ from omegaconf import OmegaConf
 
 import nerfexp.training.resume as resume
 from nerfexp.errors import NerfexpError
+from nerfexp.report.runs import read_run
+from nerfexp.rundir.state import unfinished_line
 from nerfexp.rundir.trained import current_settings, read_checkpoint
 from nerfexp.training.recorders import keep_metrics_through
 from tests.helpers import final_state, kill_at, one_error_line, read_json, run_nerfexp, tiny_config
@@ -29,6 +31,10 @@ def test_a_killed_run_resumed_ends_as_the_uninterrupted_run(tiny_run, tmp_path, 
     assert killed.returncode == -signal.SIGKILL, killed.stderr[-3000:]
     assert not (tmp_path / "results.json").exists() and final_state(tmp_path)["step"] == 30
     assert read_json(tmp_path / "status.json")["state"] == "running"  # as a killed job leaves it
+    # ... and read as what it is by every reader (nerfexp.rundir.state): the report, the commands reading it back
+    assert read_run(tmp_path).state == "killed"
+    assert unfinished_line(tmp_path, tmp_path / "checkpoints" / "last.ckpt", 30).startswith(
+        f"the run in {tmp_path} was killed before it finished (process ")
 
     resumed = run_nerfexp(*tiny, f"resume={tmp_path}/checkpoints/last.ckpt", f"hydra.run.dir={tmp_path}", cwd=tmp_path)
     assert resumed.returncode == 0, resumed.stderr[-3000:]
@@ -84,7 +90,8 @@ def test_eval_of_a_missing_run_is_one_clear_line(tmp_path, make):
         path.mkdir()
     if make in ("no_checkpoint", "typo_override"):
         (path / ".hydra").mkdir()
-        (path / ".hydra" / "config.yaml").write_text("model:\n  chunk: 8\n")
+        (path / ".hydra" / "config.yaml").write_text("model:\n  _target_: nerfexp.training.module.NeRFModule\n"
+                                                     "  chunk: 8\n")
     if make == "typo_override":
         (path / "checkpoints").mkdir()
         (path / "checkpoints" / "last.ckpt").write_bytes(b"")

@@ -11,6 +11,7 @@ import torch
 from hydra.utils import instantiate
 
 from nerfexp import kernels
+from nerfexp.kernels.cache import NotBuilt
 from nerfexp.training import callbacks, machine_share
 from nerfexp.training.machine_share import Sample, available_cpus
 from nerfexp.training.module import NeRFModule
@@ -34,6 +35,7 @@ def slow_builds(monkeypatch):
     monkeypatch.setattr(time, "perf_counter", lambda: real() + offset[0])
     monkeypatch.setattr(kernels, "cached_kernel", build)
     monkeypatch.setattr(kernels, "_SPENT", {})
+    monkeypatch.setattr(kernels, "_SAID", set())
     monkeypatch.delenv(kernels.SWITCH, raising=False)
     kernels._built.cache_clear()
     yield built
@@ -54,8 +56,64 @@ def test_the_kernels_a_run_uses_are_built_before_its_clock_starts_and_recorded_a
     assert slow_builds == ["hash_encoding"]  # once, before training
     assert results["kernel_build_s"] >= JUMP
     assert results["train_time_s"] < JUMP and all(m["wall_time_s"] < JUMP for m in metrics)
-    assert "kernel hash_encoding built in 1000 s" in output  # the build said once, with its seconds
-    assert "kernels hash_encoding ready before the training clock started" in output
+    # the build said once, with its seconds, before the clock
+    assert output.count("hash_encoding built in 1000 s") == 1
+    assert "kernels, before the training clock started: hash_encoding built in 1000 s (cached for later runs)" in output
+
+
+def fake_kernel(outcome: str):
+    """A stand-in for ``nerfexp.kernels.cache.cached_kernel`` whose kernel is ``outcome``: built now, loaded from the
+    cache, or not built."""
+    def get(name: str, source: bytes):
+        if outcome == "not built":
+            raise NotBuilt("no C++ compiler: c++ not found")
+        return object(), outcome == "built", None
+    return get
+
+
+# what a run's line says of its kernel (NeRFModule.kernels: hash_encoding) where it is built, loaded, not built or off
+KERNEL_OUTCOMES = [
+    ("built", "on", "hash_encoding built in 0 s (cached for later runs)"),
+    ("loaded", "on", "hash_encoding loaded from the cache"),
+    ("not built", "on", "hash_encoding not built (no C++ compiler: c++ not found): the torch path runs instead "
+                        "(docs/acceleration.md)"),
+    ("loaded", "off", "hash_encoding off (NERFEXP_KERNELS=off): the torch path runs instead"),
+    ("built", "0", "hash_encoding off (NERFEXP_KERNELS=0): the torch path runs instead"),
+]
+
+
+@pytest.mark.parametrize(("outcome", "switch", "line"), KERNEL_OUTCOMES)
+def test_the_kernels_line_says_what_each_came_to_never_ready_for_one_not_in_use(tmp_path, tiny, monkeypatch, outcome,
+                                                                               switch, line):
+    # the issue's case: with the kernels off or not built the log said "kernels hash_encoding ready before the
+    # training clock started"
+    monkeypatch.setattr(kernels, "cached_kernel", fake_kernel(outcome))
+    monkeypatch.setattr(kernels, "_SPENT", {})
+    monkeypatch.setattr(kernels, "_SAID", set())
+    monkeypatch.setenv(kernels.SWITCH, switch)
+    monkeypatch.setattr(NeRFModule, "kernels", lambda self: ["hash_encoding"])
+    kernels._built.cache_clear()
+    try:
+        _, _, output = train(tmp_path, tiny)
+    finally:
+        kernels._built.cache_clear()
+    assert f"kernels, before the training clock started: {line}\n" in output
+    assert " ready " not in output and output.count("hash_encoding") == 1  # one line says it, once
+
+
+def test_a_kernel_got_by_an_earlier_run_in_the_process_is_said_so(monkeypatch):
+    # a multirun's jobs share a process: the second run's line does not claim the first run's build
+    monkeypatch.setattr(kernels, "cached_kernel", fake_kernel("built"))
+    monkeypatch.setattr(kernels, "_SPENT", {})
+    monkeypatch.setattr(kernels, "_SAID", set())
+    monkeypatch.delenv(kernels.SWITCH, raising=False)
+    kernels._built.cache_clear()
+    try:
+        first, again = kernels.prepare(["lazy_adam"]), kernels.prepare(["lazy_adam", "lazy_adam"])
+    finally:
+        kernels._built.cache_clear()
+    assert first == {"lazy_adam": "built in 0 s (cached for later runs)"}
+    assert again == {"lazy_adam": "built in 0 s (cached for later runs) (got earlier in this process)"}
 
 
 def test_a_kernel_first_asked_for_inside_the_clock_is_taken_out_of_it(tmp_path, tiny, slow_builds, monkeypatch):
@@ -80,6 +138,23 @@ def test_a_run_records_its_cpu_time_the_others_load_its_cpus_and_threads(tmp_pat
     assert results["cpu_time_s"] > 0 and results["cpus"] == available_cpus()
     assert results["other_load"] is None or results["other_load"] >= 0  # None only without /proc/stat
     assert results["kernel_build_s"] == 0.0  # the default model runs no fused kernel
+
+
+def test_a_thread_count_above_the_cpus_asked_for_by_omp_num_threads_is_capped_with_a_line(tmp_path, tiny,
+                                                                                         monkeypatch):
+    # OMP_NUM_THREADS, which torch and OpenMP read too, is not refused: a run caps it at the CPUs and says so (10^9
+    # threads made OpenMP abort the process, leaving its status.json saying running)
+    monkeypatch.setenv("OMP_NUM_THREADS", "1000000000")
+    saved = torch.get_num_threads()
+    try:
+        results, _, output = train(tmp_path, tiny)
+    finally:
+        torch.set_num_threads(saved)
+    cpus = available_cpus()
+    assert results["torch_threads"] == cpus and f"torch threads: {cpus} (asked for" in output
+    assert (f"OMP_NUM_THREADS=1000000000: more threads than the {cpus} CPUs this process may use; {cpus} run"
+            in output)
+    assert json.loads((tmp_path / "status.json").read_text())["state"] == "finished"
 
 
 @pytest.mark.parametrize(("overrides", "expected"), [

@@ -65,9 +65,8 @@ class WeightsServer(ThreadingHTTPServer):
 
 
 @contextmanager
-def serving(files: dict[str, bytes | Cut]) -> Iterator[WeightsServer]:
-    """A ``WeightsServer`` of ``files`` on a free port, answering from a thread until the block ends."""
-    server = WeightsServer(files)
+def running(server: ThreadingHTTPServer) -> Iterator[ThreadingHTTPServer]:
+    """``server`` answering from a thread until the block ends, then shut down and closed."""
     thread = threading.Thread(target=server.serve_forever, kwargs={"poll_interval": 0.01}, daemon=True)
     thread.start()
     try:
@@ -76,6 +75,11 @@ def serving(files: dict[str, bytes | Cut]) -> Iterator[WeightsServer]:
         server.shutdown()
         server.server_close()
         thread.join()
+
+
+def serving(files: dict[str, bytes | Cut]):
+    """A ``WeightsServer`` of ``files`` on a free port, answering from a thread until the block ends."""
+    return running(WeightsServer(files))
 
 
 def refused_url(name: str) -> str:

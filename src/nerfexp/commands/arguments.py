@@ -2,6 +2,7 @@
 
 import argparse
 import math
+import sys
 from collections.abc import Callable
 from pathlib import Path
 
@@ -10,6 +11,7 @@ from omegaconf import DictConfig
 from nerfexp.domains import bound_text
 from nerfexp.errors import ConfigError
 from nerfexp.memory import require_memory
+from nerfexp.rundir.state import unfinished_line
 from nerfexp.rundir.trained import run_config
 from nerfexp.settings.checks import check_run_settings
 
@@ -72,6 +74,14 @@ def run_settings(run_dir: Path, overrides: list[str]) -> DictConfig:
     cfg = run_config(run_dir, overrides)
     check_run_settings(cfg, scoring=True)
     return cfg
+
+
+def say_unfinished(prog: str, run_dir: Path, checkpoint: Path, step: int) -> None:
+    """Print ``PROG: warning: ...`` where the run in ``run_dir`` did not finish (killed, failed, still running: its
+    status read as what it is, ``nerfexp.rundir.state.unfinished_line``), so that what ``checkpoint``, at ``step``,
+    is made of is said before it is used."""
+    if (line := unfinished_line(run_dir, checkpoint, step)) is not None:
+        print(f"{prog}: warning: {line}", file=sys.stderr, flush=True)
 
 
 def add_run_arguments(parser: argparse.ArgumentParser) -> None:

@@ -6,7 +6,7 @@ from pathlib import Path
 from hydra.utils import instantiate
 from omegaconf import DictConfig
 
-from nerfexp.commands.arguments import add_run_arguments, command_parser, run_settings
+from nerfexp.commands.arguments import add_run_arguments, command_parser, run_settings, say_unfinished
 from nerfexp.commands.console import run_command
 from nerfexp.manifest import check_ours
 from nerfexp.products.trained import load_module
@@ -25,6 +25,7 @@ def evaluate(cfg: DictConfig, run_dir: Path, checkpoint: Path) -> dict:
 
     fill_precision(cfg)
     model, step = load_module(cfg, checkpoint)
+    say_unfinished("nerfexp-eval", run_dir, checkpoint, step)
     recorder = EvalRecorder(run_dir, checkpoint, step)
     trainer = instantiate(cfg.trainer, logger=False, callbacks=[recorder, *progress_bars(cfg.trainer)],
                           enable_checkpointing=False, default_root_dir=str(run_dir))

@@ -34,6 +34,7 @@ from nerfexp.commands.arguments import (
     command_parser,
     fitting,
     positive,
+    say_unfinished,
 )
 from nerfexp.commands.console import run_command
 from nerfexp.data.base import Scene
@@ -83,6 +84,7 @@ def export_run(run: Path, overrides: list[str], resolution: int, threshold: floa
     of its test views) and ``mesh.ply`` (``extract_mesh`` at ``threshold``; None: ``field_threshold`` at the
     points). Returns a one-line summary."""
     (run_dir, checkpoint, _, module, step), scene = trained_run(run, overrides, chunk)
+    say_unfinished("nerfexp-export", run_dir, checkpoint, step)
     out_dir = run_dir / EXPORT_DIR
     check_export_folder(run_dir)
     renderer = module.renderer
@@ -91,11 +93,13 @@ def export_run(run: Path, overrides: list[str], resolution: int, threshold: floa
     points, point_colours = view_points(module, scene, views, min_opacity)
     # the field is evaluated as many points at a time as a chunk of rays evaluates: the memory of rendering
     batch = module.chunk * renderer.samples_per_ray
-    source = "given"
+    default = None  # how the threshold was read, where none is given
     if threshold is None:
         threshold = field_threshold(final_field(renderer), points, batch, module.device)
-        source = f"the {THRESHOLD_QUANTILE:g} quantile of the density at the test views' depths"
-    mesh, mesh_colours = extract_mesh(final_field(renderer), box, resolution, threshold, batch, module.device)
+        default = f"the {THRESHOLD_QUANTILE:g} quantile of the density at the test views' depths"
+    mesh, mesh_colours = extract_mesh(final_field(renderer), box, resolution, threshold, batch, module.device,
+                                      default=default)
+    source = default or "given"
 
     shape = " x ".join(map(str, grid_shape(box, resolution)))
     made = f"nerfexp-export of {checkpoint} (step {step})"

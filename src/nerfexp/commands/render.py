@@ -24,6 +24,7 @@ from nerfexp.commands.arguments import (
     command_parser,
     fitting,
     positive,
+    say_unfinished,
     within,
 )
 from nerfexp.commands.console import run_command
@@ -49,7 +50,8 @@ def render_run(run: Path, overrides: list[str], n_frames: int, fps: float | None
     along ``cameras`` (None: a ``training_path``), frames ``size`` pixels wide (``frame_size``; None: the
     cameras' own size) played at ``fps`` (None: the cameras'; 30 for a training path). Returns the folder
     and the number of frames."""
-    run_dir, _, cfg, module, _ = load_run(run, overrides, chunk)
+    run_dir, checkpoint, cfg, module, step = load_run(run, overrides, chunk)
+    say_unfinished("nerfexp-render", run_dir, checkpoint, step)
     out_dir = run_dir / RENDER_DIR
     check_render_folder(run_dir)
     scene = run_scene(run_dir, cfg)  # its training cameras as refined, where the run refined them

@@ -30,12 +30,17 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+def say(line: str) -> None:
+    """A line of the command's progress on standard error, at once (a long report is never silent)."""
+    print(f"nerfexp-report: {line}", file=sys.stderr, flush=True)
+
+
 def main(argv: list[str] | None = None) -> None:
     """The ``nerfexp-report`` command (``build_parser``)."""
     args = build_parser().parse_args(argv)
     out = args.out or args.dirs[0]
     with one_line_errors("nerfexp-report"):
-        variants = write_report(args.dirs, out, tuple(args.over), args.reference, args.views)
+        variants = write_report(args.dirs, out, tuple(args.over), args.reference, args.views, progress=say)
     for line in shared_lines(variants):  # report.md says it too, beside the table
-        print(f"nerfexp-report: {line}", file=sys.stderr)
+        say(line)
     print(f"{len(variants)} variants; report in {out / REPORT_MD} and {out / REPORT_HTML}", file=sys.stderr)

@@ -56,3 +56,10 @@ def view(argv: list[str] | None = None) -> None:
     with ending_signals("nerfexp-view"):
         from nerfexp.commands.view import main
         main(argv)
+
+
+def data(argv: list[str] | None = None) -> None:
+    """``nerfexp-data`` (``nerfexp.commands.data``)."""
+    with ending_signals("nerfexp-data"):
+        from nerfexp.commands.data import main
+        main(argv)

@@ -8,15 +8,11 @@ import os
 import re
 import sys
 from collections.abc import Iterator
-from importlib.resources import files
 from pathlib import Path
 from typing import TYPE_CHECKING
 
 import hydra
-import yaml
 from hydra.core.hydra_config import HydraConfig
-from hydra.core.override_parser.overrides_parser import OverridesParser
-from hydra.core.override_parser.types import ChoiceSweep, Glob
 from hydra.errors import HydraException, InstantiationException, MissingConfigException, OverrideParseException
 from hydra.types import RunMode
 from hydra.utils import instantiate
@@ -26,7 +22,7 @@ from omegaconf.errors import ConfigAttributeError, ConfigKeyError, OmegaConfBase
 from nerfexp.commands.console import file_error_line, quiet_dependencies, thread_file_errors
 from nerfexp.commands.signals import JobSignalled, ending_signals, in_launcher_job, job_signals, received_signal
 from nerfexp.data.rays import rank_slice
-from nerfexp.errors import ConfigError, NerfexpError
+from nerfexp.errors import ConfigError, NerfexpError, failures_refused
 from nerfexp.extras import require
 from nerfexp.manifest import record_matching
 from nerfexp.reading import UnreadableFile
@@ -41,7 +37,8 @@ from nerfexp.rundir.layout import (
     read_json,
     write_status,
 )
-from nerfexp.settings.checks import check_settings
+from nerfexp.settings.checks import check_composition, check_settings
+from nerfexp.settings.groups import check_group_overrides, is_nerfexp_group
 from nerfexp.settings.rows import check_row
 from nerfexp.settings.schema import PASSED_ON, matching
 from nerfexp.settings.unused import unused_settings, without_unused
@@ -79,20 +76,24 @@ def train(cfg: DictConfig) -> dict | None:
     from nerfexp.training.resume import check_resume, checkpoint_settings, group_choices, read_resumed, resume_record
 
     sweep = HydraConfig.get().mode == RunMode.MULTIRUN
-    if sweep:
-        check_settings(cfg)  # missing mandatory values first
-        check_row(cfg, HydraConfig.get().runtime.choices, list(HydraConfig.get().overrides.task))
-    unused = unused_settings(cfg, list(HydraConfig.get().overrides.task))  # a sweep's job: recorded as null
+    with failures_refused("the settings check"):  # a check that fails refuses the job, as it refuses a single run
+        if sweep:
+            check_composition(cfg, HydraConfig.get())  # the job's group values and labels, before the others read them
+            check_settings(cfg)  # missing mandatory values first
+            check_row(cfg, HydraConfig.get().runtime.choices, list(HydraConfig.get().overrides.task))
+        unused = unused_settings(cfg, list(HydraConfig.get().overrides.task))  # a sweep's job: recorded as null
     for override, reason in unused:
         log.warning("%s: not used with %s; results.json records it as null", override, reason)
     quiet_dependencies()
+    instantiate(cfg.data).fetch()  # a scene by name (data.scene): into the cache where it is not there, before any read
     bounds = fill_ray_bounds(cfg)
     L.seed_everything(cfg.seed, workers=True, verbose=False)
     launcher = OmegaConf.to_container(HydraConfig.get().launcher, resolve=True) if sweep else None
     threads = start_threads(cfg.threads, launcher)  # one line each, before any work
     log.info("%s", threads.line)
-    if threads.busy is not None:
-        log.warning("%s", threads.busy)
+    for warning in (threads.capped, threads.busy):
+        if warning is not None:
+            log.warning("%s", warning)
     fill_precision(cfg)  # with the run's threads: auto may time the run's field (on forked random numbers)
     runtime = HydraConfig.get().runtime
     choices = {k: v for k, v in runtime.choices.items() if not k.startswith("hydra") and v is not None}
@@ -115,7 +116,7 @@ def train(cfg: DictConfig) -> dict | None:
         check_weights(resumed.weights, model, Path(cfg.resume))
     overrides = list(HydraConfig.get().overrides.task)
     recorder = RunRecorder(runtime.output_dir, choices, recorded, overrides, settings, resumes, run_labels(cfg),
-                           bounds, test_budgets=list(cfg.test_budgets))
+                           bounds, test_budgets=cfg.test_budgets)
     callbacks = [instantiate(c) for c in cfg.callbacks.values()] + [recorder] + progress_bars(cfg.trainer)
     if threads.follows_load:  # an automatic count follows the machine (the changes: results.json's thread_changes)
         callbacks.append(ThreadsFollowLoad(available_cpus(), recorder.thread_changes))
@@ -264,47 +265,6 @@ def check_launcher(arguments: list[str]) -> None:
             require("hydra_plugins.hydra_submitit_launcher", argument)
 
 
-def group_options(group: str) -> list[str]:
-    """The options nerfexp's own ``conf/`` holds for the config group ``group`` (its folder's YAML files)."""
-    folder = files("nerfexp.conf").joinpath(*group.split("/"))
-    return sorted(path.name.removesuffix(".yaml") for path in folder.iterdir() if path.name.endswith(".yaml"))
-
-
-def names_options(value: object) -> bool:
-    """Whether all that an override's ``value`` would choose are options' names (strings): ``value`` itself, or
-    each item of its list or choice sweep (``a,b`` under -m)."""
-    items = value.list if isinstance(value, ChoiceSweep) else value if isinstance(value, list) else [value]
-    return all(isinstance(item, str | Glob) for item in items)
-
-
-def unchosen_groups() -> set[str]:
-    """The config groups ``config.yaml``'s defaults leave without an option (``experiment: null``)."""
-    defaults = yaml.safe_load((files("nerfexp.conf") / "config.yaml").read_text())["defaults"]
-    return {group for entry in defaults if isinstance(entry, dict) for group, option in entry.items() if option is None}
-
-
-def check_group_choices(arguments: list[str]) -> None:
-    """A ConfigError where a command-line override gives a config group (a folder of ``conf/``, or a key with
-    a ``/``: ``hydra/launcher``) something other than an option's name: ``null``, a number, a boolean, a mapping,
-    a range (Hydra would end in a ValueError's traceback, or say there is no such key). ``GROUP=null`` is refused
-    rather than read as no option: a group that has none by default (``experiment``, ``ablation``) is left out of
-    the command line for none. An override that does not parse is Hydra's to say."""
-    top = {path.name for path in files("nerfexp.conf").iterdir() if path.is_dir()}
-    for argument in arguments:
-        if argument.startswith("-") or "=" not in argument:
-            continue
-        try:
-            (override,) = OverridesParser.create().parse_overrides([argument])
-        except HydraException:
-            continue
-        group = override.key_or_group
-        if override.is_delete() or not ("/" in group or group in top) or names_options(override.value()):
-            continue
-        listed = f" (choose from {', '.join(group_options(group))})" if group in top else ""
-        none = f"; none is {group}'s default: leave it out for none" if group in unchosen_groups() else ""
-        raise ConfigError(f"{argument}: a config group takes an option's name{listed}{none}")
-
-
 def cli() -> None:
     """The ``nerfexp`` command: ``main``, where SIGTERM or SIGINT (a SLURM time limit, ``kill``, Ctrl-C)
     ends a run or a sweep with exit status 128 + the signal, after the job's ``status.json`` says
@@ -313,7 +273,7 @@ def cli() -> None:
     sys.stdout.reconfigure(line_buffering=True)
     try:
         check_launcher(sys.argv[1:])
-        check_group_choices(sys.argv[1:])
+        check_group_overrides(sys.argv[1:], is_nerfexp_group)
     except NerfexpError as error:
         sys.exit(f"nerfexp: error: {error}")
     with ending_signals("nerfexp"), thread_file_errors("nerfexp"), hydra_errors_in_one_line():

@@ -15,6 +15,7 @@ from nerfexp.commands.arguments import (
     fitting,
     port,
     positive,
+    say_unfinished,
 )
 from nerfexp.commands.console import run_command
 from nerfexp.commands.signals import ending_signals
@@ -47,7 +48,8 @@ def view_run(run: Path, overrides: list[str], host: str, port: int, chunk: int |
     ``http://host:port`` (port 0: any free one) until SIGINT or SIGTERM, which end the process as
     ``nerfexp.commands.signals.ending_signals`` does (exit status 130 or 143)."""
     viser = require("viser", "nerfexp-view")
-    run_dir, _, cfg, module, step = load_run(run, overrides, chunk)
+    run_dir, checkpoint, cfg, module, step = load_run(run, overrides, chunk)
+    say_unfinished("nerfexp-view", run_dir, checkpoint, step)
     check_ours(run_dir, [CAMERA_PATH.as_posix()], "nerfexp-view", SAVE_ADVICE)  # where a saved camera path goes
     if warning := remote_warning(host, run_dir):
         print(warning, file=sys.stderr, flush=True)

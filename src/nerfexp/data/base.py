@@ -1,14 +1,20 @@
 """The ``Scene``: what every dataset format provides (``data`` in the config builds one), each member
-the rest of nerfexp uses spelled out, with a default where a format may leave it out."""
+the rest of nerfexp uses spelled out, with a default where a format may leave it out; and the ``FolderScene``, a
+scene read from a folder: the one ``data.root`` names, or the cached one a catalogue's name stands for."""
 
 import abc
 from collections.abc import Mapping
+from dataclasses import dataclass
+from pathlib import Path
 from typing import ClassVar
 
 from torch import Tensor
 
+from nerfexp.data.catalog import SCENE_NAME, Entry, find_entry, scene_problem
+from nerfexp.data.scene_cache import cached_folder, data_cache, fetch_scene, scene_record
 from nerfexp.data.views import Views
-from nerfexp.domains import BOX, COUNT, FAR, NEAR, PATH, RAW_LIMIT, Rule, choice, optional, real
+from nerfexp.domains import BOX, COUNT, FAR, NEAR, PATH, RAW_LIMIT, Applies, Consistent, Rule, choice, optional, real
+from nerfexp.downloads import MIRROR
 from nerfexp.errors import ConfigError
 from nerfexp.geometry.boxes import frustum_aabb, parse_aabb
 from nerfexp.nerf.backgrounds import BACKGROUNDS
@@ -25,7 +31,8 @@ class Scene(abc.ABC):
             such a scene (the paper's 1 for real forward-facing captures, 0 for synthetic ones); the field's
             config reads it (``${data.density_noise_std}``), so the scene's format chooses it and the
             command line still can.
-    Methods with a default: ``split_rule``, ``bounds_rule``, ``bounding_box``, ``ray_bounds``, ``depth_bounds``, ``model_rays``.
+    Methods with a default: ``fetch``, ``source``, ``frames_left_out``, ``split_rule``, ``bounds_rule``,
+    ``bounding_box``, ``ray_bounds``, ``depth_bounds``, ``model_rays``.
     """
 
     # the domains of the arguments every format shares (nerfexp.domains; a format adds its own)
@@ -57,6 +64,20 @@ class Scene(abc.ABC):
     @abc.abstractmethod
     def views(self, split: str) -> Views:
         """The posed images of ``split``: "train", "val" or "test"."""
+
+    def fetch(self) -> None:
+        """Make the scene's files present before it is read, where they come from elsewhere (a scene by name,
+        downloaded: ``FolderScene``); training calls it, the commands that read a run back never do."""
+
+    def source(self) -> dict | None:
+        """Where the scene's files came from, where they were fetched (``FolderScene``: its name, the archive's
+        SHA-256 and how that digest was established); results.json records it as ``scene``. None: not fetched."""
+        return None
+
+    def frames_left_out(self) -> list[str] | None:
+        """The frames the scene's files list whose images do not exist and which were left out (where the format
+        leaves such frames out at all); results.json records them as ``frames_left_out``. None: none left out."""
+        return None
 
     def split_rule(self) -> str | None:
         """How the views were split into train, val and test, where a rule (not the dataset's own files)
@@ -99,3 +120,75 @@ class Scene(abc.ABC):
         if train_views is None:
             raise ConfigError("the scene has no bounding box and no training views to bound: set data.aabb")
         return frustum_aabb(train_views.c2w, train_views.intrinsics, train_views.height, train_views.width, near, far)
+
+
+def folder_given(config: Mapping) -> str | None:
+    """Why a scene's name does nothing in a scene's ``config``: a folder given, which is read."""
+    if config.get("root") is not None:
+        return f"data.root={config['root']} (the folder given is read; data.scene names none then)"
+    return None
+
+
+def folder_unnamed(config: Mapping) -> str | None:
+    """Why the settings of a scene by name do nothing in a scene's ``config``: a folder given, or no name."""
+    return folder_given(config) or (None if config.get("scene") is not None else "data.scene=null (no scene by name)")
+
+
+def neither_given(config: Mapping) -> str | None:
+    """What a scene's ``config`` needs where it names neither a folder nor a scene."""
+    if config.get("root") is None and config.get("scene") is None:
+        return ("a scene's folder, data.root=DIR, or a scene's name, data.scene=NAME (nerfexp-data list names "
+                "them; docs/data.md)")
+    return None
+
+
+@dataclass
+class FolderScene(Scene):
+    """A scene read from a folder: ``root``, or, where it is None, the scene ``scene`` names in nerfexp's catalogue or
+    the user's ``catalog`` (``nerfexp.data.catalog``), unpacked in the scene cache (``nerfexp.data.scene_cache``).
+    ``fetch`` downloads a scene by name into the cache where it is not there (from ``mirror``'s host where set); every
+    other member only looks there, with no network access (the commands that read a run back find its scene so)."""
+
+    DOMAINS: ClassVar[dict[str, Rule]] = {
+        **Scene.DOMAINS,
+        "root": optional(PATH, "the scene data.scene names"),
+        "scene": optional(SCENE_NAME, "data.root's folder"),
+        "catalog": optional(PATH, "nerfexp's catalogue alone"),
+        "mirror": optional(MIRROR, "each source's own host"),
+    }
+    APPLIES: ClassVar[dict[str, Applies]] = {  # nerfexp.domains: when an argument does nothing
+        "scene": folder_given,
+        "catalog": folder_unnamed,
+        "mirror": folder_unnamed,
+    }
+    CONSISTENT: ClassVar[dict[tuple[str, ...], Consistent]] = {("root", "scene"): neither_given,
+                                                               ("scene",): scene_problem}
+
+    root: str | None = None
+    scene: str | None = None
+    catalog: str | None = None
+    mirror: str | None = None
+
+    def entry(self) -> Entry:
+        """The catalogue entry ``scene`` names (``find_entry``)."""
+        return find_entry(self.scene, self.catalog)
+
+    def folder(self) -> Path:
+        """The scene's folder: ``root``, else the cache's folder of the scene by name (``cached_folder``)."""
+        if self.root is not None:
+            return Path(self.root)
+        if self.scene is None:
+            raise ConfigError(f"data.root=null and data.scene=null: expected {neither_given({})}")
+        return cached_folder(self.entry())
+
+    def fetch(self) -> None:
+        """A scene by name into the cache (``fetch_scene``), where it is not there already."""
+        if self.root is None and self.scene is not None:
+            fetch_scene(self.entry(), self.mirror)
+
+    def source(self) -> dict | None:
+        """The cache's record of a scene by name (its name, the archive's address, SHA-256 and size, how the digest
+        was established and when); None for a folder given."""
+        if self.root is not None or self.scene is None:
+            return None
+        return scene_record(data_cache(), self.entry())

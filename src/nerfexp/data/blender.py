@@ -20,7 +20,7 @@ import torch
 from torch import Tensor
 from tqdm import tqdm
 
-from nerfexp.data.base import Scene
+from nerfexp.data.base import FolderScene
 from nerfexp.data.images import downscale_rgba, fit_factor, has_alpha, read_image
 from nerfexp.data.views import Source, Views, check_shared_file
 from nerfexp.domains import COUNT, Rule, breaks, is_real
@@ -29,7 +29,7 @@ from nerfexp.files import atomic_write
 from nerfexp.geometry.cameras import POSE_LISTS, focal_from_fov, pose_problem
 from nerfexp.geometry.lenses import Intrinsics
 from nerfexp.pixels import png_bytes, to_uint8
-from nerfexp.reading import UnreadableFile, read_json
+from nerfexp.reading import UnreadableFile, name_problem, read_json
 
 TRANSFORMS = "transforms_{split}.json"
 BLENDER_HALF_SIDE = 1.5  # the synthetic scenes' objects lie in [-1.5, 1.5]^3
@@ -101,6 +101,8 @@ def read_transforms(path: Path) -> tuple[float, list[tuple[str, Tensor]]]:
     for where, frame in checked_frames(path, content):
         if not isinstance(frame["file_path"], str):
             raise DatasetError(f"{where}: 'file_path' must be a string, got {frame['file_path']!r:.80}")
+        if (problem := name_problem(frame["file_path"])) is not None:
+            raise DatasetError(f"{where}: 'file_path' {problem}, got {frame['file_path']!r:.80}")
         parsed.append((frame["file_path"], pose_matrix(frame["transform_matrix"], where)))
     return float(angle), parsed
 
@@ -165,15 +167,14 @@ def load_blender(root, split: str, downscale: int = 1, max_views: int | None = N
 
 
 @dataclass
-class BlenderScene(Scene):
+class BlenderScene(FolderScene):
     """A Blender-format dataset (``data=blender``): the training views, the first ``n_val``
     validation views, and every ``test_stride``-th test view, all shrunk by ``downscale`` and then,
     where ``max_side`` is set, by the smallest further integer factor that brings the longer image
     side to at most ``max_side`` pixels (so CPU-sized runs fit scenes of any resolution)."""
 
-    DOMAINS: ClassVar[dict[str, Rule]] = {**Scene.DOMAINS, "downscale": COUNT, "test_stride": COUNT}
+    DOMAINS: ClassVar[dict[str, Rule]] = {**FolderScene.DOMAINS, "downscale": COUNT, "test_stride": COUNT}
 
-    root: str
     downscale: int = 1
     max_side: int | None = None
     n_train: int | None = None  # the first n_train training views; None: all
@@ -192,9 +193,9 @@ class BlenderScene(Scene):
     def views(self, split: str) -> Views:
         options = {"train": {"max_views": self.n_train}, "val": {"max_views": self.n_val},
                    "test": {"stride": self.test_stride}}[split]
-        views = load_blender(self.root, split, self.downscale, **options)
+        views = load_blender(self.folder(), split, self.downscale, **options)
         if split == "train" and self.n_train is not None and len(views.rgba) < self.n_train:
-            raise DatasetError(f"data.n_train={self.n_train}: {Path(self.root) / TRANSFORMS.format(split=split)} "
+            raise DatasetError(f"data.n_train={self.n_train}: {self.folder() / TRANSFORMS.format(split=split)} "
                                f"has only {len(views.rgba)} views")
         factor = fit_factor(max(views.height, views.width), self.max_side)
         if factor == 1:

@@ -47,7 +47,7 @@ import torch
 from torch import Tensor
 from tqdm import tqdm
 
-from nerfexp.data.base import Scene
+from nerfexp.data.base import FolderScene
 from nerfexp.data.colmap_sfm import (
     find_model,
     image_files,
@@ -67,9 +67,11 @@ from nerfexp.domains import (
     PATH,
     POSITION_LIMIT,
     TEXT,
+    THREADS,
     Applies,
     Rule,
     choice,
+    expected,
     optional,
     real,
     whole,
@@ -152,7 +154,7 @@ def image_lenses(reconstruction, image_ids: list[int], where: Path) -> tuple[Int
     return Intrinsics.stack([lenses[reconstruction.images[i].camera_id] for i in image_ids]), width, height
 
 
-C_INT_LIMIT = 2 ** 31 - 1  # COLMAP's counts (features per image, threads): its C ints
+C_INT_LIMIT = 2 ** 31 - 1  # COLMAP's counts (features per image): its C ints
 
 
 
@@ -240,7 +242,7 @@ def read_views(data: ColmapData, index: Tensor, downscale: int = 1, max_side: in
 
 
 @dataclass
-class ColmapScene(Scene):
+class ColmapScene(FolderScene):
     """Photographs, or the frames of a video, posed by COLMAP (``data=colmap``); see the module's
     docstring for the cache, the conventions and the normalization. ``video``: a video file relative to
     ``root`` (or absolute) whose sharpest frame of each 1/``fps`` seconds is taken instead of
@@ -250,7 +252,7 @@ class ColmapScene(Scene):
     points (``ray_bounds()``)."""
 
     DOMAINS: ClassVar[dict[str, Rule]] = {
-        **Scene.DOMAINS,
+        **FolderScene.DOMAINS,
         "video": optional(PATH, "the photographs in images/"),
         "fps": real(*FPS_RANGE),
         "downscale": COUNT,
@@ -259,16 +261,17 @@ class ColmapScene(Scene):
         "camera_model": TEXT,  # COLMAP's model names (checked against pycolmap's list when it runs)
         "matcher": optional(choice("exhaustive", "sequential"), "sequential for a video, else exhaustive"),
         "max_features": whole(1, C_INT_LIMIT),
-        "threads": (f"-1 (every core) or a whole number in [1, {C_INT_LIMIT}]",
-                    lambda v: v == -1 or whole(1, C_INT_LIMIT)[1](v)),
+        # at most THREAD_LIMIT (more than any machine); above the CPUs this process may use: capped at them
+        "threads": (f"-1 (every CPU this process may use) or {expected(THREADS)}",
+                    lambda v: v == -1 or THREADS[1](v)),
         "min_registered": real(0, 1, above=True),
         "verbose": BOOLEAN,
     }
     APPLIES: ClassVar[dict[str, Applies]] = {  # nerfexp.domains: when an argument does nothing
+        **FolderScene.APPLIES,
         "fps": lambda scene: None if scene.get("video") is not None else "data.video=null (photographs, not a video)",
     }
 
-    root: str
     video: str | None = None
     fps: float = 2.0
     downscale: int = 1
@@ -300,7 +303,7 @@ class ColmapScene(Scene):
         if not self.bound > 0:
             raise DatasetError(f"data.bound must be positive, got {self.bound}")
         if self._data is None:
-            self._data = load_colmap(self.root, self.bound, self.camera_model, self.matcher, self.max_features,
+            self._data = load_colmap(self.folder(), self.bound, self.camera_model, self.matcher, self.max_features,
                                      self.threads, self.min_registered, self.verbose, self.video, self.fps)
         return self._data
 

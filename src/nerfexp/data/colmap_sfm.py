@@ -5,18 +5,22 @@ its lenses included, and the conventions: ``nerfexp.data.colmap``)."""
 
 
 import contextlib
+import logging
 import math
-import os
 from collections.abc import Iterator
 from pathlib import Path
 
 import pycolmap
 from tqdm import tqdm
 
+from nerfexp.cpus import available_cpus, capped_line
 from nerfexp.data.views import IMAGE_SUFFIXES
 from nerfexp.errors import DatasetError
 from nerfexp.files import atomic_directory
 from nerfexp.geometry.lenses import PARAMETERS
+from nerfexp.reading import name_problem
+
+log = logging.getLogger(__name__)
 
 CACHE = "colmap"  # DIR/colmap: nerfexp's own database and sparse model
 MODEL_FILES = ("cameras", "images", "points3D")
@@ -47,15 +51,32 @@ def find_model(root: Path) -> Path | None:
 
 
 def read_model(path):
-    """A ``pycolmap.Reconstruction`` read from the folder ``path`` (binary or text files)."""
+    """A ``pycolmap.Reconstruction`` read from the folder ``path`` (binary or text files), its images' names
+    checked (``check_image_names``)."""
     path = Path(path)
     if not is_model(path):
         raise DatasetError(f"{path} holds no COLMAP sparse model: expected cameras, images and points3D, "
                            f"all .bin or all .txt")
     try:
-        return pycolmap.Reconstruction(path)
+        reconstruction = pycolmap.Reconstruction(path)
     except Exception as error:  # pycolmap raises plain exceptions for malformed files
         raise DatasetError(f"{path}: cannot read the COLMAP model ({error})") from None
+    check_image_names(reconstruction, path)
+    return reconstruction
+
+
+def check_image_names(reconstruction, path: Path) -> None:
+    """A DatasetError naming the model ``path`` and the image whose name (a file's path below the images' folder)
+    no file can have: text that is not UTF-8 (pycolmap decodes names strictly), a NUL byte or a lone surrogate
+    (``nerfexp.reading.name_problem``). Names are the paths nerfexp opens: checked once, where the model is read."""
+    for image_id, image in reconstruction.images.items():
+        try:
+            name = image.name
+        except UnicodeDecodeError as error:
+            raise DatasetError(f"{path}: image {image_id}: its name is not UTF-8 text ({error.reason} at byte "
+                               f"{error.start})") from None
+        if (problem := name_problem(name)) is not None:
+            raise DatasetError(f"{path}: image {image_id}: its name {problem}, got {name!r:.80}")
 
 
 @contextlib.contextmanager
@@ -85,10 +106,24 @@ def registered_enough(n_registered: int, n_images: int, min_registered: float, w
                            f"needed, data.min_registered={min_registered:g}); {ADVICE}")
 
 
-def effective_threads(threads: int) -> int:
-    """The number of threads COLMAP runs for ``threads``: ``threads`` itself, or one per core where it is
-    <= 0 (-1: every core)."""
-    return threads if threads > 0 else os.cpu_count() or 1
+def effective_threads(threads: int, cpus: int) -> int:
+    """The number of threads COLMAP runs for ``threads`` (``data.threads``) on ``cpus`` CPUs: ``threads`` itself, at
+    most ``cpus`` (``nerfexp.cpus``), or all of them where it is <= 0 (-1: every CPU this process may use, where
+    COLMAP's own -1 would take every core of the machine, whatever the process's affinity).
+
+    >>> effective_threads(-1, 4), effective_threads(2, 4), effective_threads(64, 4)
+    (4, 2, 4)
+    """
+    return min(threads, cpus) if threads > 0 else cpus
+
+
+def colmap_threads(threads: int) -> int:
+    """``effective_threads`` on the CPUs this process may use, logging the line that says where a count asked for
+    above them is capped (``nerfexp.cpus.capped_line``)."""
+    cpus = available_cpus()
+    if (line := capped_line(f"data.threads={threads}", threads, cpus)) is not None:
+        log.warning("%s", line)
+    return effective_threads(threads, cpus)
 
 
 def shared_camera_id(database: Path) -> int:
@@ -98,10 +133,10 @@ def shared_camera_id(database: Path) -> int:
 
 
 def extract_features(database: Path, image_dir: Path, names: list[str], camera_model: str = "SIMPLE_RADIAL",
-                     max_features: int = 4096, threads: int = -1) -> None:
-    """SIFT features (on the CPU, at most ``max_features`` per image) of the images ``names`` of
-    ``image_dir`` into ``database``, one ``camera_model`` camera shared by all, with a progress bar
-    counting images.
+                     max_features: int = 4096, threads: int = 1) -> None:
+    """SIFT features (on the CPU, at most ``max_features`` per image, on ``threads`` threads: ``colmap_threads``) of
+    the images ``names`` of ``image_dir`` into ``database``, one ``camera_model`` camera shared by all, with a
+    progress bar counting images.
 
     pycolmap reports nothing while it extracts, so the images go in batches, one call each, and the bar
     moves after each batch. Each thread extracts whole images, so a batch holds two per thread: every
@@ -111,10 +146,10 @@ def extract_features(database: Path, image_dir: Path, names: list[str], camera_m
     (``existing_camera_id``), so the database is the one a single call over all the images makes.
     """
     # an explicit count: with -1 COLMAP warns once per call (per batch) that it uses every core
-    extraction = pycolmap.FeatureExtractionOptions(num_threads=effective_threads(threads), use_gpu=False)
+    extraction = pycolmap.FeatureExtractionOptions(num_threads=threads, use_gpu=False)
     extraction.sift.max_num_features = max_features
     reader = pycolmap.ImageReaderOptions(camera_model=camera_model)
-    batch_size = 2 * effective_threads(threads)
+    batch_size = 2 * threads
     with tqdm(total=len(names), desc="COLMAP features", unit="image", disable=None) as bar:
         for start in range(0, len(names), batch_size):
             batch = names[start:start + batch_size]
@@ -135,10 +170,10 @@ def reconstruct(root, camera_model: str = "SIMPLE_RADIAL", matcher: str = "exhau
     Features (``extract_features``: SIFT on the CPU, at most ``max_features`` per image, one
     ``camera_model`` camera shared by all images, a progress bar over the images), then matching
     (``exhaustive`` or ``sequential``) and incremental mapping, each a step of a second bar
-    (``verbose``: COLMAP's own log too). ``threads`` -1 uses every core. COLMAP's random choices are seeded
-    (``SEED``), so that a reconstruction does not depend on the draw (with several threads their order may
-    still differ). Raises a DatasetError, and
-    keeps nothing, when fewer than ``min_registered`` of the images are registered.
+    (``verbose``: COLMAP's own log too). ``threads``: ``colmap_threads``' (-1: every CPU this process may use).
+    COLMAP's random choices are seeded (``SEED``), so that a reconstruction does not depend on the draw (with
+    several threads their order may still differ). Raises a DatasetError, and keeps nothing, when fewer than
+    ``min_registered`` of the images are registered.
     """
     root = Path(root)
     image_dir = root / "images" if image_dir is None else Path(image_dir)
@@ -152,6 +187,7 @@ def reconstruct(root, camera_model: str = "SIMPLE_RADIAL", matcher: str = "exhau
     if cache.exists():
         raise DatasetError(f"{cache} exists but holds no sparse model in sparse/0; move it away (nerfexp never "
                            f"deletes it) to reconstruct the scene again")
+    threads = colmap_threads(threads)
     with _colmap_log_level(verbose), atomic_directory(cache) as work:
         pycolmap.set_random_seed(SEED)
         database = work / "database.db"

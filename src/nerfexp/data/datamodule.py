@@ -58,6 +58,7 @@ class RayDataModule(L.LightningDataModule):
         self.true_train_poses: Tensor | None = None  # c2w [N, 4, 4] of the training views, where perturbed
         self.background = torch.tensor(BACKGROUNDS[scene.background])
         self.splits: dict[str, Views] = {}
+        self.split_check: dict | None = None  # what ``check_distinct_views`` checked, once ``setup("fit")`` ran
         self._collate = functools.partial(model_batch, scene)  # each loader's items -> the model's batches
 
     def _views(self, split: str) -> Views:
@@ -81,13 +82,14 @@ class RayDataModule(L.LightningDataModule):
         """Before training, every split is loaded (and checked, as each format's loader checks it), so that
         bad data anywhere (a NaN pose in the test split, a missing image) stops a run before its first
         step rather than after it; then the splits are checked to share no view that they may not
-        (``check_distinct_views``: no training view among the validation or test views, no view twice in a
-        split), the training views with the poses the scene gave."""
+        (``check_distinct_views``: no training view, nor a near copy of one, among the validation or test views,
+        no view twice in a split), the training views with the poses the scene gave; what was checked is kept as
+        ``split_check`` (results.json records it)."""
         if stage == "fit":
             given = {split: self._views(split) for split in SPLITS}
             if self.true_train_poses is not None:
                 given["train"] = replace(given["train"], c2w=self.true_train_poses)
-            check_distinct_views(given)
+            self.split_check = check_distinct_views(given, self.background)
 
     def scored_views(self, stage: str) -> dict[str, Views]:
         """The views that ``stage`` ("fit": training, then its test; "test": a test alone) scores, by split

@@ -12,6 +12,7 @@ import torch.nn.functional as F
 from PIL import Image
 from torch import Tensor
 
+from nerfexp.data.views import is_named_file
 from nerfexp.errors import DatasetError
 from nerfexp.reading import UnreadableFile, read_bytes
 
@@ -36,7 +37,7 @@ def read_image(path: Path, source: str) -> Tensor:
     flipped byte would otherwise decode to wrong pixels); a damaged file and an image of more than
     ``MAX_PIXELS`` pixels, or a file larger than such an image's (``MAX_FILE_BYTES``), are DatasetErrors,
     never decoded."""
-    if not path.is_file():
+    if not is_named_file(path, source):
         raise DatasetError(f"image {path} does not exist (named by {source})")
     try:
         data = read_bytes(path, MAX_FILE_BYTES)  # bounded: a dataset from others
@@ -60,7 +61,7 @@ def read_image(path: Path, source: str) -> Tensor:
 def image_size(path: Path, source: str) -> tuple[int, int]:
     """(height, width) of an image file from its header alone (nothing is decoded); a missing or unreadable
     file is a DatasetError naming it (``source``: what pointed to the file)."""
-    if not path.is_file():
+    if not is_named_file(path, source):
         raise DatasetError(f"image {path} does not exist (named by {source})")
     try:
         with Image.open(path) as image:

@@ -32,7 +32,7 @@ import torch
 from torch import Tensor
 from tqdm import tqdm
 
-from nerfexp.data.base import Scene
+from nerfexp.data.base import FolderScene
 from nerfexp.data.images import downscale_rgba, fit_factor, read_image
 from nerfexp.data.views import IMAGE_SUFFIXES, Source, Views, check_shared_file, holdout_split
 from nerfexp.domains import BOOLEAN, COUNT, INTEGER_LIMIT, POSITION_LIMIT, Rule, whole
@@ -40,7 +40,7 @@ from nerfexp.errors import ConfigError, DatasetError
 from nerfexp.files import atomic_write
 from nerfexp.geometry.cameras import look_at, pose_problem
 from nerfexp.geometry.lens_records import FOCAL_RANGE
-from nerfexp.geometry.lenses import Intrinsics, pixel_rays
+from nerfexp.geometry.lenses import Intrinsics, corner_pixels, pixel_rays
 from nerfexp.geometry.ndc import ndc_rays
 from nerfexp.pixels import png_bytes, to_uint8
 
@@ -241,8 +241,7 @@ def check_forward_facing(views: Views) -> None:
     A ray's d_z is linear in the pixel position, so the four corner pixels' rays decide it.
     """
     H, W = views.height, views.width
-    centres = torch.tensor([[0.5, 0.5], [W - 0.5, 0.5], [0.5, H - 0.5], [W - 0.5, H - 0.5]], dtype=torch.float64)
-    corners = pixel_rays(centres, views.intrinsics.unsqueeze(1))  # [N, 4, 3]: the corner pixels' rays
+    corners = pixel_rays(corner_pixels(H, W), views.intrinsics.unsqueeze(1))  # [N, 4, 3]: the corner pixels' rays
     dz = (views.c2w[:, None, 2, :3] * corners.to(views.c2w.dtype)).sum(-1)  # [N, 4]: the world z of each corner ray
     bad = (dz >= 0).any(-1)
     if bad.any():
@@ -253,7 +252,7 @@ def check_forward_facing(views: Views) -> None:
 
 
 @dataclass
-class LLFFScene(Scene):
+class LLFFScene(FolderScene):
     """An LLFF-format scene (``data=llff``): test views every ``holdout``-th image, training views the
     first ``n_train`` of the rest (None: all), validation the first ``n_val`` test views.
 
@@ -262,7 +261,7 @@ class LLFFScene(Scene):
     units, which must enclose the scaled depth bounds.
     """
 
-    DOMAINS: ClassVar[dict[str, Rule]] = {**Scene.DOMAINS, "factor": COUNT, "holdout": whole(2, INTEGER_LIMIT),
+    DOMAINS: ClassVar[dict[str, Rule]] = {**FolderScene.DOMAINS, "factor": COUNT, "holdout": whole(2, INTEGER_LIMIT),
                                           "ndc": BOOLEAN}
 
     @staticmethod
@@ -270,7 +269,6 @@ class LLFFScene(Scene):
         """``ndc`` where set: its rays are NDC rays; world rays need ``near`` and ``far`` instead."""
         return (("ndc",), ("near", "far")) if config.get("ndc") else ((), ())
 
-    root: str
     factor: int = 4
     max_side: int | None = None
     holdout: int = 8
@@ -287,7 +285,7 @@ class LLFFScene(Scene):
     def load(self) -> LLFFData:
         """All images and poses, loaded once and kept."""
         if self._data is None:
-            data = load_llff(self.root, self.factor, self.holdout, self.n_val, self.max_side, self.n_train)
+            data = load_llff(self.folder(), self.factor, self.holdout, self.n_val, self.max_side, self.n_train)
             if self.ndc:
                 check_forward_facing(data.views)
             else:

@@ -18,7 +18,9 @@ Reading (``NerfstudioScene``):
   whose images are one file under any spelling or link (``check_shared_file``), before any image is read;
 - every frame a file lists is read: frames whose image files do not exist are refused in one line, all of them
   counted, before any image of any split is read (``check_images_exist``; Instant-NGP's own loader drops them where
-  its frames carry ``sharpness``, and its fox lists 67 frames for 50 images);
+  its frames carry ``sharpness``, and its fox lists 67 frames for 50 images), or, with ``missing_images`` skip, left
+  out of the scene (and of the file's split lists) with one line (``with_images``), ``frames_left_out()`` naming
+  them for results.json;
 - poses: camera centres moved and scaled to lie within ``bound`` of the origin (``normalize_centres``, as
   for COLMAP scenes);
 - ray bounds: ``near`` and ``far`` where given, else from what the capture holds, the first that bounds the
@@ -38,7 +40,8 @@ Reading (``NerfstudioScene``):
 Every malformed field is a DatasetError naming the file, the frame and the key, before any image is read.
 """
 
-from dataclasses import dataclass, field
+import logging
+from dataclasses import dataclass, field, replace
 from pathlib import Path, PurePosixPath
 from typing import ClassVar
 
@@ -46,7 +49,7 @@ import torch
 from torch import Tensor
 from tqdm import tqdm
 
-from nerfexp.data.base import Scene
+from nerfexp.data.base import FolderScene
 from nerfexp.data.images import downscale_rgba, fit_factor, image_size, read_image
 from nerfexp.data.sparse_points import near_far, read_ply_points
 from nerfexp.data.transforms_file import (
@@ -58,17 +61,20 @@ from nerfexp.data.transforms_file import (
     read_capture,
     scene_file,
 )
-from nerfexp.data.views import Source, Views, check_shared_file, holdout_split, shrink_mask
-from nerfexp.domains import COUNT, FAR, INTEGER_LIMIT, TEXT, Rule, whole
+from nerfexp.data.views import Source, Views, check_shared_file, holdout_split, is_named_file, shrink_mask
+from nerfexp.domains import COUNT, FAR, INTEGER_LIMIT, TEXT, Rule, choice, whole
 from nerfexp.errors import DatasetError
 from nerfexp.geometry.boxes import box_problem
-from nerfexp.geometry.cameras import normalize_centres
+from nerfexp.geometry.cameras import centre_spread, normalize_centres
 from nerfexp.geometry.frusta import box_reach, in_view, view_planes
 from nerfexp.geometry.lens_records import read_lens_record
 from nerfexp.geometry.lenses import Intrinsics, inversion_problem
 
 NEAR_FRACTION = 0.05  # near = 0.05 bound where not given
 FAR_FACTOR = 2.0  # far = 2 bound where not given
+MISSING_IMAGES = ("refuse", "skip")  # data.missing_images: frames whose images do not exist refused, or left out
+
+log = logging.getLogger(__name__)
 
 
 def colmap_point_bounds(model: Path, frames: list[Frame], c2w: Tensor) -> tuple[float, float] | None:
@@ -90,12 +96,12 @@ def colmap_point_bounds(model: Path, frames: list[Frame], c2w: Tensor) -> tuple[
     ids = [i for _, i in matched]
     centres = colmap_to_c2w(cam_from_world(reconstruction, ids))[:, :3, 3]
     ours = c2w[[k for k, _ in matched], :3, 3]
-    spread = [torch.linalg.vector_norm(c - c.mean(0), dim=-1).square().mean().sqrt() for c in (ours, centres)]
+    spread = [centre_spread(c) for c in (ours, centres)]
     if not spread[1] > 0:
         return None
     points, observed = model_points(reconstruction, ids)
     bounds = near_far(centres, points, observed)
-    ratio = (spread[0] / spread[1]).item()
+    ratio = spread[0] / spread[1]
     return None if bounds is None else (bounds[0] * ratio, bounds[1] * ratio)
 
 
@@ -108,51 +114,78 @@ def read_mask(path: Path, source: str) -> Tensor:
 class PosedCapture:
     """A parsed transforms file with its poses normalized: the ``capture``, every frame's pose ``c2w``
     [N, 4, 4] float64 with the camera centres moved and scaled to lie within ``bound`` of the origin, and the
-    ``centre`` [3] and ``scale`` that did it (a point p of the file is (p - centre) scale)."""
+    ``centre`` [3] and ``scale`` that did it (a point p of the file is (p - centre) scale), and the frames left out
+    for their missing images (``with_images``: their ``file_path``s)."""
 
     capture: Capture
     c2w: Tensor
     centre: Tensor
     scale: float
+    left_out: tuple[str, ...] = ()
 
 
-def posed_capture(root: Path, transforms: str, downscale: int, bound: float) -> PosedCapture:
-    """The transforms file ``transforms`` in ``root`` parsed (``read_capture``), its frames' image files checked
-    distinct (``check_shared_file``) and its poses normalized (``normalize_centres``); a DatasetError where the
-    file does not exist, or the scene box, normalized, is not one an occupancy grid covers (``box_problem``)."""
+def with_images(capture: Capture, root: Path, downscale: int, missing: str) -> tuple[Capture, tuple[str, ...]]:
+    """``capture`` as parsed, and no frame left out, where ``missing`` is refuse (``check_images_exist`` refuses its
+    frames without an image when they are read); with skip, ``capture`` without the frames whose image file at
+    ``downscale`` does not exist (``image_file``), in its frames and its split lists, said in one line, and their
+    ``file_path``s in the file's order. A DatasetError where no frame's image exists."""
+    if missing == "refuse":
+        return capture, ()
+    absent = [frame for frame in capture.frames
+              if not is_named_file(image_file(root, frame, downscale)[0], f"{frame.where}'s file_path")]
+    if not absent:
+        return capture, ()
+    if len(absent) == len(capture.frames):
+        raise DatasetError(f"{capture.path}: none of the images of its {len(absent)} frames exists (the first: "
+                           f"{image_file(root, absent[0], downscale)[0]})")
+    names = {frame.file_path for frame in absent}
+    splits = None if capture.splits is None else {
+        split: [name for name in listed if name not in names] for split, listed in capture.splits.items()}
+    log.warning("%s: the images of %d of its %d frames do not exist (the first: %s): those frames are left out "
+                "(data.missing_images=skip; results.json's frames_left_out lists them)", capture.path, len(absent),
+                len(capture.frames), absent[0].file_path)
+    kept = [frame for frame in capture.frames if frame.file_path not in names]
+    return replace(capture, frames=kept, splits=splits), tuple(frame.file_path for frame in absent)
+
+
+def posed_capture(root: Path, transforms: str, downscale: int, bound: float, missing: str = "refuse") -> PosedCapture:
+    """The transforms file ``transforms`` in ``root`` parsed (``read_capture``), its frames without an image left
+    out where ``missing`` is skip (``with_images``), its frames' image files checked distinct
+    (``check_shared_file``) and its poses normalized (``normalize_centres``); a DatasetError where the file does not
+    exist, or the scene box, normalized, is not one an occupancy grid covers (``box_problem``)."""
     path = root / transforms
     if not path.is_file():
         raise DatasetError(f"{path} does not exist: data.root must be a folder holding {transforms} "
                            f"(nerfstudio's format; data.transforms names another file in it)")
-    capture = read_capture(path)
-    check_shared_file([Source(frame.where, downscaled_file(root, frame.file_path, "images", downscale)[0])
-                       for frame in capture.frames])
+    capture, left_out = with_images(read_capture(path), root, downscale, missing)
+    check_shared_file([Source(frame.where, image_file(root, frame, downscale)[0]) for frame in capture.frames])
     c2w = torch.stack([frame.c2w for frame in capture.frames])
     normalized, _, centre, scale = normalize_centres(c2w, torch.zeros(0, 3, dtype=c2w.dtype), bound)
     box = None if capture.box is None else (capture.box - centre) * scale  # as bounding_box gives it
     if box is not None and (problem := box_problem(box)) is not None:
         raise DatasetError(f"{path}: the scene box of 'aabb_scale', 'scale' and 'offset', moved and scaled "
                            f"as the poses are (data.bound={bound}), {box.tolist()}, {problem}")
-    return PosedCapture(capture, normalized, centre, scale)
+    return PosedCapture(capture, normalized, centre, scale, left_out)
 
 
 def check_images_exist(images: list[Source]) -> None:
     """A DatasetError naming the first of the frames' image files (``images``) that does not exist, and how many
     more do not, where any does not: one line for all of them, before any image is read."""
-    missing = [image for image in images if not image.path.is_file()]
+    missing = [image for image in images if not is_named_file(image.path, f"{image.name}'s file_path")]
     if missing:
         more = (f", nor do the images of {len(missing) - 1} more of the file's {len(images)} frames" if missing[1:]
                 else "")
         raise DatasetError(f"image {missing[0].path} does not exist (named by {missing[0].name}'s file_path){more}: "
                            "nerfexp reads every frame the file lists (Instant-NGP's loader skips such frames); "
-                           "remove them from the file or bring their images")
+                           "remove them from the file, bring their images, or leave them out with "
+                           "data.missing_images=skip")
 
 
 def image_file(root: Path, frame: Frame, downscale: int) -> tuple[Path, int, int]:
     """(path, shrink, stored): the image file to read for ``frame`` at ``downscale`` (``downscaled_file``), the
     factor still to shrink it by, and the factor it is stored smaller than its recorded ``w, h`` by (a folder's
     ``images_{d}`` are stored d times smaller)."""
-    path, shrink = downscaled_file(root, frame.file_path, "images", downscale)
+    path, shrink = downscaled_file(root, frame.file_path, "images", downscale, f"{frame.where}'s file_path")
     return path, shrink, (downscale if shrink == 1 else 1)
 
 
@@ -197,7 +230,7 @@ def frame_mask(root: Path, frame: Frame, downscale: int) -> Tensor | None:
     shrunk), or None where the frame has none."""
     if frame.mask_path is None:
         return None
-    path, shrink = downscaled_file(root, frame.mask_path, "masks", downscale)
+    path, shrink = downscaled_file(root, frame.mask_path, "masks", downscale, f"{frame.where}'s mask_path")
     mask = read_mask(path, f"{frame.where}'s mask_path")[None]  # [1, H, W]
     return mask if shrink == 1 else shrink_mask(mask, (mask.shape[1] // shrink, mask.shape[2] // shrink))
 
@@ -242,14 +275,14 @@ def stacked_views(images: list[FrameImage], c2w: Tensor) -> Views:
 
 
 @dataclass
-class NerfstudioScene(Scene):
+class NerfstudioScene(FolderScene):
     """A scene in nerfstudio's format (``data=nerfstudio``): the module's docstring says how it is read.
     ``transforms``: the file's name in ``root``."""
 
-    DOMAINS: ClassVar[dict[str, Rule]] = {**Scene.DOMAINS, "transforms": TEXT, "downscale": COUNT,
-                                          "holdout": whole(2, INTEGER_LIMIT), "bound": FAR}
+    DOMAINS: ClassVar[dict[str, Rule]] = {**FolderScene.DOMAINS, "transforms": TEXT, "downscale": COUNT,
+                                          "holdout": whole(2, INTEGER_LIMIT), "bound": FAR,
+                                          "missing_images": choice(*MISSING_IMAGES)}
 
-    root: str
     transforms: str = TRANSFORMS
     downscale: int = 1
     max_side: int | None = None
@@ -262,14 +295,19 @@ class NerfstudioScene(Scene):
     background: str = "white"
     aabb: list | None = None
     density_noise_std: float = 0.0
+    missing_images: str = "refuse"  # frames whose images do not exist: refused, or skip: left out (``with_images``)
     _posed: PosedCapture | None = field(default=None, init=False, repr=False)
     _bounds: tuple[float, float, str] | None = field(default=None, init=False, repr=False)
 
     def posed(self) -> PosedCapture:
         """The parsed transforms file with its poses normalized (``posed_capture``), read once and kept."""
         if self._posed is None:
-            self._posed = posed_capture(Path(self.root), self.transforms, self.downscale, self.bound)
+            self._posed = posed_capture(self.folder(), self.transforms, self.downscale, self.bound, self.missing_images)
         return self._posed
+
+    def frames_left_out(self) -> list[str] | None:
+        """The frames left out for their missing images (``missing_images`` skip), by ``file_path``; None: none."""
+        return list(self.posed().left_out) or None
 
     def capture(self) -> Capture:
         """The parsed transforms file (``posed``)."""
@@ -334,7 +372,7 @@ class NerfstudioScene(Scene):
         its lens at the image's recorded size (an image's header is read where the file gives no ``w, h``)."""
         posed = self.posed()
         capture = posed.capture
-        root, planes = Path(self.root), []
+        root, planes = self.folder(), []
         for frame, c2w in zip(capture.frames, posed.c2w):
             size = None
             if "w" not in {**capture.defaults, **frame.fields} or "h" not in {**capture.defaults, **frame.fields}:
@@ -351,10 +389,10 @@ class NerfstudioScene(Scene):
         that a camera sees."""
         posed = self.posed()
         capture, normalized = posed.capture, posed.c2w
-        root = Path(self.root)
+        root = self.folder()
         if capture.ply_file is not None:
             path = scene_file(root, capture.ply_file)
-            if not path.is_file():
+            if not is_named_file(path, f"{capture.path}'s 'ply_file_path'"):
                 raise DatasetError(f"{path} does not exist (named by {capture.path}'s 'ply_file_path')")
             points = (read_ply_points(path) - posed.centre) * posed.scale
             seen = in_view(points, normalized, self.frame_views())  # [N, P]
@@ -391,7 +429,7 @@ class NerfstudioScene(Scene):
 
     def views(self, split: str) -> Views:
         posed = self.posed()
-        root = Path(self.root)
+        root = self.folder()
         index = self.split_index(split).tolist()
         check_images_exist([Source(frame.where, image_file(root, frame, self.downscale)[0])
                             for frame in posed.capture.frames])  # every split's, before any image is read

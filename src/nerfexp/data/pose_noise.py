@@ -14,9 +14,23 @@ from collections.abc import Sequence
 import torch
 from torch import Tensor
 
+from nerfexp.domains import Rule, breaks, is_real, optional
 from nerfexp.errors import ConfigError
 from nerfexp.geometry.alignment import camera_radius
 from nerfexp.nerf.poses import corrected_poses
+
+# The largest turn: one of more than 180 degrees about an axis is one of less about the opposite axis, which the
+# random axis draws as often, so no larger angle is another perturbation
+MAX_DEGREES = 180
+# The largest shift, in the cameras' radius: a camera moved by the radius may already land on the rig's centre or
+# past its far side, no longer near the pose it perturbs (camera refinement recovers errors of a few hundredths);
+# a shift far beyond it moves every camera out of the scene it is to see, and the run's scores mean nothing
+MAX_FRACTION = 1
+POSE_NOISE: Rule = (f"[degrees, fraction of the cameras' radius], degrees a finite number in [0, {MAX_DEGREES}] and "
+                    f"fraction one in [0, {MAX_FRACTION}]",
+                    lambda v: isinstance(v, list) and len(v) == 2 and all(is_real(x) for x in v)
+                    and 0 <= v[0] <= MAX_DEGREES and 0 <= v[1] <= MAX_FRACTION)
+POSE_NOISE_SETTING = optional(POSE_NOISE, "the poses as the data gives them")  # datamodule.pose_noise
 
 
 def random_directions(n: int, generator: torch.Generator) -> Tensor:
@@ -38,13 +52,9 @@ def perturbed_poses(c2w: Tensor, degrees: float, fraction: float, seed: int) -> 
 
 
 def check_pose_noise(value: object) -> tuple[float, float] | None:
-    """``datamodule.pose_noise`` as (degrees, fraction), or None; a ConfigError where it is neither null nor
-    two finite numbers >= 0 (the settings check says the same before a run starts)."""
-    if value is None:
-        return None
-    numbers = list(value) if isinstance(value, Sequence) and not isinstance(value, str) else None
-    if (numbers is None or len(numbers) != 2 or not all(isinstance(v, int | float) and not isinstance(v, bool)
-                                                          and math.isfinite(v) and v >= 0 for v in numbers)):
-        raise ConfigError(f"datamodule.pose_noise={value}: expected [degrees, fraction of the cameras' radius], "
-                          "two finite numbers >= 0, or null")
-    return float(numbers[0]), float(numbers[1])
+    """``datamodule.pose_noise`` as (degrees, fraction), or None; a ConfigError where it breaks
+    ``POSE_NOISE_SETTING`` (the settings check says the same before a run starts)."""
+    numbers = list(value) if isinstance(value, Sequence) and not isinstance(value, str) else value
+    if (wanted := breaks(POSE_NOISE_SETTING, numbers)) is not None:
+        raise ConfigError(f"datamodule.pose_noise={value}: expected {wanted}")
+    return None if numbers is None else (float(numbers[0]), float(numbers[1]))

@@ -34,7 +34,7 @@ import torch
 from torch import Tensor
 
 from nerfexp.data.blender import FIELD_OF_VIEW, checked_frames, pose_matrix
-from nerfexp.data.views import SPLIT_NAMES, Views
+from nerfexp.data.views import SPLIT_NAMES, Views, is_named_file
 from nerfexp.domains import POSITION, POSITION_LIMIT, bound_text, breaks, is_real, list_of, real
 from nerfexp.errors import DatasetError
 from nerfexp.files import atomic_write
@@ -43,7 +43,7 @@ from nerfexp.geometry.cameras import focal_from_fov
 from nerfexp.geometry.lens_records import FOCAL_RANGE, INTRINSIC_KEYS, LensRecordError, lens_record, read_lens_record
 from nerfexp.geometry.lenses import SLOTS
 from nerfexp.pixels import png_bytes, to_uint8
-from nerfexp.reading import UnreadableFile, read_json
+from nerfexp.reading import UnreadableFile, name_problem, read_json
 
 TRANSFORMS = "transforms.json"
 SPLIT_KEYS = {"train": "train_filenames", "val": "val_filenames", "test": "test_filenames"}
@@ -122,6 +122,8 @@ def relative_file(value, where: str, key: str) -> str:
     """A frame's file key: a string naming a file below the scene's folder (relative, no ``..``)."""
     if not isinstance(value, str) or not value.strip():
         raise DatasetError(f"{where}: '{key}' must be a file path relative to the scene's folder, got {value!r}")
+    if (problem := name_problem(value)) is not None:
+        raise DatasetError(f"{where}: '{key}' {problem}, got {value!r:.80}")
     path = PurePosixPath(value.replace("\\", "/"))
     if path.is_absolute() or ".." in path.parts or (path.parts and ":" in path.parts[0]):
         raise DatasetError(f"{where}: '{key}' must be a path inside the scene's folder (relative, without '..'), "
@@ -279,13 +281,13 @@ def scene_file(root: Path, relative: str) -> Path:
     return path if PurePosixPath(relative).suffix else path.with_name(path.name + ".png")
 
 
-def downscaled_file(root: Path, relative: str, prefix: str, downscale: int) -> tuple[Path, int]:
-    """The file to read for ``relative`` at ``downscale``, and the factor still to shrink it by:
-    ``root/{prefix}_{d}/<file name>`` as ``ns-process-data`` writes it, where it exists (factor 1), else the
+def downscaled_file(root: Path, relative: str, prefix: str, downscale: int, named_by: str) -> tuple[Path, int]:
+    """The file to read for ``relative`` (which ``named_by`` names) at ``downscale``, and the factor still to shrink
+    it by: ``root/{prefix}_{d}/<file name>`` as ``ns-process-data`` writes it, where it exists (factor 1), else the
     full-size file (factor d)."""
     full = scene_file(root, relative)
     if downscale > 1:
         shrunk = root / f"{prefix}_{downscale}" / full.name
-        if shrunk.is_file():
+        if is_named_file(shrunk, named_by):
             return shrunk, 1
     return full, downscale

@@ -102,6 +102,13 @@ def poses_problem(c2w) -> str | None:
     return None
 
 
+def centre_spread(centres: Tensor) -> float:
+    """The spread of camera centres [N, 3] (N >= 1): their root mean square distance from their mean m,
+    sqrt(mean_i |c_i - m|^2), in their units; 0 for one camera or cameras at one point. A similarity scales it
+    as it scales distances. Example: centres (0, 0, 0) and (2, 0, 0): each 1 from m = (1, 0, 0), spread 1."""
+    return torch.linalg.vector_norm(centres - centres.mean(0), dim=-1).square().mean().sqrt().item()
+
+
 def normalize_centres(c2w: Tensor, points: Tensor, bound: float) -> tuple[Tensor, Tensor, Tensor, float]:
     """Centre on the mean camera centre m and scale by s = bound / max_i |c_i - m|, so that every camera lies
     within ``bound`` of the origin (a scene's orientation is kept).

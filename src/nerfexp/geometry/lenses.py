@@ -233,6 +233,13 @@ def pixel_grid(height: int, width: int, dtype=torch.float32, device=None) -> Ten
     return torch.stack([u, v], -1)
 
 
+def corner_pixels(height: int, width: int) -> Tensor:
+    """Image coordinates [4, 2] float64 of an image's four corner pixels' centres: (0.5, 0.5), (W - 0.5, 0.5),
+    (0.5, H - 0.5), (W - 0.5, H - 0.5)."""
+    return torch.tensor([[0.5, 0.5], [width - 0.5, 0.5], [0.5, height - 0.5], [width - 0.5, height - 0.5]],
+                        dtype=torch.float64)
+
+
 def border_pixels(height: int, width: int, samples: int = BORDER_SAMPLES) -> Tensor:
     """Image coordinates [K, 2] float64 covering an image's whole extent, its corners (0, 0) and (W, H)
     included: a ``samples`` x ``samples`` grid."""

@@ -20,8 +20,11 @@ it (from that exact file), ``checked_build`` asks that
 A build that fails a check is rebuilt (``build``: in a new folder, renamed over the old one once it is
 whole, so a killed build leaves no half of one); a cache another user could write is not used at all (the
 torch path). Builds of one kernel are one at a time, under an ``fcntl.flock`` of ``NAME-KEY.lock``: a lock
-is held only by a live process (a killed build's lock file holds none and is taken at once), and one held
-for longer than ``BUILD_LIMIT`` is given up on with a line naming the file, never waited on without end.
+is held only by a live process (a killed build's lock file holds none and is taken at once), which writes its
+process id and host into the file as it takes it. A process that finds the lock held says so at once, in a line
+naming the file, the process holding it and the longest it will wait, and again every ``LOCK_SAY_S`` while it
+waits (``build_lock``); one held for longer than ``BUILD_LIMIT`` is given up on with a line naming the file, never
+waited on without end. A build says so as it starts (it takes about a minute).
 """
 
 import contextlib
@@ -29,10 +32,12 @@ import fcntl
 import hashlib
 import importlib.util
 import json
+import logging
 import os
 import platform
 import re
 import shutil
+import socket
 import stat
 import subprocess
 import sysconfig
@@ -56,8 +61,12 @@ LDFLAGS = ("-fopenmp",)
 LIBRARY_SUFFIX = ".so"  # torch's name for the library it builds, NAME.so, on every POSIX system
 BUILD_LIMIT = 20 * 60  # seconds: a build takes about a minute on 2 cores; a lock held 20 times that is not a build
 LOCK_POLL = 0.5  # seconds between tries of a held lock
+LOCK_SAY_S = 60  # seconds between the lines of a wait for a held lock (the first is said at once)
+HOLDER_BYTES = 256  # the most read of a lock file: its holder's "PID HOST" line
 COMPILER_SECONDS = 60  # for ``CXX --version``: a compiler that does not answer in a minute builds nothing
 UNSHARED = stat.S_IWGRP | stat.S_IWOTH  # write permission for anyone but the owner
+
+log = logging.getLogger(__name__)
 
 
 class NotBuilt(Exception):
@@ -210,13 +219,72 @@ def import_library(module: str, library: Path) -> ModuleType:
     return loaded
 
 
+def holder_record() -> bytes:
+    """What a process writes into a build lock as it takes it: its process id and host, ``PID HOST``."""
+    return f"{os.getpid()} {socket.gethostname()}\n".encode()
+
+
+def process_running(pid: int) -> bool:
+    """Whether a process ``pid`` runs on this machine (one of another user's too)."""
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:  # there, and another user's
+        return True
+    return True
+
+
+def holder_text(record: bytes) -> str:
+    """The process holding a build lock, in words, from what its holder wrote in it (``holder_record``):
+    ``process PID`` (``on HOST`` where that is another machine's name); where the file names no process that runs
+    here (one that took the lock and has not written yet, or a program other than nerfexp), it says so.
+
+    >>> holder_text(f"1 {socket.gethostname()}\\n".encode()), holder_text(b"12 elsewhere\\n"), holder_text(b"")
+    ('process 1', 'process 12 on elsewhere', 'another process (the lock file names none)')
+    """
+    fields = record.decode("ascii", "replace").split()
+    if len(fields) != 2 or not fields[0].isdigit() or int(fields[0]) == 0:
+        return "another process (the lock file names none)"
+    pid, host = int(fields[0]), fields[1]
+    if host != socket.gethostname():
+        return f"process {pid} on {host}"
+    if process_running(pid):
+        return f"process {pid}"
+    return f"another process (the lock file names process {pid}, which is not running)"
+
+
+def minutes_text(seconds: float) -> str:
+    """A wait in words: whole seconds under two minutes, else whole minutes.
+
+    >>> minutes_text(42.4), minutes_text(119), minutes_text(1140)
+    ('42 s', '119 s', '19 min')
+    """
+    return f"{seconds:.0f} s" if seconds < 120 else f"{seconds / 60:.0f} min"
+
+
+def waiting_line(name: str, path: Path, holder: str, held_s: float, waited_s: float) -> str:
+    """The line a process waiting for the build lock ``path`` of kernel ``name`` says (at once, and every
+    ``LOCK_SAY_S``): who holds it (``holder_text``), for how long it has, and the longest this process waits yet
+    (``BUILD_LIMIT`` less ``held_s``), after which the torch path runs."""
+    left = minutes_text(max(0.0, BUILD_LIMIT - held_s))
+    if waited_s == 0:
+        return (f"kernel {name}: waiting for {holder}, which holds its build lock {path} (for {minutes_text(held_s)} "
+                f"so far: building it), at most {left} more, then the torch path runs")
+    return (f"kernel {name}: still waiting for {holder} ({path}), {minutes_text(waited_s)} so far, at most {left} "
+            f"more")
+
+
 @contextlib.contextmanager
-def build_lock(path: Path) -> Iterator[None]:
-    """Inside the block this process alone builds the kernel whose lock is ``path`` (an exclusive ``flock``,
-    released by the system when its process ends, however it ends). A lock held for longer than
-    ``BUILD_LIMIT`` (its file's age: the holder touches it as it takes it) is ``NotBuilt`` naming the file."""
+def build_lock(path: Path, name: str) -> Iterator[None]:
+    """Inside the block this process alone builds the kernel ``name`` whose lock is ``path`` (an exclusive
+    ``flock``, released by the system when its process ends, however it ends), its process id and host written in
+    the file (``holder_record``). Where another process holds it, one line says so at once and one every
+    ``LOCK_SAY_S`` after (``waiting_line``), and one when it is taken. A lock held for longer than ``BUILD_LIMIT``
+    (its file's age: the holder touches it as it takes it) is ``NotBuilt`` naming the file."""
     fd = os.open(path, os.O_RDWR | os.O_CREAT | os.O_NOFOLLOW, 0o600)
     try:
+        started, said = time.monotonic(), None
         while True:
             try:
                 fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
@@ -227,7 +295,17 @@ def build_lock(path: Path) -> Iterator[None]:
                     raise NotBuilt(f"{path} has been held by another process for {held / 60:.0f} min, longer than "
                                    f"a build takes ({BUILD_LIMIT // 60} min): if no nerfexp build is running, "
                                    f"remove it") from None
+                waited = time.monotonic() - started
+                if said is None or waited - said >= LOCK_SAY_S:
+                    holder = holder_text(os.pread(fd, HOLDER_BYTES, 0))
+                    log.info("%s", waiting_line(name, path, holder, held, 0.0 if said is None else waited))
+                    said = waited
                 time.sleep(LOCK_POLL)
+        if said is not None:
+            log.info("kernel %s: build lock %s taken after %s of waiting", name, path,
+                     minutes_text(time.monotonic() - started))
+        os.ftruncate(fd, 0)
+        os.pwrite(fd, holder_record(), 0)
         os.utime(fd)  # its age is how long this build has held it
         yield
     finally:
@@ -282,9 +360,11 @@ def _cached_kernel(name: str, source: bytes) -> tuple[ModuleType, bool, str | No
     folder = build_folder(private_cache(cache_root()), expected)
     found, _ = check(folder, expected)
     if found is None:
-        with build_lock(folder.with_name(f"{folder.name}.lock")):
+        with build_lock(folder.with_name(f"{folder.name}.lock"), name):
             found, failed = check(folder, expected)  # again: another process may have built it meanwhile
             if found is None:
+                log.info("kernel %s: building it in %s (about a minute, once per machine and source)%s", name,
+                         folder, "" if failed is None else f": its cached build failed a check: {failed}")
                 try:
                     module = build(folder, source, expected)
                 except Exception as error:  # no ninja, a failed compile, a full disk

@@ -22,7 +22,7 @@ from typing import ClassVar
 import torch
 from torch import Tensor, nn
 
-from nerfexp.domains import Applies, Rule, choice, is_real, optional, real
+from nerfexp.domains import POSITION, POSITION_LIMIT, Applies, Rule, choice, list_of, optional, real
 
 NORMS = ("l2", "linf")
 CONTRACTED_RADIUS = 2.0  # every contracted point lies within this of the origin (in the chosen norm)
@@ -92,9 +92,9 @@ class SceneContraction(nn.Module):
 
     DOMAINS: ClassVar[dict[str, Rule]] = {
         "norm": choice(*NORMS),
-        "centre": optional(("a list of 3 finite numbers", lambda v: isinstance(v, list) and len(v) == 3
-                            and all(is_real(c) for c in v)), "the training cameras' centroid"),
-        "radius": optional(real(0, above=True), "the farthest training camera from the centre"),
+        # a point and a distance in scene units: within POSITION_LIMIT, where float32 positions still resolve a unit
+        "centre": optional(list_of(POSITION, 3), "the training cameras' centroid"),
+        "radius": optional(real(0, POSITION_LIMIT, above=True), "the farthest training camera from the centre"),
         "far": real(1, 2 ** 24, above=True),
     }
     APPLIES: ClassVar[dict[str, Applies]] = {}

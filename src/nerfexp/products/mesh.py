@@ -99,16 +99,20 @@ def vertex_colours(field: nn.Module, mesh: Mesh, batch: int, device: str | torch
 
 
 def extract_mesh(field: nn.Module, aabb: Tensor, resolution: int, threshold: float, batch: int,
-                 device: str | torch.device) -> tuple[Mesh, np.ndarray]:
+                 device: str | torch.device, default: str | None = None) -> tuple[Mesh, np.ndarray]:
     """The surface where ``field``'s density crosses ``threshold`` inside ``aabb`` [2, 3], on a grid of
     ``resolution`` cells along the box's longest edge (``grid_shape``), and its vertices' colours
     (``vertex_colours``): ``(mesh, colours [V, 3] uint8)``. A NerfexpError where no density in the box
-    lies above ``threshold``, or none at or below it."""
+    lies above ``threshold``, or none at or below it; ``default`` says how the threshold was read where the
+    user gave none (``field_threshold``), so that the error names it as the default, not as their own."""
     shape = grid_shape(aabb, resolution)
     densities = grid_densities(field, aabb, shape, batch, device)
     low, high = float(densities.min()), float(densities.max())
     if not low <= threshold < high:
-        raise NerfexpError(f"no surface at --threshold {threshold:g}: the field's densities on the "
+        named = f"--threshold {threshold:g}"
+        if default is not None:
+            named = f"the default {named} ({default})"
+        raise NerfexpError(f"no surface at {named}: the field's densities on the "
                            f"{' x '.join(map(str, shape))} grid over the box {box_text(aabb)} lie in "
                            f"[{low:.4g}, {high:.4g}]; choose a threshold between them")
     mesh = isosurface(densities, threshold, aabb)

@@ -16,8 +16,8 @@ Reads every run under the given directories (a run is a folder holding ``status.
   variant's budgets' times; then every
   job that did not finish (failed, or running / killed) with its reason, every finished run without a test
   score (collapsed, with its message; not scored: a score missing, null, NaN or infinite), and every run whose
-  files cannot be read as nerfexp writes them (damaged: the file, the key and why,
-  ``nerfexp.rundir.records``), none of whose numbers is used;
+  files cannot be read as nerfexp writes them, or whose results.json contradicts itself (damaged: the file, the
+  key and why, ``nerfexp.rundir.records``), none of whose numbers is used;
 - ``report_budgets.csv``: the per-budget differences, one per line (variant, reference, metric, step or time,
   budget, seed pairs, difference, 95% interval, verdict); times compared only between runs that had their machine
   to themselves (``nerfexp.report.shared_machines``);
@@ -38,4 +38,7 @@ variant named by ``--reference``; without either the report has no differences.
 A variant is the set of a run's command-line overrides without the keys averaged over (``--over``,
 default ``seed``) and the run's tags and notes (``nerfexp.rundir.labels``), leaving out overrides every run
 shares. report.md, report.csv and report.html show each variant's tags (those of all its runs) and notes.
+
+The report is written whole or not at all, and says each step of its work as it begins
+(``nerfexp.report.folder.write_report``).
 """

@@ -13,13 +13,14 @@ runs that had their machine to themselves (``nerfexp.report.shared_machines.shar
 with a run that shared it is compared by step only (``by_step_only_line`` says so).
 """
 
+import bisect
 import math
 import statistics
 from collections.abc import Hashable
 from dataclasses import dataclass
 
 from nerfexp.report.comparison import Difference, paired_difference, tiers
-from nerfexp.report.runs import Run
+from nerfexp.report.runs import Budget, Run
 from nerfexp.report.shared_machines import shared
 from nerfexp.report.variants import Variant
 from nerfexp.rundir.records import is_scored
@@ -28,29 +29,17 @@ METRICS = ("psnr", "ssim")  # the test scores compared at each budget
 CURVE_POINTS = 50  # matched times of a difference-against-time curve
 
 
-@dataclass(frozen=True)
-class Budget:
-    """One scoring of a run's test views: after ``step`` optimizer steps, ``train_time_s`` seconds into its
-    training; its scores (NaN or infinite: not scored, ``is_scored``)."""
-
-    step: int
-    train_time_s: float
-    test_psnr: float
-    test_ssim: float
-
-    def score(self, metric: str) -> float:
-        return getattr(self, f"test_{metric}")
-
-
 def run_budgets(run: Run) -> list[Budget]:
-    """A finished run's budgets in step order: its ``test_budgets``, or for an earlier nerfexp's run the one at
-    its end (``steps``, ``train_time_s``, the top-level scores); none where it has neither (or is not finished)."""
-    results = run.results or {}
-    if "test_budgets" in results:
-        return [Budget(b["step"], b["train_time_s"], b["test_psnr"], b["test_ssim"]) for b in results["test_budgets"]]
-    if results.get("steps") is None or results.get("train_time_s") is None:
-        return []
-    return [Budget(results["steps"], results["train_time_s"], results["test_psnr"], results["test_ssim"])]
+    """A finished run's budgets in step order (``Run.budgets``: its ``test_budgets``, or an earlier nerfexp's run's
+    end); none where it has none (or is not finished)."""
+    return run.budgets
+
+
+def budget_at(run: Run, step: int) -> Budget | None:
+    """``run``'s budget at ``step``, or None (found by bisection: a run's budgets are in step order)."""
+    budgets = run_budgets(run)
+    i = bisect.bisect_left(budgets, step, key=lambda budget: budget.step)
+    return budgets[i] if i < len(budgets) and budgets[i].step == step else None
 
 
 def last_steps(runs: list[Run]) -> set[int]:
@@ -66,8 +55,8 @@ def shared_steps(variants: list[Variant]) -> list[int]:
 
 def scores_at_step(variant: Variant, step: int, metric: str = "psnr") -> dict[Hashable, float]:
     """The test ``metric`` of each of ``variant``'s finished runs scored at ``step``, keyed by seed."""
-    return {variant.seed_of(run): budget.score(metric) for run in variant.finished for budget in run_budgets(run)
-            if budget.step == step and is_scored(budget.score(metric))}
+    return {variant.seed_of(run): budget.score(metric) for run in variant.finished
+            if (budget := budget_at(run, step)) is not None and is_scored(budget.score(metric))}
 
 
 def step_differences(variant: Variant, reference: Variant, metric: str = "psnr") -> dict[int, Difference]:
@@ -83,13 +72,12 @@ def score_at_time(budgets: list[Budget], time_s: float, metric: str = "psnr") ->
     it needs is not one. Example: budgets (10 s, 20 dB), (30 s, 24 dB): at 15 s, 21 dB; at 5 s and 31 s, None."""
     if not budgets or not budgets[0].train_time_s <= time_s <= budgets[-1].train_time_s:
         return None
-    for before, after in zip([budgets[0], *budgets], budgets):
-        if time_s <= after.train_time_s:
-            t0, t1, v0, v1 = before.train_time_s, after.train_time_s, before.score(metric), after.score(metric)
-            if not (is_scored(v0) and is_scored(v1)):
-                return None
-            return v1 if t1 == t0 else v0 + (v1 - v0) * (time_s - t0) / (t1 - t0)
-    return None  # not reached: time_s is at most the last budget's
+    i = bisect.bisect_left(budgets, time_s, key=lambda budget: budget.train_time_s)  # the first at time_s or after
+    before, after = budgets[max(i - 1, 0)], budgets[i]
+    t0, t1, v0, v1 = before.train_time_s, after.train_time_s, before.score(metric), after.score(metric)
+    if not (is_scored(v0) and is_scored(v1)):
+        return None
+    return v1 if t1 == t0 else v0 + (v1 - v0) * (time_s - t0) / (t1 - t0)
 
 
 def scores_at_time(variant: Variant, time_s: float, metric: str = "psnr") -> dict[Hashable, float]:
@@ -163,7 +151,7 @@ def scoring_seconds(variants: list[Variant]) -> float | None:
 
 def budget_times(variant: Variant) -> list[float]:
     """The mean training time of ``variant``'s finished runs at each step they all share (``shared_steps``)."""
-    return [statistics.fmean(b.train_time_s for run in variant.finished for b in run_budgets(run) if b.step == step)
+    return [statistics.fmean(budget_at(run, step).train_time_s for run in variant.finished)
             for step in shared_steps([variant])]
 
 

@@ -7,6 +7,7 @@ its interval excludes zero; one pair gives no interval. The intervals are per co
 for making many: among pairs with no real difference, about 1 in 20 is resolved by chance.
 """
 
+import functools
 import math
 import statistics
 from collections.abc import Callable, Hashable, Mapping, Sequence
@@ -22,6 +23,13 @@ def seeds(n: int) -> str:
     return f"{n} seed{'' if n == 1 else 's'}"
 
 
+@functools.cache
+def t_quantile(probability: float, degrees: int) -> float:
+    """Student's t quantile ``t_{probability, degrees}``, kept once asked: a report asks the same few (one per
+    number of seeds) at every budget of every pair, and scipy takes longer over each than the rest of the pair."""
+    return float(student_t.ppf(probability, degrees))
+
+
 def t_interval(values: Sequence[float], level: float = LEVEL) -> tuple[float, float] | None:
     """The two-sided ``level`` confidence interval (low, high) of the mean of ``values`` from Student's t:
     mean -/+ t_{(1 + level) / 2, n - 1} * s / sqrt(n), s the sample standard deviation; None for n < 2."""
@@ -29,7 +37,7 @@ def t_interval(values: Sequence[float], level: float = LEVEL) -> tuple[float, fl
     if n < 2:
         return None
     mean = statistics.fmean(values)
-    half = student_t.ppf((1 + level) / 2, n - 1) * statistics.stdev(values) / math.sqrt(n)
+    half = t_quantile((1 + level) / 2, n - 1) * statistics.stdev(values) / math.sqrt(n)
     return mean - half, mean + half
 
 

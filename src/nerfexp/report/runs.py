@@ -1,10 +1,11 @@
 """Reading a sweep's runs back: each job's state, overrides, results and validation curve, as data;
 a file that cannot be read as nerfexp writes it (``nerfexp.rundir.records``: every field the report uses, typed
-and bounded) makes the run damaged, never a wrong number. A finished run is ranked and compared only with its
+and bounded, and a results.json's fields as they stand to each other, ``relations_problem``) makes the run damaged,
+never a wrong number. A finished run is ranked and compared only with its
 test scores: one whose training collapsed, or whose results hold no finite test score, is listed as such."""
 
 
-import socket
+import functools
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -24,10 +25,36 @@ from nerfexp.rundir.layout import (
     RESULTS,
     STATUS,
     find_run_dirs,
-    process_alive,
     read_json,
     read_metrics,
 )
+from nerfexp.rundir.state import status_state
+
+
+@dataclass(frozen=True)
+class Budget:
+    """One scoring of a run's test views: after ``step`` optimizer steps, ``train_time_s`` seconds into its
+    training; its scores (NaN or infinite: not scored, ``is_scored``)."""
+
+    step: int
+    train_time_s: float
+    test_psnr: float
+    test_ssim: float
+
+    def score(self, metric: str) -> float:
+        return getattr(self, f"test_{metric}")
+
+
+def results_budgets(results: dict | None) -> list[Budget]:
+    """A finished run's budgets (``nerfexp.report.budgets``) in step order, from its ``results``: its ``test_budgets``,
+    or for an earlier nerfexp's run the one at its end (``steps``, ``train_time_s``, the top-level scores); none where
+    it has neither (or is not finished: no ``results``)."""
+    results = results or {}
+    if "test_budgets" in results:
+        return [Budget(b["step"], b["train_time_s"], b["test_psnr"], b["test_ssim"]) for b in results["test_budgets"]]
+    if results.get("steps") is None or results.get("train_time_s") is None:
+        return []
+    return [Budget(results["steps"], results["train_time_s"], results["test_psnr"], results["test_ssim"])]
 
 
 @dataclass
@@ -43,6 +70,12 @@ class Run:
     curve: list[tuple[int, float, float]] = field(default_factory=list)  # (step, wall seconds, validation PSNR)
     tags: list[str] = field(default_factory=list)  # its labels (nerfexp.rundir.labels)
     notes: str | None = None
+
+    @functools.cached_property
+    def budgets(self) -> list[Budget]:
+        """Its budgets in step order (``results_budgets`` of its ``results``, read once: a report looks a run's budgets
+        up at every budget of every comparison); none where it is not finished."""
+        return results_budgets(self.results)
 
 
 def run_precision(results: dict) -> str:
@@ -120,7 +153,8 @@ def job_overrides(path: Path) -> list[str] | None:
 
 def read_run(path: Path) -> Run:
     """What a run directory says about its job. A job whose status still says running but whose
-    process is gone from this host was killed (out of memory, a time limit, a signal). A run with a file
+    process is gone from this host was killed (out of memory, a time limit, a signal: ``nerfexp.rundir.state``,
+    which every reader of a status shares). A run with a file
     that cannot be read as nerfexp writes it (``Damaged``) is listed as damaged with its overrides where
     they can be read (``job_overrides``; else none, and it joins no variant), and none of its numbers is
     used. Its labels are those of its results, else of its status."""
@@ -131,16 +165,9 @@ def read_run(path: Path) -> Run:
     except Damaged as damage:
         return Run(path, "damaged", job_overrides(path), str(damage))
     overrides = status.get("overrides", (results or {}).get("overrides", []))
-    state = status.get("state", "finished" if results is not None else "unknown")
-    detail = status.get("error", "")
+    state, detail = status_state(status)[:2] if status else ("finished" if results is not None else "unknown", "")
     if state == "finished" and results is None:
         state, detail = "failed", f"status says finished but {RESULTS} is missing"
-    if state == "running":
-        here, pid = status.get("host") == socket.gethostname(), status.get("pid")
-        if here and pid is not None and not process_alive(pid, status.get("process_start")):
-            state, detail = "killed", f"process {pid} is gone (killed before it finished)"
-        else:
-            detail = f"on {status.get('host')}, process {pid}" + ("" if here else " (not checked)")
     try:
         curve = read_curve(path, ended=state != "running")
     except Damaged as damage:

@@ -186,8 +186,6 @@ def markdown(variants: list[Variant], rows: list[dict], runs: list[Run], sources
     started = {source: sum(source in run.path.parents for run in runs) for source in sources}
     not_started = [f"`{source}` plans {n} jobs, {started[source]} started" for source, n in planned
                    if n is not None and n > started[source]]
-    order = ["finished", "collapsed", "not scored", "failed", "killed", "running", "damaged", "unknown"]
-    states = {state: n for state in order if (n := sum(run.state == state for run in runs))}
     has_paper = any(row["paper_row"] for row in rows)
     has_lpips = any(v.values("test_lpips") for v in variants)
     has_tags = any(v.tags for v in variants)
@@ -204,7 +202,7 @@ def markdown(variants: list[Variant], rows: list[dict], runs: list[Run], sources
         header += ["paper row", "paper PSNR", "paper SSIM", "PSNR - paper"]
     lines = [
         "# nerfexp report", "",
-        f"Runs: {len(runs)} ({', '.join(f'{n} {s}' for s, n in states.items())}) from "
+        f"Runs: {states_text(runs)} from "
         f"{', '.join(f'`{s}`' for s in sources)}. Means ± sample standard deviation over each variant's "
         "finished runs. " + machines_text(runs) + (f" {precisions}" if precisions else "")
         + (f" {protocols}" if protocols else ""), "",
@@ -259,6 +257,15 @@ def markdown(variants: list[Variant], rows: list[dict], runs: list[Run], sources
               f"budgets as small points joined by a thin line), `{DIFFERENCE_PLOT}` (each variant's test PSNR - the "
               "reference's against training time at the matched times, its 95% interval as a band)."]
     return "\n".join(lines) + "\n"
+
+
+STATES = ("finished", "collapsed", "not scored", "failed", "killed", "running", "damaged", "unknown")  # Run.state
+
+
+def states_text(runs: list[Run]) -> str:
+    """How many ``runs`` there are, and in which states (in ``STATES``' order): "7 (5 finished, 2 damaged)"."""
+    states = {state: n for state in STATES if (n := sum(run.state == state for run in runs))}
+    return f"{len(runs)} ({', '.join(f'{n} {state}' for state, n in states.items())})"
 
 
 MARKUP = str.maketrans({c: f"\\{c}" for c in "\\`*_[]|"})  # what Markdown would read as markup in a cell

@@ -6,6 +6,8 @@ A run's directory holds (every file written atomically):
 - ``status.json``: ``running`` (with host, process id and the process's start), ``finished`` (with
   ``collapse``, as ``results.json``'s) or ``failed`` (with the error), and the run's command-line overrides and
   labels (``tags``, ``notes``: ``nerfexp.rundir.labels``), so a report can list jobs that crashed or still run.
+  A status that says ``running`` for a process of this host that is gone is read as a killed run by every reader
+  (``nerfexp.rundir.state``).
 - ``metrics.jsonl``: one JSON object per evaluation: step, wall_time_s, split, psnr, ssim (means), and
   lpips where LPIPS was scored (``nerfexp.training.perceptual``; absent, never NaN, where it was not;
   lpips_custom instead with the user's own weights).

@@ -6,7 +6,6 @@ nerfexp's by the directory's manifest (``nerfexp.manifest``), never by its name.
 
 import contextlib
 import os
-import socket
 import sys
 import tempfile
 from pathlib import Path
@@ -15,7 +14,7 @@ from hydra.experimental.callback import Callback
 from omegaconf import DictConfig
 
 from nerfexp import manifest
-from nerfexp.errors import NerfexpError
+from nerfexp.errors import NerfexpError, callback_refusals
 from nerfexp.files import folder_entries, foreign_message, is_made
 from nerfexp.rundir.layout import (
     LAST_CHECKPOINT,
@@ -25,11 +24,11 @@ from nerfexp.rundir.layout import (
     STATUS,
     find_run_dirs,
     is_global_zero,
-    process_alive,
     read_json,
     status_bytes,
 )
 from nerfexp.rundir.records import STATUS_FIELDS, record_problem
+from nerfexp.rundir.state import ENDED_UNFINISHED, read_state, status_state
 
 
 def held_run(run_dir: Path) -> str | None:
@@ -38,8 +37,8 @@ def held_run(run_dir: Path) -> str | None:
     status = read_json(run_dir / STATUS)
     if status is not None and (problem := record_problem(status, STATUS_FIELDS, ("state",))) is not None:
         return f"a run whose {STATUS} is not as nerfexp writes it ({problem})"
-    if status is not None:
-        return f"a {status['state']} run ({' '.join(status.get('overrides', [])) or 'no overrides'})"
+    if status is not None:  # its state as it is: a run whose process is gone was killed (nerfexp.rundir.state)
+        return f"a {status_state(status).state} run ({' '.join(status.get('overrides', [])) or 'no overrides'})"
     if any((run_dir / name).exists() for name in (RESULTS, METRICS, LAST_CHECKPOINT.parent)):
         return "a run's results"
     return None
@@ -82,18 +81,12 @@ def saved_checkpoints(run_dir: Path) -> list[Path]:
     return sorted(found, key=lambda path: (path.name != LAST_CHECKPOINT.name, -path.stat().st_mtime))
 
 
-def ended_unfinished(status: dict | None) -> bool:
-    """Whether the run whose ``status.json`` reads ``status`` ended without finishing: ``failed``, or
-    ``running`` in a process of this host that no longer runs (``process_alive``; killed, out of memory).
-    A run of another host, or with no status or one not as nerfexp writes it (``STATUS_FIELDS``), may still
-    run: not."""
-    if status is None or record_problem(status, STATUS_FIELDS, ("state",)) is not None:
-        return False
-    if status["state"] == "failed":
-        return True
-    pid = status.get("pid")
-    return (status["state"] == "running" and status.get("host") == socket.gethostname()
-            and pid is not None and not process_alive(pid, status.get("process_start")))
+def ended_unfinished(run_dir: Path) -> bool:
+    """Whether the run in ``run_dir`` ended without finishing (``nerfexp.rundir.state``): ``failed``, or ``killed``
+    (its status says ``running`` in a process of this host that no longer runs; out of memory, SIGKILL). A run of
+    another host, or with no status or one not as nerfexp writes it, may still run: not."""
+    state = read_state(run_dir)
+    return state is not None and state.state in ENDED_UNFINISHED
 
 
 def admit_run(run_dir: Path, resume: str | None) -> list[str] | None:
@@ -101,8 +94,8 @@ def admit_run(run_dir: Path, resume: str | None) -> list[str] | None:
     before a run claims it: none where it holds no files; all of them where it holds a run that ended
     unfinished (``ended_unfinished``) and saved no checkpoint, and every one of them is a file nerfexp
     wrote by the directory's manifest (``nerfexp.manifest.check_ours``). None where it holds the run that
-    ``resume`` (a checkpoint inside it) continues, and the files that run writes over (``RUN_REWRITES``)
-    are its own: the directory is that run's already.
+    ``resume`` (a checkpoint inside it) continues, the files that run writes over (``RUN_REWRITES``) are its
+    own, and it is not training now in a process of this host: the directory is that run's already.
     Otherwise a NerfexpError saying what it holds and what to do: files where it holds no run
     (``held_run``), files nerfexp cannot show it wrote (named; a directory of an earlier nerfexp, without a
     manifest, says so), or another run (continued with ``resume=`` one of its checkpoints, where it
@@ -115,13 +108,17 @@ def admit_run(run_dir: Path, resume: str | None) -> list[str] | None:
                                                "choose a new or empty directory (hydra.run.dir=...)"))
         return []
     if resume is not None and run_dir.resolve() in Path(resume).resolve().parents:
+        if (state := read_state(run_dir)) is not None and state.here:
+            raise NerfexpError(f"{run_dir} holds {held}, still training ({state.detail}): continuing it there while "
+                               "it runs would have two runs write one directory; wait for it to end, or stop it, "
+                               f"then resume={resume} hydra.run.dir={run_dir}")
         check_run_files(run_dir, held, [entry for entry in entries if is_made(entry, RUN_REWRITES)],
                         f"or continue it in another directory (resume={resume} hydra.run.dir=...)")
         return None
     if checkpoints := saved_checkpoints(run_dir):
         raise NerfexpError(f"{run_dir} holds {held}: continue it with resume={checkpoints[0]} "
                            f"hydra.run.dir={run_dir}, or choose another directory (hydra.run.dir=...)")
-    if not ended_unfinished(read_json(run_dir / STATUS)):
+    if not ended_unfinished(run_dir):
         raise NerfexpError(f"{run_dir} holds {held}: choose another directory (hydra.run.dir=...)")
     check_run_files(run_dir, held, entries, "or choose another directory (hydra.run.dir=...)")
     return entries
@@ -161,42 +158,43 @@ class RunDirectoryGuard(Callback):
     claims the directory
     (``claim``). A multirun stops unless ``hydra.sweep.dir`` is new or empty.
     In a distributed job started by SLURM every process runs this; global rank 0 checks and claims.
-    It stops with ``SystemExit``: Hydra turns a callback's exceptions into warnings and goes on."""
+    It stops with ``SystemExit``, whatever the check raised (``nerfexp.errors.callback_refusals``): Hydra turns a
+    callback's exceptions into warnings and goes on."""
 
     def on_run_start(self, config: DictConfig, **kwargs) -> None:
         if not is_global_zero():
             return
         run_dir = Path(config.hydra.run.dir)
-        try:
-            replaced = admit_run(run_dir, config.get("resume"))
-            if replaced is None:  # the run continued
-                return
-            if replaced:
-                print(f"nerfexp: {run_dir} holds a run that ended unfinished and saved no checkpoint: replacing it, "
-                      f"removing its {len(replaced)} files ({', '.join(replaced[:3])}{', ...' * (len(replaced) > 3)})",
-                      file=sys.stderr)
-                remove_entries(run_dir, replaced)
-            if not claim(run_dir, list(config.hydra.overrides.task)):
-                raise NerfexpError(f"{run_dir} holds a run that started at the same time: choose another "
-                                   "directory (hydra.run.dir=...)")
-        except NerfexpError as error:
-            raise SystemExit(f"nerfexp: error: {error}") from None
-        except OSError as error:
-            raise SystemExit(f"nerfexp: error: cannot write the run directory {run_dir}: {error.strerror} "
-                             "(choose another with hydra.run.dir=...)") from None
+        with callback_refusals("the run directory's check"):
+            try:
+                replaced = admit_run(run_dir, config.get("resume"))
+                if replaced is None:  # the run continued
+                    return
+                if replaced:
+                    print(f"nerfexp: {run_dir} holds a run that ended unfinished and saved no checkpoint: replacing "
+                          f"it, removing its {len(replaced)} files ({', '.join(replaced[:3])}"
+                          f"{', ...' * (len(replaced) > 3)})", file=sys.stderr)
+                    remove_entries(run_dir, replaced)
+                if not claim(run_dir, list(config.hydra.overrides.task)):
+                    raise NerfexpError(f"{run_dir} holds a run that started at the same time: choose another "
+                                       "directory (hydra.run.dir=...)")
+            except OSError as error:
+                raise SystemExit(f"nerfexp: error: cannot write the run directory {run_dir}: {error.strerror} "
+                                 "(choose another with hydra.run.dir=...)") from None
 
     def on_multirun_start(self, config: DictConfig, **kwargs) -> None:
         sweep_dir = Path(config.hydra.sweep.dir)
-        try:
-            sweep_dir.mkdir(parents=True, exist_ok=True)
-            tempfile.TemporaryFile(dir=sweep_dir).close()  # writable, before any job starts
-        except OSError as error:
-            raise SystemExit(f"nerfexp: error: cannot write the sweep directory {sweep_dir}: {error.strerror} "
-                             "(choose another with hydra.sweep.dir=...)") from None
-        runs = find_run_dirs(sweep_dir)
-        if runs:
-            raise SystemExit(f"nerfexp: error: {sweep_dir} holds the runs of an earlier sweep ({len(runs)}): choose "
-                             f"another directory (hydra.sweep.dir=...)")
-        if entries := folder_entries(sweep_dir):
-            raise SystemExit("nerfexp: error: " + foreign_message(
-                sweep_dir, entries, "this sweep", "choose a new or empty directory (hydra.sweep.dir=...)"))
+        with callback_refusals("the sweep directory's check"):
+            try:
+                sweep_dir.mkdir(parents=True, exist_ok=True)
+                tempfile.TemporaryFile(dir=sweep_dir).close()  # writable, before any job starts
+            except OSError as error:
+                raise SystemExit(f"nerfexp: error: cannot write the sweep directory {sweep_dir}: {error.strerror} "
+                                 "(choose another with hydra.sweep.dir=...)") from None
+            runs = find_run_dirs(sweep_dir)
+            if runs:
+                raise SystemExit(f"nerfexp: error: {sweep_dir} holds the runs of an earlier sweep ({len(runs)}): "
+                                 "choose another directory (hydra.sweep.dir=...)")
+            if entries := folder_entries(sweep_dir):
+                raise SystemExit("nerfexp: error: " + foreign_message(
+                    sweep_dir, entries, "this sweep", "choose a new or empty directory (hydra.sweep.dir=...)"))

@@ -188,22 +188,121 @@ def results_problem(results: object, required: tuple[str, ...] = ()) -> str | No
         if key in results and (views is None or len(results[key]) != len(views)):
             count = "no test_views" if views is None else f"{len(views)} test_views"
             return f"key '{key}' has {len(results[key])} items for {count}: expected one per test view"
-    return budgets_problem(results.get("test_budgets", []))
+    return budgets_problem(results.get("test_budgets", [])) or relations_problem(results)
 
 
 def budgets_problem(budgets: list[dict]) -> str | None:
     """Why a ``results.json``'s ``test_budgets`` (a list of mappings) are not as nerfexp writes them, naming the
-    budget, its key and value, or None: each keeps ``BUDGET_FIELDS`` and has ``BUDGET_REQUIRED``; their steps
-    increase and their training clock never goes back."""
+    budget, its key and value, or None: each keeps ``BUDGET_FIELDS`` and has ``BUDGET_REQUIRED`` (how they stand to
+    each other and to the run: ``relations_problem``)."""
     for i, budget in enumerate(budgets):
         if (problem := record_problem(budget, BUDGET_FIELDS, BUDGET_REQUIRED)) is not None:
             return f"key 'test_budgets', item {i}: {problem}"
+    return None
+
+
+# The headline test scores that the last of results.json's test_budgets, the end, repeats (each in both or in neither)
+END_SCORES = ("test_psnr", "test_ssim", "test_lpips", "test_lpips_custom")
+# Two float64 computations of one number (a mean in another order, a quotient) agree to this, relative to the number
+AGREE = 1e-9
+
+
+def same(a, b) -> bool:
+    """Whether two of a results.json's values are one number written twice: equal, NaN being the same as NaN."""
+    return a == b or (isinstance(a, float) and isinstance(b, float) and math.isnan(a) and math.isnan(b))
+
+
+def agree(a, b) -> bool:
+    """Whether two computations of one number agree (``same``, or finite and within ``AGREE`` of the larger)."""
+    return same(a, b) or (is_real(a) and is_real(b) and abs(a - b) <= AGREE * max(1.0, abs(a), abs(b)))
+
+
+def mean(values: list) -> float:
+    """The mean of a results.json's per-view scores as nerfexp takes it (NaN of none; infinite or NaN where one is)."""
+    return math.fsum(values) / len(values) if values else math.nan
+
+
+def steps_problem(results: dict) -> str | None:
+    """Where ``test_budgets`` go back (a step not after the one before, or a training time before its), or past the
+    run's last step (``steps``)."""
+    budgets, steps = results.get("test_budgets", []), results.get("steps")
     for i, (before, after) in enumerate(zip(budgets, budgets[1:]), 1):
         if after["step"] <= before["step"] or after["train_time_s"] < before["train_time_s"]:
             return (f"key 'test_budgets', item {i}: step {after['step']} at {after['train_time_s']!r} s after step "
                     f"{before['step']} at {before['train_time_s']!r} s: expected steps increasing and training "
                     "times never decreasing")
+    for i, budget in enumerate(budgets):
+        if steps is not None and budget["step"] > steps:
+            return (f"key 'test_budgets', item {i} says step {budget['step']}, but the run ended at step {steps} "
+                    "(key 'steps'): expected every budget within the run's steps")
     return None
+
+
+def end_problem(results: dict) -> str | None:
+    """Where the last of ``test_budgets`` is not the run's end: at another step than ``steps``, another time than
+    ``train_time_s``, or with other scores than the headline ones (``END_SCORES``, each in both or in neither)."""
+    if not (budgets := results.get("test_budgets")):
+        return None
+    end = budgets[-1]
+    clocks = [(key, headline) for key, headline in (("step", "steps"), ("train_time_s", "train_time_s"))
+              if headline in results]  # where the run says when it ended
+    for key, headline in [*clocks, *((key, key) for key in END_SCORES)]:
+        if not same(end.get(key), results.get(headline)):
+            return (f"key 'test_budgets', item {len(budgets) - 1}, the last, says {key} {end.get(key)!r}, but key "
+                    f"'{headline}' is {results.get(headline)!r}: expected the last budget to be the run's end, with "
+                    "its headline numbers")
+    return None
+
+
+def scoring_problem(results: dict) -> str | None:
+    """Where ``budget_scoring_s`` is not the sum of the ``score_s`` of the budgets before the end."""
+    if "budget_scoring_s" not in results or not (budgets := results.get("test_budgets")):
+        return None
+    spent = math.fsum(budget["score_s"] for budget in budgets[:-1])
+    if agree(results["budget_scoring_s"], spent):
+        return None
+    return (f"key 'budget_scoring_s' is {results['budget_scoring_s']!r}, but the budgets before the end took "
+            f"{spent!r} s (key 'test_budgets', their score_s): expected the sum")
+
+
+def time_per_step_problem(results: dict) -> str | None:
+    """Where ``time_per_step_s`` is not ``train_time_s / max(1, steps)``."""
+    if not all(results.get(key) is not None for key in ("time_per_step_s", "train_time_s", "steps")):
+        return None
+    seconds, steps = results["train_time_s"], results["steps"]
+    if agree(results["time_per_step_s"], quotient := seconds / max(steps, 1)):
+        return None
+    return (f"key 'time_per_step_s' is {results['time_per_step_s']!r}, but key 'train_time_s' / max(1, key 'steps') "
+            f"is {seconds!r} / max(1, {steps}) = {quotient!r}: expected the quotient")
+
+
+def views_problem(results: dict) -> str | None:
+    """Where a headline score with per-view scores (``PER_VIEW``) is not their mean."""
+    for key in PER_VIEW:
+        headline = key.removesuffix("_per_view")
+        if key in results and not agree(results.get(headline), mean(results[key])):
+            return (f"key '{headline}' is {results.get(headline)!r}, but the mean of key '{key}' is "
+                    f"{mean(results[key])!r}: expected the mean of the views' scores")
+    return None
+
+
+# The relations nerfexp's writer (nerfexp.training.recorders.RunRecorder.on_test_epoch_end) keeps between the fields
+# of a results.json, each a check naming the keys it finds broken (relations_problem)
+RELATIONS = (steps_problem, end_problem, scoring_problem, time_per_step_problem, views_problem)
+
+
+def relations_problem(results: dict) -> str | None:
+    """Why a ``results.json`` (its fields each as nerfexp writes them: ``record_problem``) contradicts itself, naming
+    the keys, their values and the relation broken (the first of ``RELATIONS``), or None. nerfexp's writer keeps
+    every one, and a report compares a run by them; one broken was edited, or mixed from two runs:
+
+    - ``test_budgets``: their steps increase and their training times never decrease, none after the run's last step
+      (``steps``), and the last is the end: at step ``steps`` and ``train_time_s`` seconds, with the headline scores
+      (``END_SCORES``, each in both or in neither);
+    - ``budget_scoring_s`` is the sum of the ``score_s`` of the budgets before the end;
+    - ``time_per_step_s`` is ``train_time_s / max(1, steps)``;
+    - a headline score with per-view scores (``test_psnr_per_view``, ...) is their mean."""
+    return next((problem for relation in RELATIONS if (problem := relation(results)) is not None), None)
 
 
 def checkpoint_problem(results: object) -> str | None:

@@ -42,7 +42,8 @@ importable function (``torch.load`` of a pickle with ``weights_only: false``, sa
 
 A config you compose yourself (``nerfexp ...`` with your overrides, ``KEY=VALUE`` arguments of the commands
 that read a run back) is your own code, as in any Hydra application, and is not checked, but for this: the
-arguments change a saved config, whose ``_target_``s are checked once more at their keys after them.
+arguments change a saved config, whose ``_target_``s are checked once more at their keys after them, and whose
+shapes they may not change (``nerfexp.rundir.config_shapes``, which checks the saved config's own shapes too).
 """
 
 import functools
@@ -57,8 +58,9 @@ from omegaconf.grammar.gen.OmegaConfGrammarLexer import OmegaConfGrammarLexer
 from omegaconf.grammar_parser import parse
 from omegaconf.grammar_visitor import OmegaConfGrammarParser
 
-from nerfexp.config_keys import entries, reference
+from nerfexp.config_keys import entries
 from nerfexp.errors import ConfigError
+from nerfexp.rundir.config_shapes import own_keys
 
 TRAINERS = ("lightning.Trainer", "lightning.pytorch.Trainer")
 # (where the target and its class live, their base): the bases imported only to check a target of theirs
@@ -68,7 +70,6 @@ FAMILIES = (("nerfexp.", "builtins.object"), ("torch.optim.", "torch.optim.Optim
 OPEN_FAMILIES = FAMILIES[1:]  # the kinds a key naming one of them takes any of: torch's optimizers, Lightning's
 TRAINING_ONLY = ("callbacks", "logger", "trainer.default_root_dir")  # what only training builds (dotted keys)
 READERS_OWN = ("model.lpips", "model.lpips_weights", "model.lpips_custom")  # what the reader's evaluation reads
-PACKAGE = "# @package "  # a config file's header naming where its keys go (Hydra's package)
 
 
 def targets(node, path: str = "") -> Iterator[tuple[str, object]]:
@@ -120,73 +121,14 @@ def buildable(target: object) -> bool:
     return False
 
 
-def package(text: str, group: str) -> str:
-    """Where the keys of a config file of ``group`` (its folder under ``conf/``, ``""`` for ``config.yaml``) go, as
-    Hydra places them: the dotted key its header names (``# @package model.renderer.field``; ``_global_``: the
-    top), else the group's own (``appearance``, ``hydra/launcher``: ``hydra.launcher``)."""
-    for line in text.splitlines():
-        if not line.startswith("#"):
-            break
-        if line.startswith(PACKAGE):
-            named = line.removeprefix(PACKAGE).strip()
-            return "" if named == "_global_" else named
-    return group.replace("/", ".")
-
-
-def referenced_key(key: str, raw: object) -> str | None:
-    """The key that ``raw``, the value at the dotted ``key``, names where it is a plain reference, absolute
-    (``${acceleration.grid}``) or relative to the section holding ``key`` (``${.near}``, ``${..near}``: a dot
-    more for each section up); else None."""
-    named = reference(raw)
-    if named is None or not named.startswith("."):
-        return named
-    dots = len(named) - len(named.lstrip("."))
-    base = key.split(".")[:-dots]
-    return ".".join([*base, named[dots:]])
-
-
-def under(key: str, section: str) -> str | None:
-    """What follows ``section`` in the dotted ``key`` (``""`` for the section itself, ``.x`` below it), or None
-    where ``key`` is not in it."""
-    return key[len(section):] if key == section or key.startswith(f"{section}.") else None
-
-
 @functools.cache
 def named_targets() -> dict[str, frozenset[str]]:
     """{the dotted key of a section: the classes nerfexp's own config files name as its ``_target_``}: every
     YAML file of the packaged ``nerfexp.conf`` (the groups, the sweeps, the rows, ``config.yaml``), each at its
-    package (``package``), with each plain reference to a section carrying that section's classes to the key
-    holding it, and to the keys below (``model.renderer.field.view_head.direction_encoding``), to the end."""
-    found: dict[str, set[str]] = {}
-    aliases: list[tuple[str, str]] = []  # (the key holding a reference, the key it names)
-    root = files("nerfexp.conf")
-    pending = [(root, "")]
-    while pending:
-        folder, group = pending.pop()
-        for item in folder.iterdir():
-            name = f"{group}/{item.name}" if group else item.name
-            if item.is_dir():
-                pending.append((item, name))
-            elif item.name.endswith(".yaml"):
-                text = item.read_text()
-                prefix = package(text, group)
-                content = yaml.safe_load(text) or {}
-                content.pop("defaults", None)
-                for key, value in entries(content, prefix):
-                    if key.split(".")[-1] == "_target_" and isinstance(value, str):
-                        found.setdefault(key.rpartition(".")[0], set()).add(value)
-                    elif (named := referenced_key(key, value)) is not None:
-                        aliases.append((key, named))
-    changed = True
-    while changed:  # a reference to a section holding a reference: carried until nothing more is
-        changed = False
-        for key, named in aliases:
-            for section, classes in list(found.items()):
-                rest = under(section, named)
-                if rest is not None and not classes <= found.setdefault(key + rest, set()):
-                    found[key + rest] |= classes
-                    changed = True
-    return {section: frozenset(classes) for section, classes in found.items()}
+    package, with each plain reference to a section carrying that section's classes to the key holding it, and to
+    the keys below (``model.renderer.field.view_head.direction_encoding``), to the end
+    (``nerfexp.rundir.config_shapes.own_keys``)."""
+    return {key: facts.targets for key, facts in own_keys().items() if facts.targets}
 
 
 def allowed_at(section: str, target: object) -> bool:

@@ -3,6 +3,7 @@
 are read as if made by this one (``MOVED_TARGETS``, ``OLD_SAMPLER_KEYS``, ``MOVED_WEIGHTS``). What is built from them, the model, is a layer above
 training (``nerfexp.products.trained``)."""
 
+import contextlib
 import io
 import pickle
 import re
@@ -15,12 +16,14 @@ import yaml
 from omegaconf import DictConfig, OmegaConf, open_dict
 from omegaconf.errors import OmegaConfBaseException
 
-from nerfexp.errors import ConfigError, NerfexpError
+from nerfexp.errors import ConfigError, NerfexpError, failures_refused
 from nerfexp.geometry.cameras import poses_problem
 from nerfexp.reading import UnreadableFile, read_yaml_text
+from nerfexp.rundir.config_shapes import check_own_shapes, with_overrides
 from nerfexp.rundir.layout import LAST_CHECKPOINT, REFINED_POSES, RESULTS, RUN_CONFIG, read_json, sha256
 from nerfexp.rundir.records import checkpoint_problem
 from nerfexp.rundir.saved_configs import as_data, check_resolved
+from nerfexp.rundir.state import read_state, unfinished_words
 
 # Where the classes of a run's config lived before the package was split into layers (and the data group
 # held the field's density noise), and the hash grid before it had a module of its own (nerfexp.nerf.hashgrid): a
@@ -60,7 +63,10 @@ OLD_SCALE_KEYS = ("scale.hash_log2_table_size", "scale.hash_finest")
 def find_run(path: str | Path) -> tuple[Path, Path]:
     """``(run directory, checkpoint)`` of ``path``: a run directory (the checkpoint its final test scored,
     as ``results.json`` records it, checked against its SHA-256; else ``checkpoints/last.ckpt``) or a
-    checkpoint file in one (``RUN_DIR/checkpoints/NAME.ckpt``: the run directory two levels up)."""
+    checkpoint file in one (``RUN_DIR/checkpoints/NAME.ckpt``: the run directory two levels up). A run that saved
+    no checkpoint is a NerfexpError saying so, and where its status says it did not finish, how
+    (``nerfexp.rundir.state.unfinished_words``: killed, failed, still running); a reader of a checkpoint of such a
+    run says so too (``nerfexp.rundir.state.unfinished_line``)."""
     path = Path(path)
     if not path.exists():
         raise NerfexpError(f"{path} does not exist: expected a run directory or a checkpoint file in one")
@@ -77,13 +83,16 @@ def find_run(path: str | Path) -> tuple[Path, Path]:
             raise NerfexpError(f"{checkpoint} is not the checkpoint the run's test scored (its SHA-256 differs "
                                f"from {run_dir / RESULTS}'s): name a checkpoint file to use it anyway")
     if not checkpoint.is_file():
-        raise NerfexpError(f"{checkpoint} does not exist: the run in {run_dir} has saved no checkpoint")
+        ended = unfinished_words(read_state(run_dir))  # why, where its status says (nerfexp.rundir.state)
+        raise NerfexpError(f"{checkpoint} does not exist: the run in {run_dir} has saved no checkpoint"
+                           + ("" if ended is None else f"; it {ended}"))
     return run_dir, checkpoint
 
 
 def _current(text: str, source: Path) -> DictConfig:
     """A run config's text (read from ``source``) as this version's config, read as data
-    (``nerfexp.rundir.saved_configs.as_data``, before anything in it is resolved): ``MOVED_TARGETS`` paths made
+    (``nerfexp.rundir.saved_configs.as_data``, before anything in it is resolved) in the shapes nerfexp's own configs
+    give its keys (``nerfexp.rundir.config_shapes.check_own_shapes``): ``MOVED_TARGETS`` paths made
     current, and ``data.density_noise_std`` moved to ``model.renderer.field`` (``OLD_NOISE``: the field
     once read it with a resolver, whose default was 0.0), and the renderer's sampler settings moved to the ``sampler``
     section (``moved_sampler``)."""
@@ -92,6 +101,11 @@ def _current(text: str, source: Path) -> DictConfig:
     if not isinstance(cfg, DictConfig):
         raise ConfigError(f"{source}: not a config nerfexp can read (a mapping of keys was expected)")
     cfg = as_data(moved_sampler(cfg), source)
+    # a section that a reference lands at another's key is named by its class first, where the file resolves (a
+    # reference that leads nowhere is named once the overrides are applied: one of them may mend it)
+    with contextlib.suppress(OmegaConfBaseException):
+        check_resolved(OmegaConf.to_container(cfg, resolve=True), source)
+    check_own_shapes(cfg, source)
     if "density_noise_std" in cfg.get("data", {}):
         with open_dict(cfg):
             cfg.model.renderer.field.density_noise_std = cfg.data.pop("density_noise_std")
@@ -163,28 +177,27 @@ def run_config(run_dir: Path, overrides: list[str] = ()) -> DictConfig:
     (e.g. ``data.root=...`` for a scene that moved). The file is read as data: a ``_target_`` in it that
     is not one of the classes nerfexp builds, or an interpolation that is not a plain reference to another
     of its keys, is a ConfigError (``nerfexp.rundir.saved_configs``), and the keys only training builds are left
-    out. A reference that the config cannot follow, or a value that resolves to text holding ``${``
-    (``check_resolved``), is a ConfigError naming the key, before anything is built. The file is read bounded
-    (``nerfexp.reading.read_yaml_text``: its size, no YAML aliases)."""
+    out; so is a key whose shape nerfexp's own configs do not give it (``_current``: a value where they have a
+    section, a section without its class, another ``_partial_``), and an override that changes a shape of the run's
+    config (``nerfexp.rundir.config_shapes.with_overrides``). A reference that the config cannot follow, or a value
+    that resolves to text holding ``${`` (``check_resolved``), is a ConfigError naming the key, before anything is
+    built. The file is read bounded (``nerfexp.reading.read_yaml_text``: its size, no YAML aliases)."""
     source = Path(run_dir) / RUN_CONFIG
-    try:
-        cfg = _current(read_yaml_text(source), source)
-    except UnreadableFile as error:
-        raise ConfigError(f"{source}: not a config nerfexp can read ({error.reason})") from None
-    except (OmegaConfBaseException, yaml.YAMLError) as error:
-        raise ConfigError(f"{source}: not a config nerfexp can read ({str(error).splitlines()[0]})") from None
-    OmegaConf.set_struct(cfg, True)  # an override of a key the run does not have is a typo, not a new key
-    try:
-        cfg = OmegaConf.merge(cfg, OmegaConf.from_dotlist(list(overrides)))
-    except OmegaConfBaseException as error:
-        raise ConfigError(f"cannot apply {' '.join(overrides)} to {Path(run_dir) / RUN_CONFIG}: "
-                          f"{str(error).splitlines()[0]}") from None
-    try:
-        resolved = OmegaConf.to_container(cfg, resolve=True)  # plain references only (and the overrides'): nothing runs
-    except OmegaConfBaseException as error:
-        where = f" at {error.full_key}" if error.full_key else ""
-        raise ConfigError(f"{source}: cannot resolve the config{where}: {str(error).splitlines()[0]}") from None
-    check_resolved(resolved, source)
+    with failures_refused(f"the check of {source}"):  # whatever the checks below raise, a refusal
+        try:
+            cfg = _current(read_yaml_text(source), source)
+        except UnreadableFile as error:
+            raise ConfigError(f"{source}: not a config nerfexp can read ({error.reason})") from None
+        except (OmegaConfBaseException, yaml.YAMLError) as error:
+            raise ConfigError(f"{source}: not a config nerfexp can read ({str(error).splitlines()[0]})") from None
+        OmegaConf.set_struct(cfg, True)  # an override of a key the run does not have is a typo, not a new key
+        cfg = with_overrides(cfg, list(overrides), source)
+        try:
+            resolved = OmegaConf.to_container(cfg, resolve=True)  # plain references (and the overrides'): nothing runs
+        except OmegaConfBaseException as error:
+            where = f" at {error.full_key}" if error.full_key else ""
+            raise ConfigError(f"{source}: cannot resolve the config{where}: {str(error).splitlines()[0]}") from None
+        check_resolved(resolved, source)
     return cfg
 
 

@@ -16,12 +16,15 @@ from hydra.experimental.callback import Callback
 from omegaconf import MISSING, DictConfig, OmegaConf
 
 from nerfexp.config_keys import entries, leaves, reference, source_key
-from nerfexp.domains import breaks
-from nerfexp.errors import ConfigError
+from nerfexp.domains import breaks, one_line
+from nerfexp.errors import ConfigError, callback_refusals, failures_refused
 from nerfexp.extras import SETTINGS_NEEDING, TARGETS_NEEDING, require
 from nerfexp.kernels import enabled
 from nerfexp.memory import network_bytes, require_memory
-from nerfexp.settings.components import argument_keys, asked, components, walked_once
+from nerfexp.rundir.labels import check_plain_labels
+from nerfexp.settings.components import argument_keys, argument_problem, asked, components, walked_once
+from nerfexp.settings.groups import check_group_values
+from nerfexp.settings.overrides import override_values, task_overrides
 from nerfexp.settings.rows import check_row
 from nerfexp.settings.schema import PASSED_ON, REFERENCES, matching, rule_of
 from nerfexp.settings.unused import check_used
@@ -45,7 +48,7 @@ def named(cfg: DictConfig, key: str, value) -> str:
     interpolations (``${scale.lr}``, ``nerfexp.config_keys.source_key``), that key, and which key it
     sets; else ``key`` itself. A text with a character that does not print (a newline) is quoted, escaped."""
     source = source_key(cfg, key)
-    value = repr(value) if isinstance(value, str) and not value.isprintable() else value  # one line, as it is
+    value = one_line(value)
     return f"{key}={value}" if source == key else f"{source}={value} (which sets {key})"
 
 
@@ -64,6 +67,14 @@ def check_rules(cfg: DictConfig, strict: bool = True) -> None:
             continue
         if (wanted := breaks(rule, value)) is not None:
             raise ConfigError(f"{named(cfg, key, value)}: expected {wanted}")
+
+
+def check_arguments(cfg: DictConfig) -> None:
+    """A ConfigError where a component's config does not fit its class (``nerfexp.settings.components.
+    argument_problem``: an argument it needs that nothing gives it, or one it does not take), naming the key."""
+    for component in components(cfg):
+        if (problem := argument_problem(component)) is not None:
+            raise ConfigError(problem)
 
 
 def check_consistent(cfg: DictConfig) -> None:
@@ -218,26 +229,30 @@ def check_lpips(cfg: DictConfig) -> None:
 def check_settings(cfg: DictConfig, training: bool = True, scoring: bool = True) -> None:
     """A ConfigError for a ``NERFEXP_KERNELS`` that is not on or off (``nerfexp.kernels.enabled``), a missing
     optional package (first: a component whose package is missing cannot say what its settings are), then the
-    first setting that is out of its domain (``check_rules``), a frequency float32 cannot resolve, a skip
+    first setting that is out of its domain (``check_rules``), a component's config that does not fit its class
+    (``check_arguments``: an argument it needs not given), a frequency float32 cannot resolve, a skip
     connection past the field's depth, hash grid levels out of order, ray bounds with near not before far,
     sparse gradients without an optimizer that takes them, a component that needs world rays with NDC rays, a size
     that would not fit in memory, or LPIPS weights
     that must be there and are not (where ``scoring``). ``training``: False for a run read back
-    (``check_run_settings``)."""
-    missing = sorted(key for key, value in checked_settings(cfg) if value is MISSING)
-    if missing:
-        raise ConfigError(f"missing mandatory value: {', '.join(missing)} (set it on the command line, "
-                          f"e.g. {missing[0]}=...)")
-    enabled()  # the kernels' switch, read now so that a value it does not take stops the run before any work
-    check_extras(cfg)  # first: a component whose package is missing cannot say what its settings are
-    check_rules(cfg, strict=training)
-    with walked_once(cfg):  # the checks below ask the components many times
-        check_consistent(cfg)
-        check_sparse_gradients(cfg)
-        check_world_rays(cfg)
-        check_memory(cfg, training)
-    if scoring:
-        check_lpips(cfg)
+    (``check_run_settings``). Any other exception of a check is a ConfigError too (``nerfexp.errors.
+    failures_refused``): a check that fails refuses the config."""
+    with failures_refused("the settings check"):
+        missing = sorted(key for key, value in checked_settings(cfg) if value is MISSING)
+        if missing:
+            raise ConfigError(f"missing mandatory value: {', '.join(missing)} (set it on the command line, "
+                              f"e.g. {missing[0]}=...)")
+        enabled()  # the kernels' switch, read now so that a value it does not take stops the run before any work
+        check_extras(cfg)  # first: a component whose package is missing cannot say what its settings are
+        check_rules(cfg, strict=training)
+        with walked_once(cfg):  # the checks below ask the components many times
+            check_arguments(cfg)  # first: the rules read the arguments a component is built with
+            check_consistent(cfg)
+            check_sparse_gradients(cfg)
+            check_world_rays(cfg)
+            check_memory(cfg, training)
+        if scoring:
+            check_lpips(cfg)
 
 
 def check_run_settings(cfg: DictConfig, scoring: bool = False) -> None:
@@ -251,16 +266,31 @@ def check_run_settings(cfg: DictConfig, scoring: bool = False) -> None:
     check_settings(cfg, training=False, scoring=scoring)
 
 
+def check_composition(cfg: DictConfig, hydra: DictConfig) -> None:
+    """A ConfigError where what Hydra composed for a run (``cfg``; ``hydra``: its ``hydra`` section, or
+    ``HydraConfig.get()``) would not be what the run records: a config group given what is not one of its options
+    (``nerfexp.settings.groups.check_group_values``), or a label that is not plain text
+    (``nerfexp.rundir.labels.check_plain_labels``), each as a sweep's override sets it for any of its jobs too.
+    First of the checks: the others read the groups' choices, and resolve the labels."""
+    check_group_values(hydra)
+    check_plain_labels(cfg, override_values(task_overrides(hydra)))  # a sweep's: every job's values
+
+
 class SettingsCheck(Callback):
-    """Hydra callback (``hydra.callbacks.settings``): ``check_settings`` and ``check_used`` on a single
-    run's config before Hydra creates its directory, so that a bad value leaves nothing behind; each job of
-    a sweep is checked by ``nerfexp.commands.train`` (the sweep's values differ per job). It stops with
-    ``SystemExit``: Hydra turns a callback's exceptions into warnings and goes on."""
+    """Hydra callback (``hydra.callbacks.settings``): ``check_composition``, ``check_settings`` and ``check_used``
+    on a single run's config before Hydra creates its directory, so that a bad value leaves nothing behind; a
+    sweep's config (what its jobs share) gets ``check_composition`` before the sweep's directory is made, and each
+    job is checked by ``nerfexp.commands.train`` (the sweep's values differ per job). It stops with
+    ``SystemExit``, whatever the check raised (``nerfexp.errors.callback_refusals``): Hydra turns a callback's
+    exceptions into warnings and goes on."""
 
     def on_run_start(self, config: DictConfig, **kwargs) -> None:
-        try:
+        with callback_refusals("the settings check"):
+            check_composition(config, config.hydra)
             check_settings(config)
             check_row(config, config.hydra.runtime.choices, list(config.hydra.overrides.task))
             check_used(config, list(config.hydra.overrides.task))
-        except ConfigError as error:
-            raise SystemExit(f"nerfexp: error: {error}") from None
+
+    def on_multirun_start(self, config: DictConfig, **kwargs) -> None:
+        with callback_refusals("the settings check"):
+            check_composition(config, config.hydra)

@@ -31,8 +31,10 @@ from nerfexp.domains import (
     NULL,
     PATH,
     TEXT,
+    THREADS,
     Rule,
     choice,
+    expected,
     is_real,
     is_whole,
     optional,
@@ -40,9 +42,11 @@ from nerfexp.domains import (
     whole,
     whole_list,
 )
+from nerfexp.data.pose_noise import POSE_NOISE_SETTING
 from nerfexp.nerf.appearance import PROTOCOLS
 from nerfexp.nerf.hierarchy import HIERARCHIES
 from nerfexp.rundir.labels import NOTES, TAGS
+from nerfexp.training.budgets import AUTO as AUTO_BUDGETS
 from nerfexp.training.guard_actions import COLLAPSE_ACTIONS, NONFINITE_ACTIONS
 from nerfexp.training.perceptual import SETTINGS as LPIPS_SETTINGS
 
@@ -87,8 +91,10 @@ INPUT_SCALE = real(0, 2.0 ** FLOAT32_TOP_OCTAVE, above=True)
 TARGET = ("a dotted Python name (module.Class)", lambda v: isinstance(v, str) and v != "")
 BETAS = ("[beta1, beta2], each a finite number in [0, 1)",
          lambda v: isinstance(v, list) and len(v) == 2 and all(is_real(b) and 0 <= b < 1 for b in v))
-DEVICES = ("a whole number >= 1, a list of device indices, or auto",
-           lambda v: v == "auto" or COUNT[1](v) or (isinstance(v, list) and v != [] and all(map(is_whole, v))))
+# devices per node: on a CPU each is a process of its own (trainer=ddp's ddp_spawn starts them all), so at most
+# THREAD_LIMIT, more than any machine's CPUs (a GPU count Lightning checks against the GPUs itself)
+DEVICES = (f"{expected(THREADS)}, a list of device indices, or auto",
+           lambda v: v == "auto" or THREADS[1](v) or (isinstance(v, list) and v != [] and all(map(is_whole, v))))
 PLUGINS = ("a list of plugin configs ({_target_: ...}), or null",
            lambda v: v is None or (isinstance(v, list) and all(isinstance(p, dict) and "_target_" in p for p in v)))
 # "auto": bf16-mixed where this machine runs bf16 fast, else 32-true (nerfexp.training.precision)
@@ -97,15 +103,13 @@ ACCELERATORS = registered_choice(("auto", "gpu"), lightning_accelerators)
 STRATEGIES = registered_choice(("auto",), lightning_strategies)
 SKIPS = whole_list(0)
 HIERARCHY = choice(*HIERARCHIES)
-# [degrees, fraction of the cameras' radius] (nerfexp.data.pose_noise)
-POSE_NOISE = ("[degrees, fraction], two finite numbers >= 0",
-              lambda v: isinstance(v, list) and len(v) == 2 and all(is_real(x) and x >= 0 for x in v))
 
 # The fractions of training's steps at which the test views are scored too (nerfexp.training.budgets): each strictly
-# inside (0, 1), the end being the final test's, in increasing order, so that each names one point of training once
-TEST_BUDGETS = ("a list of fractions of the steps, each a finite number > 0 and < 1, strictly increasing (e.g. "
-                "[0.25, 0.5]; [] scores the end alone)",
-                lambda v: isinstance(v, list) and all(is_real(f) and 0 < f < 1 for f in v)
+# inside (0, 1), the end being the final test's, in increasing order, so that each names one point of training once;
+# or auto (1/4 and 1/2, as many as their cost allows)
+TEST_BUDGETS = ("auto, or a list of fractions of the steps, each a finite number > 0 and < 1, strictly increasing "
+                "(e.g. [0.25, 0.5]; [] scores the end alone)",
+                lambda v: v == AUTO_BUDGETS or isinstance(v, list) and all(is_real(f) and 0 < f < 1 for f in v)
                 and all(a < b for a, b in zip(v, v[1:])))
 
 # Every key of the composed config (fnmatch patterns, the first that matches rules), hydra.* aside.
@@ -117,7 +121,8 @@ SCHEMA: dict[str, Rule] = {
     "notes": NOTES,
     "hierarchical": HIERARCHY,
     "resume": optional(PATH, "train from scratch"),
-    "threads": optional(COUNT, "auto: the CPUs this process may use over the jobs run at once"),
+    # at most THREAD_LIMIT (more than any machine); above the CPUs this process may use: capped at them (nerfexp.cpus)
+    "threads": optional(THREADS, "auto: the CPUs this process may use over the jobs run at once"),
     "test_budgets": TEST_BUDGETS,
     # scale: the sizes the groups read (each checked again where it lands)
     "scale.steps": COUNT,
@@ -166,7 +171,7 @@ SCHEMA: dict[str, Rule] = {
     "encoding.grid_resolution": COUNT,  # the same: acceleration.grid.resolution
     "encoding.grid_update_fraction": real(0, 1, above=True),  # the same: acceleration.grid.update_fraction
     "test_cameras.fit": NULL,  # test_cameras=given
-    "datamodule.pose_noise": optional(POSE_NOISE, "the poses as the data gives them"),
+    "datamodule.pose_noise": POSE_NOISE_SETTING,  # degrees in [0, 180], a fraction of the cameras' radius in [0, 1]
     "contraction.function": NULL,  # contraction=none
     # trainer
     "trainer.accelerator": ACCELERATORS,

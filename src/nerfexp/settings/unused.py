@@ -20,9 +20,9 @@ from importlib.resources import files
 from hydra.core.hydra_config import HydraConfig
 from omegaconf import DictConfig, OmegaConf
 
-from nerfexp.config_keys import entries, reference
+from nerfexp.config_keys import entries, reference, source_key
 from nerfexp.errors import ConfigError
-from nerfexp.settings.components import ROOTS, components, walked_once
+from nerfexp.settings.components import ROOTS, arguments, components, walked_once
 from nerfexp.settings.schema import component_class, matching
 
 
@@ -80,9 +80,10 @@ def idle_reason(cfg: DictConfig, key: str) -> str | None:
         node = OmegaConf.select(cfg, ".".join(parts[:depth]))
         if not isinstance(node, DictConfig) or "_target_" not in node:
             continue
-        applies = getattr(component_class(node.get("_target_")), "APPLIES", {})
+        cls = component_class(node.get("_target_"))
+        applies = getattr(cls, "APPLIES", {})
         if parts[depth] in applies:
-            reason = applies[parts[depth]](OmegaConf.to_container(node, resolve=True))
+            reason = applies[parts[depth]](arguments(cfg, source_key(cfg, ".".join(parts[:depth])), cls, node))
             if reason:
                 return reason
     return None

@@ -26,6 +26,8 @@ from typing import NamedTuple
 
 import torch
 
+from nerfexp.cpus import allowed_cpus, available_cpus, capped_line
+
 PROC_STAT = Path("/proc/stat")
 # A cpuN line of /proc/stat: user nice system idle iowait irq softirq steal guest guest_nice (clock ticks since
 # boot); guest and guest_nice are counted in user and nice already, so only the first 8 are summed
@@ -62,20 +64,6 @@ def busy_ticks(stat_text: str, cpus: Iterable[int] | None = None) -> int | None:
         total += sum(values) - sum(values[i] for i in IDLE if i < len(values))
         found = True
     return total if found else None
-
-
-def allowed_cpus() -> set[int] | None:
-    """The CPUs this process may run on (``os.sched_getaffinity``), or None where the system does not say."""
-    try:
-        return os.sched_getaffinity(0)
-    except (AttributeError, OSError):
-        return None
-
-
-def available_cpus() -> int:
-    """How many CPUs this process may use: its affinity's, else ``os.cpu_count()``, at least 1."""
-    allowed = allowed_cpus()
-    return len(allowed) if allowed else os.cpu_count() or 1
 
 
 def read_busy_s(stat: Path = PROC_STAT) -> float | None:
@@ -128,18 +116,21 @@ def busy_line(start: Sample, end: Sample, cpus: int) -> str | None:
 
 
 def intra_op_threads(available_cpus: int, parallel_jobs: int, requested: int | None, busy_cpus: float = 0.0) -> int:
-    """Torch's intra-op threads: ``requested`` where the user gave a number, else the CPUs this process may use
-    shared among the jobs that run at once, at least 1 (threads beyond the cores wait on each other). A single
-    job also leaves out the CPUs other processes kept busy when it started (``busy_cpus``, rounded to the
-    nearest whole CPU); jobs of one multirun start together, so their division is theirs alone.
+    """Torch's intra-op threads: ``requested`` where the user gave a number, at most the CPUs this process may use
+    (``nerfexp.cpus``: threads beyond the cores wait on each other), else those CPUs shared among the jobs that run
+    at once, at least 1. A single job also leaves out the CPUs other processes kept busy when it started
+    (``busy_cpus``, rounded to the nearest whole CPU); jobs of one multirun start together, so their division is
+    theirs alone.
 
-    >>> intra_op_threads(16, 3, None), intra_op_threads(2, 4, None), intra_op_threads(2, 1, 6)
+    >>> intra_op_threads(16, 3, None), intra_op_threads(2, 4, None), intra_op_threads(8, 1, 6)
     (5, 1, 6)
+    >>> intra_op_threads(2, 1, 6)  # capped at the CPUs
+    2
     >>> intra_op_threads(2, 1, None, busy_cpus=1.97), intra_op_threads(8, 1, None, busy_cpus=0.4)
     (1, 8)
     """
     if requested is not None:
-        return requested
+        return min(requested, available_cpus)
     free = available_cpus - math.floor(busy_cpus + 0.5) if parallel_jobs == 1 else available_cpus
     return max(1, free // max(1, parallel_jobs))
 
@@ -163,11 +154,17 @@ def parallel_jobs(launcher: dict | None, available_cpus: int) -> int:
 
 def requested_threads(setting: int | None, environment: dict) -> int | None:
     """The thread count the user asked for: the ``threads`` setting, else ``OMP_NUM_THREADS`` where it is a
-    whole number >= 1; None (auto) otherwise."""
+    whole number >= 1 (of any size: ``intra_op_threads`` caps it at the CPUs); None (auto) otherwise."""
     if setting is not None:
         return setting
     value = environment.get(THREADS_VARIABLE, "").strip()
-    return int(value) if value.isdigit() and int(value) >= 1 else None
+    return int(value) if value.isascii() and value.isdigit() and int(value) >= 1 else None
+
+
+def asked_for(setting: int | None, requested: int) -> str:
+    """How the user asked for ``requested`` threads, as they wrote it: ``threads=N`` where the setting gave it, else
+    ``OMP_NUM_THREADS=N`` (``requested_threads``)."""
+    return f"threads={setting}" if setting is not None else f"{THREADS_VARIABLE}={requested}"
 
 
 def threads_line(threads: int, requested: int | None, cpus: int, jobs: int, busy_cpus: float | None = None) -> str:
@@ -189,15 +186,16 @@ class ThreadChoice(NamedTuple):
     line: str  # ``threads_line``
     busy: str | None  # ``busy_line``
     follows_load: bool  # chosen automatically for one job at a time: ``follow_load`` may change it while it trains
+    capped: str | None = None  # a count asked for above the CPUs: the line saying so (``nerfexp.cpus.capped_line``)
 
 
 def start_threads(setting: int | None, launcher: dict | None) -> ThreadChoice:
     """Look at the machine for ``BUSY_SAMPLE_S``, then set torch's intra-op threads for this run
-    (``intra_op_threads``: the ``threads`` setting, else ``OMP_NUM_THREADS``, else the CPUs this process may use,
-    less those other processes kept busy, over the ``launcher``'s jobs at once): the line saying the threads
-    (``threads_line``), ``busy_line``'s, and whether the count may follow the machine's load while the run trains
+    (``intra_op_threads``: the ``threads`` setting, else ``OMP_NUM_THREADS``, at most the CPUs this process may use,
+    else those CPUs, less those other processes kept busy, over the ``launcher``'s jobs at once): the line saying the
+    threads (``threads_line``), ``busy_line``'s, whether the count may follow the machine's load while the run trains
     (an automatic choice for a single job: a multirun's jobs divide the CPUs among themselves, and a number the user
-    gave stands)."""
+    gave stands), and the line saying that a count asked for was capped at the CPUs (``capped_line``), or None."""
     cpus = available_cpus()
     jobs = parallel_jobs(launcher, cpus)
     requested = requested_threads(setting, dict(os.environ))
@@ -207,8 +205,9 @@ def start_threads(setting: int | None, launcher: dict | None) -> ThreadChoice:
     busy = other_load(others_cpu_s(start, end), end.wall_s - start.wall_s)
     threads = intra_op_threads(cpus, jobs, requested, busy or 0.0)
     torch.set_num_threads(threads)
+    capped = None if requested is None else capped_line(asked_for(setting, requested), requested, cpus)
     return ThreadChoice(threads_line(threads, requested, cpus, jobs, busy), busy_line(start, end, cpus),
-                        requested is None and jobs == 1)
+                        requested is None and jobs == 1, capped)
 
 
 def follow_load(threads: int, cpus: int, start: Sample, end: Sample) -> tuple[int, float] | None:

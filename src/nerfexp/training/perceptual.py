@@ -34,16 +34,17 @@ import os
 import socket
 import uuid
 from collections.abc import Iterator
-from contextlib import contextmanager
+from contextlib import contextmanager, suppress
 from pathlib import Path
-from urllib.error import HTTPError, URLError
+from urllib.error import URLError
 from urllib.parse import urlsplit
 
 import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
-from nerfexp.errors import ConfigError, NerfexpError
+from nerfexp.downloads import DownloadFailed, failure_reason
+from nerfexp.errors import ConfigError
 from nerfexp.pixels import quantize
 from nerfexp.reading import UnreadableFile, read_bytes
 from nerfexp.rundir.trained import load_as_data
@@ -76,9 +77,8 @@ class ImageTooSmall(ConfigError):
     """An image below ``MIN_SIDE`` pixels on a side, which AlexNet's strides and pools reduce to nothing."""
 
 
-class DownloadFailed(NerfexpError):
-    """A weights file that could not be downloaded, or whose download failed its hash check; the message says
-    why in a few words (``download_failure``)."""
+class UnreadableWeights(ConfigError):
+    """A weights file that is there and cannot be read as one (``weights_bytes``): the message names it and why."""
 
 
 def alexnet_features() -> nn.Sequential:
@@ -149,23 +149,18 @@ def hub_weights_file() -> Path:
     return Path(torch.hub.get_dir()) / "checkpoints" / url_file_name(ALEXNET_URL)
 
 
-def download_failure(error: Exception) -> str:
-    """Why a download failed, in a few words, from the error ``torch.hub.download_url_to_file`` raised: an HTTP
-    status, a failed name lookup (no network), a refused or broken connection, a failed hash check (which is
-    also what a body cut short gives: urllib stops reading at its end without an error), or the system's
-    words for a local failure (a full disk, a cache directory it may not write)."""
-    if isinstance(error, HTTPError):
-        return f"HTTP {error.code} {error.reason}"
-    if isinstance(error, URLError):
-        reason = error.reason
-        if isinstance(reason, socket.gaierror):
-            return f"name lookup failed: {reason.strerror}"
-        return (reason.strerror or str(reason)) if isinstance(reason, OSError) else str(reason)
+def download_failure(error: Exception, path: Path | None = None) -> str:
+    """Why a download failed, in a few words, from the error ``torch.hub.download_url_to_file`` raised: a failed
+    hash check (which is also what a body cut short gives: urllib stops reading at its end without an error), a
+    local failure of the file being downloaded ("cannot write ``path``": a full disk, a cache directory it may not
+    write; never the temporary file the error names), else what ``nerfexp.downloads.failure_reason`` says of it (an
+    HTTP status, no network, a broken connection)."""
     if isinstance(error, RuntimeError):  # the only one download_url_to_file raises: its hash check
         return "SHA-256 check failed: a truncated or altered download"
-    if isinstance(error, http.client.HTTPException):  # before OSError: RemoteDisconnected is both
-        return f"the connection broke off ({type(error).__name__})"
-    return (error.strerror if isinstance(error, OSError) else None) or str(error)
+    local = isinstance(error, OSError) and not isinstance(error, URLError)  # HTTPError is an OSError with a filename
+    if local and error.filename is not None and path is not None:  # a temporary file's
+        return f"cannot write {path} ({error.strerror or error})"
+    return failure_reason(error)
 
 
 @contextmanager
@@ -182,6 +177,20 @@ def socket_timeout(seconds: float) -> Iterator[None]:
         socket.setdefaulttimeout(before)
 
 
+def folder_failure(folder: Path, error: OSError) -> str:
+    """Why the folder ``folder`` could not be made (``error``, from ``Path.mkdir(parents=True)``), naming the real
+    place: the first path above it (or itself) that is there and not a folder (``TORCH_HOME`` set to a file), else
+    the folder the system could not make and the system's words (a folder you may not write).
+
+    >>> folder_failure(Path("/dev/null/hub/checkpoints"), NotADirectoryError(20, "Not a directory"))
+    '/dev/null is not a folder'
+    """
+    for above in (*reversed(folder.parents), folder):
+        if os.path.lexists(above) and not os.path.isdir(above):
+            return f"{above} is not a folder"
+    return f"cannot make the folder {error.filename or folder} ({error.strerror or error})"
+
+
 def fetch_alexnet(cache_dir: Path, url: str | None = None, expected: str | None = None) -> Path:
     """The file at ``url`` (None: ``ALEXNET_URL``) downloaded into ``cache_dir`` (made where missing) under the
     name the URL ends with, ``cache_dir / url_file_name(url)``, which it returns, once its SHA-256 is ``expected``
@@ -192,8 +201,10 @@ def fetch_alexnet(cache_dir: Path, url: str | None = None, expected: str | None 
     on any failure), then to ``<name>.<uuid>.unchecked`` (this call's own: the processes of a distributed run may
     download at once), which takes the name only once its whole SHA-256 matches, and is deleted otherwise: the
     name never holds a partial or altered file. Downloads whatever is at the name already again: callers fetch
-    only a file that is missing. A ``DownloadFailed`` saying why in a few words (``download_failure``) where it
-    cannot; a ValueError for a name without a hash, or one whose hash ``expected`` does not begin with."""
+    only a file that is missing. A ``DownloadFailed`` saying why in a few words where it cannot, naming the real
+    file or folder, never a temporary one (``folder_failure`` where ``cache_dir`` cannot be made, else
+    ``download_failure``); a ValueError for a name without a hash, or one whose hash ``expected`` does not begin
+    with."""
     url = ALEXNET_URL if url is None else url
     expected = ALEXNET_SHA256 if expected is None else expected
     name = url_file_name(url)
@@ -203,19 +214,23 @@ def fetch_alexnet(cache_dir: Path, url: str | None = None, expected: str | None 
     if not expected.startswith(found.group(1)):
         raise ValueError(f"{url}: its file name's hash {found.group(1)} does not begin the SHA-256 {expected}")
     path = Path(cache_dir) / name
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+    except OSError as error:
+        raise DownloadFailed(folder_failure(path.parent, error)) from error
     unchecked = path.with_name(f"{name}.{uuid.uuid4().hex}.unchecked")
     try:  # no line before: offline, the caller's one line is all (the progress bar shows once bytes arrive)
-        path.parent.mkdir(parents=True, exist_ok=True)
         with socket_timeout(TIMEOUT_S):
             torch.hub.download_url_to_file(url, str(unchecked), hash_prefix=found.group(1), progress=True)
         digest = hashlib.sha256(unchecked.read_bytes()).hexdigest()
         if digest != expected:
             raise DownloadFailed(f"SHA-256 check failed: {digest}, expected {expected}")
         os.replace(unchecked, path)
-    except (OSError, http.client.HTTPException, RuntimeError) as error:
-        raise DownloadFailed(download_failure(error)) from error
+    except (OSError, http.client.HTTPException, RuntimeError, ValueError) as error:
+        raise DownloadFailed(download_failure(error, path)) from error
     finally:
-        unchecked.unlink(missing_ok=True)
+        with suppress(OSError):  # none made (a folder it may not write): nothing to remove
+            unchecked.unlink(missing_ok=True)
     log.info("AlexNet's ImageNet weights for LPIPS downloaded, once, from %s to %s", url, path)
     return path
 
@@ -227,11 +242,12 @@ def weights_file(weights: str | Path | None) -> Path:
 
 def weights_bytes(path: Path) -> tuple[bytes, str]:
     """The bytes of the weights file ``path`` (``nerfexp.reading.read_bytes``: a regular file of at most
-    ``WEIGHTS_BYTES``) and their SHA-256 (hexadecimal); a ConfigError naming the file where it cannot be read so."""
+    ``WEIGHTS_BYTES``) and their SHA-256 (hexadecimal); an ``UnreadableWeights`` (a ConfigError) naming the file
+    where it cannot be read so."""
     try:
         data = read_bytes(path, WEIGHTS_BYTES)
     except UnreadableFile as error:
-        raise ConfigError(str(error)) from None
+        raise UnreadableWeights(str(error)) from None
     return data, hashlib.sha256(data).hexdigest()
 
 
@@ -339,23 +355,36 @@ def lpips_scorer(setting: bool | str, weights: str | Path | None,
     """The scorer ``model.lpips`` (``setting``: auto, true or false), ``model.lpips_weights`` (``weights``) and
     ``model.lpips_custom`` (``custom``) ask for, and a line saying why there is none where auto has no weights
     (else ""). Weights missing from the hub cache are downloaded there first (``fetch_alexnet``, from
-    ``ALEXNET_URL``); a file the config names is never downloaded. No weights at a path the config names, none
-    to be had under true, a file whose SHA-256 is not ``ALEXNET_SHA256`` without ``custom``, or a file that is
-    not AlexNet's weights at all, is a ConfigError (``check_weights_file``, ``lpips_network``), under auto too.
-    The file's digest is taken again of the bytes loaded: a file changed since the settings were checked is
-    refused as well."""
+    ``ALEXNET_URL``); a file the config names is never downloaded. Under auto without a file named, weights that
+    cannot be had from the hub cache (not downloaded there: no network, ``TORCH_HOME`` a file, a cache folder it
+    may not write, a download whose digest is not theirs; or there and unreadable) are "LPIPS not scored: why",
+    the line naming the real file or folder (``not_scored``). No weights at a path the config names, none to be had
+    under true, a file whose SHA-256 is not ``ALEXNET_SHA256`` without ``custom``, or a file that is not AlexNet's
+    weights at all, is a ConfigError (``check_weights_file``, ``lpips_network``), under auto too. The file's
+    digest is taken again of the bytes loaded: a file changed since the settings were checked is refused as
+    well."""
     if setting is False:
         return None, ""
     check_weights_file(setting, weights, custom)
     path = weights_file(weights)
-    if not path.is_file():  # only auto reading the hub cache gets here without the file
+    hub_under_auto = setting == "auto" and weights is None  # what auto may do without, with a line
+    if not os.path.isfile(path):  # only auto reading the hub cache gets here without the file
         try:
             path = fetch_alexnet(path.parent)
         except DownloadFailed as error:
-            return None, (f"LPIPS not scored: no AlexNet ImageNet weights at {path}, and downloading them failed "
-                          f"({error}): put {ALEXNET_URL} there or set model.lpips_weights=FILE; model.lpips=false "
-                          "turns LPIPS off (docs/metrics.md)")
-    return LpipsScorer(lpips_network(path, None if custom else ALEXNET_SHA256)), ""
+            return None, not_scored(f"no AlexNet ImageNet weights at {path}, and downloading them failed ({error})")
+    try:
+        return LpipsScorer(lpips_network(path, None if custom else ALEXNET_SHA256)), ""
+    except UnreadableWeights as error:
+        if not hub_under_auto:
+            raise
+        return None, not_scored(str(error))
+
+
+def not_scored(why: str) -> str:
+    """The line that says LPIPS is not scored under ``model.lpips=auto``, ``why``, and what to do."""
+    return (f"LPIPS not scored: {why}: put {ALEXNET_URL} there or set model.lpips_weights=FILE; model.lpips=false "
+            "turns LPIPS off (docs/metrics.md)")
 
 
 def check_weights_file(setting: bool | str, weights: str | Path | None, custom: bool = False) -> None:
@@ -364,9 +393,9 @@ def check_weights_file(setting: bool | str, weights: str | Path | None, custom: 
     (``weights``) missing; a file, named or in the hub cache, whose SHA-256 is not ``ALEXNET_SHA256`` (``mismatch``),
     unless ``custom`` says it is the user's own on purpose (then one not of AlexNet's keys and shapes,
     ``backbone_state``); or under ``model.lpips=true`` no file in the hub cache
-    and downloading it there (``fetch_alexnet``, once, before any work) failing. Nothing to check under false, or
-    under auto where the hub cache lacks the file (``lpips_scorer`` downloads it when LPIPS is set up, or says why
-    not)."""
+    and downloading it there (``fetch_alexnet``, once, before any work) failing, or the file there unreadable
+    (``UnreadableWeights``). Nothing to check under false, or under auto where the hub cache lacks the file or it
+    cannot be read (``lpips_scorer`` downloads it when LPIPS is set up, or says why not)."""
     if setting is False:
         return
     if custom and weights is None:
@@ -374,8 +403,13 @@ def check_weights_file(setting: bool | str, weights: str | Path | None, custom: 
                           "and it names none: set model.lpips_weights=FILE, or drop model.lpips_custom "
                           "(docs/metrics.md)")
     path = weights_file(weights)
-    if path.is_file():
-        data, found = weights_bytes(path)
+    if os.path.isfile(path):
+        try:
+            data, found = weights_bytes(path)
+        except UnreadableWeights:
+            if setting == "auto" and weights is None:  # the hub cache's, unreadable: lpips_scorer says so
+                return
+            raise
         if not custom and found != ALEXNET_SHA256:
             raise ConfigError(mismatch(path, found))
         if custom:  # any digest, so its keys and shapes are checked now (the published digest vouches for them)

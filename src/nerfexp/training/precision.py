@@ -174,7 +174,8 @@ def measured_precision(cfg: DictConfig, why: str) -> tuple[str, str]:
     """(``bf16-mixed`` or ``32-true``, why) on a CPU with bf16 units (``why`` says which): bf16 where the run's
     colour field's step was measured at least ``MEASURED_MARGIN`` times faster in it (``measure_field``). The
     measurement is kept in ``precision_cache()`` under ``measured_key`` and read back (as data: a file that does not
-    hold one is measured again), so that runs of one config on one machine choose alike."""
+    hold one is measured again), so that runs of one config on one machine choose alike; where it cannot be kept (a
+    cache folder that cannot be made or written), the words say so, naming the record's file."""
     cache = precision_cache() / f"{measured_key(cfg)}.json"
     try:
         record = json.loads(cache.read_text())
@@ -190,8 +191,8 @@ def measured_precision(cfg: DictConfig, why: str) -> tuple[str, str]:
             cache.parent.mkdir(parents=True, exist_ok=True)
             # whole or not at all: the jobs of a joblib sweep may write one record at once
             atomic_write(cache, json.dumps({"float32_s": float32_s, "bf16_s": bf16_s, "points": points}).encode())
-        except OSError:  # a cache folder that cannot be written: this run's choice stands, the next run measures again
-            pass
+        except OSError as error:  # a cache that cannot be written: this run's choice stands, said; the next measures
+            source = f"measured now, not kept: {cache} cannot be written ({error.strerror or error})"
     faster = float32_s >= MEASURED_MARGIN * bf16_s
     words = (f"{why}; a step of this run's field, {points:,} points, took {bf16_s:.4f} s in bf16 against "
              f"{float32_s:.4f} s in float32 here ({source}; bf16 where it is at least {MEASURED_MARGIN}x faster)")

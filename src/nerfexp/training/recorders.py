@@ -18,7 +18,7 @@ import torch
 
 from nerfexp import manifest
 from nerfexp.files import atomic_write
-from nerfexp.kernels import prepare, seconds_spent
+from nerfexp.kernels import prepare, prepared_line, seconds_spent
 from nerfexp.pixels import depth_image, png_bytes, to_uint8
 from nerfexp.rundir.labels import NO_LABELS
 from nerfexp.rundir.layout import (
@@ -32,7 +32,22 @@ from nerfexp.rundir.layout import (
     read_metrics,
     write_json,
 )
-from nerfexp.training.budgets import budget_entry, budget_fractions, budget_text, score_test_views, scoring_seconds
+from nerfexp.training.budgets import (
+    AUTO,
+    COST_SHARE,
+    DEFAULT_FRACTIONS,
+    SMALL_COST_S,
+    affordable_budgets,
+    budget_entry,
+    budget_fractions,
+    budget_text,
+    cost_text,
+    costly_line,
+    reduced_line,
+    score_test_views,
+    scoring_seconds,
+    training_estimate_s,
+)
 from nerfexp.training.collapse import blank_views
 from nerfexp.training.loggers import log_hyperparams, log_image, log_labels
 from nerfexp.training.machine_share import Sample, available_cpus, others_cpu_s, sample, share_record
@@ -130,12 +145,17 @@ class RunRecorder(L.Callback):
     saved as ``test/r_{i}.png``, ``r_{i}_target.png``, ``r_{i}_error.png``, with ``r_{i}_depth.png``. Every
     file it writes is recorded in the run's manifest as it is written (``nerfexp.manifest``). Where every test
     view rendered nothing, ``results.json``'s ``collapse`` says so (``collapse_record``), whatever the guard did.
+    Where the scene says where its files came from (a scene by name: ``Scene.source``, its archive's digest) or which
+    frames it left out for their missing images (``Scene.frames_left_out``), ``results.json`` holds them as ``scene``
+    and ``frames_left_out``.
 
     The fused kernels the module's training runs (``NeRFModule.kernels``) are built, or read from the cache, as
-    training starts and before its clock does (``nerfexp.kernels.prepare``), logged once; a kernel first asked
-    for inside the clock is taken out of it all the same (``nerfexp.kernels.seconds_spent``). ``results.json``
-    records those seconds apart, ``kernel_build_s``, never in ``train_time_s``; beside them ``cpu_time_s``,
-    ``other_load``, ``cpus`` (``nerfexp.training.machine_share.share_record``) and ``torch_threads``.
+    training starts and before its clock does (``nerfexp.kernels.prepare``), what each came to said in one line
+    (built, loaded from the cache, not built and why, or off: never "ready" for one the run will not use); a
+    kernel first asked for inside the clock is taken out of it all the same (``nerfexp.kernels.seconds_spent``).
+    ``results.json`` records those seconds apart, ``kernel_build_s``, never in ``train_time_s``; beside them
+    ``cpu_time_s``, ``other_load``, ``cpus`` (``nerfexp.training.machine_share.share_record``) and
+    ``torch_threads``.
 
     The elapsed time (and CPU time, others' CPU time and kernel seconds) and the last validation PSNR are part of
     the checkpoint, so a resumed run keeps
@@ -152,10 +172,14 @@ class RunRecorder(L.Callback):
     ``metrics.jsonl`` keeps the lines of the steps up to its checkpoint's: later ones came from training
     that the resumed run does again, and would stand twice for the same steps.
 
-    ``test_budgets`` (fractions of ``trainer.max_steps``, ``nerfexp.training.budgets``): after each budget's step
-    the clock stops, the test views are scored with the weights then, exactly as the final test scores them
-    (``score_test_views``: no images written), and the clock goes on; each budget's scores go to ``metrics.jsonl``
-    (split test) and to each logger (``test/psnr``, ...) at its step, with one line in the log. ``results.json``'s
+    ``test_budgets`` (fractions of ``trainer.max_steps``, or ``auto``: ``nerfexp.training.budgets``): after each
+    budget's step the clock stops, the test views are scored with the weights then, exactly as the final test scores
+    them (``score_test_views``: no images written), and the clock goes on; each budget's scores go to
+    ``metrics.jsonl`` (split test) and to each logger (``test/psnr``, ...) at its step, with one line in the log.
+    A budget's cost is estimated before it is paid (the first budget's first view times the views, later the last
+    budget's scoring, ``_affordable``): under ``auto`` the budgets that would take the scoring past ``COST_SHARE``
+    of the training's estimated time are not scored, said in one line; a list the user gives is scored as set,
+    with a line where it costs more. ``results.json``'s
     ``test_budgets`` lists them with the final test's last (``budget_entry``), and ``budget_scoring_s`` the
     seconds their scoring took, never in ``train_time_s``. The budgets scored are part of the checkpoint; a run
     resumed at a budget's step whose checkpoint does not hold it (saved before it was scored, or a finished run
@@ -164,7 +188,7 @@ class RunRecorder(L.Callback):
 
     def __init__(self, output_dir: str, choices: dict, run_config: dict | None = None,
                  overrides: list[str] = (), settings: dict | None = None, resumes: list[dict] = (),
-                 labels: dict | None = None, bounds: str | None = None, test_budgets: list[float] = ()):
+                 labels: dict | None = None, bounds: str | None = None, test_budgets: list[float] | str = ()):
         self.output_dir = Path(output_dir)
         self.bounds = bounds  # where the scene's near and far came from (``Scene.bounds_rule``), or None
         self.choices, self.run_config, self.overrides = dict(choices), run_config, list(overrides)
@@ -181,7 +205,10 @@ class RunRecorder(L.Callback):
         self.torch_threads = torch.get_num_threads()  # as training starts
         self.thread_changes: list[dict] = []  # nerfexp.training.callbacks.ThreadsFollowLoad's, in step order
         self._scores: dict[int, dict[str, float]] = {}  # image index -> its measures (MEASURES)
-        self.test_budgets = list(test_budgets)  # fractions of trainer.max_steps at which the test views are scored
+        self.auto = test_budgets == AUTO  # DEFAULT_FRACTIONS, as many as their cost allows (_affordable)
+        self.test_budgets = [float(f) for f in (DEFAULT_FRACTIONS if self.auto else test_budgets)]  # of max_steps
+        self.dropped: set[int] = set()  # the budgets' steps auto does not score: their cost (_affordable)
+        self._cost_said = False  # whether a user's list of budgets has said what it costs (_affordable)
         self.budgets: list[dict] = []  # the budgets scored so far (budget_entry), in step order
         self._test_started: float | None = None  # the final test's start (time.perf_counter)
 
@@ -217,10 +244,9 @@ class RunRecorder(L.Callback):
         """The kernels the training runs, built or read now, then the clock started."""
         names = pl_module.kernels()
         if names:
-            prepare(names)  # a build is said by its own line, with its seconds (nerfexp.kernels)
+            outcomes = prepare(names)  # built, loaded, not built (why) or off: what each came to
             if trainer.is_global_zero:
-                log.info("kernels %s ready before the training clock started (the seconds: results.json's "
-                         "kernel_build_s)", ", ".join(names))
+                log.info("%s", prepared_line(outcomes))
         self.torch_threads = torch.get_num_threads()
         self._start_clock()
 
@@ -259,7 +285,7 @@ class RunRecorder(L.Callback):
     def _unscored_budget(self, trainer) -> bool:
         """Whether the weights now are those of a budget's step (``budget_fractions``) not scored yet."""
         step = trainer.global_step
-        return (step in budget_fractions(self.test_budgets, trainer.max_steps)
+        return (step in budget_fractions(self.test_budgets, trainer.max_steps) and step not in self.dropped
                 and all(entry["step"] != step for entry in self.budgets))
 
     def _evaluations(self, trainer, pl_module, step: int) -> float | None:
@@ -275,7 +301,16 @@ class RunRecorder(L.Callback):
         step = trainer.global_step
         self._stop_clock()
         started = time.perf_counter()
-        scores = score_test_views(trainer, pl_module)
+        if self.budgets:  # the last budget's scoring: what the next costs, before any of it is paid
+            last = self.budgets[-1]["score_s"]
+            scored = self._affordable(trainer, last, cost_text(last, None, 0))
+            scores = score_test_views(trainer, pl_module) if scored else {}
+        else:  # the first view's seconds times the views, asked after the first view
+            scores = score_test_views(trainer, pl_module, lambda views, seconds, total: views > 1 or self._affordable(
+                trainer, seconds * total, cost_text(seconds * total, seconds, total), paid=views == total))
+        if step in self.dropped:  # its cost is more than auto's budgets may take: the clock goes on
+            self._start_clock()
+            return
         score_s = time.perf_counter() - started
         entry = budget_entry(step, self.elapsed_s, self._evaluations(trainer, pl_module, step), scores, score_s)
         self.budgets.append(entry)
@@ -285,6 +320,35 @@ class RunRecorder(L.Callback):
             log.info("step %d/%d: %s at a budget of %s (%.2f s of scoring, outside the training clock)", step,
                      trainer.max_steps, scores_text(entry), budget_text(fraction), score_s)
         self._start_clock()
+
+    def _affordable(self, trainer, cost_each_s: float, cost: str, paid: bool = False) -> bool:
+        """Whether the budget of this step is scored, each budget from it on estimated to cost ``cost_each_s``
+        seconds (``cost``: how, in words). Under ``auto`` those of them that would take the scoring past
+        ``COST_SHARE`` of the training's estimated time (``affordable_budgets``; the latest first) are ``dropped``,
+        said in one line (``reduced_line``; rank 0's choice on every process), this step's unless it is ``paid``
+        (its every view scored already). A user's list is kept whole, with a line where it costs more
+        (``costly_line``)."""
+        step, max_steps = trainer.global_step, trainer.max_steps
+        fractions = budget_fractions(self.test_budgets, max_steps)
+        scored = {entry["step"] for entry in self.budgets}
+        pending = [s for s in fractions if s >= step and s not in self.dropped and s not in scored]
+        training_s = training_estimate_s(self.elapsed_s, step, max_steps)
+        spent_s = math.fsum(entry["score_s"] for entry in self.budgets)
+        if not self.auto:
+            total_s = len(pending) * cost_each_s
+            if not self._cost_said and spent_s + total_s > max(COST_SHARE * training_s, SMALL_COST_S):
+                self._cost_said = True
+                if trainer.is_global_zero:
+                    log.info("%s", costly_line(self.test_budgets, cost, total_s, training_s))
+            return True
+        kept = affordable_budgets(len(pending), cost_each_s, spent_s, training_s)
+        kept = trainer.strategy.broadcast(max(kept, 1) if paid else kept, src=0)
+        if kept < len(pending):
+            self.dropped.update(pending[kept:])
+            if trainer.is_global_zero:
+                kept_fractions = [fractions[s] for s in sorted(scored | set(pending[:kept])) if s in fractions]
+                log.info("%s", reduced_line(kept_fractions, [fractions[s] for s in pending[kept:]], cost, training_s))
+        return kept > 0
 
     def on_train_end(self, trainer, pl_module):
         wall, cpu, others = self.totals()
@@ -421,11 +485,18 @@ class RunRecorder(L.Callback):
             "config": self.run_config, "resumes": self.resumes,
             "test_budgets": budgets, "budget_scoring_s": scoring_seconds(budgets),
         }
-        rule = trainer.datamodule.scene.split_rule() if trainer.datamodule is not None else None
+        scene = trainer.datamodule.scene if trainer.datamodule is not None else None
+        rule = scene.split_rule() if scene is not None else None
         if rule is not None:  # how the views were split, where a rule made the split
             results["split"] = rule
+        if scene is not None:  # a scene by name: its archive's digest; the frames left out for their missing images
+            for key, record in (("scene", scene.source()), ("frames_left_out", scene.frames_left_out())):
+                if record is not None:
+                    results[key] = record
         if self.bounds is not None:  # where near and far came from, where the scene found them
             results["bounds"] = self.bounds
+        if trainer.datamodule is not None and trainer.datamodule.split_check is not None:  # no view seen in training
+            results["split_check"] = trainer.datamodule.split_check
         if trainer.ckpt_path is not None:  # the weights scored: the checkpoint the test loaded
             results["checkpoint"] = checkpoint_record(self.output_dir, Path(trainer.ckpt_path))
         write_json(self.output_dir / RESULTS, results)

@@ -26,7 +26,7 @@ from hydra.experimental.callback import Callback
 from omegaconf import DictConfig, OmegaConf
 
 from nerfexp.config_keys import leaves, source_key
-from nerfexp.errors import NerfexpError
+from nerfexp.errors import NerfexpError, callback_refusals
 from nerfexp.rundir.labels import LABELS
 from nerfexp.rundir.layout import RUN_CONFIG
 from nerfexp.rundir.trained import current_settings, read_checkpoint, run_config
@@ -46,6 +46,7 @@ MAY_DIFFER = (
     "callbacks",  # checkpoints (where, how often) and the guards, which act only on a failing step
     "trainer.default_root_dir",  # the run's directory
     "data.root",  # where the scene lies, not what it is
+    "data.catalog", "data.mirror",  # where a scene by name is looked up and downloaded from (its digest is checked)
     # where it runs: the processes share each global batch, the same objective (nerfexp.data.rays.RandomRays)
     "trainer.accelerator", "trainer.devices", "trainer.num_nodes", "trainer.strategy",
     "threads",  # torch's threads: how fast, not what is trained
@@ -203,15 +204,13 @@ class ResumeCheck(Callback):
     """Hydra callback (``hydra.callbacks.resume``): a single run with ``resume=`` is checked
     (``check_resume``) before Hydra claims or writes its directory, so that a refused resume leaves the
     run it names as it was; its job then uses what this read (``read_resumed``). Each job of a sweep is
-    checked by ``nerfexp.commands.train``. It stops with ``SystemExit``: Hydra turns a callback's
-    exceptions into warnings and goes on."""
+    checked by ``nerfexp.commands.train``. It stops with ``SystemExit``, whatever the check raised
+    (``nerfexp.errors.callback_refusals``): Hydra turns a callback's exceptions into warnings and goes on."""
 
     def on_run_start(self, config: DictConfig, **kwargs) -> None:
         if config.get("resume") is None:
             return
         config = copy.deepcopy(config)
-        fill_precision(config)  # as the job will: a checkpoint records the precision auto chose
-        try:
+        with callback_refusals("the resume check"):
+            fill_precision(config)  # as the job will: a checkpoint records the precision auto chose
             check_resume(config, group_choices(config.hydra.runtime.choices), Path(config.resume))
-        except NerfexpError as error:
-            raise SystemExit(f"nerfexp: error: {error}") from None
