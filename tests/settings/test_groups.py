@@ -13,9 +13,10 @@ import nerfexp.conf
 from nerfexp.errors import ConfigError
 from nerfexp.settings.checks import check_composition
 from nerfexp.settings.groups import check_group_overrides, check_group_values, derived_choices, is_nerfexp_group
-from tests.helpers import TINY, one_error_line, read_json, run_nerfexp, without_overrides
+from tests.helpers import TINY, one_error_line, options_of, read_json, run_nerfexp, without_overrides
 
 CONF = Path(nerfexp.conf.__file__).parent
+EXPERIMENTS = options_of("experiment")
 LIST = "; a list is not one (Hydra would compose each config it names and record no choice)"
 PATH = "; a path is not one (Hydra would compose whatever config it leads to, in another group too)"
 APPENDED = {"sweeps"}  # groups that config.yaml's defaults list does not hold: chosen by appending (+sweeps=)
@@ -168,7 +169,7 @@ def test_a_sweep_files_bad_choice_is_one_line_before_the_sweep_directory_is_made
     sweep = tmp_path / "sweep"
     result = run_nerfexp(search, "+sweeps=pathy", *TINY, f"hydra.sweep.dir={sweep}", cwd=tmp_path)
     assert one_error_line(result) == ("nerfexp: error: experiment=./fast: a config group takes an option's name "
-                                      f"(choose from fast){PATH}")
+                                      f"(choose from {EXPERIMENTS}){PATH}")
     assert not sweep.exists()
 
 
@@ -178,7 +179,7 @@ def test_a_sweepers_bad_value_fails_its_job_in_one_line_before_any_work(tmp_path
         "sweeps/params.yaml": GLOBAL + "hydra:\n  mode: MULTIRUN\n  sweeper:\n    params:\n      experiment: ./fast\n"})
     sweep = tmp_path / "sweep"
     result = run_nerfexp(search, "+sweeps=params", *TINY, f"hydra.sweep.dir={sweep}", cwd=tmp_path)
-    line = f"experiment=./fast: a config group takes an option's name (choose from fast){PATH}"
+    line = f"experiment=./fast: a config group takes an option's name (choose from {EXPERIMENTS}){PATH}"
     assert result.returncode == 1 and line in result.stderr
     status = read_json(sweep / "0" / "status.json")
     assert status["state"] == "failed" and status["error"] == f"ConfigError: {line}"
