@@ -38,6 +38,12 @@ from nerfexp.training.perceptual import ALEXNET_SHA256
 
 REPO = Path(__file__).parents[1]  # on the console scripts' PYTHONPATH: they can load callbacks from here
 
+
+def options_of(group: str) -> str:
+    """``group``'s options as nerfexp's one-line errors list them: the names of its files in conf/, sorted."""
+    return ", ".join(sorted(path.stem for path in (REPO / "conf" / group).glob("*.yaml")))
+
+
 # Overrides that shrink the default experiment: a tiny network on a small version of the built-in scene
 # (hierarchical: a single run refuses scale.n_single, which it would not use; TINY_SINGLE adds it).
 TINY = [

@@ -18,7 +18,7 @@ from PIL import Image
 from nerfexp.domains import FLOAT32_TOP_OCTAVE
 from nerfexp.errors import ConfigError
 from nerfexp.settings.groups import check_group_overrides, is_nerfexp_group
-from tests.helpers import one_error_line, run_nerfexp
+from tests.helpers import one_error_line, options_of, run_nerfexp
 
 
 @pytest.mark.parametrize(("overrides", "message"), [
@@ -342,12 +342,12 @@ def test_a_command_that_stops_at_bad_input_or_help_does_not_import_lightning(ent
 # path, which Hydra composes and records as another choice (none, or the path), too (every group:
 # tests/settings/test_groups.py).
 LIST = "; a list is not one (Hydra would compose each config it names and record no choice)"
-SWEEPS = ", ".join(sorted(path.stem for path in (Path(__file__).parents[1] / "conf" / "sweeps").glob("*.yaml")))
+SWEEPS, EXPERIMENTS = options_of("sweeps"), options_of("experiment")
 PATH = "; a path is not one (Hydra would compose whatever config it leads to, in another group too)"
 
 @pytest.mark.parametrize(("arguments", "message"), [
-    (["experiment=null"], "experiment=null: a config group takes an option's name (choose from fast); none is "
-                          "experiment's default: leave it out for none"),
+    (["experiment=null"], f"experiment=null: a config group takes an option's name (choose from {EXPERIMENTS}); "
+                          "none is experiment's default: leave it out for none"),
     (["+ablation=null"], "+ablation=null: a config group takes an option's name (choose from complete, "
                          "far_fewer_images, fewer_frequencies, fewer_images, more_frequencies, no_hierarchical, "
                          "no_pe_vd_h, no_posenc, no_view_dependence); none is ablation's default: leave it out for none"),
@@ -355,18 +355,20 @@ PATH = "; a path is not one (Hydra would compose whatever config it leads to, in
     (["logger=true"], "logger=true: a config group takes an option's name (choose from csv, mlflow, none, "
                       "tensorboard, wandb)"),
     (["-m", "experiment=fast,null"], "experiment=fast,null: a config group takes an option's name (choose from "
-                                     "fast); none is experiment's default: leave it out for none"),
+                                     f"{EXPERIMENTS}); none is experiment's default: leave it out for none"),
     (["-m", "scale=range(0,2)"], "scale=range(0,2): a config group takes an option's name (choose from cpu, paper)"),
-    (["experiment=[fast]"], f"experiment=[fast]: a config group takes an option's name (choose from fast){LIST}"),
+    (["experiment=[fast]"], "experiment=[fast]: a config group takes an option's name "
+                            f"(choose from {EXPERIMENTS}){LIST}"),
     (["experiment=../ablation/no_posenc"], "experiment=../ablation/no_posenc: a config group takes an option's name "
-                                           f"(choose from fast){PATH}"),
+                                           f"(choose from {EXPERIMENTS}){PATH}"),
     (["experiment=/ablation/no_posenc"], "experiment=/ablation/no_posenc: a config group takes an option's name "
-                                         f"(choose from fast){PATH}"),
-    (["experiment=fast/../fast"], f"experiment=fast/../fast: a config group takes an option's name (choose from fast)"
-                                  f"{PATH}"),
+                                         f"(choose from {EXPERIMENTS}){PATH}"),
+    (["experiment=fast/../fast"], "experiment=fast/../fast: a config group takes an option's name "
+                                  f"(choose from {EXPERIMENTS}){PATH}"),
     (["scale=./paper"], f"scale=./paper: a config group takes an option's name (choose from cpu, paper){PATH}"),
     (["-m", "seed=0,1", "experiment=fast,../ablation/no_posenc"],
-     f"experiment=fast,../ablation/no_posenc: a config group takes an option's name (choose from fast){PATH}"),
+     "experiment=fast,../ablation/no_posenc: a config group takes an option's name "
+     f"(choose from {EXPERIMENTS}){PATH}"),
     (["-m", "encoding=[none],[posenc]"], "encoding=[none],[posenc]: a config group takes an option's name (choose "
                                          f"from hashgrid, none, posenc){LIST}"),
     (["+sweeps=[smoke]"], f"+sweeps=[smoke]: a config group takes an option's name (choose from {SWEEPS}){LIST}"),

@@ -53,9 +53,9 @@ DIGEST = re.compile(r"(?<![\w])[0-9a-f]{64}(?!\w)")
 HISTORY = re.compile(r"\b(?:not kept|that day|the old defaults?|a week ago|yesterday)\b", re.IGNORECASE)
 CODE = re.compile(r"```.*?```|`(?:[^`\n]|\n(?!\n))*`", re.DOTALL)  # fenced blocks, inline code (within a paragraph)
 
-# Sections another part of the work rewrites as a whole (the occupancy grid's, with its new sampler): left to it.
+# Sections another part of the work rewrites as a whole, by page ({"docs/PAGE.md": {"Section title"}}): left to it.
 # Each must still exist and still need leaving out, so that the entry goes once the section is rewritten.
-REWRITTEN_ELSEWHERE = {"docs/acceleration.md": {"The grid's quality loss"}}
+REWRITTEN_ELSEWHERE: dict[str, set[str]] = {}
 
 # A path of the repository as a guide writes it (from the repository's root); words in capitals are placeholders
 # (conf/data/FORMAT.yaml), {a,b} names both, * any.

@@ -83,8 +83,11 @@ def test_a_reference_into_a_section_on_its_way_ends_the_walk():
 
 def test_nerfexps_own_shapes_are_read_from_its_files():
     own = own_keys()
-    # the field is built by the renderer (partial), the sampler whole; a reference carries its section's shapes
-    assert own["model.renderer.field"].partials == {True} and own["sampler"].partials == {False}
+    # the field is built by the renderer (partial); the sampler whole (sampler=paper's HierarchyChoice) or partial
+    # (sampler=march's GridMarchSampler, which the renderer builds); a reference carries its section's shapes
+    assert own["model.renderer.field"].partials == {True} and own["sampler"].partials == {False, True}
+    assert own["sampler"].partials_of("nerfexp.nerf.hierarchy.HierarchyChoice") == {False}
+    assert own["sampler"].partials_of("nerfexp.nerf.marching.GridMarchSampler") == {True}
     assert own["model.renderer.sampler"] == own["sampler"]
     assert own["scale.width"].kinds == {VALUE} and own["model.renderer.field.width"].kinds == {VALUE}
     assert own["acceleration.grid"].kinds == {VALUE, SECTION}  # null (none) or the occupancy grid
@@ -132,7 +135,8 @@ SAVED_SHAPES = {  # (changes to a TINY run's saved config, the refusal after "FI
     "_partial_ added": ({"sampler._partial_": True},
                         "{file}: sampler._partial_=true where nerfexp's configs have _partial_: false"),
     "_target_ removed": ({"sampler._target_": DELETE}, "{file}: sampler has no _target_ where nerfexp's configs "
-                                                       "have one (nerfexp.nerf.hierarchy.HierarchyChoice)"),
+                                                       "have one (nerfexp.nerf.hierarchy.HierarchyChoice, "
+                                                       "nerfexp.nerf.marching.GridMarchSampler)"),
     "an argument missing": ({"sampler.n_coarse": DELETE}, "sampler: HierarchyChoice needs n_coarse (not given)"),
     "an argument of a partial missing": ({"view_dependence.direction_encoding": DELETE},
                                          "view_dependence: ViewMLPHead needs direction_encoding (not given)"),

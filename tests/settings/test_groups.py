@@ -12,21 +12,28 @@ from omegaconf import OmegaConf
 import nerfexp.conf
 from nerfexp.errors import ConfigError
 from nerfexp.settings.checks import check_composition
-from nerfexp.settings.groups import check_group_overrides, check_group_values, is_nerfexp_group
-from tests.helpers import TINY, one_error_line, read_json, run_nerfexp, without_overrides
+from nerfexp.settings.groups import check_group_overrides, check_group_values, derived_choices, is_nerfexp_group
+from tests.helpers import TINY, one_error_line, options_of, read_json, run_nerfexp, without_overrides
 
 CONF = Path(nerfexp.conf.__file__).parent
+EXPERIMENTS = options_of("experiment")
 LIST = "; a list is not one (Hydra would compose each config it names and record no choice)"
 PATH = "; a path is not one (Hydra would compose whatever config it leads to, in another group too)"
 APPENDED = {"sweeps"}  # groups that config.yaml's defaults list does not hold: chosen by appending (+sweeps=)
+# groups whose choice config.yaml's defaults list reads (${acceleration}_${encoding}): given a list, Hydra composes
+# nothing at all (the interpolation finds no choice), and the command line's check refuses the list before that
+READ_BY_DEFAULTS = {"acceleration", "encoding"}
 NEEDS = {"encoding/hashgrid_sizes": ["encoding=hashgrid"]}  # what puts a nested group in the defaults list
 
 
 def conf_groups() -> dict[str, list[str]]:
     """{group: its options} for every folder of nerfexp's conf/ that holds option files, read from the folders
-    (nested ones by their path: encoding/hashgrid_sizes, hydra/launcher)."""
-    return {path.relative_to(CONF).as_posix(): sorted(p.stem for p in path.glob("*.yaml"))
-            for path in sorted(CONF.rglob("*")) if path.is_dir() and any(path.glob("*.yaml"))}
+    (nested ones by their path: encoding/hashgrid_sizes, hydra/launcher), but those config.yaml's defaults list
+    chooses from other groups' choices (acceleration/by_encoding: no one chooses them)."""
+    derived = set(derived_choices().values())
+    return {group: sorted(p.stem for p in path.glob("*.yaml")) for path in sorted(CONF.rglob("*"))
+            if path.is_dir() and any(path.glob("*.yaml"))
+            and (group := path.relative_to(CONF).as_posix()) not in derived}
 
 
 GROUPS = conf_groups()
@@ -85,7 +92,8 @@ def test_every_group_composed_from_a_path_is_refused_by_its_recorded_choice(hydr
     assert str(raised.value).startswith(f"{group}=./{option}: a config group takes an option's name")
 
 
-@pytest.mark.parametrize("group", [g for g in GROUPS if g not in APPENDED | set(NEEDS) and not g.startswith("hydra")])
+@pytest.mark.parametrize("group", [g for g in GROUPS if g not in APPENDED | set(NEEDS) | READ_BY_DEFAULTS
+                                   and not g.startswith("hydra")])
 def test_every_group_composed_from_a_list_is_refused_though_hydra_records_no_choice(hydra_configs, group):
     option = GROUPS[group][0]
     cfg = composed(f"{group}=[{option}]")
@@ -161,7 +169,7 @@ def test_a_sweep_files_bad_choice_is_one_line_before_the_sweep_directory_is_made
     sweep = tmp_path / "sweep"
     result = run_nerfexp(search, "+sweeps=pathy", *TINY, f"hydra.sweep.dir={sweep}", cwd=tmp_path)
     assert one_error_line(result) == ("nerfexp: error: experiment=./fast: a config group takes an option's name "
-                                      f"(choose from fast){PATH}")
+                                      f"(choose from {EXPERIMENTS}){PATH}")
     assert not sweep.exists()
 
 
@@ -171,7 +179,7 @@ def test_a_sweepers_bad_value_fails_its_job_in_one_line_before_any_work(tmp_path
         "sweeps/params.yaml": GLOBAL + "hydra:\n  mode: MULTIRUN\n  sweeper:\n    params:\n      experiment: ./fast\n"})
     sweep = tmp_path / "sweep"
     result = run_nerfexp(search, "+sweeps=params", *TINY, f"hydra.sweep.dir={sweep}", cwd=tmp_path)
-    line = f"experiment=./fast: a config group takes an option's name (choose from fast){PATH}"
+    line = f"experiment=./fast: a config group takes an option's name (choose from {EXPERIMENTS}){PATH}"
     assert result.returncode == 1 and line in result.stderr
     status = read_json(sweep / "0" / "status.json")
     assert status["state"] == "failed" and status["error"] == f"ConfigError: {line}"

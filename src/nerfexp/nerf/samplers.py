@@ -14,6 +14,7 @@ Conventions: ``t`` are sample positions along the rays [B, S], sorted, in units 
 renderer's outputs are {network name: output} with the names of ``field_names``.
 """
 
+import importlib
 from collections.abc import Mapping
 from typing import ClassVar, NamedTuple, Protocol
 
@@ -69,15 +70,31 @@ def resample(rays: Rays, t: Tensor, weights: Tensor, n_samples: int, determinist
     return disparity_spaced(s, rays.near, rays.split, rays.far)
 
 
+class Spans(NamedTuple):
+    """Samples' intervals given by the sampler rather than made from the samples (``intervals``: each sample up to
+    the next): ``t_starts``, ``t_ends`` [B, S], in units of t, and ``valid`` [B, S] (bool), the samples that exist;
+    the others are zero-length intervals, never evaluated (a march's rows, ``nerfexp.nerf.marching``)."""
+
+    t_starts: Tensor
+    t_ends: Tensor
+    valid: Tensor
+
+
 class Steps(Protocol):
     """What a sampler asks of its caller (the renderer): its two steps, each querying the networks through the
-    occupancy grid where there is one."""
+    occupancy grid where there is one, and the renderer's ``grid`` (an ``OccupancyGrid``, or None) and
+    ``contraction`` (a ``SceneContraction``, or None), for a sampler that places its samples by them."""
 
-    def composited(self, name: str, rays: Rays, t: Tensor) -> dict[str, Tensor]:
+    grid: nn.Module | None
+    contraction: nn.Module | None
+
+    def composited(self, name: str, rays: Rays, t: Tensor, spans: Spans | None = None) -> dict[str, Tensor]:
         """The colour network ``name`` (one of the sampler's ``field_names``) at samples t [B, S] of ``rays``,
-        each standing for its interval: the renderer's output (``VolumeRenderer.forward``: ``rgb`` [B, 3],
-        ``depth``, ``opacity`` [B], ``weights``, ``t_starts``, ``t_ends`` [B, S], ...), also holding ``evaluated``
-        and ``coloured``, the samples whose density and colour the network evaluated."""
+        each standing for its interval (``spans``' where given, whose ``valid`` samples alone are evaluated: the
+        sampler vouches that they lie in occupied cells; else each sample up to the next): the renderer's output
+        (``VolumeRenderer.forward``: ``rgb`` [B, 3], ``depth``, ``opacity`` [B], ``weights``, ``t_starts``,
+        ``t_ends`` [B, S], ...), also holding ``evaluated`` and ``coloured``, the samples whose density and colour
+        the network evaluated."""
 
     def density_weights(self, network: nn.Module, rays: Rays, t: Tensor) -> tuple[Tensor, Tensor | float]:
         """A density-only network's (``network.density``: positions [N, 3] -> sigma [N]) interval weights
@@ -93,15 +110,23 @@ class Sampler(nn.Module):
     ``DOMAINS`` and ``APPLIES`` declare its constructor's settings (``nerfexp.domains``), where a user configures
     it, and ``SAMPLES_PER_RAY`` (a staticmethod: its config, resolved as plain data -> (network evaluations per
     ray, the argument names that set them)) what the settings check's activation-memory estimate counts.
+    ``NEEDS_GRID``: whether it places its samples by the renderer's occupancy grid (``Steps.grid``), which the
+    renderer then requires (``needs_grid``).
     """
 
     DOMAINS: ClassVar[dict[str, Rule]] = {}
     APPLIES: ClassVar[dict[str, Applies]] = {}
     field_names: ClassVar[tuple[str, ...]] = ("coarse",)
+    NEEDS_GRID: ClassVar[bool] = False  # whether it places its samples by the renderer's occupancy grid
 
     @property
     def samples_per_ray(self) -> int:
         raise NotImplementedError
+
+    def kernels(self) -> tuple[str, ...]:
+        """The fused kernels (``nerfexp.kernels``) its sampling runs, built before the training clock starts; by
+        default none."""
+        return ()
 
     @property
     def colour_samples_per_ray(self) -> int:
@@ -114,6 +139,20 @@ class Sampler(nn.Module):
         ``evaluated`` and ``coloured``, the samples its networks evaluated, of the density and of the colour (the
         renderer counts them). ``deterministic``: evenly spaced samples instead of jittered ones."""
         raise NotImplementedError
+
+
+def needs_grid(section: Mapping) -> bool:
+    """Whether the sampler a config's section builds (its ``_target_``, resolved as plain data) declares
+    ``NEEDS_GRID``; False for a section whose class does not say (``HierarchyChoice``: the paper's samplers)."""
+    target = section.get("_target_") if isinstance(section, Mapping) else None
+    if not isinstance(target, str) or "." not in target:
+        return False
+    module, _, name = target.rpartition(".")
+    try:
+        cls = getattr(importlib.import_module(module), name)
+    except (ImportError, AttributeError):  # the settings check names a target that cannot be found
+        return False
+    return bool(getattr(cls, "NEEDS_GRID", False))
 
 
 class HierarchicalSampler(Sampler):

@@ -14,7 +14,7 @@ from nerfexp.nerf.contraction import SceneContraction
 from nerfexp.nerf.fields import FieldOutputs, PositionalOutputs
 from nerfexp.nerf.occupancy import OccupancyGrid
 from nerfexp.nerf.quadrature import composite, optical_depths, render_weights
-from nerfexp.nerf.samplers import Rays, Sampler
+from nerfexp.nerf.samplers import Rays, Sampler, Spans, needs_grid
 from nerfexp.nerf.sampling import intervals
 
 
@@ -193,6 +193,9 @@ class VolumeRenderer(nn.Module):
         ("near", "far"): lambda config: (None if config["near"] is None or config["far"] is None
                                          or config["near"] < config["far"]
                                          else "near < far (the rays are sampled between them)"),
+        ("sampler", "grid"): lambda config: (None if config["grid"] is not None or not needs_grid(config["sampler"])
+                                             else "an occupancy grid (acceleration=occupancy): the sampler places "
+                                                  "its samples in the grid's occupied cells"),
     }
 
     def __init__(self, field: Callable[[], nn.Module], sampler: Callable[[], Sampler], near: float, far: float,
@@ -208,6 +211,9 @@ class VolumeRenderer(nn.Module):
         # Built first, as a module of the renderer: a sampler's own networks (the proposals') draw their initial
         # weights before the fields', and are saved in checkpoints under ``sampler``.
         self.sampler = sampler()
+        if self.sampler.NEEDS_GRID and grid is None:
+            raise ValueError(f"model.renderer.sampler: {type(self.sampler).__name__} places its samples in the "
+                             "occupancy grid's occupied cells: it needs acceleration=occupancy")
         self.near, self.far = near, far
         self.appearance = appearance
         sized = {} if appearance is None else {"appearance_dim": appearance.dim}  # fields take codes of its size
@@ -258,13 +264,15 @@ class VolumeRenderer(nn.Module):
 
     def _query(self, field: Callable[..., FieldOutputs], points: Tensor,
                viewdirs: Tensor | None, starts: Tensor, ends: Tensor,
-               codes: Tensor | None = None) -> tuple[FieldOutputs, Tensor | float, Tensor | float]:
+               codes: Tensor | None = None,
+               valid: Tensor | None = None) -> tuple[FieldOutputs, Tensor | float, Tensor | float]:
         """The field's outputs (each [B, S, ...]; ``sigma`` alone for a density query, whose ``viewdirs`` are
         None) at the points [B, S, 3], ``starts``, ``ends`` [B, S] their intervals in distance units, and the
         samples evaluated, of the density and of the colour (0 for a density query): all of them without a grid,
         else those the grid keeps, marched in segments for early termination, and of those the colour only where
         their alpha reaches ``grid.alpha_threshold`` (see the class docstring). ``codes`` [B, D]: the rays'
-        appearance codes, or None."""
+        appearance codes, or None. ``valid`` [B, S]: the samples a sampler's ``Spans`` vouch for (all in occupied
+        cells), evaluated instead of those the grid keeps."""
         B, S, _ = points.shape  # rays, samples, xyz
         colour = viewdirs is not None
         if self.grid is None:  # one flat batch [B S, 3]: 2-D matrix products, no copies of 3-D activations
@@ -273,7 +281,7 @@ class VolumeRenderer(nn.Module):
             outputs = ask(field, points.reshape(B * S, 3), flat_dirs, flat_codes)
             return (each_output(outputs, lambda out: out.reshape(B, S, *out.shape[1:])), float(B * S),
                     float(B * S) if colour else 0.0)
-        keep = self.grid.occupied_at(points)
+        keep = self.grid.occupied_at(points) if valid is None else valid
         eps = self.grid.early_stop_transmittance
         n_segments = 1 if eps == 0 else min(self.grid.segments, S)
         parts, evaluated, coloured = [], 0, 0
@@ -310,14 +318,14 @@ class VolumeRenderer(nn.Module):
         contraction, else unchanged."""
         return points if self.contraction is None else self.contraction(points)
 
-    def _samples(self, rays: Rays, t: Tensor) -> tuple[Tensor, ...]:
+    def _samples(self, rays: Rays, t: Tensor, spans: Spans | None = None) -> tuple[Tensor, ...]:
         """The sample points [B, S, 3] of rays o + t d at t [B, S] (as the networks take them:
-        ``field_positions``), and the intervals they stand for (``intervals``, the last ending at far [B]): in
-        units of t, ``t_starts``, ``t_ends`` [B, S], and in distance, ``starts``, ``ends`` [B, S] (an interval
-        [t_i, t_{i+1}] is (t_{i+1} - t_i) |d| long)."""
+        ``field_positions``), and the intervals they stand for (``spans``' where given, else ``intervals``, the
+        last ending at far [B]): in units of t, ``t_starts``, ``t_ends`` [B, S], and in distance, ``starts``,
+        ``ends`` [B, S] (an interval [t_i, t_{i+1}] is (t_{i+1} - t_i) |d| long)."""
         points = self.field_positions(rays.origins[:, None, :] + rays.directions[:, None, :] * t[..., None])
         lengths = torch.linalg.vector_norm(rays.directions, dim=-1, keepdim=True)  # [B, 1]
-        t_starts, t_ends = intervals(t, rays.far)
+        t_starts, t_ends = intervals(t, rays.far) if spans is None else (spans.t_starts, spans.t_ends)
         return points, t_starts, t_ends, t_starts * lengths, t_ends * lengths
 
     def density_weights(self, network: nn.Module, rays: Rays, t: Tensor) -> tuple[Tensor, Tensor | float]:
@@ -328,21 +336,23 @@ class VolumeRenderer(nn.Module):
         weights, _ = render_weights(outputs.sigma.to(t.dtype), starts, ends)
         return weights, evaluated
 
-    def composited(self, name: str, rays: Rays, t: Tensor) -> dict[str, Tensor]:
+    def composited(self, name: str, rays: Rays, t: Tensor, spans: Spans | None = None) -> dict[str, Tensor]:
         """The colour field ``name`` (``coarse``, ``fine``: one of the sampler's ``field_names``) at samples t
         [B, S] of ``rays`` (``render_at``; ``nerfexp.nerf.samplers.Steps``)."""
-        return self.render_at(getattr(self, name), rays, t)
+        return self.render_at(getattr(self, name), rays, t, spans)
 
-    def render_at(self, field: nn.Module, rays: Rays, t: Tensor) -> dict[str, Tensor]:
-        """Query ``field`` at samples t [B, S] of ``rays``; each sample stands for its interval. The output
-        (see ``forward``) also holds ``evaluated``, the samples the field evaluated.
+    def render_at(self, field: nn.Module, rays: Rays, t: Tensor, spans: Spans | None = None) -> dict[str, Tensor]:
+        """Query ``field`` at samples t [B, S] of ``rays``; each sample stands for its interval (``spans``' where
+        given: only their ``valid`` samples are evaluated). The output (see ``forward``) also holds ``evaluated``,
+        the samples the field evaluated.
 
         The field sees the unit ``viewdirs`` [B, 3]. A field that also answers per-sample ``penalties``
         [B, S, P] (``penalty_names``, e.g. Ref-NeRF's normals, ``nerfexp.nerf.reflection``) has them composited
         with the rendering weights and averaged over the rays into ``regularizers`` {name: value}.
         """
-        points, t_starts, t_ends, starts, ends = self._samples(rays, t)
-        outputs, evaluated, coloured = self._query(field, points, rays.viewdirs, starts, ends, rays.appearance)
+        points, t_starts, t_ends, starts, ends = self._samples(rays, t, spans)
+        outputs, evaluated, coloured = self._query(field, points, rays.viewdirs, starts, ends, rays.appearance,
+                                                   None if spans is None else spans.valid)
         # Rendering runs in the rays' precision whatever the network's: under bf16 autocast the field
         # answers in bf16 (8 significant bits), too coarse for exp/cumsum of optical depths.
         rgbs, sigmas = outputs.rgb.to(t.dtype), outputs.sigma.to(t.dtype)

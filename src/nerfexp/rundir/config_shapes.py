@@ -55,6 +55,14 @@ class Allowed:
     kinds: frozenset[str]  # SECTION, VALUE
     targets: frozenset[str] = frozenset()  # the classes named as its _target_: a section there must name one
     partials: frozenset[object] = frozenset()  # its _partial_ where a section there builds a class (see own_keys)
+    # a class's own _partial_ where a file writes the two together ((class, values) pairs): a section naming that
+    # class must have one of those values (``sampler=paper``'s whole HierarchyChoice, ``sampler=march``'s partial
+    # GridMarchSampler); a class named without its _partial_ takes the key's (``partials``)
+    paired: tuple[tuple[str, frozenset], ...] = ()
+
+    def partials_of(self, target: object) -> frozenset:
+        """The ``_partial_`` values a section naming ``target`` may have: its own (``paired``), else the key's."""
+        return next((values for named, values in self.paired if named == target), self.partials)
 
 
 def kept(shape: Shape) -> Allowed:
@@ -121,6 +129,7 @@ def own_keys() -> dict[str, Allowed]:
     may set a section's ``_target_`` alone, over a section another file makes: ``sweeps/sparse_tables.yaml``'s
     optimizer); where none writes it at a key that builds a class, it is false there (Hydra's default)."""
     found: dict[str, tuple[set, set, set]] = {}  # key -> (kinds, targets, the _partial_ values written)
+    paired: dict[str, dict[str, set]] = {}  # key -> {a class: the _partial_ values written with it}
     aliases: list[tuple[str, str]] = []  # (the key holding a reference, the key it names)
     for prefix, content in own_files():
         for key, value in [*([(prefix, content)] if prefix else []), *entries(content, prefix)]:
@@ -133,6 +142,8 @@ def own_keys() -> dict[str, Allowed]:
                 targets.add(value["_target_"])
             if isinstance(value, dict) and "_partial_" in value:
                 partials.add(value["_partial_"])
+                if isinstance(value.get("_target_"), str):
+                    paired.setdefault(key, {}).setdefault(value["_target_"], set()).add(value["_partial_"])
     changed = True
     while changed:  # a reference to a section holding a reference: carried until nothing more is
         changed = False
@@ -146,7 +157,13 @@ def own_keys() -> dict[str, Allowed]:
                     if not theirs <= mine:
                         mine |= theirs
                         changed = True
-    return {key: Allowed(frozenset(kinds), frozenset(targets), frozenset(partials or ({False} if targets else ())))
+    for key, named in aliases:  # a reference's key has the pairs of the key it names, and of the keys below
+        for other, pairs in list(paired.items()):
+            if (rest := under(other, named)) is not None:
+                for target, values in pairs.items():
+                    paired.setdefault(key + rest, {}).setdefault(target, set()).update(values)
+    return {key: Allowed(frozenset(kinds), frozenset(targets), frozenset(partials or ({False} if targets else ())),
+                         tuple((target, frozenset(values)) for target, values in paired.get(key, {}).items()))
             for key, (kinds, targets, partials) in found.items()}
 
 
@@ -190,9 +207,10 @@ def shape_problem(key: str, shape: Shape, allowed: Allowed, whose: str) -> str |
         return f"{key} is {shape.kind} where {whose} {' or '.join(sorted(allowed.kinds))}"
     if shape.kind == SECTION and allowed.targets and shape.target is None:
         return f"{key} has no _target_ where {whose} one ({', '.join(sorted(allowed.targets))})"
-    if shape.kind == SECTION and allowed.partials and shape.partial not in allowed.partials:
+    partials = allowed.partials_of(shape.target)
+    if shape.kind == SECTION and partials and shape.partial not in partials:
         return (f"{key}._partial_={yaml_word(shape.partial)} where {whose} "
-                f"_partial_: {' or '.join(sorted(map(yaml_word, allowed.partials)))}")
+                f"_partial_: {' or '.join(sorted(map(yaml_word, partials)))}")
     return None
 
 

@@ -15,7 +15,8 @@ line naming the group, the value and the group's options, before any work:
   a config file's defaults list, a ``${...}`` in one) one of the options Hydra finds for its group in the config
   sources the run was composed from (``hydra.runtime.config_sources``: nerfexp's ``conf/``, Hydra's and its
   plugins', a folder on ``hydra.searchpath``); and each group of ``config.yaml``'s defaults list has a choice
-  (none: a config file's defaults list gave it a list), unless ``~GROUP`` removed it.
+  (none: a config file's defaults list gave it a list), unless ``~GROUP`` removed it. A group that the defaults list
+  chooses from other groups' choices (``derived_choices``) is no one's to choose, and is not checked.
 """
 
 from collections.abc import Callable, Iterable, Mapping
@@ -34,9 +35,27 @@ from nerfexp.settings.overrides import override_values, task_overrides
 HYDRA_GROUPS = "hydra/"  # Hydra's own groups: their options are Hydra's and its plugins' as well as nerfexp's
 
 
+def derived_choices() -> dict[str, str]:
+    """{group@package as ``hydra.runtime.choices`` records it: its folder} of the groups ``config.yaml``'s defaults
+    list chooses from other groups' choices (``optional acceleration/by_encoding@acceleration.grid:
+    ${acceleration}_${encoding}``: the grid's settings for the encoding): no one chooses them, and the option they
+    name need not exist (``optional``: none is merged then)."""
+    defaults = yaml.safe_load((files("nerfexp.conf") / "config.yaml").read_text())["defaults"]
+    return {group.removeprefix("optional "): group.removeprefix("optional ").partition("@")[0]
+            for entry in defaults if isinstance(entry, dict) for group, option in entry.items()
+            if group.startswith("optional ") and isinstance(option, str) and "${" in option}
+
+
 def nerfexp_groups() -> set[str]:
-    """The config groups of nerfexp's own ``conf/``: each folder, nested ones by their path
-    (``encoding/hashgrid_sizes``, ``hydra/launcher``)."""
+    """The config groups of nerfexp's own ``conf/`` that a run chooses an option of: each folder, nested ones by
+    their path (``encoding/hashgrid_sizes``, ``hydra/launcher``), those chosen from other groups' choices
+    (``derived_choices``) aside."""
+    derived = set(derived_choices().values())
+    return {group for group in config_folders() if group not in derived}
+
+
+def config_folders() -> set[str]:
+    """Every folder of nerfexp's own ``conf/``, nested ones by their path."""
     found, pending = set(), [(files("nerfexp.conf"), "")]
     while pending:
         folder, group = pending.pop()
@@ -137,8 +156,9 @@ def check_group_values(hydra: DictConfig) -> None:
     overrides = task_overrides(hydra)
     check_group_overrides(overrides, repository.group_exists, options)
     choices = hydra.runtime.choices
+    derived = derived_choices()
     for group, option in choices.items():
-        if option is not None and option not in options(group):
+        if option is not None and group not in derived and option not in options(group):
             raise refusal(f"{group}={option}", group, option, options(group))
     removed = {argument.lstrip("~").partition("=")[0] for argument in overrides if argument.startswith("~")}
     for group in default_choices():

@@ -167,9 +167,6 @@ SCHEMA: dict[str, Rule] = {
     "appearance.test_protocol": choice(*PROTOCOLS),
     "camera_opt.correction": NULL,  # camera_opt=off
     "camera_opt.coarse_to_fine": FRACTION,  # the window it asks of the positional encoding (encoding.position)
-    "encoding.grid_march_steps": optional(COUNT, "the cell's diagonal"),  # what it asks of acceleration=occupancy
-    "encoding.grid_resolution": COUNT,  # the same: acceleration.grid.resolution
-    "encoding.grid_update_fraction": real(0, 1, above=True),  # the same: acceleration.grid.update_fraction
     "test_cameras.fit": NULL,  # test_cameras=given
     "datamodule.pose_noise": POSE_NOISE_SETTING,  # degrees in [0, 180], a fraction of the cameras' radius in [0, 1]
     "contraction.function": NULL,  # contraction=none

@@ -158,13 +158,13 @@ class NeRFModule(L.LightningModule):
 
     def kernels(self) -> list[str]:
         """The fused kernels (``nerfexp.kernels``) this module's training runs where its parameters now are, each
-        once: its encodings' own (``Encoding.kernels``), and the sparse update of the parameters of those whose
+        once: its encodings' own (``Encoding.kernels``), its sampler's (``Sampler.kernels``), and the sparse update of the parameters of those whose
         gradients are sparse (``nerfexp.training.optimizers.update_kernels``); ``RunRecorder`` builds them before
         its training clock starts."""
         encodings = [m for m in self.renderer.modules() if isinstance(m, Encoding)]
         sparse = [p for encoding in encodings if encoding.sparse_gradients for p in encoding.parameters()]
         return list(dict.fromkeys([*(name for encoding in encodings for name in encoding.kernels()),
-                                   *update_kernels(sparse)]))
+                                   *self.renderer.sampler.kernels(), *update_kernels(sparse)]))
 
     def setup(self, stage: str) -> None:
         """Build the LPIPS scorer (``nerfexp.training.perceptual.lpips_scorer``), once per process: before
