@@ -8,9 +8,10 @@ import statistics
 
 from matplotlib.figure import Figure
 
-from nerfexp.report.budgets import budget_points, difference_curve, timed
+from nerfexp.report.budgets import budget_points, difference_curve
 from nerfexp.report.comparison import seeds
 from nerfexp.report.runs import Run
+from nerfexp.report.shared_machines import timed_labels
 from nerfexp.report.variants import Variant
 
 FIGSIZE, DPI = (8.0, 5.0), 100  # 800 x 500 pixels
@@ -122,12 +123,12 @@ def difference_vs_time_png(variants: list[Variant], reference: Variant | None) -
     """Each variant's test PSNR - the reference's against training time, paired by seed at the matched times
     (``difference_curve``: each run's score interpolated between its budgets, where every run of both has one), the
     mean a line and its 95% interval a band, zero a black line; only variants whose times, and the reference's,
-    may be compared (``timed``). A plot without curves says why in its title."""
+    may be compared (``timed_labels``). A plot without curves says why in its title."""
     figure = Figure(figsize=FIGSIZE, layout="constrained")
     axes = figure.add_subplot()
-    drawn = False
+    drawn, timed = False, timed_labels(variants)
     for i, variant in enumerate(variants):
-        if reference is None or variant is reference or not (timed(variant) and timed(reference)):
+        if reference is None or variant is reference or not {variant.label, reference.label} <= timed:
             continue
         curve = [(t, d) for t, d in difference_curve(variant, reference) if d.n > 0]
         if not curve:
@@ -148,7 +149,7 @@ def difference_vs_time_png(variants: list[Variant], reference: Variant | None) -
         title = "No difference against time: the report has no reference variant"
     else:
         title = ("No difference against time: no variant's runs and the reference's share a training time\n"
-                 "(or their runs shared their machine)")
+                 "(or their runs' times may not be compared: report.md's note on times)")
     axes.set(xlabel="training wall-clock time (s)", ylabel="test PSNR difference (dB)", title=title)
     axes.grid(alpha=0.3)
     legend(figure, axes)
