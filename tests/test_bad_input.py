@@ -369,8 +369,8 @@ PATH = "; a path is not one (Hydra would compose whatever config it leads to, in
     (["-m", "encoding=[none],[posenc]"], "encoding=[none],[posenc]: a config group takes an option's name (choose "
                                          f"from hashgrid, none, posenc){LIST}"),
     (["+sweeps=[smoke]"], "+sweeps=[smoke]: a config group takes an option's name (choose from budgets, components, "
-                          "cpu_ablation, optuna, paper_ablation, precision, real, smoke, sparse_tables, "
-                          f"successors){LIST}"),
+                          "cpu_ablation, optuna, paper_ablation, paper_ablation_blender, precision, real, smoke, "
+                          f"sparse_tables, successors){LIST}"),
 ])
 def test_a_group_given_what_is_not_an_option_is_one_line_before_anything_is_made(tmp_path, arguments, message):
     result = run_nerfexp(*arguments, f"hydra.run.dir={tmp_path / 'run'}", f"hydra.sweep.dir={tmp_path / 'sweep'}",
