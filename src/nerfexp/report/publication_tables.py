@@ -137,8 +137,13 @@ def protocol_text(measured: Measured) -> str:
 
 def figure_text(figure: Figure) -> str:
     """Where a figure was measured: its scenes where several, and its protocol."""
-    over = f"mean over {len(figure.scenes)} scenes; " if len(figure.scenes) > 1 else ""
-    return over + figure.protocol.text(published=True)
+    return f"{over_text(figure)}; {figure.protocol.text(published=True)}" if len(figure.scenes) > 1 else \
+        figure.protocol.text(published=True)
+
+
+def over_text(figure: Figure) -> str:
+    """"the scene"; several: "mean over 8 scenes"."""
+    return "the scene" if len(figure.scenes) == 1 else f"mean over {len(figure.scenes)} scenes"
 
 
 def fmt(value: float | None, digits: int) -> str:
@@ -147,25 +152,33 @@ def fmt(value: float | None, digits: int) -> str:
 
 def published_text(variants: list[Variant]) -> list[str]:
     """report.md's "Published numbers": a line per figure beside a variant (``beside_published``), each side with its
-    protocol, the difference only where ``comparable`` (no column where none is); nothing where no figure applies."""
+    protocol (said once above the table where every line's is the same), the difference only where ``comparable``
+    (no column where none is); nothing where no figure applies."""
     besides = [beside for variant in variants for beside in beside_published(variant)]
     if not besides:
         return []
     compared = any(beside.comparable for beside in besides)
-    header = ["variant", "scenes", "test PSNR (dB)", "test SSIM", "measured under", "published PSNR",
-              "published SSIM", "published under", "source", *(["PSNR - published"] if compared else [])]
+    ours = {protocol_text(beside.measured) for beside in besides}
+    theirs = {beside.figure.protocol.text(published=True) for beside in besides}
+    header = ["variant", "scenes", "test PSNR (dB)", "test SSIM", *(["measured under"] if len(ours) > 1 else []),
+              "published PSNR", "published SSIM", "published over", *(["published under"] if len(theirs) > 1 else []),
+              "source", *(["PSNR - published"] if compared else [])]
+    said = [f"Ours were measured under: {next(iter(ours))}." if len(ours) == 1 else "",
+            f"The published, under: {next(iter(theirs))}." if len(theirs) == 1 else ""]
     lines = ["## Published numbers", "",
              "The published figures of each variant's ablation row on its scenes, beside its own: only on scenes "
              "known to be the publication's (a scene of nerfexp's catalogue by name, whose archive had the SHA-256 "
-             "the catalogue pins). "
+             "the catalogue pins). " + " ".join(filter(None, said)) + " "
              + ("The difference where both were measured over the same scenes under the same protocol; – where "
                 "not, and the two are not compared." if compared else
                 "None was measured over the same scenes under the same protocol: the two are not compared."), "",
              "| " + " | ".join(header) + " |", "|" + "---|" * len(header)]
     for beside in besides:
-        ours, figure = beside.measured, beside.figure
-        cells = [beside.label, scenes_text(ours.scenes), fmt(ours.psnr, 2), fmt(ours.ssim, 3), protocol_text(ours),
-                 fmt(figure.psnr, 2), fmt(figure.ssim, 3), figure_text(figure), figure.source]
+        measured, figure = beside.measured, beside.figure
+        cells = [beside.label, scenes_text(measured.scenes), fmt(measured.psnr, 2), fmt(measured.ssim, 3),
+                 *([protocol_text(measured)] if len(ours) > 1 else []), fmt(figure.psnr, 2), fmt(figure.ssim, 3),
+                 over_text(figure), *([figure.protocol.text(published=True)] if len(theirs) > 1 else []),
+                 figure.source]
         cells += [f"{beside.difference:+.2f}" if beside.comparable else "–"] if compared else []
         lines.append("| " + " | ".join(cells) + " |")
     return lines
