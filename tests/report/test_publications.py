@@ -156,7 +156,8 @@ def test_the_mean_over_the_papers_8_scenes_beside_its_rows_and_each_scenes_own_f
     write_report([tmp_path], tmp_path, over=("seed", "data.scene"))
     report, table = (tmp_path / "report.md").read_text(), read_csv(tmp_path / "report.csv")
     # by hand: each scene's complete mean is 30 + s + 0.5 (lego, s = 4: 30 + 4 + 1); over scenes 30 + 3.5 + 0.5 + 0.5/8
-    complete_mean = statistics.fmean(30 + s + (1.0 if scene == "blender/lego" else 0.5) for s, scene in enumerate(scenes))
+    complete_mean = statistics.fmean(30 + s + (1.0 if scene == "blender/lego" else 0.5)
+                                     for s, scene in enumerate(scenes))
     assert complete_mean == pytest.approx(34.0625)
     lines = published(report)
     mean_lines = [line for line in lines if "mean over 8 scenes (" in line]
@@ -212,7 +213,8 @@ def test_every_row_of_the_papers_table_has_its_mean_and_its_lego_figure():
             "no_hierarchical": 31.42, "fewer_images": 31.53, "far_fewer_images": 27.97, "fewer_frequencies": 30.77,
             "more_frequencies": 32.50}
     eight = frozenset(BLENDER_PSNR)
-    assert {f.row: f.psnr for f in FIGURES if f.scenes == eight} == means == {k: v[1] for k, v in PAPER_ABLATION.items()}
+    assert {f.row: f.psnr for f in FIGURES if f.scenes == eight} == means
+    assert means == {row: psnr for row, (_, psnr, _) in PAPER_ABLATION.items()}
     assert {f.row: f.psnr for f in FIGURES if f.scenes == {"blender/lego"}} == lego == {**LEGO_ROWS, "complete": 32.54}
     assert all(name in ENTRIES and ENTRIES[name].sha256 for f in FIGURES for name in f.scenes)  # pinned scenes only
 
@@ -245,8 +247,8 @@ def test_real_runs_of_the_catalogues_lego_and_of_a_glossy_folder(tmp_path, monke
     monkeypatch.setenv("NERFEXP_DATA", str(cache))
     tiny = [o for o in TINY if not o.startswith(("data.n_test", "scale.image_size", "data.n_train"))]
     for name, where in (("lego", f"data.scene={entry.name}"), ("glossy", f"data.root={scenes / 'glossy'}")):
-        done = run_nerfexp("ablation=complete", "data=blender", where, *tiny, f"hydra.run.dir={tmp_path / 'runs' / name}",
-                           cwd=tmp_path)
+        done = run_nerfexp("ablation=complete", "data=blender", where, *tiny,
+                           f"hydra.run.dir={tmp_path / 'runs' / name}", cwd=tmp_path)
         assert done.returncode == 0, done.stderr[-3000:]
     results = json.loads((tmp_path / "runs" / "lego" / "results.json").read_text())
     assert results["scene"]["sha256"] == entry.sha256 and results["test_resolution"] == [24, 24]
@@ -255,6 +257,6 @@ def test_real_runs_of_the_catalogues_lego_and_of_a_glossy_folder(tmp_path, monke
     views = len(results["test_views"])
     assert line.startswith("| data.scene=blender/lego | blender/lego |")  # ablation=complete: what both share
     report = (tmp_path / "runs" / "report.md").read_text()
-    assert f"Ours were measured under: 24 x 24 px, {views} test view{'' if views == 1 else 's'} (the scene's own test " \
-           "split), 60 steps." in section(report)
+    assert f"Ours were measured under: 24 x 24 px, {views} test view{'' if views == 1 else 's'} (the scene's own " \
+           "test split), 60 steps." in section(report)
     assert "| 32.54 | – | the scene |" in line and "PSNR - published" not in report

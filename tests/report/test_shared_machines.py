@@ -59,7 +59,8 @@ def test_runs_that_shared_their_machine_are_named_once_below_the_table(tmp_path,
     # the variant with the shared run is not ranked by time, and says why in a word; the other is
     equal = text.split("## At equal training time")[1].split("\n## ")[0]
     assert "1. encoding=posenc (" in equal and "encoding=hashgrid (" not in equal
-    assert equal.count("Not ranked, compared by step only (the note on times, below the table, says why): encoding=hashgrid.") == 1
+    assert equal.count("Not ranked, compared by step only (the note on times, below the table, says why): "
+                       "encoding=hashgrid.") == 1
     assert time_rows(root) == []  # the only variant compared with the reference is the untimed one
 
 

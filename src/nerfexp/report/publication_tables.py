@@ -43,13 +43,12 @@ def catalogue_scene(results: dict) -> str | None:
 @dataclass(frozen=True)
 class Measured:
     """A variant's test scores on ``scenes`` (catalogue names): ``psnr`` and ``ssim``, each scene's mean over its
-    ``runs``, then the mean over the scenes; the ``protocol`` its runs share (None: they differ)."""
+    runs, then the mean over the scenes; the ``protocol`` its runs share (None: they differ)."""
 
     scenes: tuple[str, ...]
     psnr: float
     ssim: float
     protocol: Protocol | None
-    runs: int
 
 
 def measured(by_scene: dict[str, list[Run]]) -> Measured:
@@ -59,7 +58,7 @@ def measured(by_scene: dict[str, list[Run]]) -> Measured:
 
     runs = [run for runs in by_scene.values() for run in runs]
     return Measured(tuple(sorted(by_scene)), mean_over_scenes("test_psnr"), mean_over_scenes("test_ssim"),
-                    merged_protocol([run_protocol(run.results) for run in runs]), len(runs))
+                    merged_protocol([run_protocol(run.results) for run in runs]))
 
 
 @dataclass(frozen=True)
@@ -118,7 +117,7 @@ def published_columns(beside: Beside | None) -> dict:
     if beside is None:
         return {"published_psnr": math.nan, "published_ssim": math.nan, "published_source": "",
                 "published_protocol": "", "measured_protocol": "", "psnr_minus_published": math.nan}
-    figure, protocol = beside.figure, beside.measured.protocol
+    figure = beside.figure
     return {"published_psnr": figure.psnr, "published_ssim": math.nan if figure.ssim is None else figure.ssim,
             "published_source": figure.source, "published_protocol": figure_text(figure),
             "measured_protocol": protocol_text(beside.measured), "psnr_minus_published": beside.difference}
@@ -137,8 +136,8 @@ def protocol_text(measured: Measured) -> str:
 
 def figure_text(figure: Figure) -> str:
     """Where a figure was measured: its scenes where several, and its protocol."""
-    return f"{over_text(figure)}; {figure.protocol.text(published=True)}" if len(figure.scenes) > 1 else \
-        figure.protocol.text(published=True)
+    protocol = figure.protocol.text(published=True)
+    return protocol if len(figure.scenes) == 1 else f"{over_text(figure)}; {protocol}"
 
 
 def over_text(figure: Figure) -> str:

@@ -304,10 +304,10 @@ def method_text(variants: list[Variant], reference: Variant | None) -> list[str]
                "Over several scenes a variant's score is each scene's mean over its runs, then the mean over the "
                "scenes, as the paper's means are.",
                f"Plots: `{PSNR_PLOT}` (validation PSNR against training seconds: each variant's mean over seeds, its "
-               f"band from the lowest to the highest seed, single runs faint), `{PARETO_PLOT}` (test PSNR against total "
-               "training time, bars one standard deviation over seeds; each variant's budgets as small points joined "
-               f"by a thin line), `{DIFFERENCE_PLOT}` (each variant's test PSNR - the reference's against training time "
-               "at the matched times, its 95% interval as a band)."]
+               f"band from the lowest to the highest seed, single runs faint), `{PARETO_PLOT}` (test PSNR against "
+               "total training time, bars one standard deviation over seeds; each variant's budgets as small points "
+               f"joined by a thin line), `{DIFFERENCE_PLOT}` (each variant's test PSNR - the reference's against "
+               "training time at the matched times, its 95% interval as a band)."]
     return ["## How these numbers were computed", "", *(f"- {text}" for text in method)]
 
 
