@@ -64,6 +64,18 @@ def test_runs_that_shared_their_machine_are_named_once_below_the_table(tmp_path,
     assert time_rows(root) == []  # the only variant compared with the reference is the untimed one
 
 
+def test_where_every_run_shared_its_machine_the_caveat_gives_their_number_and_loads_not_every_path(tmp_path, capsys):
+    root = sweep(tmp_path / "sweep", {"0": 1.5, "1": SHARED_LOAD + 0.01, "2": 2.0, "3": 1.0})
+    text, err = report(root, capsys)
+    (line,) = [line for line in text.splitlines() if "shared their machine" in line]
+    assert line == ("All 4 finished runs shared their machine (other processes kept 0.26 to 2.00 CPUs busy on average "
+                    "while they trained, more than 0.25): their times, in the table and the plots, are partly their "
+                    "neighbours', so no variant is compared with another by time (by step only).")
+    assert line in text.split("\n## ")[0] and all(f"`{root / name}`" not in text for name in "0123")
+    assert "No ranking at equal training time" in text and time_rows(root) == []
+    assert [line.removeprefix("nerfexp-report: ") for line in err.splitlines() if "runs shared" in line] == [line]
+
+
 def test_runs_at_or_below_the_threshold_or_that_did_not_measure_get_no_caveat(tmp_path, capsys):
     root = sweep(tmp_path / "sweep", {"0": SHARED_LOAD, "1": 0.0, "2": None, "3": 0.2})
     text, err = report(root, capsys)

@@ -42,8 +42,8 @@ def timed_labels(variants: list[Variant]) -> set[str]:
 
 def timing_caveats(variants: list[Variant]) -> list[str]:
     """What the report's times need said, each once: the runs come from several machines (none is compared by time);
-    runs shared their machine (named with their others' load: their variants' times are partly their neighbours',
-    and those variants are compared by step only). None where neither holds."""
+    runs shared their machine (``shared_text``: named with their others' load; their variants' times are partly
+    their neighbours', and those variants are compared by step only). None where neither holds."""
     runs = [run for v in variants for run in v.finished]
     caveats = []
     if len(found := machines(variants)) > 1:
@@ -52,12 +52,23 @@ def timing_caveats(variants: list[Variant]) -> list[str]:
                        "other, so no variant is compared with another by time (by step only).")
     loads = [(run, load) for run in runs if (load := shared(run)) is not None]
     if loads:
-        named = ", ".join(f"`{run.path}` ({load:.2f})" for run, load in loads)
         untimed = [v.label for v in variants if any(shared(run) is not None for run in v.finished)]
         step_only = ("" if caveats else ", so no variant is compared with another by time (by step only)"
                      if len(untimed) == sum(bool(v.finished) for v in variants)
                      else f", and {'; '.join(untimed)} compared with others by step only")
-        caveats.append(f"{len(loads)} of the {len(runs)} finished runs shared their machine (other processes kept more "
-                       f"than {SHARED_LOAD:g} CPU busy on average while they trained: {named}): their times, in the "
-                       f"table and the plots, are partly their neighbours'{step_only}.")
+        caveats.append(f"{shared_text(loads, len(runs))}: their times, in the table and the plots, are partly their "
+                       f"neighbours'{step_only}.")
     return caveats
+
+
+def shared_text(loads: list[tuple[Run, float]], n_runs: int) -> str:
+    """Which of ``n_runs`` finished runs shared their machine, with the others' load (``loads``: each such run with
+    its ``shared``): each named where some did; where every one of several did, how many and the loads' range (a
+    list of every run would name nothing the reader needs to find)."""
+    if len(loads) == n_runs > 1:
+        low, high = min(load for _, load in loads), max(load for _, load in loads)
+        return (f"All {n_runs} finished runs shared their machine (other processes kept {low:.2f} to {high:.2f} CPUs "
+                f"busy on average while they trained, more than {SHARED_LOAD:g})")
+    named = ", ".join(f"`{run.path}` ({load:.2f})" for run, load in loads)
+    return (f"{len(loads)} of the {n_runs} finished runs shared their machine (other processes kept more than "
+            f"{SHARED_LOAD:g} CPU busy on average while they trained: {named})")
