@@ -226,6 +226,19 @@ def test_the_papers_order_counts_agreements_reversals_and_unresolved_pairs_each_
     assert [PAPER_ABLATION[k][1] for k in ("complete", "no_pe_vd_h")] == [31.01, 26.67]
 
 
+def test_two_ablation_rows_are_one_pair_of_the_papers_order(tmp_path):
+    for seed, (complete, no_posenc) in enumerate([(30.0, 28.0), (31.0, 28.5)]):  # by hand: +2.0, +2.5; mean +2.25
+        make_run(tmp_path, f"c{seed}", ["ablation=complete", f"seed={seed}"], psnr=complete,
+                 choices={"ablation": "complete"})
+        make_run(tmp_path, f"n{seed}", ["ablation=no_posenc", f"seed={seed}"], psnr=no_posenc,
+                 choices={"ablation": "no_posenc"})
+    write_report([tmp_path], tmp_path)
+    report = (tmp_path / "report.md").read_text()
+    assert "## Against the paper's order (2 ablation rows, 1 pair)" in report
+    assert "Of the 1 pair the paper orders: 0 resolved in the paper's order," in report
+    assert "- Complete Model above No Pos. Encoding: +2.25 [" in report
+
+
 SECTIONS = ["## Ranking by mean test PSNR", "## Against the paper's order", "## Per budget",  # report.md's, in order
             "## At equal training time", "## Jobs that did not finish", "## How these numbers were computed"]
 

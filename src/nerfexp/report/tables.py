@@ -138,7 +138,7 @@ def paper_order_text(ranked: list[Variant]) -> list[str]:
     lines = [f"## Against the paper's order ({len(rows)} ablation rows, {n_pairs} pair{'' if n_pairs == 1 else 's'})",
              "",
              f"Compared at the end of training, {at} (the \"Per budget\" section has the earlier budgets). "
-             f"Of the {n_pairs} pairs the paper orders: {len(order.agree)} resolved in the paper's order, "
+             f"Of the {n_pairs} pair{'' if n_pairs == 1 else 's'} the paper orders: {len(order.agree)} resolved in the paper's order, "
              f"{len(order.reversed)} resolved in the other order, {len(order.unresolved)} not resolved by "
              "these seeds. Each pair: the paper's higher row first, then our mean difference (higher - lower) "
              "in test PSNR, paired by seed, with its 95% interval.", ""]
