@@ -176,6 +176,11 @@ def test_the_mean_over_the_papers_8_scenes_beside_its_rows_and_each_scenes_own_f
         assert f"| {ours:.2f} |" in line and line.endswith(f"| {ours - BLENDER_PSNR[scene]:+.2f} |")
     # the table's mean is over the runs (the variant's scores as everywhere else), the published one over the scenes
     assert float(table["ablation=complete"]["test_psnr_mean"]) != pytest.approx(complete_mean)
+    # against the reference, a run is paired with its run of the same seed on the same scene: 16 pairs, each by hand
+    # (28 + s) - (30 + s + seed): -2 or -3, mean -2.5
+    assert float(table["ablation=no_posenc"]["paired_seeds"]) == 16
+    assert float(table["ablation=no_posenc"]["psnr_diff"]) == pytest.approx(-2.5)
+    assert "each run paired with the reference's run of the same seed, data.scene," in report
 
 
 def test_a_sweep_over_some_of_the_papers_scenes_shows_its_mean_beside_the_papers_without_a_difference(tmp_path):

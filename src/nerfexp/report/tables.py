@@ -289,9 +289,10 @@ def method_text(variants: list[Variant], reference: Variant | None) -> list[str]
               "budgets); its scores are the mean ± sample standard deviation over its finished runs. "
               + machines_text(variants) + ("" if mixed or not precisions else f" {precisions}")]
     if reference is not None:
-        method.append("Differences to the reference: the mean over seeds of (variant - reference), each run paired "
-                      "with the reference's run of the same seed, with its 95% confidence interval (Student's t, "
-                      "n - 1 degrees of freedom). Verdict: better or worse where the interval excludes zero, else not "
+        method.append("Differences to the reference: the mean over the pairs of runs of (variant - reference), each "
+                      f"run paired with the reference's run of the same {over}, with its 95% confidence interval "
+                      "(Student's t, n - 1 degrees of freedom; n: the pairs, the seeds where only seeds are averaged "
+                      "over). Verdict: better or worse where the interval excludes zero, else not "
                       "resolved with this many seeds; one seed gives no interval. Intervals are per comparison, not "
                       "corrected for making many.")
     method += ["Ranking: variants by mean test PSNR, cut into groups: a group starts at its best and takes each next "
