@@ -279,6 +279,21 @@ def test_the_table_and_its_verdicts_come_first_each_caveat_said_once_below_it_an
     assert ("**At " in equal) is not other_host  # ranked by time only where the times may be compared
 
 
+def test_over_scenes_a_difference_counts_pairs_of_a_seed_on_a_scene_not_seeds(tmp_path):
+    # 2 seeds x 2 scenes: b - a is +1, -1, +1, -1 (by hand: mean 0, not resolved) over 4 pairs of 2 seeds; c has one run
+    for i, (scene, seed) in enumerate([(s, seed) for s in ("s1", "s2") for seed in (0, 1)]):
+        over = [f"data.scene={scene}", f"seed={seed}"]
+        make_run(tmp_path, f"a{i}", ["model=a", *over], psnr=20.0)
+        make_run(tmp_path, f"b{i}", ["model=b", *over], psnr=20.0 + (1 if i % 2 == 0 else -1))
+    make_run(tmp_path, "c0", ["model=c", "data.scene=s1", "seed=0"], psnr=21.0)
+    write_report([tmp_path], tmp_path, over=("seed", "data.scene"), reference="model=a")
+    table = (tmp_path / "report.md").read_text().split("\n## ")[0].splitlines()  # the table, before any section
+    (b,) = [line for line in table if line.startswith("| model=b |")]
+    (c,) = [line for line in table if line.startswith("| model=c |")]
+    assert "| +0.00 [" in b and "| not resolved with 4 pairs |" in b and "seeds" not in b
+    assert "| 1 pair: no interval |" in c and "| not resolved with 1 pair |" in c
+
+
 def test_a_named_reference_and_a_variant_with_one_seed(sweep):
     write_report([sweep], sweep, reference="hierarchical=true")
     report = (sweep / "report.md").read_text()

@@ -19,7 +19,7 @@ import statistics
 from collections.abc import Hashable
 from dataclasses import dataclass
 
-from nerfexp.report.comparison import Difference, paired_difference, tiers
+from nerfexp.report.comparison import SEED, Difference, paired_difference, tiers
 from nerfexp.report.runs import Budget, Run
 from nerfexp.report.shared_machines import timed_labels
 from nerfexp.report.variants import Variant
@@ -62,8 +62,8 @@ def scores_at_step(variant: Variant, step: int, metric: str = "psnr") -> dict[Ha
 def step_differences(variant: Variant, reference: Variant, metric: str = "psnr") -> dict[int, Difference]:
     """``variant`` - ``reference`` in the test ``metric`` at each step both share (``shared_steps``), paired by
     seed; in step order."""
-    return {step: paired_difference(scores_at_step(variant, step, metric), scores_at_step(reference, step, metric))
-            for step in shared_steps([variant, reference])}
+    return {step: paired_difference(scores_at_step(variant, step, metric), scores_at_step(reference, step, metric),
+                                    variant.paired_by) for step in shared_steps([variant, reference])}
 
 
 def score_at_time(budgets: list[Budget], time_s: float, metric: str = "psnr") -> float | None:
@@ -104,8 +104,8 @@ def time_differences(variant: Variant, reference: Variant, times: list[float], m
     window = time_window([variant, reference])
     if window is None:
         return {}
-    return {t: paired_difference(scores_at_time(variant, t, metric), scores_at_time(reference, t, metric))
-            for t in times if window[0] <= t <= window[1]}
+    return {t: paired_difference(scores_at_time(variant, t, metric), scores_at_time(reference, t, metric),
+                                 variant.paired_by) for t in times if window[0] <= t <= window[1]}
 
 
 def difference_curve(variant: Variant, reference: Variant, points: int = CURVE_POINTS
@@ -200,7 +200,8 @@ def equal_time(variants: list[Variant], time_s: float) -> EqualTime:
     scores = {v.label: scores_at_time(v, time_s) for v in timed_variants}
     ranked = sorted(((label, statistics.fmean(s.values()), len(s)) for label, s in scores.items() if s),
                     key=lambda item: -item[1])
-    groups = tiers([label for label, _, _ in ranked], lambda a, b: paired_difference(scores[a], scores[b]))
+    unit = timed_variants[0].paired_by if timed_variants else SEED
+    groups = tiers([label for label, _, _ in ranked], lambda a, b: paired_difference(scores[a], scores[b], unit))
     uncovered = [(v.label, uncovered_reason(v, time_s)) for v in timed_variants if not scores[v.label]]
     return EqualTime(time_s, ranked, groups, uncovered)
 

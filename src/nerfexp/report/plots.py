@@ -9,7 +9,7 @@ import statistics
 from matplotlib.figure import Figure
 
 from nerfexp.report.budgets import budget_points, difference_curve
-from nerfexp.report.comparison import seeds
+from nerfexp.report.comparison import SEED, seeds
 from nerfexp.report.runs import Run
 from nerfexp.report.shared_machines import timed_labels
 from nerfexp.report.variants import Variant
@@ -60,6 +60,11 @@ def variant_style(i: int) -> tuple[str, str]:
     return f"C{i % 10}", MARKERS[i // 10 % len(MARKERS)]
 
 
+def runs_text(variant: Variant) -> str:
+    """A variant's finished runs in its legend: "3 seeds"; over more than the seed (a sweep over scenes), "8 runs"."""
+    return seeds(len(variant.finished), SEED if variant.paired_by == SEED else "run")
+
+
 def psnr_vs_time_png(variants: list[Variant]) -> bytes:
     """Validation PSNR against training seconds: a variant's mean over its finished runs (at the steps
     they all reached) with a band from the lowest to the highest run; every run faint in the same colour."""
@@ -74,7 +79,7 @@ def psnr_vs_time_png(variants: list[Variant]) -> bytes:
         if points:
             seconds, mean, low, high = zip(*points)
             axes.plot(seconds, mean, color=colour, marker=marker, markersize=4, linewidth=1.6,
-                      label=f"{variant.label} ({seeds(len(variant.finished))})")
+                      label=f"{variant.label} ({runs_text(variant)})")
             if len(variant.finished) > 1:
                 axes.fill_between(seconds, low, high, color=colour, alpha=0.15, linewidth=0)
     axes.set(xlabel="training wall-clock time (s)", ylabel="validation PSNR (dB)",
@@ -136,7 +141,7 @@ def difference_vs_time_png(variants: list[Variant], reference: Variant | None) -
         colour, marker = variant_style(i)
         times = [t for t, _ in curve]
         axes.plot(times, [d.mean for _, d in curve], color=colour, linewidth=1.6, marker=marker, markevery=[-1],
-                  markersize=4, label=f"{variant.label} ({seeds(max(d.n for _, d in curve))})")
+                  markersize=4, label=f"{variant.label} ({seeds(max(d.n for _, d in curve), curve[0][1].unit)})")
         band = [(t, *d.interval) for t, d in curve if d.interval is not None]
         if band:
             axes.fill_between(*zip(*band), color=colour, alpha=0.15, linewidth=0)

@@ -135,10 +135,10 @@ def paper_order_text(ranked: list[Variant]) -> list[str]:
     order = compare_order(paper_order, measured)
     n_pairs = len(rows) * (len(rows) - 1) // 2
     at = end_budget_text([run for v in rows.values() for run in v.finished])
-    lines = [f"## Against the paper's order ({len(rows)} ablation rows, {n_pairs} pair{'' if n_pairs == 1 else 's'})",
-             "",
+    pairs_text = f"{n_pairs} pair{'' if n_pairs == 1 else 's'}"
+    lines = [f"## Against the paper's order ({len(rows)} ablation rows, {pairs_text})", "",
              f"Compared at the end of training, {at} (the \"Per budget\" section has the earlier budgets). "
-             f"Of the {n_pairs} pair{'' if n_pairs == 1 else 's'} the paper orders: {len(order.agree)} resolved in the paper's order, "
+             f"Of the {pairs_text} the paper orders: {len(order.agree)} resolved in the paper's order, "
              f"{len(order.reversed)} resolved in the other order, {len(order.unresolved)} not resolved by "
              "these seeds. Each pair: the paper's higher row first, then our mean difference (higher - lower) "
              "in test PSNR, paired by seed, with its 95% interval.", ""]

@@ -7,7 +7,7 @@ import statistics
 from collections import Counter
 from dataclasses import dataclass
 
-from nerfexp.report.comparison import Difference, paired_difference
+from nerfexp.report.comparison import PAIR, SEED, Difference, paired_difference
 from nerfexp.report.runs import Run, run_precision
 from nerfexp.rundir.labels import LABELS
 
@@ -23,6 +23,12 @@ class Variant:
     label: str
     runs: list[Run]
     over: tuple[str, ...] = ("seed",)
+
+    @property
+    def paired_by(self) -> str:
+        """What its runs are matched on with another variant's, as the report counts them: ``SEED`` where only the
+        seed is averaged over, else ``PAIR`` (over scenes, a seed on a scene)."""
+        return SEED if tuple(self.over) == ("seed",) else PAIR
 
     @property
     def finished(self) -> list[Run]:
@@ -119,4 +125,4 @@ def reference_variant(variants: list[Variant], name: str | None = None) -> Varia
 
 def difference(a: Variant, b: Variant, key: str = "test_psnr") -> Difference:
     """a - b in ``key``, paired by seed (``nerfexp.report.comparison.paired_difference``)."""
-    return paired_difference(a.by_seed(key), b.by_seed(key))
+    return paired_difference(a.by_seed(key), b.by_seed(key), a.paired_by)
