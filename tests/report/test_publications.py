@@ -87,7 +87,7 @@ def test_a_published_figure_is_shown_only_beside_the_publications_own_scene(tmp_
     write_report([tmp_path], tmp_path)
     report, (row,) = (tmp_path / "report.md").read_text(), read_csv(tmp_path / "report.csv").values()
     if not shown:
-        assert published(report) == [] and "32.54" not in report and "paper PSNR" not in report
+        assert published(report) == [] and "32.54" not in report and "Published numbers" not in report  # nor a word of them
         assert math.isnan(float(row["published_psnr"])) and row["published_source"] == ""
         return
     # Table 1's NeRF on lego: 32.54 dB; ours the mean of 31.0 and 32.0 = 31.5, measured under the paper's protocol
@@ -181,6 +181,9 @@ def test_the_mean_over_the_papers_8_scenes_beside_its_rows_and_each_scenes_own_f
     assert float(table["ablation=no_posenc"]["paired_seeds"]) == 16
     assert float(table["ablation=no_posenc"]["psnr_diff"]) == pytest.approx(-2.5)
     assert "each run paired with the reference's run of the same seed, data.scene," in report
+    method = report.split("## How these numbers were computed")[1]  # how the mean over scenes was taken, once
+    assert report.count("each scene's mean over its runs, then the mean over the scenes") == 1
+    assert "- Published numbers: over several scenes" in method and "SHA-256" not in method  # said where it applies
 
 
 def test_a_sweep_over_some_of_the_papers_scenes_shows_its_mean_beside_the_papers_without_a_difference(tmp_path):

@@ -221,8 +221,9 @@ def test_the_papers_order_counts_agreements_reversals_and_unresolved_pairs_each_
     assert "- Fewer Images above No Pos. Encoding: -0.93" in reversed_
     unresolved = report.split("**Not resolved** (1):")[1]
     assert "- Complete Model above Fewer Images: -0.07 [" in unresolved
-    # and no published number beside runs on the built-in scene (tests/report/test_publications.py)
+    # and no published number beside runs on the built-in scene (tests/report/test_publications.py), nor a word of them
     assert all(math.isnan(float(row["published_psnr"])) for row in read_csv(ablation / "report.csv"))
+    assert "Published numbers" not in report
     assert [PAPER_ABLATION[k][1] for k in ("complete", "no_pe_vd_h")] == [31.01, 26.67]
 
 

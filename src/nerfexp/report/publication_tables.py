@@ -149,6 +149,15 @@ def fmt(value: float | None, digits: int) -> str:
     return "–" if value is None or not math.isfinite(value) else f"{value:.{digits}f}"
 
 
+def published_method(variants: list[Variant]) -> list[str]:
+    """report.md's note on how a published figure's measured side was computed, where a figure is beside a variant over
+    several scenes (which figures apply, and their protocols, "Published numbers" says itself); else none."""
+    if not any(len(beside.measured.scenes) > 1 for variant in variants for beside in beside_published(variant)):
+        return []
+    return ["Published numbers: over several scenes a variant's score there is each scene's mean over its runs, then "
+            "the mean over the scenes, as the paper's means are (the table's is the mean over all of its runs)."]
+
+
 def published_text(variants: list[Variant]) -> list[str]:
     """report.md's "Published numbers": a line per figure beside a variant (``beside_published``), each side with its
     protocol (said once above the table where every line's is the same), the difference only where ``comparable``

@@ -21,7 +21,13 @@ from nerfexp.report.budget_tables import (
 )
 from nerfexp.report.budgets import budget_words, step_differences
 from nerfexp.report.comparison import Difference, compare_order, tiers
-from nerfexp.report.publication_tables import PUBLISHED_COLUMNS, published_columns, published_text, variant_beside
+from nerfexp.report.publication_tables import (
+    PUBLISHED_COLUMNS,
+    published_columns,
+    published_method,
+    published_text,
+    variant_beside,
+)
 from nerfexp.report.publications import PAPER_ABLATION
 from nerfexp.report.runs import Run, run_precision
 from nerfexp.report.shared_machines import machines, timing_caveats
@@ -298,12 +304,7 @@ def method_text(variants: list[Variant], reference: Variant | None) -> list[str]
     method += ["Ranking: variants by mean test PSNR, cut into groups: a group starts at its best and takes each next "
                "variant whose difference to it, paired by seed, has a 95% interval that includes zero (or no "
                "interval, with one seed).",
-               PER_BUDGET_METHOD, EQUAL_TIME_METHOD,
-               "Published numbers are set beside a variant only for a paper's ablation row (`ablation=ROW`) on scenes "
-               "known to be the publication's: a scene of nerfexp's catalogue by name (`data.scene=blender/lego`) "
-               "whose archive had the SHA-256 the catalogue pins; a folder (`data.root`) is not known to be one. "
-               "Over several scenes a variant's score is each scene's mean over its runs, then the mean over the "
-               "scenes, as the paper's means are.",
+               PER_BUDGET_METHOD, EQUAL_TIME_METHOD, *published_method(variants),
                f"Plots: `{PSNR_PLOT}` (validation PSNR against training seconds: each variant's mean over seeds, its "
                f"band from the lowest to the highest seed, single runs faint), `{PARETO_PLOT}` (test PSNR against "
                "total training time, bars one standard deviation over seeds; each variant's budgets as small points "
