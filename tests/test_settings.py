@@ -35,7 +35,7 @@ GROUPS = {  # every option of every group (conf/), and the sweeps' configs
     "ablation": ["complete", "far_fewer_images", "fewer_frequencies", "fewer_images", "more_frequencies",
                  "no_hierarchical", "no_pe_vd_h", "no_posenc", "no_view_dependence"],
     "experiment": ["fast"],
-    "+sweeps": ["components", "cpu_ablation", "paper_ablation", "smoke", "successors"],
+    "+sweeps": ["components", "cpu_ablation", "paper_ablation", "paper_ablation_blender", "smoke", "successors"],
 }
 
 

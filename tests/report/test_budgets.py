@@ -171,11 +171,12 @@ def test_runs_that_shared_their_machine_are_compared_by_step_only_and_named(tmp_
     rows = read_rows(root / "report_budgets.csv")
     assert {row["kind"] for row in rows} == {"step"}  # b's one shared run costs every comparison of b by time
     report = (root / "report.md").read_text()
-    line = next(line for line in report.splitlines() if "compared by step only" in line)
-    assert line.startswith("By training time") and "encoding=b" in line and f"`{root / 'b1'}` (1.50)" in line
-    assert f"`{root / 'b0'}`" not in line and "encoding=a" not in line.split("compared by step only")[0]
+    line = next(line for line in report.splitlines() if "compared with others by step only" in line)
+    assert line.startswith("1 of the 6 finished runs shared their machine") and f"`{root / 'b1'}` (1.50)" in line
+    assert f"`{root / 'b0'}`" not in line and line.endswith("and encoding=b compared with others by step only.")
     equal = report.split("## At equal training time")[1].split("##")[0]
     assert "encoding=b (" not in equal and "encoding=a (" in equal  # ranked: a only
+    assert "Not ranked, compared by step only (the note on times, below the table, says why): encoding=b." in equal
     # the same sweep with nobody beside the runs is compared by time too
     plain = budget_sweep(tmp_path / "plain", time_scale=0.5)
     write_report([plain], plain, reference="encoding=a")
@@ -211,7 +212,7 @@ def test_equal_time_ranks_at_the_fastest_variants_times(tmp_path):
     report = (tmp_path / "report.md").read_text()
     assert "**At 30 s, ranked:**\n\n1. encoding=mid (23.08 dB, 3 runs)\n2. encoding=fast (23.00 dB, 3 runs)\n" \
            "- encoding=slow: first test after 30 s (at 70 s)" in report
-    assert "at the fastest variant's (`encoding=fast`) total training time" in report
+    assert "the variants at the fastest one's (`encoding=fast`) budgets' times" in report
 
 
 def test_equal_times_are_where_every_run_of_the_fastest_variant_has_a_score(tmp_path):

@@ -117,3 +117,20 @@ def test_views_not_in_the_runs_are_one_line_and_a_damaged_render_is_named(pictur
     assert [int(v) for v in re.findall(r"<h3>Test view (\d+)</h3>", html)] == [0, 4, 7]
     assert "unreadable: " in html and "r_4.png: a damaged or unreadable image file" in html
     assert '<div class="missing">missing</div>' in html
+
+
+def test_over_scenes_every_variant_is_shown_by_its_run_of_the_same_seed_and_scene(tmp_path):
+    # two variants over scenes s1 and s2, seed 0: by path alone variant red's first run ("10" before "9") would be
+    # of scene s2 and blue's ("2") of scene s1, pictures of different scenes beside one ground truth
+    root = tmp_path / "sweep"
+    for name, model, scene, colour in (("9", "red", "s1", RED), ("10", "red", "s2", BLUE), ("2", "blue", "s1", BLUE),
+                                       ("3", "blue", "s2", RED)):
+        run = make_run(root, name, [f"model={model}", f"data.scene={scene}", "seed=0"])
+        add_test_views(run, colour, (0, 0, 0), [20.0] * N_VIEWS)
+        results = json.loads((run / "results.json").read_text())
+        (run / "results.json").write_text(json.dumps({**results, "config": {"seed": 0}}))
+    write_report([root], root, over=("seed", "data.scene"), views=[0])
+    html = (root / "report.html").read_text()
+    assert html.count("seed 0, data.scene=s1") == 2 and "data.scene=s2" not in html
+    renders = [Image.open(root / path).getpixel((0, 0)) for path in re.findall(r'src="([^"]*view0/\d\.png)"', html)]
+    assert sorted(renders) == sorted([RED, BLUE])  # each variant's render of scene s1 (of s2: the other colour)

@@ -19,7 +19,8 @@ from nerfexp.reading import UnreadableFile
 from nerfexp.report.folder import write_report
 from nerfexp.report.plots import mean_curve
 from nerfexp.report.runs import Run, find_runs, run_precision
-from nerfexp.report.variants import PAPER_ABLATION, group_variants
+from nerfexp.report.publications import PAPER_ABLATION
+from nerfexp.report.variants import group_variants
 from nerfexp.rundir.layout import planned_jobs, process_start
 from tests.helpers import digests, make_run
 
@@ -107,22 +108,6 @@ def test_plots_are_pngs_of_the_stated_size(sweep):
         assert image.shape[:2] == (500, 800) and image.std() > 0  # 8 x 5 inches at 100 dpi, not blank
 
 
-def test_paper_rows_beside_ours_with_the_difference_on_blender_data(tmp_path):
-    rows = ["complete", "no_posenc", "no_view_dependence"]
-    for i, (row, psnr) in enumerate(zip(rows, [30.0, 29.5, 27.0])):
-        make_run(tmp_path, str(i), [f"ablation={row}", "seed=0"], psnr=psnr,
-                 choices={"ablation": row, "data": "blender"})
-    write_report([tmp_path], tmp_path)
-    table = {row["variant"]: row for row in read_csv(tmp_path / "report.csv")}
-    complete = table["ablation=complete"]
-    assert complete["paper_row"] == "Complete Model" and float(complete["paper_psnr"]) == 31.01
-    assert math.isclose(float(complete["psnr_minus_paper"]), 30.0 - 31.01)
-    assert math.isclose(float(table["ablation=no_view_dependence"]["psnr_minus_paper"]), 27.0 - 27.66)
-    # one seed each: every pair of rows is unresolved, whatever the means say
-    assert "0 resolved in the paper's order, 0 resolved in the other order, 3 not resolved" in (
-        tmp_path / "report.md").read_text()
-
-
 T_975_2 = 4.3027  # Student's t, two-sided 95%, 2 degrees of freedom (a t table)
 
 
@@ -154,7 +139,7 @@ def test_each_variant_against_the_complete_model_paired_by_seed(ablation):
     assert float(table["ablation=no_view_dependence"]["ssim_diff"]) == 0.0  # every run's SSIM is 0.8
     report = (ablation / "report.md").read_text()
     assert "| ablation=no_posenc | 3/3 | 29.00 ± 0.30 | 0.800 ± 0.000 | +1.00 [+0.75, +1.25] |" in report
-    assert "Differences are to the reference, `ablation=complete`" in report
+    assert "Reference: `ablation=complete`." in report
     # no_posenc is resolved above fewer_images (0.9, 1.2, 0.7); complete is not resolved from fewer_images
     assert ("1. ablation=no_posenc (29.00 dB)\n2. ablation=fewer_images (28.07 dB), ablation=complete (28.00 dB)\n"
             "3. ablation=no_view_dependence (25.00 dB)") in report
@@ -186,7 +171,7 @@ def test_lpips_beside_psnr_and_ssim_where_runs_scored_it_lower_being_better(tmp_
            "+0.000 [+0.000, +0.000] | – | not resolved with 3 seeds |" in report
     assert "| ablation=complete | 3/3 | 28.00 ± 0.20 | 0.800 ± 0.000 | 0.200 ± 0.020 | reference | reference | " \
            "reference | reference |" in report
-    assert "LPIPS is AlexNet's (v0.1" in report and "the paper's LPIPS is VGG's" in report
+    assert "LPIPS is AlexNet's (v0.1" in report and "a paper's LPIPS is VGG's" in report
 
 
 @pytest.mark.parametrize("recorded", [{}, {"lpips_weights_sha256": "0" * 64}])
@@ -236,9 +221,78 @@ def test_the_papers_order_counts_agreements_reversals_and_unresolved_pairs_each_
     assert "- Fewer Images above No Pos. Encoding: -0.93" in reversed_
     unresolved = report.split("**Not resolved** (1):")[1]
     assert "- Complete Model above Fewer Images: -0.07 [" in unresolved
-    # and the difference to the paper's own numbers only for Blender scenes
-    assert all(math.isnan(float(row["psnr_minus_paper"])) for row in read_csv(ablation / "report.csv"))
+    # and no published number beside runs on the built-in scene (tests/report/test_publications.py), nor a word of them
+    assert all(math.isnan(float(row["published_psnr"])) for row in read_csv(ablation / "report.csv"))
+    assert "Published numbers" not in report
     assert [PAPER_ABLATION[k][1] for k in ("complete", "no_pe_vd_h")] == [31.01, 26.67]
+
+
+def test_two_ablation_rows_are_one_pair_of_the_papers_order(tmp_path):
+    for seed, (complete, no_posenc) in enumerate([(30.0, 28.0), (31.0, 28.5)]):  # by hand: +2.0, +2.5; mean +2.25
+        make_run(tmp_path, f"c{seed}", ["ablation=complete", f"seed={seed}"], psnr=complete,
+                 choices={"ablation": "complete"})
+        make_run(tmp_path, f"n{seed}", ["ablation=no_posenc", f"seed={seed}"], psnr=no_posenc,
+                 choices={"ablation": "no_posenc"})
+    write_report([tmp_path], tmp_path)
+    report = (tmp_path / "report.md").read_text()
+    assert "## Against the paper's order (2 ablation rows, 1 pair)" in report
+    assert "Of the 1 pair the paper orders: 0 resolved in the paper's order," in report
+    assert "- Complete Model above No Pos. Encoding: +2.25 [" in report
+
+
+SECTIONS = ["## Ranking by mean test PSNR", "## Against the paper's order", "## Per budget",  # report.md's, in order
+            "## At equal training time", "## Jobs that did not finish", "## How these numbers were computed"]
+
+
+@pytest.mark.parametrize("other_host", [False, True])
+def test_the_table_and_its_verdicts_come_first_each_caveat_said_once_below_it_and_the_method_last(ablation,
+                                                                                                   other_host):
+    # the ablation sweep with one run beside other work, one in bf16, and (other_host) a row on another machine
+    for name, change in (("no_posenc_1", {"other_load": 1.5, "cpu_time_s": 50.0, "cpus": 2}),
+                         ("fewer_images_2", {"precision": "bf16-mixed"}),
+                         *((("no_view_dependence_0", {"machine": {"host": "gpu-b", "device": "GPU"}}),)
+                           if other_host else ())):
+        results = json.loads((ablation / name / "results.json").read_text())
+        (ablation / name / "results.json").write_text(json.dumps({**results, **change}))
+    write_report([ablation], ablation)
+    report = (ablation / "report.md").read_text()
+    head, *sections = report.split("\n## ")
+    headings = [f"## {section.splitlines()[0]}" for section in sections]
+    assert len(headings) == len(SECTIONS) and all(map(str.startswith, headings, SECTIONS))  # in order, method last
+    # first the title, what was compared against what, the table with its verdicts; then what it needs said
+    lines = head.splitlines()
+    assert lines[:3] == ["# nerfexp report", "", f"Runs: 12 (12 finished) from `{ablation}`. Reference: "
+                                                 "`ablation=complete`."]
+    assert lines[4].startswith("| variant |") and "| verdict (PSNR) |" in lines[4] and lines[6].startswith("| ")
+    notes = head.split("|\n\n", 1)[1]  # below the table
+    caveats = {"different precisions": "Runs trained in different precisions",
+               "a shared machine": f"`{ablation / 'no_posenc_1'}` (1.50)",
+               **({"two machines": "The runs come from 2 machines"} if other_host else {})}
+    for words in caveats.values():
+        assert report.count(words) == 1 and words in notes  # once, below the table
+    assert report.count("come from 2 machines") == int(other_host) and "Runs come from different machines" not in report
+    # the method once, at the end: how the differences, the ranking and the times were computed
+    method = sections[-1]
+    for words in ("Student's t, n - 1 degrees of freedom", "Ranking: variants by mean test PSNR",
+                  "Times are training wall-clock seconds", "Plots: `psnr_vs_time.png`"):
+        assert report.count(words) == 1 and words in method
+    equal = next(section for section in sections if section.startswith("At equal training time"))
+    assert ("**At " in equal) is not other_host  # ranked by time only where the times may be compared
+
+
+def test_over_scenes_a_difference_counts_pairs_of_a_seed_on_a_scene_not_seeds(tmp_path):
+    # 2 seeds x 2 scenes: b - a is +1, -1, +1, -1 (by hand: mean 0, not resolved) over 4 pairs of 2 seeds; c has one run
+    for i, (scene, seed) in enumerate([(s, seed) for s in ("s1", "s2") for seed in (0, 1)]):
+        over = [f"data.scene={scene}", f"seed={seed}"]
+        make_run(tmp_path, f"a{i}", ["model=a", *over], psnr=20.0)
+        make_run(tmp_path, f"b{i}", ["model=b", *over], psnr=20.0 + (1 if i % 2 == 0 else -1))
+    make_run(tmp_path, "c0", ["model=c", "data.scene=s1", "seed=0"], psnr=21.0)
+    write_report([tmp_path], tmp_path, over=("seed", "data.scene"), reference="model=a")
+    table = (tmp_path / "report.md").read_text().split("\n## ")[0].splitlines()  # the table, before any section
+    (b,) = [line for line in table if line.startswith("| model=b |")]
+    (c,) = [line for line in table if line.startswith("| model=c |")]
+    assert "| +0.00 [" in b and "| not resolved with 4 pairs |" in b and "seeds" not in b
+    assert "| 1 pair: no interval |" in c and "| not resolved with 1 pair |" in c
 
 
 def test_a_named_reference_and_a_variant_with_one_seed(sweep):

@@ -130,7 +130,7 @@ def test_every_field_a_reader_uses_has_a_rule():
             "test_lpips_custom", "test_lpips_custom_per_view", "lpips_weights_sha256", "collapse", "choices", "overrides", "precision", "config.seed", "config.trainer.precision",
             "machine", "train_time_s", "time_per_step_s", "rays_per_s", "n_params", "other_load",
             "evaluations_per_ray", "checkpoint.path", "checkpoint.sha256", "steps", "test_budgets",
-            "budget_scoring_s"}
+            "budget_scoring_s", "test_resolution", "split", "scene.name", "scene.catalog", "scene.sha256"}
     assert read == set(RESULTS_FIELDS)
 
 

@@ -10,7 +10,7 @@ from nerfexp.commands.arguments import command_parser
 from nerfexp.commands.console import one_line_errors
 from nerfexp.report.folder import write_report
 from nerfexp.report.pictures import VIEWS_SHOWN
-from nerfexp.report.shared_machines import shared_lines
+from nerfexp.report.shared_machines import timing_caveats
 from nerfexp.rundir.layout import REPORT_HTML, REPORT_MD
 
 
@@ -20,7 +20,8 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("dirs", nargs="+", type=Path, help="multirun or run directories")
     parser.add_argument("--out", type=Path, help="where to write the report (default: the first directory)")
     parser.add_argument("--over", nargs="+", default=["seed"],
-                        help="override keys averaged over within a variant (default: seed)")
+                        help="override keys averaged over within a variant (default: seed; seed data.scene: each "
+                             "variant's mean over the scenes of a sweep over them, as the paper's table)")
     parser.add_argument("--reference", metavar="VARIANT",
                         help="the variant the others are compared with, by its label in the report (e.g. "
                              "'encoding=posenc, hierarchical=true'); default: ablation=complete if in the sweep")
@@ -41,6 +42,6 @@ def main(argv: list[str] | None = None) -> None:
     out = args.out or args.dirs[0]
     with one_line_errors("nerfexp-report"):
         variants = write_report(args.dirs, out, tuple(args.over), args.reference, args.views, progress=say)
-    for line in shared_lines(variants):  # report.md says it too, beside the table
+    for line in timing_caveats(variants):  # report.md says it too, below the table
         say(line)
     print(f"{len(variants)} variants; report in {out / REPORT_MD} and {out / REPORT_HTML}", file=sys.stderr)

@@ -235,6 +235,11 @@ def write_llff(root, images: Tensor, c2w: Tensor, focal: float, bounds: Tensor) 
     atomic_write(root / POSES_BOUNDS, buffer.getvalue())
 
 
+def holdout_rule(holdout: int) -> str:
+    """How a scene of this format chose its test views (results.json's ``split``): every ``holdout``-th image."""
+    return f"every {holdout}th image in file-name order a test view (data.holdout)"
+
+
 def check_forward_facing(views: Views) -> None:
     """A DatasetError unless every ray of every view looks down -z (d_z < 0), as NDC needs.
 
@@ -298,7 +303,7 @@ class LLFFScene(FolderScene):
         return self._data
 
     def split_rule(self) -> str:
-        return f"every {self.holdout}th image in file-name order a test view (data.holdout)"
+        return holdout_rule(self.holdout)
 
     def views(self, split: str) -> Views:
         return self.load().split(split)

@@ -9,8 +9,8 @@ each run's test score is interpolated linearly in training seconds between its b
 (``score_at_time``: None before its first budget and after its end), and two variants are compared at a time
 only where every one of their runs has a score there (``time_window``: from the latest first budget to the
 shortest run's total), so that no seed drops out of a pair for being slow. Times are compared only between
-runs that had their machine to themselves (``nerfexp.report.shared_machines.shared`` None: ``timed``); a variant
-with a run that shared it is compared by step only (``by_step_only_line`` says so).
+runs on one machine that had it to themselves (``nerfexp.report.shared_machines.timed_labels``); a variant with a
+run that shared it is compared by step only (the report says why once: ``timing_caveats``).
 """
 
 import bisect
@@ -19,9 +19,9 @@ import statistics
 from collections.abc import Hashable
 from dataclasses import dataclass
 
-from nerfexp.report.comparison import Difference, paired_difference, tiers
+from nerfexp.report.comparison import SEED, Difference, paired_difference, tiers
 from nerfexp.report.runs import Budget, Run
-from nerfexp.report.shared_machines import shared
+from nerfexp.report.shared_machines import timed_labels
 from nerfexp.report.variants import Variant
 from nerfexp.rundir.records import is_scored
 
@@ -62,8 +62,8 @@ def scores_at_step(variant: Variant, step: int, metric: str = "psnr") -> dict[Ha
 def step_differences(variant: Variant, reference: Variant, metric: str = "psnr") -> dict[int, Difference]:
     """``variant`` - ``reference`` in the test ``metric`` at each step both share (``shared_steps``), paired by
     seed; in step order."""
-    return {step: paired_difference(scores_at_step(variant, step, metric), scores_at_step(reference, step, metric))
-            for step in shared_steps([variant, reference])}
+    return {step: paired_difference(scores_at_step(variant, step, metric), scores_at_step(reference, step, metric),
+                                    variant.paired_by) for step in shared_steps([variant, reference])}
 
 
 def score_at_time(budgets: list[Budget], time_s: float, metric: str = "psnr") -> float | None:
@@ -104,8 +104,8 @@ def time_differences(variant: Variant, reference: Variant, times: list[float], m
     window = time_window([variant, reference])
     if window is None:
         return {}
-    return {t: paired_difference(scores_at_time(variant, t, metric), scores_at_time(reference, t, metric))
-            for t in times if window[0] <= t <= window[1]}
+    return {t: paired_difference(scores_at_time(variant, t, metric), scores_at_time(reference, t, metric),
+                                 variant.paired_by) for t in times if window[0] <= t <= window[1]}
 
 
 def difference_curve(variant: Variant, reference: Variant, points: int = CURVE_POINTS
@@ -118,27 +118,6 @@ def difference_curve(variant: Variant, reference: Variant, points: int = CURVE_P
     start, end = window
     times = [start + (end - start) * i / (points - 1) for i in range(points)] if end > start else [start]
     return list(time_differences(variant, reference, times).items())
-
-
-def timed(variant: Variant) -> bool:
-    """Whether ``variant``'s times may be compared: none of its finished runs shared its machine (``shared``)."""
-    return all(shared(run) is None for run in variant.finished)
-
-
-def by_step_only_line(variants: list[Variant], reference: Variant | None) -> str | None:
-    """The line saying which variants are compared by step only, because some of their runs shared their machine
-    (ran beside other work),
-    naming those runs with their others' load; None where every variant is timed."""
-    untimed = [v for v in variants if v.finished and not timed(v)]
-    if not untimed:
-        return None
-    named = "; ".join(f"{v.label}: " + ", ".join(f"`{run.path}` ({load:.2f})" for run in v.finished
-                                                  if (load := shared(run)) is not None) for v in untimed)
-    also = ("; the reference being one of them, no variant is compared with it by time"
-            if reference is not None and reference in untimed else "")
-    return (f"By training time (the per-budget table's time columns, the equal-time tables, the difference against "
-            f"time plot): {', '.join(v.label for v in untimed)} compared by step only{also}: some of their runs "
-            f"ran beside other work on their machine, so their times are partly their neighbours' ({named}).")
 
 
 def scoring_seconds(variants: list[Variant]) -> float | None:
@@ -168,11 +147,12 @@ def budget_points(variant: Variant) -> list[tuple[int, float, float]]:
 
 def equal_times(variants: list[Variant]) -> tuple[Variant | None, list[float]]:
     """The times the equal-time tables rank at: of the fastest timed variant (the lowest mean training time of
-    those with finished runs, ``timed``), the mean time of each of its budgets, each brought into the times at
-    which every one of its runs has a score (``time_window``: a mean first budget before a slower seed's first,
+    those with finished runs, ``timed_labels``), the mean time of each of its budgets, each brought into the times
+    at which every one of its runs has a score (``time_window``: a mean first budget before a slower seed's first,
     or a mean total past a faster seed's end, would leave some of its own runs out), its total the last, each
     time once; (None, []) where no variant is timed."""
-    candidates = [v for v in variants if v.finished and timed(v) and math.isfinite(v.mean("train_time_s"))]
+    timed = timed_labels(variants)
+    candidates = [v for v in variants if v.label in timed and math.isfinite(v.mean("train_time_s"))]
     if not candidates:
         return None, []
     fastest = min(candidates, key=lambda v: v.mean("train_time_s"))
@@ -212,14 +192,16 @@ def uncovered_reason(variant: Variant, time_s: float) -> str:
 
 
 def equal_time(variants: list[Variant], time_s: float) -> EqualTime:
-    """The timed ``variants`` (``timed``) ranked by mean test PSNR at training time ``time_s``, each over its runs
-    that have a score there (``scores_at_time``), grouped where their difference there, paired by seed, is not
+    """The timed ``variants`` (``timed_labels``) ranked by mean test PSNR at training time ``time_s``, each over its
+    runs that have a score there (``scores_at_time``), grouped where their difference there, paired by seed, is not
     resolved (``nerfexp.report.comparison.tiers``); the rest named with why (``uncovered_reason``)."""
-    timed_variants = [v for v in variants if v.finished and timed(v)]
+    timed = timed_labels(variants)
+    timed_variants = [v for v in variants if v.label in timed]
     scores = {v.label: scores_at_time(v, time_s) for v in timed_variants}
     ranked = sorted(((label, statistics.fmean(s.values()), len(s)) for label, s in scores.items() if s),
                     key=lambda item: -item[1])
-    groups = tiers([label for label, _, _ in ranked], lambda a, b: paired_difference(scores[a], scores[b]))
+    unit = timed_variants[0].paired_by if timed_variants else SEED
+    groups = tiers([label for label, _, _ in ranked], lambda a, b: paired_difference(scores[a], scores[b], unit))
     uncovered = [(v.label, uncovered_reason(v, time_s)) for v in timed_variants if not scores[v.label]]
     return EqualTime(time_s, ranked, groups, uncovered)
 

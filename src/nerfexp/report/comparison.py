@@ -18,9 +18,12 @@ from scipy.stats import t as student_t
 LEVEL = 0.95  # the confidence level of every interval
 
 
-def seeds(n: int) -> str:
-    """"1 seed", "3 seeds"."""
-    return f"{n} seed{'' if n == 1 else 's'}"
+SEED, PAIR = "seed", "pair"  # what a pair of runs is matched on, as the report counts them (``Variant.paired_by``)
+
+
+def seeds(n: int, unit: str = SEED) -> str:
+    """"1 seed", "3 seeds"; "4 pairs" (``unit``)."""
+    return f"{n} {unit}{'' if n == 1 else 's'}"
 
 
 @functools.cache
@@ -43,11 +46,13 @@ def t_interval(values: Sequence[float], level: float = LEVEL) -> tuple[float, fl
 
 @dataclass(frozen=True)
 class Difference:
-    """The mean of paired differences a - b over ``n`` pairs and its 95% interval (None for n < 2)."""
+    """The mean of paired differences a - b over ``n`` pairs and its 95% interval (None for n < 2); ``unit``: what
+    the pairs are counted as (``SEED``; ``PAIR`` where runs are matched on more than their seed, a seed on a scene)."""
 
     mean: float
     n: int
     interval: tuple[float, float] | None
+    unit: str = SEED
 
     @property
     def verdict(self) -> str:
@@ -65,24 +70,24 @@ class Difference:
     def describe(self, digits: int) -> str:
         """E.g. ``+0.08 [-0.31, +0.47]``, or ``1 seed: no interval``, or ``no seeds in common``."""
         if self.n == 0:
-            return "no seeds in common"
+            return f"no {self.unit}s in common"
         if self.interval is None:
-            return f"{seeds(self.n)}: no interval"
+            return f"{seeds(self.n, self.unit)}: no interval"
         low, high = self.interval
         return f"{self.mean:+.{digits}f} [{low:+.{digits}f}, {high:+.{digits}f}]"
 
     def verdict_text(self) -> str:
-        """The verdict, with the number of seeds where it is not resolved."""
+        """The verdict, with the number of seeds (or pairs) where it is not resolved."""
         if self.resolved:
             return self.verdict
-        return f"not resolved with {seeds(self.n)}"
+        return f"not resolved with {seeds(self.n, self.unit)}"
 
 
-def paired_difference(a: Mapping[Hashable, float], b: Mapping[Hashable, float]) -> Difference:
-    """a - b over the seeds (keys) both have: their mean and its t-interval."""
+def paired_difference(a: Mapping[Hashable, float], b: Mapping[Hashable, float], unit: str = SEED) -> Difference:
+    """a - b over the seeds (keys) both have: their mean and its t-interval, counted in ``unit``."""
     differences = [a[seed] - b[seed] for seed in a if seed in b]
     mean = statistics.fmean(differences) if differences else math.nan
-    return Difference(mean, len(differences), t_interval(differences))
+    return Difference(mean, len(differences), t_interval(differences), unit)
 
 
 def tiers(ranked: Sequence[str], difference: Callable[[str, str], Difference]) -> list[list[str]]:

@@ -39,10 +39,18 @@ def run_seed(run: Run) -> int | None:
 
 
 def shown_run(variant: Variant) -> Run | None:
-    """The variant's finished run whose renders the page shows: the one with the lowest seed, so that
-    variants are shown with the same seed where they have it (then the first by path)."""
-    return min(variant.finished, key=lambda run: (run_seed(run) is None, run_seed(run) or 0, str(run.path)),
-               default=None)
+    """The variant's finished run whose renders the page shows: the one with the lowest seed, then the first by the
+    other keys it is averaged over (``Variant.seed_of``: a scene of a sweep over scenes), so that variants are shown
+    with the same seed, on the same scene, where they have them (then the first by path)."""
+    return min(variant.finished, key=lambda run: (run_seed(run) is None, run_seed(run) or 0, variant.seed_of(run),
+                                                  str(run.path)), default=None)
+
+
+def shown_as(variant: Variant, run: Run) -> str:
+    """Which of the variant's runs ``run`` is, as its picture's caption says: "seed 0", and the other keys the
+    variant is averaged over where there are any ("seed 0, data.scene=blender/chair")."""
+    others = [o for o in variant.seed_of(run) if not o.startswith("seed=")]
+    return ", ".join([f"seed {run_seed(run)}", *others])
 
 
 ERROR_WHITE = 0.25  # the error heat map's scale: 0 black, this mean absolute error (of 1) and above white
@@ -90,7 +98,7 @@ def view_tiles(variants: list[Variant], views: list[int], folder: Path) -> dict[
             pictures = (copy_picture(test / f"r_{index}.png", folder, f"view{index}/{k}.png", "render"),
                         copy_picture(test / f"r_{index}_error.png", folder, f"view{index}/{k}_error.png",
                                      "error heat map", error_heatmap))
-            caption = f"seed {run_seed(run)}"
+            caption = shown_as(variant, run)
             if index in (views_run := run.results.get("test_views", [])):
                 at = views_run.index(index)
                 psnr, ssim = (run.results.get(f"test_{m}_per_view", [math.nan] * len(views_run))[at]
@@ -116,7 +124,8 @@ def check_views(variants: list[Variant], views: list[int] | None) -> list[int]:
     return list(dict.fromkeys(views))
 
 
-VIEWS_NOTE = ("Each variant's run with the lowest seed: its render of the view (top) and its error (below): "
-              "the absolute difference to the ground truth averaged over the colour channels, black 0, white "
-              f"{ERROR_WHITE:g} and above (magma). The PSNR and SSIM (and LPIPS, where the run scored it) are that "
-              "run's on that view. Small images are enlarged with visible pixels.")
+VIEWS_NOTE = ("Each variant's run with the lowest seed (over scenes, every variant's on the same scene, named below "
+              "it): its render of the view (top) and its error (below): the absolute difference to the ground truth "
+              f"averaged over the colour channels, black 0, white {ERROR_WHITE:g} and above (magma). The PSNR and "
+              "SSIM (and LPIPS, where the run scored it) are that run's on that view. Small images are enlarged with "
+              "visible pixels.")

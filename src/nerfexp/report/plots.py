@@ -8,9 +8,10 @@ import statistics
 
 from matplotlib.figure import Figure
 
-from nerfexp.report.budgets import budget_points, difference_curve, timed
-from nerfexp.report.comparison import seeds
+from nerfexp.report.budgets import budget_points, difference_curve
+from nerfexp.report.comparison import SEED, seeds
 from nerfexp.report.runs import Run
+from nerfexp.report.shared_machines import timed_labels
 from nerfexp.report.variants import Variant
 
 FIGSIZE, DPI = (8.0, 5.0), 100  # 800 x 500 pixels
@@ -59,6 +60,11 @@ def variant_style(i: int) -> tuple[str, str]:
     return f"C{i % 10}", MARKERS[i // 10 % len(MARKERS)]
 
 
+def runs_text(variant: Variant) -> str:
+    """A variant's finished runs in its legend: "3 seeds"; over more than the seed (a sweep over scenes), "8 runs"."""
+    return seeds(len(variant.finished), SEED if variant.paired_by == SEED else "run")
+
+
 def psnr_vs_time_png(variants: list[Variant]) -> bytes:
     """Validation PSNR against training seconds: a variant's mean over its finished runs (at the steps
     they all reached) with a band from the lowest to the highest run; every run faint in the same colour."""
@@ -73,7 +79,7 @@ def psnr_vs_time_png(variants: list[Variant]) -> bytes:
         if points:
             seconds, mean, low, high = zip(*points)
             axes.plot(seconds, mean, color=colour, marker=marker, markersize=4, linewidth=1.6,
-                      label=f"{variant.label} ({seeds(len(variant.finished))})")
+                      label=f"{variant.label} ({runs_text(variant)})")
             if len(variant.finished) > 1:
                 axes.fill_between(seconds, low, high, color=colour, alpha=0.15, linewidth=0)
     axes.set(xlabel="training wall-clock time (s)", ylabel="validation PSNR (dB)",
@@ -122,12 +128,12 @@ def difference_vs_time_png(variants: list[Variant], reference: Variant | None) -
     """Each variant's test PSNR - the reference's against training time, paired by seed at the matched times
     (``difference_curve``: each run's score interpolated between its budgets, where every run of both has one), the
     mean a line and its 95% interval a band, zero a black line; only variants whose times, and the reference's,
-    may be compared (``timed``). A plot without curves says why in its title."""
+    may be compared (``timed_labels``). A plot without curves says why in its title."""
     figure = Figure(figsize=FIGSIZE, layout="constrained")
     axes = figure.add_subplot()
-    drawn = False
+    drawn, timed = False, timed_labels(variants)
     for i, variant in enumerate(variants):
-        if reference is None or variant is reference or not (timed(variant) and timed(reference)):
+        if reference is None or variant is reference or not {variant.label, reference.label} <= timed:
             continue
         curve = [(t, d) for t, d in difference_curve(variant, reference) if d.n > 0]
         if not curve:
@@ -135,7 +141,7 @@ def difference_vs_time_png(variants: list[Variant], reference: Variant | None) -
         colour, marker = variant_style(i)
         times = [t for t, _ in curve]
         axes.plot(times, [d.mean for _, d in curve], color=colour, linewidth=1.6, marker=marker, markevery=[-1],
-                  markersize=4, label=f"{variant.label} ({seeds(max(d.n for _, d in curve))})")
+                  markersize=4, label=f"{variant.label} ({seeds(max(d.n for _, d in curve), curve[0][1].unit)})")
         band = [(t, *d.interval) for t, d in curve if d.interval is not None]
         if band:
             axes.fill_between(*zip(*band), color=colour, alpha=0.15, linewidth=0)
@@ -148,7 +154,7 @@ def difference_vs_time_png(variants: list[Variant], reference: Variant | None) -
         title = "No difference against time: the report has no reference variant"
     else:
         title = ("No difference against time: no variant's runs and the reference's share a training time\n"
-                 "(or their runs shared their machine)")
+                 "(or their runs' times may not be compared: report.md's note on times)")
     axes.set(xlabel="training wall-clock time (s)", ylabel="test PSNR difference (dB)", title=title)
     axes.grid(alpha=0.3)
     legend(figure, axes)

@@ -4,9 +4,12 @@ right half with the image's appearance code fitted on its left half, ``nerfexp.n
 where they share a protocol; else the right halves every run scored (``test_psnr_right_half``,
 ``test_ssim_right_half``), said so in the report; a run without them is refused, as are runs whose test cameras
 differ (no pixels are scored alike there).
+
+A score's whole protocol, for setting it beside a published one (``Protocol``): the test images' resolution, the
+test views scored and how the split chose them, the training steps, and the pixels above (``run_protocol``).
 """
 
-from dataclasses import replace
+from dataclasses import dataclass, replace
 
 from nerfexp.nerf.appearance import FULL_IMAGE, NERFW_RIGHT_HALF
 from nerfexp.report.lpips_weights import without_lpips
@@ -79,6 +82,88 @@ def compared_protocols(runs: list[Run], finished: list[Run]) -> tuple[list[Run],
 
 
 def right_halves(results: dict) -> dict:
-    """A run's ``results`` whose test PSNR and SSIM are its right half's, without LPIPS."""
+    """A run's ``results`` whose test PSNR and SSIM are its right half's (``RIGHT_HALVES`` says so), without LPIPS."""
     halves = {key: results[half] for key, half in RIGHT_HALF_KEYS.items()}
-    return {**without_lpips(results), **halves}
+    return {**without_lpips(results), **halves, RIGHT_HALVES: True}
+
+
+RIGHT_HALVES = "right_halves_compared"  # a key right_halves adds to the results it makes (never in a file's)
+OWN_SPLIT = None  # a Protocol's split where the scene's own files name the test views (no results.json ``split``)
+SPLIT_WORDS = "the scene's own test split"
+
+
+@dataclass(frozen=True)
+class Protocol:
+    """How test scores were measured: the test images' ``resolution`` (width, height; None: not recorded), the number
+    of test ``views`` scored on each scene (lowest, highest; None: not recorded, or for a published protocol every
+    view its split holds out), how the ``split`` chose them (results.json's ``split``; ``OWN_SPLIT``: the scene's own
+    files), the training ``steps`` (lowest, highest; None: not recorded) and the ``pixels`` scored (the test protocol
+    and the test cameras, ``test_protocol`` and ``test_cameras``, or right halves compared: ``pixels_of``)."""
+
+    resolution: tuple[int, int] | None
+    views: tuple[int, int] | None
+    split: str | None
+    steps: tuple[int, int] | None
+    pixels: str = FULL_IMAGE
+
+    def covers(self, measured: "Protocol") -> bool:
+        """Whether scores ``measured`` so were measured under this (published) protocol: the same resolution, split
+        and pixels, as many views (any, where this one takes every view its split holds out) and steps within
+        this one's."""
+        return (measured.resolution is not None and measured.resolution == self.resolution
+                and measured.split == self.split and measured.pixels == self.pixels
+                and (self.views is None or measured.views == self.views)
+                and measured.steps is not None and self.steps is not None
+                and self.steps[0] <= measured.steps[0] and measured.steps[1] <= self.steps[1])
+
+    def text(self, published: bool = False) -> str:
+        """In words: "800 x 800 px, 200 test views (the scene's own test split), 100,000 to 300,000 steps";
+        ``published``: views None are every view the split holds out (else: not recorded)."""
+        size = "resolution not recorded" if self.resolution is None else "{} x {} px".format(*self.resolution)
+        if self.views is None:
+            views = "every held-out view" if published else "test views not recorded"
+        else:
+            views = f"{span_text(self.views)} test view{'' if self.views == (1, 1) else 's'}"
+        steps = "steps not recorded" if self.steps is None else f"{span_text(self.steps)} steps"
+        pixels = "" if self.pixels == FULL_IMAGE else f", {PIXEL_WORDS.get(self.pixels, self.pixels)}"
+        return f"{size}, {views} ({SPLIT_WORDS if self.split is OWN_SPLIT else self.split}), {steps}{pixels}"
+
+
+PIXEL_WORDS = {NERFW_RIGHT_HALF: "NeRF-W's right halves", RIGHT_HALVES: "the right halves of the images",
+               REFINED: "test cameras refined"}
+
+
+def span_text(span: tuple[int, int]) -> str:
+    """(200, 200) -> "200"; (100000, 300000) -> "100,000 to 300,000"."""
+    return f"{span[0]:,}" if span[0] == span[1] else f"{span[0]:,} to {span[1]:,}"
+
+
+def pixels_of(results: dict) -> str:
+    """The pixels a run's compared scores are of: ``RIGHT_HALVES`` where the report compares right halves, else
+    its test protocol, or ``REFINED`` where its test cameras were refined."""
+    if results.get(RIGHT_HALVES):
+        return RIGHT_HALVES
+    return REFINED if test_cameras(results) == REFINED else test_protocol(results)
+
+
+def run_protocol(results: dict) -> Protocol:
+    """The ``Protocol`` a finished run's ``results`` were measured under (its ``test_resolution``, the number of its
+    ``test_views``, its ``split``, ``steps`` and ``pixels_of``)."""
+    size, views, steps = results.get("test_resolution"), results.get("test_views"), results.get("steps")
+    return Protocol(None if size is None else (size[0], size[1]), None if views is None else (len(views), len(views)),
+                    results.get("split", OWN_SPLIT), None if steps is None else (steps, steps), pixels_of(results))
+
+
+def merged_protocol(protocols: list[Protocol]) -> Protocol | None:
+    """One protocol for the scores of several runs (a variant's, over seeds or scenes): theirs, with the views and
+    steps from their lowest to their highest; None where they differ in anything else, or any is not recorded."""
+    first = protocols[0] if protocols else None
+    if first is None or any((p.resolution, p.split, p.pixels) != (first.resolution, first.split, first.pixels)
+                            or p.views is None or p.steps is None for p in protocols):
+        return None
+    return replace(first, views=spanned(p.views for p in protocols), steps=spanned(p.steps for p in protocols))
+
+
+def spanned(spans) -> tuple[int, int]:
+    spans = list(spans)
+    return min(low for low, _ in spans), max(high for _, high in spans)

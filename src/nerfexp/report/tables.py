@@ -1,5 +1,6 @@
-"""The report's tables: ``report.md`` (the variants with their differences to the reference and the
-paper's rows, their tags and notes, the ranking, the paper's order, the jobs that did not finish) and
+"""The report's tables: ``report.md`` (the result first: the variants with their differences to the reference and
+verdicts, what the numbers need said below them, each once; the published figures where they apply, the ranking, the
+paper's order, the comparisons per budget, the jobs that did not finish; last how it was computed) and
 ``report.csv``."""
 
 
@@ -7,15 +8,30 @@ import csv
 import io
 import json
 import math
+from dataclasses import dataclass
 from pathlib import Path
 
 from nerfexp.reading import UnreadableFile
-from nerfexp.report.budget_tables import end_budget_text, equal_time_text, per_budget_text
+from nerfexp.report.budget_tables import (
+    EQUAL_TIME_METHOD,
+    PER_BUDGET_METHOD,
+    end_budget_text,
+    equal_time_text,
+    per_budget_text,
+)
 from nerfexp.report.budgets import budget_words, step_differences
 from nerfexp.report.comparison import Difference, compare_order, tiers
+from nerfexp.report.publication_tables import (
+    PUBLISHED_COLUMNS,
+    published_columns,
+    published_method,
+    published_text,
+    variant_beside,
+)
+from nerfexp.report.publications import PAPER_ABLATION
 from nerfexp.report.runs import Run, run_precision
-from nerfexp.report.shared_machines import shared_lines
-from nerfexp.report.variants import PAPER_ABLATION, Variant, difference
+from nerfexp.report.shared_machines import machines, timing_caveats
+from nerfexp.report.variants import Variant, difference
 from nerfexp.rundir.layout import DIFFERENCE_PLOT, PARETO_PLOT, PSNR_PLOT, planned_jobs
 
 
@@ -34,7 +50,7 @@ COLUMNS = ("variant", "runs", "finished", "test_psnr_mean", "test_psnr_std", "te
            "ssim_diff", "ssim_diff_low", "ssim_diff_high", "lpips_diff", "lpips_diff_low", "lpips_diff_high", "verdict",
            "budget_verdict",
            "train_time_s", "time_per_step_s", "rays_per_s", "n_params", "evaluations_per_ray",
-           "paper_row", "paper_psnr", "paper_ssim", "psnr_minus_paper", "precision", "tags", "notes")
+           *PUBLISHED_COLUMNS, "precision", "tags", "notes")
 
 
 # The test scores compared with the reference: higher PSNR and SSIM are better, lower LPIPS (AlexNet's, which
@@ -77,27 +93,22 @@ def budget_verdict(variant: Variant, reference: Variant | None) -> str:
 
 def table_rows(variants: list[Variant], reference: Variant | None = None) -> list[dict]:
     """One dict per variant with the ``COLUMNS``, and its ``differences`` to the reference (computed once,
-    for report.md's cells and report.csv's columns); the difference to the paper only on Blender data
-    (the paper's numbers are means over its 8 Blender scenes; other scenes are not comparable). Its tags and
-    notes (``Variant.tags``, ``Variant.notes``) are JSON lists of texts."""
+    for report.md's cells and report.csv's columns); the published figure beside it only where one applies
+    (``nerfexp.report.publication_tables.variant_beside``). Its tags and notes (``Variant.tags``, ``Variant.notes``)
+    are JSON lists of texts."""
     rows = []
     for v in variants:
-        paper, differences = v.paper, reference_differences(v, reference)
-        row = {"variant": v.label, "runs": len(v.runs), "finished": len(v.finished),
-               "test_psnr_mean": v.mean("test_psnr"), "test_psnr_std": v.std("test_psnr"),
-               "test_ssim_mean": v.mean("test_ssim"), "test_ssim_std": v.std("test_ssim"),
-               "test_lpips_mean": v.mean("test_lpips"), "test_lpips_std": v.std("test_lpips"),
-               **reference_columns(differences, reference), "budget_verdict": budget_verdict(v, reference),
-               "train_time_s": v.mean("train_time_s"), "time_per_step_s": v.mean("time_per_step_s"),
-               "rays_per_s": v.mean("rays_per_s"), "n_params": v.mean("n_params"),
-               "evaluations_per_ray": v.mean("evaluations_per_ray"),
-               "paper_row": paper[0] if paper else "", "paper_psnr": paper[1] if paper else math.nan,
-               "paper_ssim": paper[2] if paper else math.nan, "psnr_minus_paper": math.nan,
-               "precision": v.precision, "tags": json.dumps(v.tags), "notes": json.dumps(v.notes),
-               "differences": differences}
-        if paper and v.choice("data") == "blender":
-            row["psnr_minus_paper"] = row["test_psnr_mean"] - paper[1]
-        rows.append(row)
+        differences = reference_differences(v, reference)
+        rows.append({"variant": v.label, "runs": len(v.runs), "finished": len(v.finished),
+                     "test_psnr_mean": v.mean("test_psnr"), "test_psnr_std": v.std("test_psnr"),
+                     "test_ssim_mean": v.mean("test_ssim"), "test_ssim_std": v.std("test_ssim"),
+                     "test_lpips_mean": v.mean("test_lpips"), "test_lpips_std": v.std("test_lpips"),
+                     **reference_columns(differences, reference), "budget_verdict": budget_verdict(v, reference),
+                     "train_time_s": v.mean("train_time_s"), "time_per_step_s": v.mean("time_per_step_s"),
+                     "rays_per_s": v.mean("rays_per_s"), "n_params": v.mean("n_params"),
+                     "evaluations_per_ray": v.mean("evaluations_per_ray"), **published_columns(variant_beside(v)),
+                     "precision": v.precision, "tags": json.dumps(v.tags), "notes": json.dumps(v.notes),
+                     "differences": differences})
     return rows
 
 
@@ -108,9 +119,7 @@ def ranking_text(variants: list[Variant]) -> list[str]:
     by_label = {v.label: v for v in ranked}
     groups = tiers([v.label for v in ranked], lambda a, b: difference(by_label[a], by_label[b]))
     lines = ["## Ranking by mean test PSNR", "",
-             "Variants on one line are not resolved from the first of the line: the 95% interval of their "
-             "difference in test PSNR, paired by seed, includes zero (or there is no interval, with one "
-             "seed). The next line starts at the first variant resolved below it.", ""]
+             "Variants on one line are not resolved from the first of the line by these seeds.", ""]
     lines += [f"{i}. " + ", ".join(f"{label} ({by_label[label].mean('test_psnr'):.2f} dB)" for label in group)
               for i, group in enumerate(groups, 1)]
     return lines + [""] + paper_order_text(ranked)
@@ -119,8 +128,9 @@ def ranking_text(variants: list[Variant]) -> list[str]:
 def paper_order_text(ranked: list[Variant]) -> list[str]:
     """Each pair of the paper's ablation rows in the sweep: resolved in the paper's order, resolved in
     the other, or not resolved with the seeds there are; each pair named with our difference."""
-    rows = {v.choice("ablation"): v for v in ranked if v.paper}
-    if len(rows) < 2 or sum(bool(v.paper) for v in ranked) != len(rows):
+    in_paper = [v for v in ranked if v.choice("ablation") in PAPER_ABLATION]
+    rows = {v.choice("ablation"): v for v in in_paper}
+    if len(rows) < 2 or len(in_paper) != len(rows):
         return ["No comparison with the paper's order: it needs at least two finished variants that are "
                 "distinct rows of the paper's ablation table (`ablation=...`)."]
     paper_order = sorted(rows, key=lambda n: -PAPER_ABLATION[n][1])
@@ -131,9 +141,10 @@ def paper_order_text(ranked: list[Variant]) -> list[str]:
     order = compare_order(paper_order, measured)
     n_pairs = len(rows) * (len(rows) - 1) // 2
     at = end_budget_text([run for v in rows.values() for run in v.finished])
-    lines = [f"## Against the paper's order ({len(rows)} ablation rows, {n_pairs} pairs)", "",
+    pairs_text = f"{n_pairs} pair{'' if n_pairs == 1 else 's'}"
+    lines = [f"## Against the paper's order ({len(rows)} ablation rows, {pairs_text})", "",
              f"Compared at the end of training, {at} (the \"Per budget\" section has the earlier budgets). "
-             f"Of the {n_pairs} pairs the paper orders: {len(order.agree)} resolved in the paper's order, "
+             f"Of the {pairs_text} the paper orders: {len(order.agree)} resolved in the paper's order, "
              f"{len(order.reversed)} resolved in the other order, {len(order.unresolved)} not resolved by "
              "these seeds. Each pair: the paper's higher row first, then our mean difference (higher - lower) "
              "in test PSNR, paired by seed, with its 95% interval.", ""]
@@ -145,16 +156,6 @@ def paper_order_text(ranked: list[Variant]) -> list[str]:
                   for a, b in pairs] or ["- none"]
         lines.append("")
     return lines[:-1]
-
-
-def machines_text(runs: list[Run]) -> str:
-    seen = sorted({(r.results["machine"]["host"], r.results["machine"]["device"])
-                   for r in runs if r.results and "machine" in r.results})
-    where = "; ".join(f"{host}: {device}" for host, device in seen) or "unknown"
-    note = (" Runs come from different machines, so their times are not comparable with each other."
-            if len(seen) > 1 else "")
-    return (f"Times are training wall-clock seconds as each run measured them (periodic validation included; "
-            f"preparing the data and the final test not), on {where}.{note}")
 
 
 def precision_text(variants: list[Variant]) -> tuple[str, bool]:
@@ -170,13 +171,94 @@ def precision_text(variants: list[Variant]) -> tuple[str, bool]:
     return text, True
 
 
-def markdown(variants: list[Variant], rows: list[dict], runs: list[Run], sources: list[Path],
-             reference: Variant | None = None, protocols: str = "") -> str:
-    """report.md: the ``variants`` with their ``rows`` (``table_rows`` against ``reference``), a line for each
-    comparison by time that holds runs that shared their machine (``shared_lines``), the ranking,
-    the paper's order, and the ``runs`` under ``sources`` that did not finish; ``protocols``: which scores these
-    are, where it needs saying (the test protocol's, ``nerfexp.report.protocols.compared_runs``; whose LPIPS is left
-    out, ``nerfexp.report.lpips_weights.vouched_lpips``)."""
+@dataclass(frozen=True)
+class Shown:
+    """Which of report.md's optional columns its table has: ``tags`` (some variant has tags), ``lpips`` (some run
+    scored it), ``precision`` (the runs' precisions differ) and the differences to a ``reference``."""
+
+    tags: bool
+    lpips: bool
+    precision: bool
+    reference: bool
+
+
+def shown_columns(variants: list[Variant], reference: Variant | None) -> Shown:
+    return Shown(any(v.tags for v in variants), any(v.values("test_lpips") for v in variants),
+                 precision_text(variants)[1], reference is not None)
+
+
+def table_header(shown: Shown) -> list[str]:
+    """report.md's table's column names."""
+    header = ["variant", *(["tags"] if shown.tags else []), "runs", "test PSNR (dB)", "test SSIM"]
+    header += ["test LPIPS"] if shown.lpips else []
+    header += ["precision"] if shown.precision else []
+    if shown.reference:
+        header += ["PSNR - reference (95% CI)", "SSIM - reference (95% CI)"]
+        header += ["LPIPS - reference (95% CI; lower is better)"] if shown.lpips else []
+        header += ["verdict (PSNR)"]
+    return header + ["train time (s)", "s / step", "rays / s", "params", "evals / ray"]
+
+
+def reference_cells(v: Variant, row: dict, reference: Variant, lpips: bool) -> list[str]:
+    """A variant's differences to ``reference`` and its verdict, as report.md's cells."""
+    if v is reference or not v.finished:
+        return ["reference" if v is reference else "–"] * (4 if lpips else 3)
+    differences = row["differences"]
+    cells = [differences["psnr"].describe(2), differences["ssim"].describe(3)]
+    if lpips:
+        cells.append(differences["lpips"].describe(3) if differences["lpips"].n else "–")  # none: a side has none
+    return cells + [row["verdict"] + (f" ({row['budget_verdict']})" if row["budget_verdict"] else "")]
+
+
+def table_cells(v: Variant, row: dict, shown: Shown, reference: Variant | None) -> list[str]:
+    """A variant's line of report.md's table (``table_header``'s columns) from its ``row`` (``table_rows``)."""
+    cells = [row["variant"], *([", ".join(map(markdown_text, v.tags))] if shown.tags else []),
+             f"{row['finished']}/{row['runs']}", _pm(v, "test_psnr", 2), _pm(v, "test_ssim", 3)]
+    cells += [_pm(v, "test_lpips", 3)] if shown.lpips else []
+    cells += [row["precision"]] if shown.precision else []
+    cells += reference_cells(v, row, reference, shown.lpips) if reference is not None else []
+    return cells + [_fmt(row["train_time_s"], 0), _fmt(row["time_per_step_s"], 4), _fmt(row["rays_per_s"], 0),
+                    _fmt(row["n_params"], 0), _fmt(row["evaluations_per_ray"], 0)]
+
+
+def table_text(variants: list[Variant], rows: list[dict], reference: Variant | None) -> list[str]:
+    """report.md's table: a line per variant, its scores, differences to ``reference`` with the verdicts, and costs."""
+    shown = shown_columns(variants, reference)
+    header = table_header(shown)
+    lines = ["| " + " | ".join(header) + " |", "|" + "---|" * len(header)]
+    return lines + ["| " + " | ".join(table_cells(v, row, shown, reference)) + " |" for v, row in zip(variants, rows)]
+
+
+def table_notes(variants: list[Variant], protocols: str) -> list[str]:
+    """What the table's numbers need said, each once, below it: which scores these are (``protocols``), the
+    precisions where they differ, LPIPS's network, the caveats on its times (``timing_caveats``) and the runs'
+    notes."""
+    precisions, mixed = precision_text(variants)
+    notes = [protocols, precisions if mixed else ""]
+    if any(v.values("test_lpips") for v in variants):
+        notes.append("LPIPS is AlexNet's (v0.1; lower is more alike), on the runs that scored it (docs/metrics.md); "
+                     "a paper's LPIPS is VGG's, on another scale, and is not compared.")
+    notes += timing_caveats(variants)
+    lines = [line for note in notes if note for line in ("", note)]
+    if any(v.notes for v in variants):
+        lines += ["", "Notes of the variants' runs:", ""]
+        lines += [f"- {v.label}: {markdown_text(note)}" for v in variants for note in v.notes]
+    return lines
+
+
+def summary_text(variants: list[Variant], runs: list[Run], sources: list[Path], reference: Variant | None) -> str:
+    """The report's first line: its runs, where from, and the reference variant (or why there is none)."""
+    complete = sum(v.choice("ablation") == "complete" for v in variants if v.finished)
+    why = "the sweep has no `ablation=complete`" if not complete else f"{complete} variants are `ablation=complete`"
+    compared = (f"Reference: `{reference.label}`." if reference is not None else
+                f"No reference variant ({why}; name one with `--reference VARIANT`), so no differences between "
+                "variants are given.")
+    return f"Runs: {states_text(runs)} from {', '.join(f'`{s}`' for s in sources)}. {compared}"
+
+
+def unfinished_text(runs: list[Run], sources: list[Path]) -> list[str]:
+    """report.md's list of the jobs that did not finish, collapsed, have no test score or are damaged (each with
+    why), and of the jobs ``sources``' sweeps planned that never started."""
     planned, unplanned = [], []
     for source in sources:
         try:
@@ -186,76 +268,65 @@ def markdown(variants: list[Variant], rows: list[dict], runs: list[Run], sources
     started = {source: sum(source in run.path.parents for run in runs) for source in sources}
     not_started = [f"`{source}` plans {n} jobs, {started[source]} started" for source, n in planned
                    if n is not None and n > started[source]]
-    has_paper = any(row["paper_row"] for row in rows)
-    has_lpips = any(v.values("test_lpips") for v in variants)
-    has_tags = any(v.tags for v in variants)
-    precisions, mixed = precision_text(variants)
-    header = ["variant", *(["tags"] if has_tags else []), "runs", "test PSNR (dB)", "test SSIM"]
-    header += ["test LPIPS"] if has_lpips else []
-    header += ["precision"] if mixed else []
-    if reference is not None:
-        header += ["PSNR - reference (95% CI)", "SSIM - reference (95% CI)"]
-        header += ["LPIPS - reference (95% CI; lower is better)"] if has_lpips else []
-        header += ["verdict (PSNR)"]
-    header += ["train time (s)", "s / step", "rays / s", "params", "evals / ray"]
-    if has_paper:
-        header += ["paper row", "paper PSNR", "paper SSIM", "PSNR - paper"]
-    lines = [
-        "# nerfexp report", "",
-        f"Runs: {states_text(runs)} from "
-        f"{', '.join(f'`{s}`' for s in sources)}. Means ± sample standard deviation over each variant's "
-        "finished runs. " + machines_text(runs) + (f" {precisions}" if precisions else "")
-        + (f" {protocols}" if protocols else ""), "",
-        *(line for text in shared_lines(variants) for line in (text, "")),
-        reference_text(reference), "",
-        "| " + " | ".join(header) + " |", "|" + "---|" * len(header),
-    ]
-    for v, row in zip(variants, rows):
-        cells = [row["variant"], *([", ".join(map(markdown_text, v.tags))] if has_tags else []),
-                 f"{row['finished']}/{row['runs']}", _pm(v, "test_psnr", 2), _pm(v, "test_ssim", 3)]
-        cells += [_pm(v, "test_lpips", 3)] if has_lpips else []
-        cells += [row["precision"]] if mixed else []
-        if reference is not None:
-            if v is reference or not v.finished:
-                cells += ["reference" if v is reference else "–"] * (4 if has_lpips else 3)
-            else:
-                differences = row["differences"]
-                cells += [differences["psnr"].describe(2), differences["ssim"].describe(3)]
-                lpips = differences["lpips"]  # none where either side has no LPIPS
-                cells += [lpips.describe(3) if lpips.n else "–"] if has_lpips else []
-                cells += [row["verdict"] + (f" ({row['budget_verdict']})" if row["budget_verdict"] else "")]
-        cells += [_fmt(row["train_time_s"], 0), _fmt(row["time_per_step_s"], 4), _fmt(row["rays_per_s"], 0),
-                 _fmt(row["n_params"], 0), _fmt(row["evaluations_per_ray"], 0)]
-        if has_paper:
-            cells += [row["paper_row"], _fmt(row["paper_psnr"], 2), _fmt(row["paper_ssim"], 3),
-                      _fmt(row["psnr_minus_paper"], 2)]
-        lines.append("| " + " | ".join(cells) + " |")
-    if has_paper:
-        lines += ["", "The paper's numbers are means over its 8 Realistic Synthetic scenes at 800 x 800; the "
-                  "difference is given only for runs on Blender data."]
-    if has_lpips:
-        lines += ["", "LPIPS is AlexNet's (v0.1; lower is more alike), on the runs that scored it (docs/metrics.md); "
-                  "the paper's LPIPS is VGG's, on another scale, and is not compared."]
-    if any(v.notes for v in variants):
-        lines += ["", "Notes of the variants' runs:", ""]
-        lines += [f"- {v.label}: {markdown_text(note)}" for v in variants for note in v.notes]
-    lines += [""] + ranking_text(variants)
-    lines += [""] + per_budget_text(variants, reference, {row["variant"]: row["budget_verdict"] for row in rows})
-    lines += [""] + equal_time_text(variants)
     unfinished = [run for run in runs if run.state != "finished"]
-    lines += ["", "## Jobs that did not finish, collapsed or have no test score, or whose files are damaged "
-              "(not counted)", ""]
+    lines = ["## Jobs that did not finish, collapsed or have no test score, or whose files are damaged "
+             "(not counted)", ""]
     lines += [f"- `{run.path}` ({overrides_text(run.overrides)}): {run.state}"
               + (f": {run.detail}" if run.detail else "") for run in unfinished]
     lines += [f"- {text}: the rest never started (the sweep stopped or is still going)" for text in not_started]
     lines += [f"- {text}" for text in unplanned]
-    if not unfinished and not not_started and not unplanned:
-        lines.append("None.")
-    lines += ["", f"Plots: `{PSNR_PLOT}` (validation PSNR against training seconds: each variant's mean "
-              f"over seeds, its band from the lowest to the highest seed, single runs faint), `{PARETO_PLOT}` "
-              "(test PSNR against total training time, bars one standard deviation over seeds; each variant's "
-              f"budgets as small points joined by a thin line), `{DIFFERENCE_PLOT}` (each variant's test PSNR - the "
-              "reference's against training time at the matched times, its 95% interval as a band)."]
+    return lines + (["None."] if not unfinished and not not_started and not unplanned else [])
+
+
+def machines_text(variants: list[Variant]) -> str:
+    """How the times were measured, and where: the machine, where there is one (several: the note on times names
+    them)."""
+    found = machines(variants)
+    where = "each run's machine" if len(found) != 1 else "{}: {}".format(*found[0])
+    return (f"Times are training wall-clock seconds as each run measured them (periodic validation included; "
+            f"preparing the data and the final test not), on {where}.")
+
+
+def method_text(variants: list[Variant], reference: Variant | None) -> list[str]:
+    """report.md's last section: how its numbers were computed, each method once."""
+    over = ", ".join(variants[0].over) if variants else "seed"
+    precisions, mixed = precision_text(variants)
+    method = [f"A variant is the runs whose overrides differ only in {over} (and their tags, notes and test "
+              "budgets); its scores are the mean ± sample standard deviation over its finished runs. "
+              + machines_text(variants) + ("" if mixed or not precisions else f" {precisions}")]
+    if reference is not None:
+        method.append("Differences to the reference: the mean over the pairs of runs of (variant - reference), each "
+                      f"run paired with the reference's run of the same {over}, with its 95% confidence interval "
+                      "(Student's t, n - 1 degrees of freedom; n: the pairs, the seeds where only seeds are averaged "
+                      "over). Verdict: better or worse where the interval excludes zero, else not "
+                      "resolved with this many seeds; one seed gives no interval. Intervals are per comparison, not "
+                      "corrected for making many.")
+    method += ["Ranking: variants by mean test PSNR, cut into groups: a group starts at its best and takes each next "
+               "variant whose difference to it, paired by seed, has a 95% interval that includes zero (or no "
+               "interval, with one seed).",
+               PER_BUDGET_METHOD, EQUAL_TIME_METHOD, *published_method(variants),
+               f"Plots: `{PSNR_PLOT}` (validation PSNR against training seconds: each variant's mean over seeds, its "
+               f"band from the lowest to the highest seed, single runs faint), `{PARETO_PLOT}` (test PSNR against "
+               "total training time, bars one standard deviation over seeds; each variant's budgets as small points "
+               f"joined by a thin line), `{DIFFERENCE_PLOT}` (each variant's test PSNR - the reference's against "
+               "training time at the matched times, its 95% interval as a band)."]
+    return ["## How these numbers were computed", "", *(f"- {text}" for text in method)]
+
+
+def markdown(variants: list[Variant], rows: list[dict], runs: list[Run], sources: list[Path],
+             reference: Variant | None = None, protocols: str = "") -> str:
+    """report.md, the result first: its runs and reference (``summary_text``), the table of the ``variants`` with
+    their ``rows`` (``table_rows`` against ``reference``) and verdicts, and below it what its numbers need said, each
+    once (``table_notes``; ``protocols``: which scores these are, where it needs saying, ``compared_runs`` and
+    ``vouched_lpips``); then the published figures where they apply, the ranking and the paper's order, the
+    comparisons per budget and at equal time, and the jobs that did not finish; last, how it was computed
+    (``method_text``)."""
+    lines = ["# nerfexp report", "", summary_text(variants, runs, sources, reference), "",
+             *table_text(variants, rows, reference), *table_notes(variants, protocols)]
+    words = {row["variant"]: row["budget_verdict"] for row in rows}
+    for section in (published_text(variants), ranking_text(variants), per_budget_text(variants, reference, words),
+                    equal_time_text(variants), unfinished_text(runs, sources), method_text(variants, reference)):
+        lines += ["", *section] if section else []
     return "\n".join(lines) + "\n"
 
 
@@ -282,17 +353,6 @@ def overrides_text(overrides: list[str] | None) -> str:
     if overrides is None:
         return "overrides unreadable"
     return ", ".join(overrides) or "no overrides"
-
-
-def reference_text(reference: Variant | None) -> str:
-    if reference is None:
-        return ("No reference variant (the sweep has no `ablation=complete`; name one with `--reference "
-                "VARIANT`), so no differences between variants are given beside the table.")
-    return (f"Differences are to the reference, `{reference.label}`: the mean over seeds of (variant - reference), "
-            "each run paired with the reference's run of the same seed, with its 95% confidence interval "
-            "(Student's t, n - 1 degrees of freedom). Verdict: better or worse where the interval excludes "
-            "zero, else not resolved with this many seeds; one seed gives no interval. Intervals are per "
-            "comparison, not corrected for making many.")
 
 
 # A text cell starting with one of these is a formula to a spreadsheet (=, +, -, @) or may become one once

@@ -7,24 +7,12 @@ import statistics
 from collections import Counter
 from dataclasses import dataclass
 
-from nerfexp.report.comparison import Difference, paired_difference
+from nerfexp.report.comparison import PAIR, SEED, Difference, paired_difference
 from nerfexp.report.runs import Run, run_precision
 from nerfexp.rundir.labels import LABELS
 
 # Keys that change how a run is scored or labelled, never what it trains: never part of a variant
 NOT_TRAINED = (*LABELS, "test_budgets")
-
-PAPER_ABLATION = {
-    "no_pe_vd_h": ("No PE, VD, H", 26.67, 0.906),
-    "no_posenc": ("No Pos. Encoding", 28.77, 0.924),
-    "no_view_dependence": ("No View Dependence", 27.66, 0.925),
-    "no_hierarchical": ("No Hierarchical", 30.06, 0.938),
-    "far_fewer_images": ("Far Fewer Images", 27.78, 0.925),
-    "fewer_images": ("Fewer Images", 29.79, 0.940),
-    "fewer_frequencies": ("Fewer Frequencies", 30.59, 0.944),
-    "more_frequencies": ("More Frequencies", 30.81, 0.946),
-    "complete": ("Complete Model", 31.01, 0.947),
-}
 
 
 @dataclass
@@ -35,6 +23,12 @@ class Variant:
     label: str
     runs: list[Run]
     over: tuple[str, ...] = ("seed",)
+
+    @property
+    def paired_by(self) -> str:
+        """What its runs are matched on with another variant's, as the report counts them: ``SEED`` where only the
+        seed is averaged over, else ``PAIR`` (over scenes, a seed on a scene)."""
+        return SEED if tuple(self.over) == ("seed",) else PAIR
 
     @property
     def finished(self) -> list[Run]:
@@ -82,10 +76,6 @@ class Variant:
     def notes(self) -> list[str]:
         """The notes of its runs, each different text once, in the order they are first met."""
         return list(dict.fromkeys(run.notes for run in self.runs if run.notes is not None))
-
-    @property
-    def paper(self) -> tuple[str, float, float] | None:
-        return PAPER_ABLATION.get(self.choice("ablation"))
 
 
 def _key(override: str) -> str:
@@ -135,4 +125,4 @@ def reference_variant(variants: list[Variant], name: str | None = None) -> Varia
 
 def difference(a: Variant, b: Variant, key: str = "test_psnr") -> Difference:
     """a - b in ``key``, paired by seed (``nerfexp.report.comparison.paired_difference``)."""
-    return paired_difference(a.by_seed(key), b.by_seed(key))
+    return paired_difference(a.by_seed(key), b.by_seed(key), a.paired_by)

@@ -41,7 +41,7 @@ SECONDS = real(0, INTEGER_LIMIT)
 STATES = ("running", "finished", "failed")  # what status.json's state says (nerfexp.rundir.layout.write_status)
 GIVEN, REFINED = "given", "refined"  # results.json's test_cameras (conf/test_cameras/)
 # Other processes' mean busy CPUs (results.json's other_load) above which a run shared its machine: its times are
-# partly its neighbours', and a report says so where it compares them (nerfexp.report.tables.shared_lines)
+# partly its neighbours', and a report says so where it compares them (nerfexp.report.shared_machines.timing_caveats)
 SHARED_LOAD = 0.25
 SHA256 = ("64 hexadecimal digits", lambda v: isinstance(v, str) and len(v) == 64
           and all(c in "0123456789abcdef" for c in v))
@@ -111,6 +111,11 @@ RESULTS_FIELDS: dict[str, Rule] = {
     "test_budgets": ("a list of one or more mappings, one per budget", lambda v: isinstance(v, list) and v != []
                      and all(isinstance(budget, dict) for budget in v)),  # each: BUDGET_FIELDS (budgets_problem)
     "budget_scoring_s": SECONDS,
+    "test_resolution": list_of(COUNT, 2),  # [width, height] of the test images
+    "split": TEXT,  # how a rule split the views (the scene's own files: absent)
+    "scene.name": TEXT,  # a scene by name: the cache's record of it (nerfexp.data.scene_cache.SCENE_KEYS)
+    "scene.catalog": TEXT,
+    "scene.sha256": SHA256,
 }
 # The fields of each of results.json's test_budgets, the test scores at one budget as the final test scores them
 # (a score NaN or infinite as the top-level scores may be: not scored); LPIPS only where it was scored

@@ -147,7 +147,7 @@ class RunRecorder(L.Callback):
     view rendered nothing, ``results.json``'s ``collapse`` says so (``collapse_record``), whatever the guard did.
     Where the scene says where its files came from (a scene by name: ``Scene.source``, its archive's digest) or which
     frames it left out for their missing images (``Scene.frames_left_out``), ``results.json`` holds them as ``scene``
-    and ``frames_left_out``.
+    and ``frames_left_out``; the test images' [width, height] as ``test_resolution``.
 
     The fused kernels the module's training runs (``NeRFModule.kernels``) are built, or read from the cache, as
     training starts and before its clock does (``nerfexp.kernels.prepare``), what each came to said in one line
@@ -495,6 +495,9 @@ class RunRecorder(L.Callback):
                     results[key] = record
         if self.bounds is not None:  # where near and far came from, where the scene found them
             results["bounds"] = self.bounds
+        if trainer.datamodule is not None:  # the test images' [width, height]: a published score's protocol has it
+            test = trainer.datamodule.scored_views("test")["test"]
+            results["test_resolution"] = [test.width, test.height]
         if trainer.datamodule is not None and trainer.datamodule.split_check is not None:  # no view seen in training
             results["split_check"] = trainer.datamodule.split_check
         if trainer.ckpt_path is not None:  # the weights scored: the checkpoint the test loaded
