@@ -1,6 +1,7 @@
 """The recipes of docs/developing.md, followed from the tests' own folder: a toy encoding, a toy colour head and a
 toy sampler (each a class and a config file, nothing of nerfexp edited) compose, are checked by their own domains
-and train; the encoding sweeps beside the paper's positional encoding and reaches the report."""
+and train; the sampler is sized by a scale key of its own, checked by its domains; the encoding sweeps beside the
+paper's positional encoding and reaches the report."""
 
 import csv
 import json
@@ -128,3 +129,16 @@ def test_the_toy_sampler_composes_into_the_renderer_is_checked_by_its_domains_an
     results = json.loads((run / "results.json").read_text())
     assert results["steps"] == 20 and math.isfinite(results["test_psnr"])
     assert results["evaluations_per_ray"] == 24
+
+
+@pytest.mark.parametrize(("scale", "samples"), [("cpu", 24), ("paper", 64)])  # tests/components/sampler/toy_sizes/
+def test_the_toy_samplers_own_scale_key_is_checked_by_the_argument_it_lands_in(scale, samples):
+    cfg = composed("sampler=toy", f"scale={scale}")
+    assert cfg.scale.toy_samples == samples and cfg.sampler.n_samples == samples
+    check_settings(cfg)  # scale.toy_samples has a rule, the sampler's DOMAINS: nothing in nerfexp names it
+    with pytest.raises(ConfigError) as error:
+        check_settings(composed("sampler=toy", f"scale={scale}", "scale.toy_samples=0"))
+    assert str(error.value) == ("scale.toy_samples=0 (which sets sampler.n_samples): expected a whole number in "
+                                "[1, 2^63 - 1]")
+    with pytest.raises(ConfigError, match=r"^scale.toy_samples=24: not a setting nerfexp reads"):
+        check_settings(composed("+scale.toy_samples=24"))  # without the toy sampler nothing reads it
