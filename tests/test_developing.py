@@ -18,7 +18,7 @@ import nerfexp.conf
 from nerfexp.errors import ConfigError
 from nerfexp.nerf.samplers import Rays
 from nerfexp.settings.checks import check_settings
-from tests.components.toy import MidpointSampler, PowerEncoding, TiltHead
+from tests.components.toy import MidpointSampler, PowerEncoding, TiltViewDependence
 from tests.helpers import REPO, TINY, one_error_line, run_nerfexp
 
 SEARCH = f"hydra.searchpath=[file://{REPO / 'tests' / 'components'}]"  # where encoding/toy.yaml lies
@@ -74,7 +74,7 @@ def test_it_trains_sweeps_beside_posenc_and_reaches_the_report(tmp_path):
 
 
 def test_the_toy_colour_head_is_the_sigmoid_of_its_linear_colour_tilted_by_the_direction():
-    head = TiltHead(in_features=2, tilt=2.0)
+    head = TiltViewDependence(in_features=2, tilt=2.0)
     with torch.no_grad():
         head.rgb.weight.copy_(torch.tensor([[1.0, 0.0], [0.0, 1.0], [1.0, 1.0]]))
         head.rgb.bias.zero_()
@@ -91,7 +91,7 @@ def test_the_toy_colour_head_composes_into_the_field_and_is_checked_by_its_domai
         check_settings(composed("view_dependence=toy", "view_dependence.tilt=9"))
     model = instantiate(cfg.model)
     head = model.renderer.coarse.view_head
-    assert isinstance(head, TiltHead) and head.tilt == 2.0
+    assert isinstance(head, TiltViewDependence) and head.tilt == 2.0
     assert head.rgb.in_features == cfg.model.renderer.field.width  # built from the trunk's width
 
 

@@ -209,7 +209,7 @@ def test_nerfexps_own_takers_say_what_they_pass(hydra_configs):
 
 
 @pytest.mark.parametrize(("override", "problem"), [
-    ("~view_dependence.direction_encoding", "view_dependence: ViewMLPHead needs direction_encoding (not given)"),
+    ("~view_dependence.direction_encoding", "view_dependence: MLPViewDependence needs direction_encoding (not given)"),
     ("+model.renderer.field.retired=1", "model.renderer.field.retired: NeRFField takes no argument retired (it takes "
                                         "position_encoding, view_head, depth, width, skips, density_activation, "
                                         "density_bias, density_noise_std, appearance_dim)"),
