@@ -13,7 +13,7 @@ from PIL import Image
 from nerfexp.commands.train import sweep_objective
 from nerfexp.data.procedural import load_procedural, scene_cameras
 from nerfexp.pixels import to_uint8
-from nerfexp.training.metrics import psnr
+from nerfexp.scoring.metrics import psnr
 from tests.helpers import TINY_SINGLE, read_json, run_nerfexp
 
 
@@ -193,10 +193,10 @@ def test_default_run_directories_of_runs_started_at_once_differ(tmp_path):
 
 @pytest.mark.slow
 def test_lpips_is_recorded_in_every_file_where_alexnets_weights_are_given(tmp_path, tiny, monkeypatch):
-    from nerfexp.training import perceptual
-    from nerfexp.training.perceptual import LpipsScorer, lpips_network
-    from tests.training.alexnet import alexnet_state, stand_in
-    from tests.training.weights_server import hashed_name, refused_url
+    from nerfexp.scoring import perceptual
+    from nerfexp.scoring.perceptual import LpipsScorer, lpips_network
+    from tests.scoring.alexnet import alexnet_state, stand_in
+    from tests.scoring.weights_server import hashed_name, refused_url
 
     weights, run = tmp_path / "alexnet.pth", tmp_path / "run"
     torch.save(alexnet_state(), weights)  # made here: no test reads the ImageNet weights
@@ -239,7 +239,7 @@ def test_lpips_is_recorded_in_every_file_where_alexnets_weights_are_given(tmp_pa
 
 @pytest.mark.slow
 def test_own_weights_are_recorded_as_lpips_custom_with_their_digest(tmp_path, tiny):
-    from tests.training.alexnet import alexnet_state
+    from tests.scoring.alexnet import alexnet_state
 
     weights, run = tmp_path / "mine.pth", tmp_path / "run"
     torch.save(alexnet_state(seed=4), weights)

@@ -17,7 +17,7 @@ from nerfexp.geometry.cameras import camera_rays, focal_from_fov, look_at
 from nerfexp.geometry.lenses import Intrinsics
 from nerfexp.nerf.encodings import IdentityEncoding
 from nerfexp.nerf.fields import NeRFField, NoViewDependence
-from nerfexp.training.metrics import psnr
+from nerfexp.scoring.metrics import psnr
 from tests.helpers import read_json, run_nerfexp
 
 HEIGHT, WIDTH = 30, 40

@@ -294,8 +294,8 @@ def whole_image(size: int) -> dict:
 
 
 def test_lpips_is_scored_once_built_and_kept_out_of_the_model(tmp_path, caplog, monkeypatch):
-    from nerfexp.training.perceptual import LpipsScorer, lpips_network
-    from tests.training.alexnet import alexnet_state, stand_in
+    from nerfexp.scoring.perceptual import LpipsScorer, lpips_network
+    from tests.scoring.alexnet import alexnet_state, stand_in
 
     torch.manual_seed(0)
     torch.save(alexnet_state(), tmp_path / "alexnet.pth")
@@ -358,9 +358,9 @@ def test_training_values_are_logged_on_the_steps_the_logger_writes_and_only_ther
 
 
 def test_own_weights_are_scored_and_recorded_as_lpips_custom_never_as_lpips(tmp_path):
-    from nerfexp.training.perceptual import LpipsScorer, lpips_network
+    from nerfexp.scoring.perceptual import LpipsScorer, lpips_network
     from nerfexp.training.recorders import scores_record, scores_text
-    from tests.training.alexnet import alexnet_state
+    from tests.scoring.alexnet import alexnet_state
 
     weights = tmp_path / "mine.pth"
     torch.save(alexnet_state(seed=3), weights)

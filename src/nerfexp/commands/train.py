@@ -65,10 +65,10 @@ def train(cfg: DictConfig) -> dict | None:
     import lightning as L
 
     from nerfexp.data.datamodule import fill_ray_bounds
+    from nerfexp.machine_share import available_cpus, start_threads
     from nerfexp.products.trained import check_weights
     from nerfexp.training.callbacks import KeepSigtermHandler, ThreadsFollowLoad
     from nerfexp.training.loggers import finish
-    from nerfexp.training.machine_share import available_cpus, start_threads
     from nerfexp.training.pose_records import RefinedPoses
     from nerfexp.training.precision import fill_precision
     from nerfexp.training.progress import progress_bars

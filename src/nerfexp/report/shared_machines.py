@@ -1,6 +1,6 @@
 """Whether the runs a report compares by time had their machine to themselves: a run beside other work (another
 training job, a build, a shared node) trains slower than its components do, and its ``results.json`` says so in
-``other_load`` (other processes' mean busy CPUs while it trained, ``nerfexp.training.machine_share``). Each
+``other_load`` (other processes' mean busy CPUs while it trained, ``nerfexp.machine_share``). Each
 comparison by time that holds such a run gets one line naming them (``shared_lines``), so that a time ratio
 that is partly the neighbours' is never read as the components'. Runs that did not measure it (an earlier
 nerfexp's, a system without CPU counters) are not said to have shared."""

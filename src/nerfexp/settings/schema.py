@@ -23,6 +23,7 @@ from hydra.utils import get_class
 from omegaconf import DictConfig, OmegaConf
 
 from nerfexp.config_keys import readers
+from nerfexp.data.pose_noise import POSE_NOISE_SETTING
 from nerfexp.domains import (
     BOOLEAN,
     COUNT,
@@ -44,14 +45,13 @@ from nerfexp.domains import (
     real,
     whole,
 )
-from nerfexp.data.pose_noise import POSE_NOISE_SETTING
 from nerfexp.nerf.appearance import PROTOCOLS
 from nerfexp.nerf.hierarchy import HIERARCHIES
 from nerfexp.rundir.labels import NOTES, TAGS
+from nerfexp.scoring.perceptual import SETTINGS as LPIPS_SETTINGS
 from nerfexp.settings.options import options_reading
 from nerfexp.training.budgets import AUTO as AUTO_BUDGETS
 from nerfexp.training.guard_actions import COLLAPSE_ACTIONS, NONFINITE_ACTIONS
-from nerfexp.training.perceptual import SETTINGS as LPIPS_SETTINGS
 
 SEED_LIMIT = 2 ** 32  # seeds are whole numbers in [0, 2^32): numpy's and Lightning's range
 
