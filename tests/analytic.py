@@ -1,5 +1,5 @@
 """Density fields whose renders have closed forms: the truth that the renderer's quadrature converges to
-(for the tests and ``benchmarks/quadrature.py``; nothing of nerfexp uses them).
+(for the tests and ``benchmarks/accuracy/quadrature.py``; nothing of nerfexp uses them).
 
 Conventions (every field here): a ray x(t) = o + t d, with d a unit vector, is rendered over [near, far].
 Its transmittance is T(t) = exp(-tau(t)), tau(t) = int_near^t sigma(x(s)) ds, and it terminates at t

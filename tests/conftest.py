@@ -16,7 +16,7 @@ from tests.scoring.weights_server import refused_url
 
 MOST_WORKERS = 4  # pytest-xdist's -n auto: each worker a torch process of its own (memory, and DDP's extra ones)
 TEST_DEVICE = "NERFEXP_TEST_DEVICE"  # cpu (unset), cuda, cuda:1: where the tests taking ``device`` run
-ON_DEVICE = "on_device"  # the marker of those tests (``-m on_device`` selects them: benchmarks/gpu_check.sh)
+ON_DEVICE = "on_device"  # the marker of those tests (``-m on_device`` selects them: benchmarks/gpu/gpu_check.sh)
 
 
 def pytest_xdist_auto_num_workers(config) -> int:

@@ -136,6 +136,21 @@ def test_real_sweep_crosses_what_real_photographs_need_on_the_users_capture():
     assert seen == set(itertools.product((False, True), (False, True), (False, True), (0, 1, 2)))
 
 
+def test_appearance_sweep_pairs_no_embedding_with_the_embedding_on_images_of_varied_exposure():
+    for changes in ("train", "all"):
+        jobs = sweep_jobs("appearance", (f"data.appearance_changes={changes}",))
+        assert len(jobs) == 6 and {job[0] for job in jobs[:2]} == {"seed=0"}  # each seed's pair together
+        seen = set()
+        for job in jobs:
+            with initialize_config_module("nerfexp.conf", version_base=None):
+                cfg = compose("config", overrides=["+sweeps=appearance", *job])
+            check_settings(cfg)
+            seen.add((cfg.model.renderer.appearance is not None, cfg.seed))
+            assert cfg.data._target_.endswith("ProceduralScene") and cfg.data.appearance_changes == changes
+            assert (cfg.data.image_size, cfg.data.n_train, cfg.trainer.max_steps) == (32, 40, 500)
+        assert seen == set(itertools.product((False, True), (0, 1, 2)))
+
+
 def test_command_line_overrides_beat_the_sweeps_own_values():
     jobs = sweep_jobs("smoke", ("seed=5",))
     assert sorted(" ".join(job) for job in jobs) == ["ablation=complete seed=5", "ablation=no_pe_vd_h seed=5"]

@@ -2,7 +2,7 @@
 files it is given by path (the query included, as Google Drive's addresses have one), honours HTTP Range requests
 (``bytes=N-``) unless told not to, can cut a transfer short a given number of times, answer with a status alone, or
 send a file as a web page; it records each request's path and Range header. ``local_only`` lets a test's process
-connect to 127.0.0.1 alone, ``no_network`` to nothing at all."""
+connect to (and look up) 127.0.0.1 alone, ``no_network`` to nothing at all."""
 
 import socket
 from dataclasses import dataclass
@@ -87,24 +87,34 @@ def refused_address() -> str:
 
 
 def local_only(monkeypatch) -> list:
-    """This process's sockets connect to 127.0.0.1 alone (another address fails the test); the addresses tried,
+    """This process's sockets connect to (and look up) 127.0.0.1 alone (another address fails the test); the addresses tried,
     in order."""
-    tried, connect = [], socket.socket.connect
+    tried, connect, lookup = [], socket.socket.connect, socket.getaddrinfo
+
+    def looked_up(host, *rest, **named):
+        assert host == "127.0.0.1", f"a test looked up {host}"
+        return lookup(host, *rest, **named)
 
     def checked(sock, address):
         tried.append(address)
         assert address[0] == "127.0.0.1", f"a test connected to {address}"
         return connect(sock, address)
+    monkeypatch.setattr(socket, "getaddrinfo", looked_up)
     monkeypatch.setattr(socket.socket, "connect", checked)
     return tried
 
 
 def no_network(monkeypatch) -> list:
-    """This process's sockets connect nowhere (an attempt is refused, as offline); the addresses tried, in order."""
+    """This process's sockets connect nowhere (an attempt is refused, as offline), and no name is looked up (a host
+    reads as 192.0.2.1, a documentation address, with no DNS query sent): the addresses tried, in order."""
     tried = []
+
+    def unlooked(host, port, *rest, **named):
+        return [(socket.AF_INET, socket.SOCK_STREAM, socket.IPPROTO_TCP, "", ("192.0.2.1", port))]
 
     def refused(sock, address):
         tried.append(address)
         raise ConnectionRefusedError(111, "offline (the test's no_network)")
+    monkeypatch.setattr(socket, "getaddrinfo", unlooked)
     monkeypatch.setattr(socket.socket, "connect", refused)
     return tried

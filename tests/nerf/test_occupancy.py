@@ -186,7 +186,8 @@ def test_the_warm_up_follows_a_falling_density_at_once_and_then_remembers():
 
 def test_a_faint_density_floor_everywhere_leaves_empty_cells_empty():
     # A trained field's softplus density is never 0: the hash grid's coarse network keeps a faint floor in
-    # empty space (on the glossy scene a median of about 0.005: benchmarks/occupancy_hashgrid.py). With a
+    # empty space (on the glossy scene a median of about 0.005 where samples absorb almost nothing:
+    # benchmarks/results/grid_skipping.md). With a
     # floor of 0.02 under sigma_t = 0.0464 (16 cells over BOX) and the blob's mean 0.27 + 0.02 above it,
     # the threshold is sigma_t: a cell is empty exactly where the blob adds less than sigma_t - 0.02.
     floor = 0.02

@@ -50,7 +50,7 @@ def test_a_precision_that_is_set_stays(tmp_path, monkeypatch):
         assert cfg.trainer.precision == value
 
 
-@pytest.mark.on_device  # benchmarks/gpu_check.sh runs it with the tests that take ``device``
+@pytest.mark.on_device  # benchmarks/gpu/gpu_check.sh runs it with the tests that take ``device``
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a GPU: the CUDA rule is compute capability >= 8")
 def test_auto_on_a_gpu_follows_its_compute_capability():
     major, _ = torch.cuda.get_device_capability()

@@ -4,7 +4,7 @@ machine without one runs the pure torch path: ``kernel(name)`` is the built modu
 ``NERFEXP_KERNELS=off`` or after one log line saying why (no compiler, a failed build, a cache others can write). A
 cached build is imported only where it is the one nerfexp built here (``nerfexp.kernels.cache``: a record beside
 it, checked first); anything else is rebuilt. Why C++ rather than numba or ``torch.compile``:
-``benchmarks/kernel_tools.py`` (docs/acceleration.md).
+``benchmarks/kernels/kernel_tools.py`` (docs/acceleration.md).
 
 A build takes about a minute, once per machine and source: it is no part of a run's training time. A run builds
 (or reads from the cache) the kernels its components will use before its training clock starts (``prepare``,

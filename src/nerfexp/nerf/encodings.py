@@ -79,7 +79,7 @@ class PositionalEncoding(Encoding):
     and ``fmod`` are exact in floating point, so the phase is rounded once, in pi r with |pi r| < 2 pi,
     and every frequency of the float32 input is computed to about 1e-6 (``tests/nerf/test_encodings.py``).
     The textbook ``sin(2^k (pi x))`` rounds pi x first and multiplies that rounding by 2^k, an error that
-    grows with k (docs/numerics.md, ``benchmarks/encoding_precision.py``).
+    grows with k (docs/numerics.md, ``benchmarks/accuracy/encoding_precision.py``).
 
     ``coarse_to_fine`` f > 0: BARF's window (Lin et al. 2021), for camera refinement: frequency k's sines and
     cosines weighted by w_k = (1 - cos(pi clamp(alpha - k, 0, 1))) / 2, alpha = L min(progress / f, 1) rising
@@ -131,7 +131,7 @@ def resolved_frequencies(n_freqs: int, input_scale: float) -> str | None:
     """What is expected of ``n_freqs`` frequencies of positions scaled by ``input_scale`` where the top one is
     beyond what float32 positions resolve, else None.
 
-    The limit comes from ``benchmarks/encoding_precision.py`` (docs/numerics.md): for points of a scene within
+    The limit comes from ``benchmarks/accuracy/encoding_precision.py`` (docs/numerics.md): for points of a scene within
     |x| < 10 held in float32, features of frequency 2^k pi with k > ``FLOAT32_TOP_OCTAVE`` are noise. It applies
     to the frequencies the encoding sees, so an ``input_scale`` below 1 (gamma(s x)) allows more of them.
 

@@ -142,7 +142,7 @@ def flat_indices(rows: Tensor, n_rows: int, n_features: int) -> Tensor:
 def entry_sums(entries: Tensor, values: Tensor, n_entries: int) -> Tensor:
     """values [*M] summed per flat table entry, entries [*M] -> [n_entries], by one ``bincount``
     (accumulated in float64, returned in the values' dtype). On a CPU as fast as ``index_add_`` at a
-    full batch and faster at the occupancy grid's small packed ones (``benchmarks/hashgrid.py``)."""
+    full batch and faster at the occupancy grid's small packed ones (``benchmarks/kernels/hashgrid.py``)."""
     return torch.bincount(entries.reshape(-1), weights=values.reshape(-1), minlength=n_entries).to(values.dtype)
 
 
@@ -224,7 +224,7 @@ class HashGridEncoding(Bounded, Encoding):
     a point outside takes the features of the nearest point on the box (the raw input, with
     ``include_input``, lets the network tell them apart). Entries start uniform in +-``init_range``.
 
-    The fast formulation on a CPU (``benchmarks/hashgrid.py`` says what was tried): dense levels are
+    The fast formulation on a CPU (``benchmarks/kernels/hashgrid.py`` says what was tried): dense levels are
     ``F.grid_sample`` volumes [1, F, N+1, N+1, N+1] (trilinear, fused forward and backward kernels);
     the hashed levels share one [L_h, T, F] table, read for all 8 corners of every level at once and
     interpolated in one autograd node (``interpolate_rows``: one gather of every entry read; its backward

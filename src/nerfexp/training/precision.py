@@ -12,7 +12,7 @@ AVX-512 BF16 units made bf16 faster on one CPU and slower on another (docs/preci
 So there ``auto`` times the run's colour field, forward and backward over a step's points, in both
 precisions (``measured_precision``) and takes bf16 only where it is at least ``MEASURED_MARGIN`` times faster; the
 answer is kept per machine, threads and field (``precision_cache``), so that a sweep's jobs and a resumed run
-choose alike. docs/precision.md has the measurements behind the choice (``benchmarks/precision.py``, and quality
+choose alike. docs/precision.md has the measurements behind the choice (``benchmarks/kernels/precision.py``, and quality
 paired by seed).
 """
 
