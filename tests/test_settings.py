@@ -388,7 +388,7 @@ def test_a_run_of_an_earlier_nerfexp_with_a_key_no_rule_covers_is_still_read_bac
     with open_dict(cfg):
         cfg.data.retired_setting = 3  # but an argument the scene's class no longer takes cannot build it
     with pytest.raises(ConfigError, match=r"^data.retired_setting: ProceduralScene takes no argument retired_setting "
-                                          r"\(it takes image_size, n_train, "):
+                                          r"\(it takes n_train, n_val, background, "):
         check_run_settings(cfg)
 
 
