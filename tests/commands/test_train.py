@@ -8,9 +8,10 @@ from concurrent.futures import ThreadPoolExecutor
 import numpy as np
 import pytest
 import torch
+from omegaconf import OmegaConf
 from PIL import Image
 
-from nerfexp.commands.train import sweep_objective
+from nerfexp.commands.train import recorded_choices, sweep_objective
 from nerfexp.data.procedural import load_procedural, scene_cameras
 from nerfexp.pixels import to_uint8
 from nerfexp.scoring.metrics import psnr
@@ -282,3 +283,11 @@ def test_a_sweeper_never_takes_a_run_that_rendered_nothing_for_its_best():
     assert sweep_objective({"val_psnr": 14.71, "collapse": None}) == 14.71
     collapsed = sweep_objective({"val_psnr": 14.71, "collapse": "every test view rendered nothing (...)"})
     assert collapsed == -math.inf and collapsed < sweep_objective({"val_psnr": -300.0, "collapse": None})
+
+
+def test_results_record_each_groups_option_but_hydras_and_empty_groups_with_hierarchical_and_seed():
+    cfg = OmegaConf.create({"hierarchical": False, "seed": 7})
+    choices = OmegaConf.create({"data": "procedural", "hydra/launcher": "basic", "hydra/output": "default",
+                                "sweeps": None, "sampler": "uniform"})
+    assert recorded_choices(cfg, choices) == {"data": "procedural", "sampler": "uniform", "hierarchical": False,
+                                              "seed": 7}
