@@ -9,10 +9,10 @@ from pathlib import Path
 import pytest
 import torch
 
-from nerfexp.training import perceptual
+from nerfexp.scoring import perceptual
 from nerfexp.training.precision import CACHE_VARIABLE
 from tests.helpers import NO_INTERNET, TINY, run_nerfexp
-from tests.training.weights_server import refused_url
+from tests.scoring.weights_server import refused_url
 
 MOST_WORKERS = 4  # pytest-xdist's -n auto: each worker a torch process of its own (memory, and DDP's extra ones)
 TEST_DEVICE = "NERFEXP_TEST_DEVICE"  # cpu (unset), cuda, cuda:1: where the tests taking ``device`` run
@@ -68,7 +68,7 @@ def no_downloads(monkeypatch):
     """No test downloads AlexNet's weights (LPIPS fetches them where they are missing, ``fetch_alexnet``): its
     address is one where nothing listens, and HTTPS goes through a proxy that is not there (``NO_INTERNET``,
     also the environment of the commands ``run_nerfexp`` starts as processes). The download tests serve their
-    own files on 127.0.0.1 (``tests.training.weights_server``)."""
+    own files on 127.0.0.1 (``tests.scoring.weights_server``)."""
     monkeypatch.setattr(perceptual, "ALEXNET_URL", refused_url(perceptual.ALEXNET_FILE))
     for name, value in NO_INTERNET.items():
         monkeypatch.setenv(name, value)

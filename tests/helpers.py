@@ -34,7 +34,7 @@ from omegaconf import open_dict
 
 from nerfexp.commands import export
 from nerfexp.geometry.cameras import look_at
-from nerfexp.training.perceptual import ALEXNET_SHA256
+from nerfexp.scoring.perceptual import ALEXNET_SHA256
 
 REPO = Path(__file__).parents[1]  # on the console scripts' PYTHONPATH: they can load callbacks from here
 

@@ -13,10 +13,10 @@ from omegaconf import OmegaConf
 
 from nerfexp.nerf.bounds import Bounded
 from nerfexp.nerf.encodings import IdentityEncoding, PositionalEncoding
-from nerfexp.nerf.fields import DiffuseHead, SphericalHarmonicsHead, ViewMLPHead
+from nerfexp.nerf.fields import NoViewDependence, SphericalHarmonicsViewDependence, MLPViewDependence
 from nerfexp.nerf.hashgrid import HashGridEncoding
 from nerfexp.nerf.proposal import ProposalSampler
-from nerfexp.nerf.reflection import ReflectionHead
+from nerfexp.nerf.reflection import ReflectionViewDependence
 
 
 def build(*overrides):
@@ -43,7 +43,8 @@ def test_every_combination_builds_and_renders(encoding, view, hierarchical):
     assert isinstance(field.position_encoding, kind)
     for bounded in (m for m in renderer.modules() if isinstance(m, Bounded)):
         bounded.set_bounds(torch.tensor([[-1.5] * 3, [1.5] * 3]))  # what training does from the scene
-    head = {"mlp": ViewMLPHead, "none": DiffuseHead, "sh": SphericalHarmonicsHead, "ref": ReflectionHead}[view]
+    head = {"mlp": MLPViewDependence, "none": NoViewDependence, "sh": SphericalHarmonicsViewDependence,
+            "ref": ReflectionViewDependence}[view]
     assert isinstance(field.view_head, head)
     if hierarchical is True:  # separate networks, not one shared
         assert field is not renderer.fine and field.trunk[0].weight is not renderer.fine.trunk[0].weight

@@ -15,7 +15,7 @@ from nerfexp.geometry.lenses import Intrinsics
 from nerfexp.products.trained import load_module
 from nerfexp.rundir.layout import LAST_CHECKPOINT
 from nerfexp.rundir.trained import run_config
-from nerfexp.training.metrics import psnr, ssim
+from nerfexp.scoring.metrics import psnr, ssim
 from tests.helpers import TINY, read_json, run_nerfexp
 
 DDP = ["trainer=ddp", "trainer.accelerator=cpu", "trainer.devices=2"]

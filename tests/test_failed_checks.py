@@ -18,7 +18,7 @@ from tests.helpers import TINY, one_error_line, run_nerfexp, tiny_config
 
 # Options of one's own, each naming one of nerfexp's classes (or the tests' toy sampler) without an argument it
 # needs: (group, option file's content, the refusal). The field builds a colour head with its width (``in_features``,
-# ``NeRFField``'s ``view_head: Callable[[int], ColourHead]``), so that one is never asked of the option.
+# ``NeRFField``'s ``view_head: Callable[[int], ViewDependence]``), so that one is never asked of the option.
 OPTIONS = {
     "the proposal sampler bare": (
         "sampler", {"_target_": "nerfexp.nerf.proposal.ProposalSampler", "_partial_": True},
@@ -27,8 +27,8 @@ OPTIONS = {
         "sampler", {"_target_": "tests.components.toy.MidpointSampler", "_partial_": True},
         "sampler: MidpointSampler needs n_samples (not given)"),
     "a colour head without its encoding": (
-        "view_dependence", {"_target_": "nerfexp.nerf.fields.ViewMLPHead", "_partial_": True, "hidden": 16},
-        "view_dependence: ViewMLPHead needs direction_encoding (not given)"),
+        "view_dependence", {"_target_": "nerfexp.nerf.fields.MLPViewDependence", "_partial_": True, "hidden": 16},
+        "view_dependence: MLPViewDependence needs direction_encoding (not given)"),
     "an encoding without its frequencies": (
         "encoding", {"position": {"_target_": "nerfexp.nerf.encodings.PositionalEncoding"},
                      "direction": {"_target_": "nerfexp.nerf.encodings.PositionalEncoding", "n_freqs": 4}},

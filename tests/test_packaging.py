@@ -157,7 +157,7 @@ def test_the_wheel_builds_without_warnings_and_holds_every_config(wheel):
     built, log = wheel
     assert not re.findall(r".*(?:is absent from the `packages`|Installing 'nerfexp[.\w]*' as data).*", log)
     names = set(zipfile.ZipFile(built).namelist())
-    assert {"nerfexp/training/lpips_alex_v0.1.pth", "nerfexp/training/lpips_LICENSE.txt"} <= names  # LPIPS's heads
+    assert {"nerfexp/scoring/lpips_alex_v0.1.pth", "nerfexp/scoring/lpips_LICENSE.txt"} <= names  # LPIPS's heads
     kernels = {f"nerfexp/kernels/{path.name}" for path in (REPO / "src" / "nerfexp" / "kernels").glob("*.cpp")}
     assert len(kernels) >= 2 and kernels <= names  # the fused kernels' sources, built at first use
     in_wheel = {name for name in names if name.startswith("nerfexp/conf/")}

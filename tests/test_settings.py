@@ -3,6 +3,7 @@ beyond each domain are refused in one ConfigError naming the key or build, and u
 commands that read a run back check their overrides and arguments alike."""
 
 import math
+from pathlib import Path
 
 import pytest
 import torch
@@ -12,6 +13,7 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 from omegaconf import OmegaConf, open_dict
 
+import nerfexp.conf
 from nerfexp.commands import evaluate, export, render, view
 from nerfexp.commands.arguments import run_settings
 from nerfexp.data.datamodule import fill_ray_bounds
@@ -215,6 +217,30 @@ def test_a_contraction_of_ndc_rays_is_refused_in_one_line(hydra_configs):
                                                 "data.ndc=false", "data.near=0.1"]))
 
 
+SCALE_FILES = sorted((Path(nerfexp.conf.__file__).parent / "scale").glob("*.yaml"))  # every option: cpu, paper
+
+
+@pytest.mark.parametrize("choices", [[], ["encoding=hashgrid", "view_dependence=sh", "hierarchical=false"]])
+@pytest.mark.parametrize("scale_file", SCALE_FILES, ids=lambda path: path.stem)
+def test_every_size_of_the_scale_is_checked_where_it_lands_or_refused_as_unused(hydra_configs, scale_file, choices):
+    # no scale key has a rule of its own (nerfexp.settings.schema.readers_rule): a value no domain holds (a text) is
+    # refused as the key it lands in expects, or, where this config reads the key nowhere (scale.lr with the hash
+    # grid's optimizer), as unused; never as not a setting, nor let through
+    cfg = compose("config", overrides=[*TINY, f"scale={scale_file.stem}", *choices, "trainer.default_root_dir=."],
+                  return_hydra_config=True)
+    for key in OmegaConf.load(scale_file):
+        bad = cfg.copy()
+        OmegaConf.update(bad, f"scale.{key}", "abc")
+        override = f"scale.{key}=abc"
+        try:
+            check_settings(bad)
+        except ConfigError as error:
+            assert str(error).startswith(f"{override} (which sets "), str(error)
+            assert ": expected " in str(error), str(error)
+            continue
+        assert [o for o, _ in unused_settings(bad, [override])] == [override], f"{override} let through"
+
+
 def test_an_override_that_does_not_apply_is_named_with_the_reason(hydra_configs):
     cfg = composed("hierarchical=false", "scale.n_fine=64")
     assert [o for o, _ in unused_settings(cfg, ["hierarchical=false", "scale.n_fine=64", "seed=1"])] \
@@ -362,7 +388,7 @@ def test_a_run_of_an_earlier_nerfexp_with_a_key_no_rule_covers_is_still_read_bac
     with open_dict(cfg):
         cfg.data.retired_setting = 3  # but an argument the scene's class no longer takes cannot build it
     with pytest.raises(ConfigError, match=r"^data.retired_setting: ProceduralScene takes no argument retired_setting "
-                                          r"\(it takes image_size, n_train, "):
+                                          r"\(it takes n_train, n_val, background, "):
         check_run_settings(cfg)
 
 

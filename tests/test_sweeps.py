@@ -67,7 +67,8 @@ def test_ablation_sweeps_are_the_nine_rows_of_table_4(name, scale):
             cfg = compose("config", overrides=[f"+sweeps={name}", f"ablation={row}", *root])
         renderer = cfg.model.renderer
         assert (encoding_l(renderer.field.position_encoding), encoding_l(cfg.encoding.direction)) == (l_x, l_d), row
-        assert renderer.field.view_head._target_.endswith("ViewMLPHead" if view_dependent else "DiffuseHead"), row
+        assert renderer.field.view_head._target_.endswith("MLPViewDependence" if view_dependent
+                                                          else "NoViewDependence"), row
         assert (renderer.sampler.hierarchical, cfg.data.n_train) == (hierarchical, n_images), row
         if l_x is not None:  # the paper's gamma(x); at 64 px the CPU rows encode x / 8 (sweeps/cpu_ablation.yaml)
             assert renderer.field.position_encoding.input_scale == (1.0 if scale == "paper" else 0.125), row
@@ -131,8 +132,8 @@ def test_successors_sweep_crosses_the_papers_sampling_and_view_head_with_their_s
         renderer = cfg.model.renderer
         seen.add((renderer.sampler.hierarchical, renderer.field.view_head._target_.rsplit(".", 1)[1], cfg.seed))
         assert cfg.trainer.max_steps == 1000 and cfg.data._target_.endswith("ProceduralScene")
-    assert seen == {(h, head, seed) for h in (True, "proposal") for head in ("ViewMLPHead", "ReflectionHead")
-                    for seed in (0, 1, 2)}
+    assert seen == {(h, head, seed) for h in (True, "proposal")
+                    for head in ("MLPViewDependence", "ReflectionViewDependence") for seed in (0, 1, 2)}
 
 
 def test_real_sweep_crosses_what_real_photographs_need_on_the_users_capture():

@@ -11,7 +11,7 @@ grid-trained networks score as well through every cell of the box as through the
 hold no density that training failed to remove; if the plain networks score as well through a grid as without,
 skipping at render time costs nothing and the loss is made in training.
 
-Test PSNR as runs score it (``nerfexp.training.metrics.psnr``, the mean over the test views). Writes PATH.json and
+Test PSNR as runs score it (``nerfexp.scoring.metrics.psnr``, the mean over the test views). Writes PATH.json and
 PATH.md (default ``benchmarks/results/grid_renders``).
 """
 
@@ -24,12 +24,12 @@ from pathlib import Path
 import torch
 from hydra.utils import instantiate
 
+from nerfexp.denormals import set_flush_denormal_everywhere
 from nerfexp.files import atomic_write
 from nerfexp.nerf.occupancy import OccupancyGrid, cell_corners
 from nerfexp.products.trained import load_run
 from nerfexp.rundir.layout import machine
-from nerfexp.training.denormals import set_flush_denormal_everywhere
-from nerfexp.training.metrics import psnr
+from nerfexp.scoring.metrics import psnr
 
 RESULTS = Path(__file__).parents[1] / "results"  # benchmarks/results
 CHUNK = 1 << 16  # points per density evaluation

@@ -1,4 +1,4 @@
-"""What scoring one image costs: LPIPS (nerfexp.training.perceptual) beside SSIM and PSNR, at the image sizes
+"""What scoring one image costs: LPIPS (nerfexp.scoring.perceptual) beside SSIM and PSNR, at the image sizes
 nerfexp evaluates (the built-in scene's 100 x 100 to Blender's 800 x 800), on this machine's CPU or GPU.
 
 AlexNet's cost does not depend on its weights, so the network gets random ones in torchvision's layout (no
@@ -19,8 +19,8 @@ from pathlib import Path
 import torch
 
 from nerfexp.files import atomic_write
-from nerfexp.training.metrics import psnr, ssim
-from nerfexp.training.perceptual import ALEXNET_FILE, LpipsScorer, alexnet_features, lpips_network
+from nerfexp.scoring.metrics import psnr, ssim
+from nerfexp.scoring.perceptual import ALEXNET_FILE, LpipsScorer, alexnet_features, lpips_network
 
 RESULTS = Path(__file__).parents[1] / "results"  # benchmarks/results
 SIZES = (100, 200, 400, 800)

@@ -9,9 +9,9 @@ steps, float32 and bf16 alternating so that both see the same machine; a sample 
 consecutive steps as last ``MIN_SAMPLE_S`` (one, except for the grid's). Components are built from the
 real config (``nerfexp.conf``: ``scale=cpu`` and ``scale=paper``, with ``encoding=hashgrid``, ``view_dependence=sh``,
 ``acceleration=occupancy`` where named), so their sizes are those of a training run:
-- ``field``: the positional-encoding field (gamma(x) L = 10, the trunk, ``ViewMLPHead``);
+- ``field``: the positional-encoding field (gamma(x) L = 10, the trunk, ``MLPViewDependence``);
 - ``hashgrid_field``: ``HashGridEncoding`` and its one-layer field; ``hashgrid_encoding``: the encoding alone;
-- ``sh_field``: the field with ``SphericalHarmonicsHead``;
+- ``sh_field``: the field with ``SphericalHarmonicsViewDependence``;
 - ``occupancy_update``: ``OccupancyGrid.update`` over all cells (the warm-up) with the field's density,
   no gradient; ``occupied_at``: the grid's lookup of a batch of samples;
 - ``renderer``: ``VolumeRenderer``, coarse and fine networks, the losses of both, as ``NeRFModule`` trains.

@@ -1,6 +1,6 @@
 """nerfexp beside nerfstudio's nerfacto on the same machine, the same scene, split, images and threads: test PSNR
 and SSIM against seconds of training for both, each tool's renders of the same test views scored by the same code
-(nerfexp's: 8-bit images, SSIM as tf.image.ssim, ``nerfexp.training.metrics``).
+(nerfexp's: 8-bit images, SSIM as tf.image.ssim, ``nerfexp.scoring.metrics``).
 
     python benchmarks/peers/compare.py prepare SOURCE SCENE [--max-side 240]
     python benchmarks/peers/compare.py run SCENE NAME --format nerfstudio --peer-python PEER/bin/python \
@@ -46,7 +46,7 @@ from nerfexp.data.views import Views  # noqa: E402
 from nerfexp.files import atomic_write  # noqa: E402
 from nerfexp.pixels import to_uint8  # noqa: E402
 from nerfexp.rundir.layout import cpu_model  # noqa: E402
-from nerfexp.training.metrics import psnr, ssim  # noqa: E402
+from nerfexp.scoring.metrics import psnr, ssim  # noqa: E402
 
 RESULTS = Path(__file__).parents[2] / "docs" / "results"
 HERE = Path(__file__).parent

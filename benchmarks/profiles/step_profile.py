@@ -7,7 +7,7 @@ steps. Seconds per step: the wall-clock mean over the last ``--window`` steps (a
 occupancy grid's included); then ``--profile`` more steps under ``torch.profiler``, whose operators by
 self time are listed (the profiler's own cost makes those steps slower: compare operators, not totals).
 The variants run one after the other in this process, so that they share the machine's state. Each window also
-records how many CPUs other processes kept busy meanwhile (``nerfexp.training.machine_share``: the system's CPU
+records how many CPUs other processes kept busy meanwhile (``nerfexp.machine_share``: the system's CPU
 counters against this process's own), and the record names the CPU (its model and timing units): a time says what
 else ran and where.
 On a GPU (the config's ``trainer.accelerator``: auto takes one where there is one; ``trainer.accelerator=gpu``
@@ -41,9 +41,9 @@ from hydra.utils import instantiate
 from torch.profiler import ProfilerActivity, profile
 
 import nerfexp
+from nerfexp import machine_share
 from nerfexp.files import atomic_write
 from nerfexp.rundir.layout import machine as machine_record
-from nerfexp.training import machine_share
 from nerfexp.training.callbacks import FlushDenormals
 from nerfexp.training.precision import fill_precision
 

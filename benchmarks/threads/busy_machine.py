@@ -7,7 +7,7 @@ neighbours there at its start that leave after as long (auto follows the machine
 
 Each case runs ``nerfexp`` in its own process (``OMP_NUM_THREADS`` removed, so that auto is nerfexp's own
 choice) and reads back its results.json: rays per second, training seconds, the run's CPU seconds, the others'
-load (other processes' mean busy CPUs while it trained, ``nerfexp.training.machine_share``) and the threads it ran
+load (other processes' mean busy CPUs while it trained, ``nerfexp.machine_share``) and the threads it ran
 with. Writes ``benchmarks/results/busy_machine.json`` and ``.md`` (``--out`` elsewhere), with the CPU model. Run it
 alone on the machine: the "alone" cases must be.
 
@@ -28,8 +28,8 @@ import time
 from pathlib import Path
 
 from nerfexp.files import atomic_write
+from nerfexp.machine_share import available_cpus
 from nerfexp.rundir.layout import cpu_model
-from nerfexp.training.machine_share import available_cpus
 
 RESULTS = Path(__file__).parents[1] / "results"  # benchmarks/results
 SPIN = "while True: pass"  # one busy CPU, single-threaded

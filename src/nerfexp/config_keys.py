@@ -1,6 +1,6 @@
 """A config read key by key, each key a dotted path (``model.optimizer.lr``, ``scale.skips.0``): its leaves,
 resolved (``leaves``, of a DictConfig) or as they are written (``entries``, of its plain containers), and
-the key that an interpolated value comes from (``source_key``).
+the key that an interpolated value comes from (``source_key``) and the keys that read a key (``readers``).
 
 The settings check (``nerfexp.settings``), the settings a checkpoint records (``nerfexp.training.resume``)
 and the check of a run's saved config (``nerfexp.rundir.saved_configs``) read configs through these, so
@@ -74,3 +74,13 @@ def entries(node, path: str = "") -> Iterator[tuple[str, object]]:
         dotted = f"{path}.{key}" if path else str(key)
         yield dotted, value
         yield from entries(value, dotted)
+
+
+def readers(plain: dict) -> dict[str, list[str]]:
+    """For each key that another key's value names in a plain reference (``${scale.lr}``), those keys (of a
+    config's plain containers, ``entries``)."""
+    found: dict[str, list[str]] = {}
+    for key, raw in entries(plain):
+        if (named := reference(raw)) is not None:
+            found.setdefault(named, []).append(key)
+    return found

@@ -1,5 +1,5 @@
 """The CPUs this process may use, and the thread counts they bound: torch's intra-op threads
-(``nerfexp.training.machine_share``) and COLMAP's (``nerfexp.data.colmap_sfm``).
+(``nerfexp.machine_share``) and COLMAP's (``nerfexp.data.colmap_sfm``).
 
 A count asked for above the CPUs this process may use (``threads=64``, ``OMP_NUM_THREADS=64``, ``data.threads=64``
 on a machine, or under a scheduler's affinity, that grants 16) is capped at them, with a line saying so, rather than

@@ -123,6 +123,14 @@ def breaks(rule: Rule, value) -> str | None:
     return None if rule[1](value) else expected(rule)
 
 
+def all_of(*rules: Rule) -> Rule:
+    """Every one of ``rules`` (a value several settings read must keep each's): what they expect, each once, joined
+    by "and"."""
+    def words() -> str:
+        return " and ".join(dict.fromkeys(map(expected, rules)))
+    return words, lambda v: all(rule[1](v) for rule in rules)
+
+
 def list_of(rule: Rule, length: int | None = None) -> Rule:
     """A list (of ``length`` items where given) each of which keeps ``rule``."""
     count = "" if length is None else f"{length} "

@@ -8,12 +8,13 @@ from concurrent.futures import ThreadPoolExecutor
 import numpy as np
 import pytest
 import torch
+from omegaconf import OmegaConf
 from PIL import Image
 
-from nerfexp.commands.train import sweep_objective
+from nerfexp.commands.train import recorded_choices, sweep_objective
 from nerfexp.data.procedural import load_procedural, scene_cameras
 from nerfexp.pixels import to_uint8
-from nerfexp.training.metrics import psnr
+from nerfexp.scoring.metrics import psnr
 from tests.helpers import TINY_SINGLE, read_json, run_nerfexp
 
 
@@ -193,10 +194,10 @@ def test_default_run_directories_of_runs_started_at_once_differ(tmp_path):
 
 @pytest.mark.slow
 def test_lpips_is_recorded_in_every_file_where_alexnets_weights_are_given(tmp_path, tiny, monkeypatch):
-    from nerfexp.training import perceptual
-    from nerfexp.training.perceptual import LpipsScorer, lpips_network
-    from tests.training.alexnet import alexnet_state, stand_in
-    from tests.training.weights_server import hashed_name, refused_url
+    from nerfexp.scoring import perceptual
+    from nerfexp.scoring.perceptual import LpipsScorer, lpips_network
+    from tests.scoring.alexnet import alexnet_state, stand_in
+    from tests.scoring.weights_server import hashed_name, refused_url
 
     weights, run = tmp_path / "alexnet.pth", tmp_path / "run"
     torch.save(alexnet_state(), weights)  # made here: no test reads the ImageNet weights
@@ -239,7 +240,7 @@ def test_lpips_is_recorded_in_every_file_where_alexnets_weights_are_given(tmp_pa
 
 @pytest.mark.slow
 def test_own_weights_are_recorded_as_lpips_custom_with_their_digest(tmp_path, tiny):
-    from tests.training.alexnet import alexnet_state
+    from tests.scoring.alexnet import alexnet_state
 
     weights, run = tmp_path / "mine.pth", tmp_path / "run"
     torch.save(alexnet_state(seed=4), weights)
@@ -282,3 +283,11 @@ def test_a_sweeper_never_takes_a_run_that_rendered_nothing_for_its_best():
     assert sweep_objective({"val_psnr": 14.71, "collapse": None}) == 14.71
     collapsed = sweep_objective({"val_psnr": 14.71, "collapse": "every test view rendered nothing (...)"})
     assert collapsed == -math.inf and collapsed < sweep_objective({"val_psnr": -300.0, "collapse": None})
+
+
+def test_results_record_each_groups_option_but_hydras_and_empty_groups_with_hierarchical_and_seed():
+    cfg = OmegaConf.create({"hierarchical": False, "seed": 7})
+    choices = OmegaConf.create({"data": "procedural", "hydra/launcher": "basic", "hydra/output": "default",
+                                "sweeps": None, "sampler": "uniform"})
+    assert recorded_choices(cfg, choices) == {"data": "procedural", "sampler": "uniform", "hierarchical": False,
+                                              "seed": 7}

@@ -9,7 +9,7 @@ from torch import Tensor, nn
 
 from nerfexp.domains import COUNT, real
 from nerfexp.nerf.encodings import Encoding
-from nerfexp.nerf.fields import ColourHead
+from nerfexp.nerf.fields import ViewDependence
 from nerfexp.nerf.samplers import Rays, Sampler, Steps
 
 
@@ -37,7 +37,7 @@ class PowerEncoding(Encoding):
         return self.gain * x.unsqueeze(-2).pow(x.new_tensor(range(1, self.n_powers + 1))[:, None]).flatten(-2)
 
 
-class TiltHead(ColourHead):
+class TiltViewDependence(ViewDependence):
     """rgb = sigmoid(W h + b + tilt d): a linear colour of the trunk's features, tilted channel by channel by the
     view direction's coordinates (red by d_x, green by d_y, blue by d_z): the simplest view-dependent head."""
 

@@ -8,7 +8,7 @@ import socket
 from dataclasses import dataclass
 from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
 
-from tests.training.weights_server import running
+from tests.scoring.weights_server import running
 
 
 @dataclass

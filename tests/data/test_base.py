@@ -1,9 +1,15 @@
-"""The Scene base class: the defaults a format may leave out, and where the occupancy grid's box comes from."""
+"""The Scene base class: the members every format shares (held once, each format's defaults those of its config),
+the defaults a format may leave out, and where the occupancy grid's box comes from."""
+
+from dataclasses import dataclass, fields
+from pathlib import Path
 
 import pytest
 import torch
+from hydra.utils import get_class
+from omegaconf import OmegaConf
 
-from nerfexp.data.base import Scene
+from nerfexp.data.base import FolderScene, Scene
 from nerfexp.data.procedural import ProceduralScene, objects_box, scene_cameras
 from nerfexp.data.views import Views
 from nerfexp.errors import ConfigError
@@ -11,12 +17,19 @@ from nerfexp.geometry.boxes import frustum_aabb
 from nerfexp.geometry.lenses import Intrinsics
 
 NEAR, FAR = 2.0, 6.0
+CONF_DATA = Path(__file__).parents[2] / "conf" / "data"
+FORMATS = sorted(path.stem for path in CONF_DATA.glob("*.yaml"))
+# the members Scene's docstring names for every format, and FolderScene's for every format read from a folder
+SHARED = {"n_train", "n_val", "background", "near", "far", "aabb", "density_noise_std"}
+FOLDER = {"root", "scene", "catalog", "mirror", "max_side"}
 
 
+@dataclass(kw_only=True)
 class BoxlessScene(Scene):
     """A format that knows no box of its own (as COLMAP's): the grid bounds it by the training cameras."""
 
-    background, near, far = "white", NEAR, FAR
+    near: float = NEAR  # a format declares a shared field again only to change its default
+    far: float = FAR
 
     def views(self, split: str) -> Views:
         raise AssertionError("the box is made from the views it is given")
@@ -28,6 +41,27 @@ def test_a_scene_that_leaves_the_optional_members_out_gets_their_defaults():
     assert scene.model_rays(origins, directions) == (origins, directions)  # world rays, the same tensors
     assert scene.ray_bounds() == (NEAR, FAR) and scene.depth_bounds() is None
     assert scene.aabb is None and scene.bounding_box() is None
+    assert (scene.n_train, scene.n_val, scene.background, scene.density_noise_std) == (None, 2, "white", 0.0)
+
+
+def test_the_shared_members_are_declared_once_on_scene_and_folder_scene():
+    assert {member.name for member in fields(Scene)} == SHARED
+    assert {member.name for member in fields(FolderScene)} == SHARED | FOLDER
+
+
+@pytest.mark.parametrize("name", FORMATS)
+def test_each_format_takes_the_shared_members_with_its_configs_values_as_defaults(name):
+    config = OmegaConf.to_container(OmegaConf.load(CONF_DATA / f"{name}.yaml"))  # unresolved: ${scale.*} as text
+    format_class = get_class(config.pop("_target_"))
+    arguments = {member.name: member for member in fields(format_class) if member.init}
+    shared = SHARED | (FOLDER if issubclass(format_class, FolderScene) else set())
+    assert shared <= set(arguments)
+    positional = [key for key, member in arguments.items() if not member.kw_only]
+    assert positional == (["root"] if issubclass(format_class, FolderScene) else [])  # FORMAT(root), else keywords
+    assert set(config) == set(arguments)  # a key of the config for every argument, and no other
+    written = {key: value for key, value in config.items() if not str(value).startswith("${")}
+    assert written == {key: arguments[key].default for key in written}
+
 
 
 def test_the_box_comes_from_the_config_then_the_scene_then_the_cameras():

@@ -16,8 +16,8 @@ from nerfexp.errors import ConfigError, DatasetError
 from nerfexp.geometry.cameras import camera_rays, focal_from_fov, look_at
 from nerfexp.geometry.lenses import Intrinsics
 from nerfexp.nerf.encodings import IdentityEncoding
-from nerfexp.nerf.fields import DiffuseHead, NeRFField
-from nerfexp.training.metrics import psnr
+from nerfexp.nerf.fields import NeRFField, NoViewDependence
+from nerfexp.scoring.metrics import psnr
 from tests.helpers import read_json, run_nerfexp
 
 HEIGHT, WIDTH = 30, 40
@@ -288,7 +288,7 @@ def test_bad_input_is_named(tmp_path, breakage, message):
 
 
 def constant_density_field(noise_std):
-    field = NeRFField(IdentityEncoding(), DiffuseHead, depth=1, width=4, skips=(), density_activation="relu",
+    field = NeRFField(IdentityEncoding(), NoViewDependence, depth=1, width=4, skips=(), density_activation="relu",
                       density_bias=100.0, density_noise_std=noise_std)
     torch.nn.init.zeros_(field.sigma.weight)
     torch.nn.init.zeros_(field.sigma.bias)

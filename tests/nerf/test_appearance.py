@@ -11,7 +11,7 @@ from torch import nn
 
 from nerfexp.nerf.appearance import AppearanceEmbedding, CodeFit, left_columns
 from nerfexp.nerf.encodings import PositionalEncoding
-from nerfexp.nerf.fields import NeRFField, ViewMLPHead
+from nerfexp.nerf.fields import MLPViewDependence, NeRFField
 from nerfexp.nerf.hierarchy import HierarchyChoice
 from nerfexp.nerf.volume_renderer import VolumeRenderer
 from tests.helpers import tiny_config
@@ -50,7 +50,7 @@ def test_a_checkpoints_codes_size_an_unsized_embedding_and_the_test_code_is_thei
 
 def test_a_field_with_codes_feeds_them_to_the_colour_head_only():
     torch.manual_seed(0)
-    head = functools.partial(ViewMLPHead, direction_encoding=PositionalEncoding(2))
+    head = functools.partial(MLPViewDependence, direction_encoding=PositionalEncoding(2))
     field = NeRFField(PositionalEncoding(3), head, depth=2, width=8, skips=(), appearance_dim=5)
     assert field.view_head.feature.in_features == 8 + 5
     points, dirs = torch.randn(6, 3), nn.functional.normalize(torch.randn(6, 3), dim=-1)
@@ -119,7 +119,7 @@ def test_appearance_none_leaves_the_papers_model_bit_identical(variant):
 
 
 def test_a_renderer_without_codes_refuses_them_and_one_with_codes_defaults_to_its_test_code():
-    field = functools.partial(NeRFField, PositionalEncoding(2), functools.partial(ViewMLPHead,
+    field = functools.partial(NeRFField, PositionalEncoding(2), functools.partial(MLPViewDependence,
                               direction_encoding=PositionalEncoding(1)), depth=1, width=8, skips=())
     plain = VolumeRenderer(field, HierarchyChoice(True, 4, 4, 8), 2.0, 6.0)
     directions = nn.functional.normalize(torch.randn(3, 3), dim=-1)

@@ -10,25 +10,26 @@ import torch
 
 from nerfexp.nerf.encodings import Encoding, IdentityEncoding, PositionalEncoding
 from nerfexp.nerf.fields import (
-    ColourHead,
     DensityField,
-    DiffuseHead,
     FieldOutputs,
+    MLPViewDependence,
     NeRFField,
-    SphericalHarmonicsHead,
-    ViewMLPHead,
+    NoViewDependence,
+    SphericalHarmonicsViewDependence,
+    ViewDependence,
 )
 from nerfexp.nerf.hashgrid import HashGridEncoding
 from nerfexp.nerf.hierarchy import HIERARCHIES, HierarchyChoice
 from nerfexp.nerf.occupancy import OccupancyGrid
 from nerfexp.nerf.proposal import ProposalSampler
-from nerfexp.nerf.reflection import ReflectionHead
+from nerfexp.nerf.reflection import ReflectionViewDependence
 from nerfexp.nerf.samplers import HierarchicalSampler, Sampler, StratifiedSampler
 from nerfexp.nerf.volume_renderer import VolumeRenderer
 from tests.analytic import rays_down_z, slab
 
-CONFIGURED = [PositionalEncoding, IdentityEncoding, HashGridEncoding, ViewMLPHead, DiffuseHead, SphericalHarmonicsHead,
-              ReflectionHead, DensityField, NeRFField, ProposalSampler, HierarchyChoice, VolumeRenderer, OccupancyGrid]
+CONFIGURED = [PositionalEncoding, IdentityEncoding, HashGridEncoding, MLPViewDependence, NoViewDependence,
+              SphericalHarmonicsViewDependence, ReflectionViewDependence, DensityField, NeRFField, ProposalSampler,
+              HierarchyChoice, VolumeRenderer, OccupancyGrid]
 BOX = [[-1.0] * 3, [1.0] * 3]
 
 
@@ -52,10 +53,10 @@ assert torch.isfinite(torch.exp(torch.tensor(88.0))) and torch.isinf(torch.exp(t
     (HashGridEncoding, "sparse_gradients", [True, False], [1, "true"]),
     (PositionalEncoding, "n_freqs", [0, 10], [-1, 1.5]),
     (PositionalEncoding, "input_scale", [2.0**-4, 2**18], [0, -1, 2**18 + 1, float("inf")]),
-    (SphericalHarmonicsHead, "degree", [0, 3], [-1, 4]),  # sh_basis writes bands 0 to 3
-    (ReflectionHead, "n_levels", [1, 6], [0, 7]),
-    (ReflectionHead, "normal_weight", [0, 2**24], [-1e-9, 2**24 + 1]),
-    (ViewMLPHead, "hidden", [1], [0, 1.0]),
+    (SphericalHarmonicsViewDependence, "degree", [0, 3], [-1, 4]),  # sh_basis writes bands 0 to 3
+    (ReflectionViewDependence, "n_levels", [1, 6], [0, 7]),
+    (ReflectionViewDependence, "normal_weight", [0, 2**24], [-1e-9, 2**24 + 1]),
+    (MLPViewDependence, "hidden", [1], [0, 1.0]),
     (NeRFField, "density_bias", [-88, 88], [-89, 88.5, float("nan")]),
     (NeRFField, "density_noise_std", [0, 88], [-0.1, 89]),
     (NeRFField, "skips", [[], [0, 5]], [[-1], 5]),
@@ -111,7 +112,7 @@ def test_each_choice_of_hierarchical_renders_through_its_sampler(hierarchical, s
 
 @pytest.mark.parametrize("hierarchical", HIERARCHIES)
 def test_checkpoints_hold_the_networks_under_their_names_and_the_samplers_own_under_sampler(hierarchical):
-    field = functools.partial(NeRFField, IdentityEncoding(), DiffuseHead, depth=1, width=4, skips=())
+    field = functools.partial(NeRFField, IdentityEncoding(), NoViewDependence, depth=1, width=4, skips=())
     network = functools.partial(DensityField, IdentityEncoding(), depth=1, width=4, skips=())
     proposal = functools.partial(ProposalSampler, network, n_samples=[8, 8], n_final=8)
     renderer = VolumeRenderer(field, HierarchyChoice(hierarchical, 8, 8, 8, proposal=proposal), near=2.0, far=6.0)
@@ -123,17 +124,17 @@ def test_checkpoints_hold_the_networks_under_their_names_and_the_samplers_own_un
     assert set(renderer.state_dict()) == expected
 
 
-@pytest.mark.parametrize("head", [functools.partial(ViewMLPHead, direction_encoding=PositionalEncoding(2), hidden=8),
-                                  DiffuseHead, functools.partial(SphericalHarmonicsHead, degree=1),
-                                  functools.partial(ReflectionHead, hidden=8, n_levels=2)], ids=["mlp", "none", "sh",
-                                                                                                 "ref"])
+@pytest.mark.parametrize("head", [
+    functools.partial(MLPViewDependence, direction_encoding=PositionalEncoding(2), hidden=8), NoViewDependence,
+    functools.partial(SphericalHarmonicsViewDependence, degree=1),
+    functools.partial(ReflectionViewDependence, hidden=8, n_levels=2)], ids=["mlp", "none", "sh", "ref"])
 def test_colour_heads_share_one_interface_and_the_field_names_its_outputs(head):
     torch.manual_seed(0)
     field = NeRFField(PositionalEncoding(2), head, depth=2, width=16, skips=())
     x, d = torch.randn(5, 3), torch.nn.functional.normalize(torch.randn(5, 3), dim=-1)
     out = field(x, d)
     names = field.view_head.penalty_names
-    assert isinstance(field.view_head, ColourHead) and isinstance(out, FieldOutputs)
+    assert isinstance(field.view_head, ViewDependence) and isinstance(out, FieldOutputs)
     assert out.rgb.shape == (5, 3) and torch.equal(out.sigma, field.density(x))
     assert field.view_head.uses_normals == (names != ()) and field.view_head.penalty_weights.shape == (len(names),)
     assert (out.penalties is None) == (names == ()) and (names == () or out.penalties.shape == (5, len(names)))

@@ -5,14 +5,15 @@ import pytest
 import torch
 
 from nerfexp.nerf.encodings import IdentityEncoding, PositionalEncoding
-from nerfexp.nerf.fields import DiffuseHead, NeRFField, SphericalHarmonicsHead, ViewMLPHead, sh_basis
+from nerfexp.nerf.fields import (MLPViewDependence, NeRFField, NoViewDependence, SphericalHarmonicsViewDependence,
+                                 sh_basis)
 from nerfexp.nerf.hashgrid import HashGridEncoding
-from nerfexp.nerf.reflection import ReflectionHead, normal_penalties
+from nerfexp.nerf.reflection import ReflectionViewDependence, normal_penalties
 from nerfexp.nerf.volume_renderer import query_packed, query_thresholded
 
 
 def paper_field(view_head=None):
-    head = view_head or functools.partial(ViewMLPHead, direction_encoding=PositionalEncoding(4), hidden=128)
+    head = view_head or functools.partial(MLPViewDependence, direction_encoding=PositionalEncoding(4), hidden=128)
     return NeRFField(PositionalEncoding(10), head, depth=8, width=256, skips=(5,))
 
 
@@ -37,7 +38,7 @@ def test_density_depends_on_position_only_and_colour_on_direction(device):
     assert ((rgb1 >= 0) & (rgb1 <= 1)).all() and (sigma1 >= 0).all()
 
 
-@pytest.mark.parametrize("head", [DiffuseHead, functools.partial(SphericalHarmonicsHead, degree=0)])
+@pytest.mark.parametrize("head", [NoViewDependence, functools.partial(SphericalHarmonicsViewDependence, degree=0)])
 def test_view_independent_heads_ignore_the_direction(head):
     field = NeRFField(IdentityEncoding(), head, depth=3, width=32, skips=(2,))
     x = torch.randn(16, 3)
@@ -47,8 +48,8 @@ def test_view_independent_heads_ignore_the_direction(head):
 
 def test_spherical_harmonics_head_is_view_dependent():
     torch.manual_seed(0)
-    field = NeRFField(IdentityEncoding(), functools.partial(SphericalHarmonicsHead, degree=2), depth=2, width=16,
-                      skips=())
+    field = NeRFField(IdentityEncoding(), functools.partial(SphericalHarmonicsViewDependence, degree=2), depth=2,
+                      width=16, skips=())
     x = torch.randn(16, 3)
     d = torch.nn.functional.normalize(torch.randn(16, 3), dim=-1)
     assert not torch.allclose(field(x, d)[0], field(x, -d)[0])
@@ -70,9 +71,9 @@ def test_sh_basis_is_orthonormal_on_the_sphere(degree):
 
 def test_bad_field_config_is_named():
     with pytest.raises(ValueError, match="density_activation"):
-        NeRFField(IdentityEncoding(), DiffuseHead, depth=2, width=8, skips=(), density_activation="exp")
+        NeRFField(IdentityEncoding(), NoViewDependence, depth=2, width=8, skips=(), density_activation="exp")
     with pytest.raises(ValueError, match="skips"):
-        NeRFField(IdentityEncoding(), DiffuseHead, depth=2, width=8, skips=(5,))
+        NeRFField(IdentityEncoding(), NoViewDependence, depth=2, width=8, skips=(5,))
 
 
 def test_truncated_exp_is_exp_finite_everywhere_with_bounded_gradient():
@@ -92,16 +93,16 @@ def test_truncated_exp_is_exp_finite_everywhere_with_bounded_gradient():
 
 @pytest.mark.parametrize("activation", ["relu", "softplus", "trunc_exp"])
 def test_density_activations_are_config_choices(activation):
-    field = NeRFField(IdentityEncoding(), DiffuseHead, depth=2, width=16, skips=(), density_activation=activation)
+    field = NeRFField(IdentityEncoding(), NoViewDependence, depth=2, width=16, skips=(), density_activation=activation)
     sigma = field(torch.randn(32, 3) * 100, torch.zeros(32, 3)).sigma
     assert torch.isfinite(sigma).all() and (sigma >= 0).all()
     with pytest.raises(ValueError, match="field.density_activation: expected one of .*'trunc_exp'.*got 'exp'"):
-        NeRFField(IdentityEncoding(), DiffuseHead, depth=2, width=16, skips=(), density_activation="exp")
+        NeRFField(IdentityEncoding(), NoViewDependence, depth=2, width=16, skips=(), density_activation="exp")
 
 
 def reflection_field(dtype=torch.float64):
     torch.manual_seed(0)
-    head = functools.partial(ReflectionHead, hidden=16, n_levels=3, normal_weight=0.5, orientation_weight=2.0)
+    head = functools.partial(ReflectionViewDependence, hidden=16, n_levels=3, normal_weight=0.5, orientation_weight=2.0)
     return NeRFField(PositionalEncoding(2), head, depth=2, width=32, skips=(), density_activation="softplus").to(dtype)
 
 
@@ -148,7 +149,7 @@ def test_an_alpha_threshold_asks_the_colour_of_a_real_field_only_where_it_render
                                 aabb=[[-1.0] * 3, [1.0] * 3])
     for table in encoding.parameters():  # a trained-looking field: densities that differ from place to place
         torch.nn.init.uniform_(table, -1.0, 1.0)
-    field = NeRFField(encoding, lambda width: DiffuseHead(width), depth=1, width=16, skips=(),
+    field = NeRFField(encoding, lambda width: NoViewDependence(width), depth=1, width=16, skips=(),
                       density_activation="softplus", density_bias=-1.0)
     points = torch.rand(4, 20, 3) * 2 - 1
     viewdirs = torch.nn.functional.normalize(torch.randn(4, 3), dim=-1)

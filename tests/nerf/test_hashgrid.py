@@ -10,7 +10,7 @@ import pytest
 import torch
 
 from nerfexp.nerf.encodings import PositionalEncoding
-from nerfexp.nerf.fields import NeRFField, ViewMLPHead
+from nerfexp.nerf.fields import MLPViewDependence, NeRFField
 from nerfexp.nerf.hashgrid import HASH_PRIMES, HashGridEncoding, flat_indices, level_resolutions
 from tests.nerf.hashgrid_reference import BOX, hashed_row, reference_features, small_encoding
 
@@ -123,8 +123,8 @@ def test_needs_bounds_and_rejects_bad_settings():
 
 def test_coarse_and_fine_fields_get_tables_of_their_own():
     enc = small_encoding()
-    field = functools.partial(NeRFField, enc, functools.partial(ViewMLPHead, direction_encoding=PositionalEncoding(4),
-                                                                 hidden=16), depth=1, width=16, skips=())
+    head = functools.partial(MLPViewDependence, direction_encoding=PositionalEncoding(4), hidden=16)
+    field = functools.partial(NeRFField, enc, head, depth=1, width=16, skips=())
     coarse, fine = field(), field()
     assert coarse.position_encoding.hashed is not fine.position_encoding.hashed
     assert not set(map(id, coarse.parameters())) & set(map(id, fine.parameters()))
@@ -134,7 +134,7 @@ def test_the_box_travels_with_the_weights():
     # what nerfexp-eval and resume rely on: a field loaded from a trained one's state has its box
     def field():
         return NeRFField(HashGridEncoding(n_levels=2, log2_table_size=8, coarsest=2, finest=8),
-                         functools.partial(ViewMLPHead, direction_encoding=PositionalEncoding(4), hidden=8),
+                         functools.partial(MLPViewDependence, direction_encoding=PositionalEncoding(4), hidden=8),
                          depth=1, width=8, skips=())
 
     trained, loaded = field(), field()

@@ -7,7 +7,7 @@ import torch
 
 from nerfexp.nerf.fields import sh_basis
 from nerfexp.nerf.reflection import (
-    ReflectionHead,
+    ReflectionViewDependence,
     _unit,
     ide_degrees,
     integrated_directional_encoding,
@@ -185,7 +185,7 @@ def test_unit_is_finite_at_zero():
 @pytest.mark.parametrize(("h_shape", "d_shape"), [((64, 32), (64, 3)), ((4, 16, 32), (4, 1, 3))])
 def test_reflection_head_shapes_ranges_and_gradients(h_shape, d_shape):
     torch.manual_seed(0)
-    head = ReflectionHead(32, hidden=16, n_levels=5)
+    head = ReflectionViewDependence(32, hidden=16, n_levels=5)
     h = torch.randn(h_shape, requires_grad=True)
     d = torch.nn.functional.normalize(torch.randn(d_shape), dim=-1)
     rgb, normals = head(h, d)
@@ -195,12 +195,12 @@ def test_reflection_head_shapes_ranges_and_gradients(h_shape, d_shape):
     (rgb.sum() + normals.sum()).backward()
     assert torch.isfinite(h.grad).all()
     assert all(torch.isfinite(p.grad).all() for p in head.parameters())
-    assert ReflectionHead.uses_normals
+    assert ReflectionViewDependence.uses_normals
 
 
 def test_reflection_head_is_view_dependent_and_its_normals_are_not():
     torch.manual_seed(0)
-    head = ReflectionHead(8, hidden=16)
+    head = ReflectionViewDependence(8, hidden=16)
     h = torch.randn(32, 8)
     d = torch.nn.functional.normalize(torch.randn(32, 3), dim=-1)
     rgb, normals = head(h, d)

@@ -46,10 +46,11 @@ def test_no_hierarchy_uses_one_network_with_its_own_sample_count():
 
 def test_gradients_flow_to_both_networks(device):
     from nerfexp.nerf.encodings import IdentityEncoding
-    from nerfexp.nerf.fields import DiffuseHead, NeRFField
+    from nerfexp.nerf.fields import NeRFField, NoViewDependence
 
     def field():
-        return NeRFField(IdentityEncoding(), DiffuseHead, depth=2, width=16, skips=(), density_activation="softplus")
+        return NeRFField(IdentityEncoding(), NoViewDependence, depth=2, width=16, skips=(),
+                         density_activation="softplus")
 
     renderer = VolumeRenderer(field, HierarchyChoice(True, 8, 8, 16), near=2.0, far=6.0).to(device)
     origins, directions = rays_down_z(3)

@@ -14,7 +14,7 @@ from PIL import Image
 from nerfexp.commands.report import main
 from nerfexp.report.folder import write_report
 from nerfexp.report.pictures import ERROR_WHITE, default_views
-from nerfexp.training.perceptual import ALEXNET_SHA256
+from nerfexp.scoring.perceptual import ALEXNET_SHA256
 from tests.browser import screenshot
 from tests.helpers import make_run
 

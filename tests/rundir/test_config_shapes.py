@@ -139,7 +139,7 @@ SAVED_SHAPES = {  # (changes to a TINY run's saved config, the refusal after "FI
                                                        "nerfexp.nerf.marching.GridMarchSampler)"),
     "an argument missing": ({"sampler.n_coarse": DELETE}, "sampler: HierarchyChoice needs n_coarse (not given)"),
     "an argument of a partial missing": ({"view_dependence.direction_encoding": DELETE},
-                                         "view_dependence: ViewMLPHead needs direction_encoding (not given)"),
+                                         "view_dependence: MLPViewDependence needs direction_encoding (not given)"),
     "an argument of the proposals missing": ({"hierarchical": "proposal", "proposal.n_samples": DELETE},
                                              "proposal: ProposalSampler needs n_samples (not given)"),
     "an argument no longer taken": ({"model.renderer.field.retired": 1},

@@ -127,7 +127,7 @@ HASH_GRID = "nerfexp.nerf.hashgrid.HashGridEncoding"
 
 
 # where the hash grid's class lived: in nerfexp.nerf.encodings before it had a module of its own, and in
-# nerfexp.encodings before the layers (whose prefix entry alone would take it to nerfexp.nerf.encodings)
+# nerfexp.encodings before the layers (whose prefix entry takes it to nerfexp.nerf.encodings, and on from there)
 @pytest.mark.parametrize("old", ["nerfexp.nerf.encodings.HashGridEncoding", "nerfexp.encodings.HashGridEncoding"])
 def test_a_hash_grid_run_saved_before_the_grid_had_its_own_module_is_built_with_the_current_class(
         tmp_path, monkeypatch, old):
@@ -140,8 +140,36 @@ def test_a_hash_grid_run_saved_before_the_grid_had_its_own_module_is_built_with_
     assert cfg.encoding.position._target_ == HASH_GRID
     encoding = instantiate(cfg.model.renderer.field.position_encoding)
     assert type(encoding) is HashGridEncoding and encoding.resolutions[-1] == cfg.encoding.position.finest
-    monkeypatch.delitem(MOVED_TARGETS, old)  # without its entry the old path names no class nerfexp builds
+    # without the grid's own entry either old path names no class nerfexp builds
+    monkeypatch.delitem(MOVED_TARGETS, "nerfexp.nerf.encodings.HashGridEncoding")
     with pytest.raises(ConfigError, match="HashGridEncoding' is not a class nerfexp builds"):
+        run_config(tmp_path)
+
+
+# The view-dependence axis's classes under the names they had as colour heads, each in the run config of its option
+# (view_dependence=OPTION); the first also where it lived before the layers (nerfexp.fields): moved, then renamed
+RENAMED_HEADS = [("mlp", "nerfexp.nerf.fields.ViewMLPHead"), ("mlp", "nerfexp.fields.ViewMLPHead"),
+                 ("none", "nerfexp.nerf.fields.DiffuseHead"), ("sh", "nerfexp.nerf.fields.SphericalHarmonicsHead"),
+                 ("ref", "nerfexp.nerf.reflection.ReflectionHead")]
+
+
+@pytest.mark.parametrize(("option", "old"), RENAMED_HEADS, ids=[old for _, old in RENAMED_HEADS])
+def test_a_run_saved_with_a_colour_heads_old_name_is_built_with_the_view_dependence_class(tmp_path, monkeypatch,
+                                                                                           option, old):
+    cfg = tiny_config(f"view_dependence={option}", "model.lpips=false")
+    current = cfg.view_dependence._target_
+    assert current.rpartition(".")[2].endswith("ViewDependence")  # the axis's name: conf/view_dependence/
+    text = OmegaConf.to_yaml(cfg)
+    assert text.count(f"_target_: {current}\n") == 1  # view_dependence; the field's is a reference to it
+    (tmp_path / RUN_CONFIG).parent.mkdir()
+    (tmp_path / RUN_CONFIG).write_text(text.replace(current, old))
+    read = run_config(tmp_path)
+    check_run_settings(read)
+    assert read.view_dependence._target_ == current
+    assert type(instantiate(read.model).renderer.coarse.view_head) is get_class(current)
+    for name in [name for name in MOVED_TARGETS if name.endswith("Head")]:
+        monkeypatch.delitem(MOVED_TARGETS, name)  # without the renames' entries the old name is no class nerfexp builds
+    with pytest.raises(ConfigError, match=f"{old.rpartition('.')[2]}' is not a class nerfexp builds"):
         run_config(tmp_path)
 
 

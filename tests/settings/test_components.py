@@ -106,6 +106,15 @@ def test_the_settings_package_names_no_component_key():
     assert not any(named.values()), f"settings/ names component keys: {named}"
 
 
+def test_the_settings_package_names_no_size_of_the_scale():
+    # a scale key has the rules of the keys it lands in (nerfexp.settings.schema.readers_rule): none is listed
+    # centrally, so that a component sized by a new scale.KEY edits nothing of nerfexp (tests/test_developing.py)
+    named = {path.name: [key for key in quoted_keys(path.read_text()) if key.startswith("scale.")]
+             for path in Path(nerfexp.settings.__file__).parent.glob("*.py")}
+    assert not any(named.values()), f"settings/ names scale keys: {named}"
+    assert quoted_keys('SCHEMA = {"scale.steps": COUNT}') == ["scale.steps"]  # what it would find
+
+
 @pytest.fixture(scope="module")
 def hydra_configs():
     with initialize_config_module("nerfexp.conf", version_base=None):
@@ -200,7 +209,7 @@ def test_nerfexps_own_takers_say_what_they_pass(hydra_configs):
 
 
 @pytest.mark.parametrize(("override", "problem"), [
-    ("~view_dependence.direction_encoding", "view_dependence: ViewMLPHead needs direction_encoding (not given)"),
+    ("~view_dependence.direction_encoding", "view_dependence: MLPViewDependence needs direction_encoding (not given)"),
     ("+model.renderer.field.retired=1", "model.renderer.field.retired: NeRFField takes no argument retired (it takes "
                                         "position_encoding, view_head, depth, width, skips, density_activation, "
                                         "density_bias, density_noise_std, appearance_dim)"),

@@ -21,7 +21,7 @@ from nerfexp.nerf.fields import FieldOutputs
 from nerfexp.nerf.hashgrid import HashGridEncoding
 from nerfexp.nerf.hierarchy import HierarchyChoice
 from nerfexp.nerf.volume_renderer import VolumeRenderer
-from nerfexp.training.collapse import colour_spread
+from nerfexp.scoring.collapse import colour_spread
 from nerfexp.training.guards import TrainingGuard, gathered_contrasts
 from nerfexp.training.module import NeRFModule
 from nerfexp.training.optimizers import LazyAdam

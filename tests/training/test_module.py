@@ -14,7 +14,7 @@ from torch.utils.data import DataLoader
 
 from nerfexp.errors import ConfigError
 from nerfexp.nerf.encodings import PositionalEncoding
-from nerfexp.nerf.fields import DensityField, FieldOutputs, NeRFField, ViewMLPHead
+from nerfexp.nerf.fields import DensityField, FieldOutputs, MLPViewDependence, NeRFField
 from nerfexp.nerf.hashgrid import HashGridEncoding
 from nerfexp.nerf.hierarchy import HierarchyChoice
 from nerfexp.nerf.proposal import ProposalSampler
@@ -84,7 +84,7 @@ def hash_grid_module(hierarchical, sparse_gradients=False) -> NeRFModule:
     """Fields and proposal networks on small hash grids: the tables in every network's copy of the encoding."""
     grid = HashGridEncoding(n_levels=3, log2_table_size=6, coarsest=2, finest=16, aabb=[[-1.0] * 3, [1.0] * 3],
                             sparse_gradients=sparse_gradients)
-    head = functools.partial(ViewMLPHead, direction_encoding=PositionalEncoding(2), hidden=8)
+    head = functools.partial(MLPViewDependence, direction_encoding=PositionalEncoding(2), hidden=8)
     field = functools.partial(NeRFField, grid, head, depth=2, width=8, skips=())
     proposal = functools.partial(ProposalSampler, functools.partial(DensityField, grid, depth=1, width=8, skips=()),
                                  n_samples=[8], n_final=8)
@@ -247,7 +247,7 @@ def test_bf16_mixed_training_keeps_rendering_in_float32(monkeypatch):
 
     import nerfexp.nerf.volume_renderer as renderer_module
     from nerfexp.nerf.encodings import PositionalEncoding
-    from nerfexp.nerf.fields import NeRFField, ViewMLPHead
+    from nerfexp.nerf.fields import MLPViewDependence, NeRFField
     from nerfexp.training.module import NeRFModule
 
     rendered_dtypes = []
@@ -258,7 +258,7 @@ def test_bf16_mixed_training_keeps_rendering_in_float32(monkeypatch):
         return original(sigmas, t_starts, t_ends)
 
     monkeypatch.setattr(renderer_module, "render_weights", recording_render_weights)
-    head = functools.partial(ViewMLPHead, direction_encoding=PositionalEncoding(2), hidden=16)
+    head = functools.partial(MLPViewDependence, direction_encoding=PositionalEncoding(2), hidden=16)
     field = functools.partial(NeRFField, PositionalEncoding(4), head, depth=3, width=32, skips=(1,),
                               density_activation="softplus", density_bias=-1.0)
     torch.manual_seed(0)
@@ -294,8 +294,8 @@ def whole_image(size: int) -> dict:
 
 
 def test_lpips_is_scored_once_built_and_kept_out_of_the_model(tmp_path, caplog, monkeypatch):
-    from nerfexp.training.perceptual import LpipsScorer, lpips_network
-    from tests.training.alexnet import alexnet_state, stand_in
+    from nerfexp.scoring.perceptual import LpipsScorer, lpips_network
+    from tests.scoring.alexnet import alexnet_state, stand_in
 
     torch.manual_seed(0)
     torch.save(alexnet_state(), tmp_path / "alexnet.pth")
@@ -358,9 +358,9 @@ def test_training_values_are_logged_on_the_steps_the_logger_writes_and_only_ther
 
 
 def test_own_weights_are_scored_and_recorded_as_lpips_custom_never_as_lpips(tmp_path):
-    from nerfexp.training.perceptual import LpipsScorer, lpips_network
+    from nerfexp.scoring.perceptual import LpipsScorer, lpips_network
     from nerfexp.training.recorders import scores_record, scores_text
-    from tests.training.alexnet import alexnet_state
+    from tests.scoring.alexnet import alexnet_state
 
     weights = tmp_path / "mine.pth"
     torch.save(alexnet_state(seed=3), weights)

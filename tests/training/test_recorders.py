@@ -9,7 +9,7 @@ import pytest
 import torch
 
 from nerfexp.errors import NonFiniteError
-from nerfexp.training.metrics import psnr, ssim
+from nerfexp.scoring.metrics import psnr, ssim
 from nerfexp.training.recorders import (
     IMAGES,
     collapse_record,

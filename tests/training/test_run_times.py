@@ -10,10 +10,10 @@ import pytest
 import torch
 from hydra.utils import instantiate
 
-from nerfexp import kernels
+from nerfexp import kernels, machine_share
 from nerfexp.kernels.cache import NotBuilt
-from nerfexp.training import callbacks, machine_share
-from nerfexp.training.machine_share import Sample, available_cpus
+from nerfexp.machine_share import Sample, available_cpus
+from nerfexp.training import callbacks
 from nerfexp.training.module import NeRFModule
 from tests.helpers import run_nerfexp, tiny_config
 

@@ -20,8 +20,8 @@ from nerfexp.nerf.fields import FieldOutputs
 from nerfexp.nerf.hierarchy import HierarchyChoice
 from nerfexp.nerf.poses import PoseFit, so3_exp
 from nerfexp.nerf.volume_renderer import VolumeRenderer
+from nerfexp.scoring.scorer import fit_progress_bar
 from nerfexp.training.module import NeRFModule
-from nerfexp.training.progress import fit_progress
 
 H, W = 16, 16  # rows, columns of the test image
 TURN = torch.tensor([0.02, -0.025, 0.015])  # the camera's error, a rotation vector (radians): 1.99 degrees
@@ -145,11 +145,11 @@ def test_a_fit_says_its_start_in_the_log_and_draws_its_steps_where_the_trainer_d
 
 def test_a_fits_bar_counts_its_steps_and_draws_nothing_where_bars_are_off(monkeypatch):
     monkeypatch.setattr(sys, "stdout", Terminal())
-    with fit_progress("test view 2: its appearance code", 4, shown=True) as progress:
+    with fit_progress_bar("test view 2: its appearance code", 4, shown=True) as progress:
         for done in range(1, 5):
             progress(done)
     assert "test view 2: its appearance code:   0%|          | 0/4 " in sys.stdout.getvalue()  # its steps
     monkeypatch.setattr(sys, "stdout", Terminal())
-    with fit_progress("test view 2: its appearance code", 4, shown=False) as progress:
+    with fit_progress_bar("test view 2: its appearance code", 4, shown=False) as progress:
         assert progress is None
     assert sys.stdout.getvalue() == ""

@@ -44,7 +44,12 @@ from nerfexp.settings.schema import PASSED_ON, matching
 from nerfexp.settings.unused import unused_settings, without_unused
 
 if TYPE_CHECKING:
+    import lightning as L
     from lightning.pytorch.loggers import Logger
+
+    from nerfexp.machine_share import ThreadChoice
+    from nerfexp.training.recorders import RunRecorder
+    from nerfexp.training.resume import Resumed
 
 log = logging.getLogger("nerfexp")
 
@@ -60,89 +65,170 @@ def train(cfg: DictConfig) -> dict | None:
     Hydra's callbacks checked a single run's settings and its checkpoint (``SettingsCheck``, ``ResumeCheck``)
     before its directory was made; a sweep's job, which they do not see, is checked here.
 
-    Lightning, and what builds on it, is imported here rather than at the top: importing it is most of a
-    command's start-up (8 of 12 s on a 2-core CPU, docs/testing.md), which a bad setting need not wait for."""
+    Lightning, and what builds on it, is imported here and in the functions below rather than at the top: importing
+    it is most of a command's start-up (8 of 12 s on a 2-core CPU, docs/testing.md), which a bad setting need not
+    wait for."""
     import lightning as L
 
     from nerfexp.data.datamodule import fill_ray_bounds
-    from nerfexp.products.trained import check_weights
-    from nerfexp.training.callbacks import KeepSigtermHandler, ThreadsFollowLoad
-    from nerfexp.training.loggers import finish
-    from nerfexp.training.machine_share import available_cpus, start_threads
-    from nerfexp.training.pose_records import RefinedPoses
     from nerfexp.training.precision import fill_precision
-    from nerfexp.training.progress import progress_bars
-    from nerfexp.training.recorders import RunRecorder, scores_text
-    from nerfexp.training.resume import check_resume, checkpoint_settings, group_choices, read_resumed, resume_record
+    from nerfexp.training.recorders import RunRecorder
+    from nerfexp.training.resume import group_choices
 
-    sweep = HydraConfig.get().mode == RunMode.MULTIRUN
-    with failures_refused("the settings check"):  # a check that fails refuses the job, as it refuses a single run
-        if sweep:
-            check_composition(cfg, HydraConfig.get())  # the job's group values and labels, before the others read them
-            check_settings(cfg)  # missing mandatory values first
-            check_row(cfg, HydraConfig.get().runtime.choices, list(HydraConfig.get().overrides.task))
-        unused = unused_settings(cfg, list(HydraConfig.get().overrides.task))  # a sweep's job: recorded as null
-    for override, reason in unused:
-        log.warning("%s: not used with %s; results.json records it as null", override, reason)
+    hydra_config = HydraConfig.get()
+    runtime, overrides = hydra_config.runtime, list(hydra_config.overrides.task)
+    unused = check_job(cfg, hydra_config)
     quiet_dependencies()
     instantiate(cfg.data).fetch()  # a scene by name (data.scene): into the cache where it is not there, before any read
     bounds = fill_ray_bounds(cfg)
     L.seed_everything(cfg.seed, workers=True, verbose=False)
-    launcher = OmegaConf.to_container(HydraConfig.get().launcher, resolve=True) if sweep else None
-    threads = start_threads(cfg.threads, launcher)  # one line each, before any work
+    threads = start_job_threads(cfg.threads, hydra_config)
+    fill_precision(cfg)  # with the run's threads: auto may time the run's field (on forked random numbers)
+    choices, groups = recorded_choices(cfg, runtime.choices), group_choices(runtime.choices)
+    recorded, settings = recorded_config(cfg, groups, unused)  # before anything is built
+    resumed, resumes = checked_resume(cfg, groups, settings, sweep=hydra_config.mode == RunMode.MULTIRUN)
+    logger = build_logger(cfg.get("logger"))
+    datamodule = instantiate(cfg.datamodule)
+    model = build_model(cfg, resumed)
+    recorder = RunRecorder(runtime.output_dir, choices, recorded, overrides, settings, resumes, run_labels(cfg),
+                           bounds, test_budgets=cfg.test_budgets)
+    trainer = instantiate(cfg.trainer, logger=logger, callbacks=run_callbacks(cfg, recorder, threads))
+    rank_slice(datamodule.batch_rays, 0, trainer.world_size)  # a batch that the processes cannot share: an error now
+    fit_then_test(trainer, model, datamodule, logger, cfg.resume, recorder.output_dir)
+    if not trainer.is_global_zero:
+        return None
+    return logged_results(recorder.output_dir)
+
+
+def check_job(cfg: DictConfig, hydra_config: DictConfig) -> list[tuple[str, str]]:
+    """The command line's settings that this job does not use (``unused_settings``: each warned of here, recorded as
+    null), after a sweep's job's settings are checked as Hydra's callbacks check a single run's (its group values and
+    labels first, before the others read them; missing mandatory values next; its row). A check that fails refuses
+    the job (``failures_refused``), as it refuses a single run."""
+    task = list(hydra_config.overrides.task)
+    with failures_refused("the settings check"):
+        if hydra_config.mode == RunMode.MULTIRUN:
+            check_composition(cfg, hydra_config)
+            check_settings(cfg)
+            check_row(cfg, hydra_config.runtime.choices, task)
+        unused = unused_settings(cfg, task)
+    for override, reason in unused:
+        log.warning("%s: not used with %s; results.json records it as null", override, reason)
+    return unused
+
+
+def start_job_threads(setting: int | None, hydra_config: DictConfig) -> "ThreadChoice":
+    """Torch's threads for this job set (``start_threads``: ``setting``, shared with a multirun launcher's jobs at
+    once), and said in one line each, with the warnings of a count capped or a busy machine, before any work."""
+    from nerfexp.machine_share import start_threads
+
+    launcher = (OmegaConf.to_container(hydra_config.launcher, resolve=True)
+                if hydra_config.mode == RunMode.MULTIRUN else None)
+    threads = start_threads(setting, launcher)
     log.info("%s", threads.line)
     for warning in (threads.capped, threads.busy):
         if warning is not None:
             log.warning("%s", warning)
-    fill_precision(cfg)  # with the run's threads: auto may time the run's field (on forked random numbers)
-    runtime = HydraConfig.get().runtime
-    choices = {k: v for k, v in runtime.choices.items() if not k.startswith("hydra") and v is not None}
-    choices.update(hierarchical=cfg.hierarchical, seed=cfg.seed)
+    return threads
+
+
+def recorded_choices(cfg: DictConfig, choices: DictConfig) -> dict:
+    """What results.json records of the run's choices: each config group's option (Hydra's own groups and the
+    groups left empty left out) and the run's ``hierarchical`` and ``seed``."""
+    recorded = {group: option for group, option in choices.items()
+                if not group.startswith("hydra") and option is not None}
+    recorded.update(hierarchical=cfg.hierarchical, seed=cfg.seed)
+    return recorded
+
+
+def recorded_config(cfg: DictConfig, choices: dict[str, str], unused: list[tuple[str, str]]) -> tuple[dict, dict]:
+    """The run's config as results.json records it, the ``unused`` settings null (``without_unused``), and its
+    settings as its checkpoints record them (``checkpoint_settings``, with the group ``choices``). Called before
+    anything is built: Hydra's instantiate resolves in place the sections a built one names
+    (model.renderer.sampler: ${sampler}), and ``without_unused`` follows the references as written."""
+    from nerfexp.training.resume import checkpoint_settings
+
     resolved = OmegaConf.to_container(cfg, resolve=True)
-    # before anything is built: Hydra's instantiate resolves in place the sections a built one names
-    # (model.renderer.sampler: ${sampler}), and without_unused follows the references as written
     recorded = without_unused(cfg, resolved, [override for override, _ in unused])
-    settings = checkpoint_settings(OmegaConf.create(resolved), group_choices(runtime.choices))
-    resumes, resumed = [], None
-    if cfg.resume is not None:  # a checkpoint this run may not continue: an error before any work
-        checkpoint = Path(cfg.resume)
-        resumed = check_resume(cfg, group_choices(runtime.choices), checkpoint) if sweep else read_resumed(checkpoint)
-        resumes = resume_record(resumed, checkpoint, settings["settings"])
-    logger = build_logger(cfg.get("logger"))
-    datamodule = instantiate(cfg.datamodule)
+    return recorded, checkpoint_settings(OmegaConf.create(resolved), choices)
+
+
+def checked_resume(cfg: DictConfig, choices: dict[str, str], settings: dict,
+                   sweep: bool) -> "tuple[Resumed | None, list[dict]]":
+    """The checkpoint ``cfg.resume`` names, read, and the record of the resumes that led to this run (``settings``:
+    this run's, ``checkpoint_settings``): a checkpoint this run may not continue is an error before any work (a
+    sweep's job checked here, as ``ResumeCheck`` checked a single run's). ``(None, [])`` where the run starts anew."""
+    from nerfexp.training.resume import check_resume, read_resumed, resume_record
+
+    if cfg.resume is None:
+        return None, []
+    checkpoint = Path(cfg.resume)
+    resumed = check_resume(cfg, choices, checkpoint) if sweep else read_resumed(checkpoint)
+    return resumed, resume_record(resumed, checkpoint, settings["settings"])
+
+
+def build_model(cfg: DictConfig, resumed: "Resumed | None") -> "L.LightningModule":
+    """The run's model (``cfg.model``), sized as the weights of the checkpoint it resumes (``resumed``) are, where
+    the data sizes them, as Lightning will; weights of another network are an error before any work
+    (``check_weights``: a checkpoint that records no settings may hold another network size)."""
+    from nerfexp.products.trained import check_weights
+
     model = instantiate(cfg.model)
-    if resumed is not None:  # a checkpoint that records no settings may hold another network size
-        model.on_load_checkpoint({"state_dict": resumed.weights})  # as Lightning will: what the data sizes, sized
+    if resumed is not None:
+        model.on_load_checkpoint({"state_dict": resumed.weights})
         check_weights(resumed.weights, model, Path(cfg.resume))
-    overrides = list(HydraConfig.get().overrides.task)
-    recorder = RunRecorder(runtime.output_dir, choices, recorded, overrides, settings, resumes, run_labels(cfg),
-                           bounds, test_budgets=cfg.test_budgets)
+    return model
+
+
+def run_callbacks(cfg: DictConfig, recorder: "RunRecorder", threads: "ThreadChoice") -> list:
+    """The trainer's callbacks: those of ``cfg.callbacks``, the run's ``recorder`` and its progress bars, and those
+    the run's settings ask for: the thread count following the machine's load (an automatic count: the changes are
+    results.json's thread_changes), the refined training cameras written into the run (``camera_opt=so3xr3``), and
+    SIGTERM left to ``job_signals`` in a launcher's job, not to Lightning (``KeepSigtermHandler``)."""
+    from nerfexp.machine_share import available_cpus
+    from nerfexp.training.callbacks import KeepSigtermHandler, ThreadsFollowLoad
+    from nerfexp.training.pose_records import RefinedPoses
+    from nerfexp.training.progress import progress_bars
+
     callbacks = [instantiate(c) for c in cfg.callbacks.values()] + [recorder] + progress_bars(cfg.trainer)
-    if threads.follows_load:  # an automatic count follows the machine (the changes: results.json's thread_changes)
+    if threads.follows_load:
         callbacks.append(ThreadsFollowLoad(available_cpus(), recorder.thread_changes))
-    if cfg.model.get("camera_opt") is not None:  # camera_opt=so3xr3: the refined training cameras into the run
-        callbacks.append(RefinedPoses(runtime.output_dir))
-    if in_launcher_job():  # SIGTERM handled by job_signals, not by Lightning (see KeepSigtermHandler)
+    if cfg.model.get("camera_opt") is not None:
+        callbacks.append(RefinedPoses(recorder.output_dir))
+    if in_launcher_job():
         callbacks.append(KeepSigtermHandler())
-    trainer = instantiate(cfg.trainer, logger=logger, callbacks=callbacks)
-    rank_slice(datamodule.batch_rays, 0, trainer.world_size)  # a batch that the processes cannot share: an error now
+    return callbacks
+
+
+def fit_then_test(trainer: "L.Trainer", model: "L.LightningModule", datamodule: "L.LightningDataModule",
+                  logger: "Logger | bool", resume: str | None, run_dir: Path) -> None:
+    """Train ``model`` (from the checkpoint ``resume`` where set), then test the checkpoint the training wrote (into
+    ``run_dir``);
+    checkpoints are read as data (weights_only), whoever wrote them. The logger is finished either way, as
+    succeeded only where both ran to the end."""
+    from nerfexp.training.loggers import finish
+
     succeeded = False
     try:
-        # checkpoints are read as data (weights_only), whoever wrote them
-        trainer.fit(model, datamodule=datamodule, ckpt_path=cfg.resume, weights_only=True)
+        trainer.fit(model, datamodule=datamodule, ckpt_path=resume, weights_only=True)
         # the checkpoint this run wrote: ModelCheckpoint's own record of it where fit ran in this process
         written = (getattr(trainer.checkpoint_callback, "last_model_path", "")
-                   or Path(runtime.output_dir) / LAST_CHECKPOINT)
+                   or run_dir / LAST_CHECKPOINT)
         trainer.test(model, datamodule=datamodule, ckpt_path=written, verbose=False, weights_only=True)
         succeeded = True
     finally:
         finish(logger, succeeded)
-    if not trainer.is_global_zero:
-        return None
-    results = read_json(recorder.output_dir / RESULTS)
+
+
+def logged_results(run_dir: Path) -> dict:
+    """The finished run's results (``results.json`` in ``run_dir``), said in one line: its scores, steps, time and
+    precision, a warning where every test view rendered nothing (``collapse``)."""
+    from nerfexp.training.recorders import scores_text
+
+    results = read_json(run_dir / RESULTS)
     level = logging.WARNING if results["collapse"] else logging.INFO  # scores of a render of nothing: said as such
     log.log(level, "%s after %d steps in %.0f s (%s); outputs in %s", scores_text(results), results["steps"],
-            results["train_time_s"], results["precision"], recorder.output_dir)
+            results["train_time_s"], results["precision"], run_dir)
     return results
 
 

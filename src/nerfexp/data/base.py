@@ -4,7 +4,7 @@ scene read from a folder: the one ``data.root`` names, or the cached one a catal
 
 import abc
 from collections.abc import Mapping
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import ClassVar
 
@@ -20,13 +20,17 @@ from nerfexp.geometry.boxes import frustum_aabb, parse_aabb
 from nerfexp.nerf.backgrounds import BACKGROUNDS
 
 
+@dataclass(kw_only=True)
 class Scene(abc.ABC):
     """A dataset: posed views per split, and how the model sees the scene.
 
-    Members every format has (dataclass fields of the formats, keys of their configs):
+    Members every format has, its dataclass fields here (keys of every format's config, keyword arguments: a format
+    declares one again only to change its default):
+        n_train: the training views, the first n_train of the format's (None: all of them).
+        n_val: the validation views.
         background: the name of the colour where rays absorb nothing (``nerfexp.nerf.backgrounds``).
         near, far: the ray parameter's bounds (None where the format finds them: ``ray_bounds``).
-        aabb: the occupancy grid's box from the config, ``[[x0, y0, z0], [x1, y1, z1]]``, or None.
+        aabb: the occupancy grid's box from the config, ``[[x0, y0, z0], [x1, y1, z1]]``, or None (``box``).
         density_noise_std: the std of the N(0, std^2) noise the field adds to raw densities in training on
             such a scene (the paper's 1 for real forward-facing captures, 0 for synthetic ones); the field's
             config reads it (``${data.density_noise_std}``), so the scene's format chooses it and the
@@ -55,9 +59,11 @@ class Scene(abc.ABC):
         """The training views (at least one: null, all of the scene's) and the arguments that set them."""
         return config.get("n_train") or 1, ("n_train",) if "n_train" in config else ()
 
-    background: str
-    near: float | None
-    far: float | None
+    n_train: int | None = None
+    n_val: int = 2
+    background: str = "white"
+    near: float | None = None
+    far: float | None = None
     aabb: list | None = None
     density_noise_std: float = 0.0
 
@@ -142,12 +148,14 @@ def neither_given(config: Mapping) -> str | None:
     return None
 
 
-@dataclass
+@dataclass(kw_only=True)
 class FolderScene(Scene):
     """A scene read from a folder: ``root``, or, where it is None, the scene ``scene`` names in nerfexp's catalogue or
     the user's ``catalog`` (``nerfexp.data.catalog``), unpacked in the scene cache (``nerfexp.data.scene_cache``).
     ``fetch`` downloads a scene by name into the cache where it is not there (from ``mirror``'s host where set); every
-    other member only looks there, with no network access (the commands that read a run back find its scene so)."""
+    other member only looks there, with no network access (the commands that read a run back find its scene so).
+    ``max_side``: where set, its images are shrunk further, by the smallest whole factor that brings the longer side
+    to at most ``max_side`` pixels (so CPU-sized runs fit scenes of any resolution); None: never."""
 
     DOMAINS: ClassVar[dict[str, Rule]] = {
         **Scene.DOMAINS,
@@ -164,10 +172,11 @@ class FolderScene(Scene):
     CONSISTENT: ClassVar[dict[tuple[str, ...], Consistent]] = {("root", "scene"): neither_given,
                                                                ("scene",): scene_problem}
 
-    root: str | None = None
+    root: str | None = field(default=None, kw_only=False)  # the one argument a format also takes by position
     scene: str | None = None
     catalog: str | None = None
     mirror: str | None = None
+    max_side: int | None = None
 
     def entry(self) -> Entry:
         """The catalogue entry ``scene`` names (``find_entry``)."""

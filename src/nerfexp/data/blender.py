@@ -166,7 +166,7 @@ def load_blender(root, split: str, downscale: int = 1, max_views: int | None = N
     return Views(rgba=rgba, c2w=c2w, intrinsics=lenses, sources=tuple(sources))
 
 
-@dataclass
+@dataclass(kw_only=True)
 class BlenderScene(FolderScene):
     """A Blender-format dataset (``data=blender``): the training views, the first ``n_val``
     validation views, and every ``test_stride``-th test view, all shrunk by ``downscale`` and then,
@@ -176,15 +176,9 @@ class BlenderScene(FolderScene):
     DOMAINS: ClassVar[dict[str, Rule]] = {**FolderScene.DOMAINS, "downscale": COUNT, "test_stride": COUNT}
 
     downscale: int = 1
-    max_side: int | None = None
-    n_train: int | None = None  # the first n_train training views; None: all
     test_stride: int = 1
-    n_val: int = 2
-    near: float = 2.0
+    near: float = 2.0  # NeRF's bounds for its synthetic scenes
     far: float = 6.0
-    background: str = "white"
-    aabb: list | None = None  # the occupancy grid's box; None: [-1.5, 1.5]^3 (``bounding_box``)
-    density_noise_std: float = 0.0  # the field's training noise on raw density (``Scene``)
 
     def bounding_box(self) -> Tensor:
         """[2, 3]: [-1.5, 1.5]^3, the box that holds the objects of NeRF's synthetic scenes (as in nerfacc)."""

@@ -241,7 +241,7 @@ def read_views(data: ColmapData, index: Tensor, downscale: int = 1, max_side: in
     return Views(rgba=rgba, c2w=data.c2w[index].float(), intrinsics=intrinsics, sources=sources)
 
 
-@dataclass
+@dataclass(kw_only=True)
 class ColmapScene(FolderScene):
     """Photographs, or the frames of a video, posed by COLMAP (``data=colmap``); see the module's
     docstring for the cache, the conventions and the normalization. ``video``: a video file relative to
@@ -275,16 +275,8 @@ class ColmapScene(FolderScene):
     video: str | None = None
     fps: float = 2.0
     downscale: int = 1
-    max_side: int | None = None
-    n_train: int | None = None
     holdout: int = 8
-    n_val: int = 2
     bound: float = 4.0
-    near: float | None = None
-    far: float | None = None
-    background: str = "white"
-    aabb: list | None = None  # the occupancy grid's box; None: bound from the training cameras
-    density_noise_std: float = 0.0  # the field's training noise on raw density (``Scene``)
     camera_model: str = "SIMPLE_RADIAL"
     matcher: str | None = None
     max_features: int = 4096

@@ -256,7 +256,7 @@ def check_forward_facing(views: Views) -> None:
                            "set data.ndc=false with data.near and data.far for this scene")
 
 
-@dataclass
+@dataclass(kw_only=True)
 class LLFFScene(FolderScene):
     """An LLFF-format scene (``data=llff``): test views every ``holdout``-th image, training views the
     first ``n_train`` of the rest (None: all), validation the first ``n_val`` test views.
@@ -275,16 +275,12 @@ class LLFFScene(FolderScene):
         return (("ndc",), ("near", "far")) if config.get("ndc") else ((), ())
 
     factor: int = 4
-    max_side: int | None = None
     holdout: int = 8
-    n_train: int | None = None  # the first n_train training views; None: all
-    n_val: int = 2
     ndc: bool = True
-    near: float = 0.0
+    near: float = 0.0  # NDC's: the near plane to infinity
     far: float = 1.0
     background: str = "black"
-    aabb: list | None = None  # the occupancy grid's box; None: ``bounding_box``
-    density_noise_std: float = 1.0  # the field's training noise on raw density (``Scene``)
+    density_noise_std: float = 1.0  # the paper's for real forward-facing captures
     _data: LLFFData | None = field(default=None, init=False, repr=False)
 
     def load(self) -> LLFFData:

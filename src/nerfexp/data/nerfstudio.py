@@ -274,7 +274,7 @@ def stacked_views(images: list[FrameImage], c2w: Tensor) -> Views:
                  sources=tuple(image.source for image in images))
 
 
-@dataclass
+@dataclass(kw_only=True)
 class NerfstudioScene(FolderScene):
     """A scene in nerfstudio's format (``data=nerfstudio``): the module's docstring says how it is read.
     ``transforms``: the file's name in ``root``."""
@@ -285,16 +285,8 @@ class NerfstudioScene(FolderScene):
 
     transforms: str = TRANSFORMS
     downscale: int = 1
-    max_side: int | None = None
-    n_train: int | None = None
     holdout: int = 8
-    n_val: int = 2
     bound: float = 4.0
-    near: float | None = None
-    far: float | None = None
-    background: str = "white"
-    aabb: list | None = None
-    density_noise_std: float = 0.0
     missing_images: str = "refuse"  # frames whose images do not exist: refused, or skip: left out (``with_images``)
     _posed: PosedCapture | None = field(default=None, init=False, repr=False)
     _bounds: tuple[float, float, str] | None = field(default=None, init=False, repr=False)

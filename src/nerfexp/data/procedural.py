@@ -358,7 +358,7 @@ def load_procedural(split: str, n_views: int, height: int, width: int, supersamp
 TRAIN_VIEWS = 100  # the built-in scene's training set: as many views as each Realistic Synthetic scene has
 
 
-@dataclass
+@dataclass(kw_only=True)
 class ProceduralScene(Scene):
     """The built-in scene as a dataset (``data=procedural``): ``views(split)`` renders that split. With
     ``appearance_changes`` train, each training image has its own exposure and white balance (``vary_appearance``,
@@ -379,14 +379,10 @@ class ProceduralScene(Scene):
 
     image_size: int = 64
     n_train: int | None = TRAIN_VIEWS  # None: the scene's whole training set, TRAIN_VIEWS views
-    n_val: int = 2
     n_test: int = 8
     supersample: int = 2
     near: float = NEAR
     far: float = FAR
-    background: str = "white"
-    aabb: list | None = None  # the occupancy grid's box; None: Blender's [-1.5, 1.5]^3 (``bounding_box``)
-    density_noise_std: float = 0.0  # the field's training noise on raw density (``Scene``)
     appearance_changes: str = "none"  # train, all: those images' own exposure and white balance
 
     def views(self, split: str) -> Views:

@@ -1,5 +1,5 @@
 """The radiance field F(x, d) -> (rgb, sigma): the paper's MLP with a swappable view-dependence head (a
-``ColourHead``), answering ``FieldOutputs``."""
+``ViewDependence``), answering ``FieldOutputs``."""
 
 import copy
 from collections.abc import Callable, Mapping
@@ -75,7 +75,7 @@ class PositionalOutputs(NamedTuple):
     gradient: Tensor | None = None  # [..., 3]: d raw / dx, where the head predicts normals in training; else None
 
 
-class ColourHead(nn.Module):
+class ViewDependence(nn.Module):
     """The view-dependence axis's component: the field's trunk features h [..., S, F] and unit view directions
     [..., S or 1, 3] (one per ray broadcasts over its samples) -> rgb [..., S, 3] in [0, 1].
 
@@ -192,7 +192,7 @@ class NeRFField(DensityField):
 
     Args:
         position_encoding: maps [..., 3] -> [..., out_dim].
-        view_head: builds the colour head from the trunk width (see ``ColourHead``).
+        view_head: builds the colour head from the trunk width (see ``ViewDependence``).
         density_activation: a key of ``DENSITY_ACTIVATIONS``.
     """
 
@@ -204,7 +204,7 @@ class NeRFField(DensityField):
         """Every sample passes through its trunk: ``depth`` layers of ``width`` units."""
         return config["width"], config["depth"], ("width",), ("depth",)
 
-    def __init__(self, position_encoding: Encoding, view_head: Callable[[int], ColourHead], depth: int = 8,
+    def __init__(self, position_encoding: Encoding, view_head: Callable[[int], ViewDependence], depth: int = 8,
                  width: int = 256, skips: tuple[int, ...] = (5,), density_activation: str = "relu",
                  density_bias: float = 0.0, density_noise_std: float = 0.0, appearance_dim: int = 0):
         super().__init__(position_encoding, depth, width, skips, density_activation, density_bias)
@@ -223,7 +223,7 @@ class NeRFField(DensityField):
         its samples) -> ``rgb`` [..., S, 3] in [0, 1], ``sigma`` [..., S] >= 0. ``appearance``: codes
         [..., S or 1, appearance_dim] where the field takes them (``appearance_dim`` > 0), else None.
 
-        A head that predicts normals (``ColourHead.uses_normals``: Ref-NeRF's, ``nerfexp.nerf.reflection``) also
+        A head that predicts normals (``ViewDependence.uses_normals``: Ref-NeRF's, ``nerfexp.nerf.reflection``) also
         gets, while gradients are enabled (training), the density's gradient d raw / dx, and the field answers
         ``penalties`` too: the head's weighted penalties per sample [..., S, P] (``penalty_names``), which the
         renderer composites. The gradient is taken with ``create_graph`` so the penalties train the density
@@ -291,7 +291,7 @@ def hidden_layer_memory(config: Mapping) -> list[Memory]:
              parameter_bytes(config["hidden"], 1))]
 
 
-class ViewMLPHead(ColourHead):
+class MLPViewDependence(ViewDependence):
     """The paper's head: a linear feature of the trunk, joined with gamma(d), one ReLU layer, rgb."""
 
     DOMAINS = {"hidden": COUNT}
@@ -316,7 +316,7 @@ class ViewMLPHead(ColourHead):
         return torch.sigmoid(self.rgb(F.relu(x, inplace=True)))
 
 
-class DiffuseHead(ColourHead):
+class NoViewDependence(ViewDependence):
     """rgb from the position alone, the view direction unused: the "No View Dependence" ablation."""
 
     def __init__(self, in_features: int):
@@ -356,7 +356,7 @@ def sh_basis(directions: Tensor, degree: int) -> Tensor:
     return torch.stack(out, -1)
 
 
-class SphericalHarmonicsHead(ColourHead):
+class SphericalHarmonicsViewDependence(ViewDependence):
     """rgb = sigmoid(sum_k c_k Y_k(d)): the field predicts SH coefficients per colour channel."""
 
     DOMAINS = {"degree": whole(0, SH_MAX_DEGREE)}

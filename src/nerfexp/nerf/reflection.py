@@ -15,7 +15,7 @@ import torch.nn.functional as F
 from torch import Tensor, nn
 
 from nerfexp.domains import COUNT, LOSS_WEIGHT, RAW_OFFSET, whole
-from nerfexp.nerf.fields import ColourHead, hidden_layer, hidden_layer_memory
+from nerfexp.nerf.fields import ViewDependence, hidden_layer, hidden_layer_memory
 
 
 @functools.cache
@@ -108,7 +108,7 @@ def _unit(x: Tensor) -> Tensor:
     return F.normalize(x, dim=-1, eps=math.sqrt(torch.finfo(x.dtype).tiny))
 
 
-class ReflectionHead(ColourHead):
+class ReflectionViewDependence(ViewDependence):
     """Ref-NeRF's colour: rgb = clamp(linear_to_srgb(c_d + s * c_s), 0, 1).
 
     From the trunk features h: the diffuse colour c_d = sigmoid(raw - ln 3), the specular tint s, the roughness

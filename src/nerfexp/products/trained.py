@@ -5,7 +5,7 @@ model, ready to render). Its files are read as data below (``nerfexp.rundir.trai
 here, above the training layer whose classes they are."""
 
 from collections.abc import Callable
-from dataclasses import replace
+from dataclasses import fields, replace
 from pathlib import Path
 from typing import TYPE_CHECKING, NamedTuple
 
@@ -94,22 +94,18 @@ class RefinedScene(Scene):
     from the training cameras (a render's orbit or spiral, the viewer's frustums, a box from their frusta)
     then follows the cameras the run learned the scene with."""
 
-    def __init__(self, scene: Scene, train_c2w: Tensor, source: Path):
+    def __init__(self, scene: Scene, train_c2w: Tensor, poses_file: Path):
+        super().__init__(**{member.name: getattr(scene, member.name) for member in fields(Scene)})
         self.scene = scene
         self.train_c2w = train_c2w
-        self.source = source
-        self.background = scene.background
-        self.near = scene.near
-        self.far = scene.far
-        self.aabb = scene.aabb
-        self.density_noise_std = scene.density_noise_std
+        self.poses_file = poses_file
 
     def views(self, split: str) -> Views:
         views = self.scene.views(split)
         if split != "train":
             return views
         if len(views) != len(self.train_c2w):
-            raise NerfexpError(f"{self.source} holds {len(self.train_c2w)} refined training cameras and the scene "
+            raise NerfexpError(f"{self.poses_file} holds {len(self.train_c2w)} refined training cameras and the scene "
                                f"has {len(views)} training views: not this scene's (another data.n_train?)")
         return replace(views, c2w=self.train_c2w.to(views.c2w.dtype))
 

@@ -1,6 +1,6 @@
 """Which runs' LPIPS the report tables: only what nerfexp can vouch for, scores of torchvision's published AlexNet
 weights, which a run's ``results.json`` shows by their SHA-256 (``lpips_weights_sha256`` equal to
-``nerfexp.training.perceptual.ALEXNET_SHA256``). A run's ``test_lpips`` without it (a run of an earlier nerfexp,
+``nerfexp.scoring.perceptual.ALEXNET_SHA256``). A run's ``test_lpips`` without it (a run of an earlier nerfexp,
 which recorded no digest, or one whose file says other weights) is left out of the tables, the comparisons and the
 captions, and report.md says whose. Scores of a user's own weights (``test_lpips_custom``) are never tabled: they
 are not LPIPS and compare with nothing.
@@ -9,7 +9,7 @@ are not LPIPS and compare with nothing.
 from dataclasses import replace
 
 from nerfexp.report.runs import Run
-from nerfexp.training.perceptual import ALEXNET_SHA256
+from nerfexp.scoring.perceptual import ALEXNET_SHA256
 
 LPIPS_KEYS = "test_lpips"  # the start of every LPIPS key of results.json: test_lpips, _per_view, _custom
 

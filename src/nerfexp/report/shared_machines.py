@@ -2,7 +2,7 @@
 host and device, the device naming the CPU or GPU and torch's threads), and each with that machine to itself. A run
 beside other work (another training job, a build, a shared node) trains slower than its components do, and its
 ``results.json`` says so in ``other_load`` (other processes' mean busy CPUs while it trained,
-``nerfexp.training.machine_share``); a run that did not measure it (an earlier nerfexp's, a system without CPU
+``nerfexp.machine_share``); a run that did not measure it (an earlier nerfexp's, a system without CPU
 counters) is not said to have shared.
 
 The report compares by time (the per-budget table's time columns, the equal-time ranking, the difference-against-time

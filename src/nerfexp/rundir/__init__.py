@@ -9,13 +9,13 @@ A run's directory holds (every file written atomically):
   A status that says ``running`` for a process of this host that is gone is read as a killed run by every reader
   (``nerfexp.rundir.state``).
 - ``metrics.jsonl``: one JSON object per evaluation: step, wall_time_s, split, psnr, ssim (means), and
-  lpips where LPIPS was scored (``nerfexp.training.perceptual``; absent, never NaN, where it was not;
+  lpips where LPIPS was scored (``nerfexp.scoring.perceptual``; absent, never NaN, where it was not;
   lpips_custom instead with the user's own weights).
 - ``results.json``: final test means and per-view scores (``test_lpips`` too where scored, with
   ``lpips_weights_sha256``, the weights file's SHA-256; ``test_lpips_custom`` for the user's own), last
   validation PSNR, training time, throughput, parameters, the machine, the resolved choices and
   overrides, the tags and notes, and ``collapse``: null, or the line saying that every test view rendered
-  nothing (``nerfexp.training.recorders.RunRecorder``, ``nerfexp.training.collapse``).
+  nothing (``nerfexp.training.recorders.RunRecorder``, ``nerfexp.scoring.collapse``).
 - ``test/``: each test view's render (``r_{i}.png``), ground truth (``r_{i}_target.png``), absolute
   error (``r_{i}_error.png``) and depth (``r_{i}_depth.png``).
 - ``checkpoints/last.ckpt``, ``.hydra/config.yaml`` (the composed config, as Hydra saves it).

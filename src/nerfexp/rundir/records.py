@@ -86,7 +86,7 @@ RESULTS_FIELDS: dict[str, Rule] = {
     "test_psnr_per_view": list_of(PSNR),
     "test_ssim_per_view": list_of(SSIM),
     "test_lpips_per_view": list_of(LPIPS),
-    "test_lpips_custom": LPIPS,  # a user's own AlexNet weights' (nerfexp.training.perceptual): never LPIPS
+    "test_lpips_custom": LPIPS,  # a user's own AlexNet weights' (nerfexp.scoring.perceptual): never LPIPS
     "test_lpips_custom_per_view": list_of(LPIPS),
     "lpips_weights_sha256": SHA256,  # the AlexNet weights' file that scored either (nerfexp.report.lpips_weights)
     "test_protocol": choice(*PROTOCOLS),
@@ -103,7 +103,7 @@ RESULTS_FIELDS: dict[str, Rule] = {
     "steps": NONNEGATIVE_COUNT,
     "time_per_step_s": SECONDS,
     "rays_per_s": optional(real(0, INTEGER_LIMIT), "not measured"),
-    "other_load": optional(real(0, INTEGER_LIMIT), "not measured"),  # nerfexp.training.machine_share
+    "other_load": optional(real(0, INTEGER_LIMIT), "not measured"),  # nerfexp.machine_share
     "n_params": NONNEGATIVE_COUNT,
     "evaluations_per_ray": real(0, INTEGER_LIMIT),
     "checkpoint.path": TEXT,

@@ -26,18 +26,22 @@ from nerfexp.rundir.saved_configs import as_data, check_resolved
 from nerfexp.rundir.state import read_state, unfinished_words
 
 # Where the classes of a run's config lived before the package was split into layers (and the data group
-# held the field's density noise), and the hash grid before it had a module of its own (nerfexp.nerf.hashgrid): a
-# run made by an earlier nerfexp is read, and its checkpoint's record compared, as if made by this one. Both shims
-# stay until nerfexp 0.2.0 (SHIMS_UNTIL): the runs made before the layers (commit 591e713, 2026-11-23) are
-# still on researchers' disks, under the same version number, 0.1.0; a release may drop them
-# (tests/rundir/test_rundir.py fails once the version reaches it with them still here).
+# held the field's density noise), the hash grid before it had a module of its own (nerfexp.nerf.hashgrid), and the
+# names the view-dependence axis's classes had while they were called colour heads: a run made by an earlier
+# nerfexp is read, and its checkpoint's record compared, as if made by this one. The shims stay until nerfexp 0.2.0
+# (SHIMS_UNTIL): the runs made before the layers (commit 591e713, 2026-11-23) are still on researchers' disks,
+# under the same version number, 0.1.0; a release may drop them (tests/rundir/test_rundir.py fails once the
+# version reaches it with them still here).
 SHIMS_UNTIL = (0, 2, 0)
 # An entry ending in "." moves every class under it, any other the class it names (``moved_target``); the first
-# match of a target wins, so a class moved apart from its module comes before its module's prefix. Callbacks are not
-# read back (saved_configs.TRAINING_ONLY).
+# match of a target wins, so a class moved apart from its module comes before its module's prefix, and a class moved
+# twice is followed to where it is now. Callbacks are not read back (saved_configs.TRAINING_ONLY).
 MOVED_TARGETS = {
+    "nerfexp.nerf.fields.ViewMLPHead": "nerfexp.nerf.fields.MLPViewDependence",
+    "nerfexp.nerf.fields.DiffuseHead": "nerfexp.nerf.fields.NoViewDependence",
+    "nerfexp.nerf.fields.SphericalHarmonicsHead": "nerfexp.nerf.fields.SphericalHarmonicsViewDependence",
+    "nerfexp.nerf.reflection.ReflectionHead": "nerfexp.nerf.reflection.ReflectionViewDependence",
     "nerfexp.nerf.encodings.HashGridEncoding": "nerfexp.nerf.hashgrid.HashGridEncoding",
-    "nerfexp.encodings.HashGridEncoding": "nerfexp.nerf.hashgrid.HashGridEncoding",
     "nerfexp.module.": "nerfexp.training.module.",
     "nerfexp.guards.": "nerfexp.training.guards.",
     "nerfexp.renderer.": "nerfexp.nerf.volume_renderer.",
@@ -114,16 +118,24 @@ def _current(text: str, source: Path) -> DictConfig:
 
 def moved_target(target: str) -> str:
     """The class path ``target`` where this version has the class: made current by the first entry of
-    ``MOVED_TARGETS`` that names it (the class itself, or a prefix ending in "." of its module), else unchanged.
+    ``MOVED_TARGETS`` that names it (the class itself, or a prefix ending in "." of its module), and so again where
+    that entry's path moved later, else unchanged.
 
     >>> moved_target("nerfexp.encodings.PositionalEncoding")
     'nerfexp.nerf.encodings.PositionalEncoding'
     >>> moved_target("nerfexp.nerf.encodings.HashGridEncoding")
     'nerfexp.nerf.hashgrid.HashGridEncoding'
+    >>> moved_target("nerfexp.fields.ViewMLPHead")  # to nerfexp.nerf.fields, then renamed
+    'nerfexp.nerf.fields.MLPViewDependence'
     """
-    for old, new in MOVED_TARGETS.items():
-        if target == old or (old.endswith(".") and target.startswith(old)):
-            return new + target.removeprefix(old)
+    seen = set()
+    while target not in seen:  # each move once: an entry that leads back to a path already taken ends the chain
+        seen.add(target)
+        old = next((old for old in MOVED_TARGETS
+                    if target == old or (old.endswith(".") and target.startswith(old))), None)
+        if old is None:
+            break
+        target = MOVED_TARGETS[old] + target.removeprefix(old)
     return target
 
 

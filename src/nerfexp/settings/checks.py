@@ -22,13 +22,13 @@ from nerfexp.extras import SETTINGS_NEEDING, TARGETS_NEEDING, require
 from nerfexp.kernels import enabled
 from nerfexp.memory import network_bytes, require_memory
 from nerfexp.rundir.labels import check_plain_labels
+from nerfexp.scoring.perceptual import check_weights_file
 from nerfexp.settings.components import argument_keys, argument_problem, asked, components, walked_once
 from nerfexp.settings.groups import check_group_values
 from nerfexp.settings.overrides import override_values, task_overrides
 from nerfexp.settings.rows import check_row
 from nerfexp.settings.schema import PASSED_ON, REFERENCES, matching, rule_of
 from nerfexp.settings.unused import check_used
-from nerfexp.training.perceptual import check_weights_file
 
 
 def is_reference(key: str, written: object) -> bool:
@@ -219,7 +219,7 @@ def check_extras(cfg: DictConfig) -> None:
 def check_lpips(cfg: DictConfig) -> None:
     """A ConfigError where LPIPS must be scored from a weights file that is not there, or not torchvision's
     published one without ``model.lpips_custom`` saying it is the user's own: the one ``model.lpips_weights``
-    names, or the torch hub cache's (``nerfexp.training.perceptual.check_weights_file``); the file is read, and
+    names, or the torch hub cache's (``nerfexp.scoring.perceptual.check_weights_file``); the file is read, and
     its SHA-256 taken again, when the model is set up."""
     check_weights_file(OmegaConf.select(cfg, "model.lpips", default=False),
                        OmegaConf.select(cfg, "model.lpips_weights", default=None),

@@ -79,7 +79,7 @@ def arguments(cfg: DictConfig, key: str, cls: type, given: DictConfig | Mapping)
 
 def passed_by(taker: type | None, name: str) -> int | None:
     """How many positional arguments ``taker`` passes when it calls its argument ``name`` (a partial it builds), as
-    its constructor's annotation says: ``Callable[[int], ColourHead]``, 1; ``Callable[[], Sampler]`` (or one of
+    its constructor's annotation says: ``Callable[[int], ViewDependence]``, 1; ``Callable[[], Sampler]`` (or one of
     a union), 0; None where it does not say (no taker, no annotation, ``Callable[..., X]``)."""
     try:  # an annotation Python cannot evaluate (a name imported only to type-check) says nothing
         hint = get_type_hints(taker.__init__).get(name) if taker is not None else None

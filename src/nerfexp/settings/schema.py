@@ -2,8 +2,10 @@
 expected, in words for the error, and the test (``nerfexp.domains``). A component's arguments have theirs beside
 its class (``DOMAINS``: ``PositionalEncoding.DOMAINS``, ``BlenderScene.DOMAINS``, ...), read from the class the
 config's ``_target_`` names (``component_rule``), so that a new component brings its own; the keys no component
-owns (``scale``, the model's, the trainer's, ...) have theirs in ``SCHEMA`` (fnmatch patterns, the first that
-matches rules).
+owns (the model's, the trainer's, ...) have theirs in ``SCHEMA`` (fnmatch patterns, the first that matches rules).
+A key that others read through a plain interpolation (the scale's sizes: ``model.optimizer.lr: ${scale.lr}``,
+``sampler.n_coarse: ${scale.n_coarse}``) has the rules of the keys it lands in (``readers_rule``), so that a
+component sized by a new ``scale.KEY`` brings that key's rule too, and none is listed here.
 
 A key nothing covers is not a setting, so a new key in ``conf/`` cannot ship without a domain
 (tests/test_settings.py composes every option of every group). Keys a user adds under a section that a
@@ -20,10 +22,11 @@ from typing import get_args, get_type_hints
 from hydra.utils import get_class
 from omegaconf import DictConfig, OmegaConf
 
+from nerfexp.config_keys import readers
+from nerfexp.data.pose_noise import POSE_NOISE_SETTING
 from nerfexp.domains import (
     BOOLEAN,
     COUNT,
-    FLOAT32_TOP_OCTAVE,
     FRACTION,
     INTEGER_LIMIT,
     LEARNING_RATE,
@@ -33,6 +36,7 @@ from nerfexp.domains import (
     TEXT,
     THREADS,
     Rule,
+    all_of,
     choice,
     expected,
     is_real,
@@ -40,15 +44,14 @@ from nerfexp.domains import (
     optional,
     real,
     whole,
-    whole_list,
 )
-from nerfexp.data.pose_noise import POSE_NOISE_SETTING
 from nerfexp.nerf.appearance import PROTOCOLS
 from nerfexp.nerf.hierarchy import HIERARCHIES
 from nerfexp.rundir.labels import NOTES, TAGS
+from nerfexp.scoring.perceptual import SETTINGS as LPIPS_SETTINGS
+from nerfexp.settings.options import options_reading
 from nerfexp.training.budgets import AUTO as AUTO_BUDGETS
 from nerfexp.training.guard_actions import COLLAPSE_ACTIONS, NONFINITE_ACTIONS
-from nerfexp.training.perceptual import SETTINGS as LPIPS_SETTINGS
 
 SEED_LIMIT = 2 ** 32  # seeds are whole numbers in [0, 2^32): numpy's and Lightning's range
 
@@ -85,9 +88,6 @@ def lightning_strategies() -> tuple[str, ...]:
 # Adam's eps (added to the gradients' scale) and the weight decay are fractions, as its learning rate
 # (``nerfexp.domains.LEARNING_RATE``)
 ADAM_EPS = real(0, 1, above=True)
-# gamma(s x): a scale above 2^18 puts even the lowest frequency past float32's (and with the frequencies: the
-# encoding's CONSISTENT)
-INPUT_SCALE = real(0, 2.0 ** FLOAT32_TOP_OCTAVE, above=True)
 TARGET = ("a dotted Python name (module.Class)", lambda v: isinstance(v, str) and v != "")
 BETAS = ("[beta1, beta2], each a finite number in [0, 1)",
          lambda v: isinstance(v, list) and len(v) == 2 and all(is_real(b) and 0 <= b < 1 for b in v))
@@ -101,7 +101,6 @@ PLUGINS = ("a list of plugin configs ({_target_: ...}), or null",
 PRECISIONS = registered_choice(("auto",), lightning_precisions)
 ACCELERATORS = registered_choice(("auto", "gpu"), lightning_accelerators)
 STRATEGIES = registered_choice(("auto",), lightning_strategies)
-SKIPS = whole_list(0)
 HIERARCHY = choice(*HIERARCHIES)
 
 # The fractions of training's steps at which the test views are scored too (nerfexp.training.budgets): each strictly
@@ -124,25 +123,7 @@ SCHEMA: dict[str, Rule] = {
     # at most THREAD_LIMIT (more than any machine); above the CPUs this process may use: capped at them (nerfexp.cpus)
     "threads": optional(THREADS, "auto: the CPUs this process may use over the jobs run at once"),
     "test_budgets": TEST_BUDGETS,
-    # scale: the sizes the groups read (each checked again where it lands)
-    "scale.steps": COUNT,
-    "scale.lr": LEARNING_RATE,
-    "scale.lr_final": LEARNING_RATE,
-    "scale.lr_warmup_steps": NONNEGATIVE_COUNT,
-    "scale.batch_rays": COUNT,
-    "scale.depth": COUNT,
-    "scale.width": COUNT,
-    "scale.skips": SKIPS,
-    "scale.view_hidden": COUNT,
-    "scale.n_coarse": COUNT,
-    "scale.n_fine": COUNT,
-    "scale.n_single": COUNT,
-    "scale.chunk": COUNT,
-    "scale.val_every": COUNT,
-    "scale.image_size": COUNT,
-    "scale.position_input_scale": INPUT_SCALE,
-    "scale.max_side": optional(COUNT, "never shrink"),
-    "scale.test_stride": COUNT,
+    # scale: the sizes the groups read, each with the rules of the keys it lands in (readers_rule)
     # the model
     "model.chunk": COUNT,
     "model.compile": BOOLEAN,
@@ -251,9 +232,29 @@ def component_rule(cfg: DictConfig, key: str) -> Rule | None:
     return getattr(component_class(node.get("_target_")), "DOMAINS", {}).get(argument)
 
 
+# The rule of a key that an option of nerfexp's groups reads and nothing in this config does (``scale.lr`` where
+# optimizer=ngp sets its own rate): no value of it does anything here, and a user's override of it is refused as
+# unused (``nerfexp.settings.unused``), naming the options that read it
+UNREAD = ("any value: nothing this config builds reads it", lambda value: True)
+
+
+def readers_rule(cfg: DictConfig, key: str) -> Rule | None:
+    """The rule of ``key`` where other keys of ``cfg`` read it through a plain interpolation (``scale.n_coarse``,
+    which ``sampler.n_coarse: ${scale.n_coarse}`` reads): each reader's (``rule_of``: there, the sampler's
+    ``DOMAINS``), all of which its value must keep; ``UNREAD`` where none reads it but an option of nerfexp's groups
+    does (``nerfexp.settings.options.options_reading``); None where nothing reads it (not a setting)."""
+    found = readers(OmegaConf.to_container(cfg, resolve=False)).get(key, [])
+    rules = [rule for reader in found if reader.split(".")[0] != "hydra" and (rule := rule_of(cfg, reader)) is not None]
+    if rules:
+        return all_of(*rules)
+    return UNREAD if options_reading(key) else None
+
+
 def rule_of(cfg: DictConfig, key: str) -> Rule | None:
-    """``key``'s rule: its component's (``component_rule``), else ``SCHEMA``'s first match; None: not a setting."""
+    """``key``'s rule: its component's (``component_rule``), else ``SCHEMA``'s first match, else that of the keys
+    that read it (``readers_rule``: the scale's sizes); None: not a setting."""
     if (rule := component_rule(cfg, key)) is not None:
         return rule
-    pattern = matching(SCHEMA, key)
-    return None if pattern is None else SCHEMA[pattern]
+    if (pattern := matching(SCHEMA, key)) is not None:
+        return SCHEMA[pattern]
+    return readers_rule(cfg, key)

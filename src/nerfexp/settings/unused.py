@@ -12,17 +12,15 @@ A user's override of a key that does nothing stops a single run (``check_used``)
 values, the job runs and its record holds null for it (``without_unused``).
 """
 
-import functools
-import io
 from collections.abc import Callable, Iterator, Mapping
-from importlib.resources import files
 
 from hydra.core.hydra_config import HydraConfig
 from omegaconf import DictConfig, OmegaConf
 
-from nerfexp.config_keys import entries, reference, source_key
+from nerfexp.config_keys import entries, readers, reference, source_key
 from nerfexp.errors import ConfigError
 from nerfexp.settings.components import ROOTS, arguments, components, walked_once
+from nerfexp.settings.options import option_files, options_reading, options_where
 from nerfexp.settings.schema import component_class, matching
 
 
@@ -63,15 +61,6 @@ def overridden_key(override: str) -> str:
     return override.split("=", 1)[0].lstrip("+~")
 
 
-def readers(plain: dict) -> dict[str, list[str]]:
-    """For each key that another key's value names in a plain reference (``${scale.lr}``), those keys."""
-    found: dict[str, list[str]] = {}
-    for key, raw in entries(plain):
-        if (named := reference(raw)) is not None:
-            found.setdefault(named, []).append(key)
-    return found
-
-
 def idle_reason(cfg: DictConfig, key: str) -> str | None:
     """Why the components on the way to ``key`` (a key under ``ROOTS``) leave it idle (their ``APPLIES``), or
     None where none does."""
@@ -87,34 +76,6 @@ def idle_reason(cfg: DictConfig, key: str) -> str | None:
             if reason:
                 return reason
     return None
-
-
-@functools.cache
-def option_files() -> tuple[tuple[str, str, dict], ...]:
-    """Every option of nerfexp's config groups, read as YAML, unresolved: (group, option, its plain content)."""
-    found = []
-    for folder in sorted(files("nerfexp.conf").iterdir(), key=lambda path: path.name):
-        if folder.is_dir():
-            for option in sorted(folder.iterdir(), key=lambda path: path.name):
-                if option.name.endswith(".yaml"):
-                    content = OmegaConf.to_container(OmegaConf.load(io.StringIO(option.read_text())), resolve=False)
-                    found.append((folder.name, option.name.removesuffix(".yaml"), content or {}))
-    return tuple(found)
-
-
-def options_where(test: Callable[[dict], bool]) -> dict[str, list[str]]:
-    """The options whose content passes ``test``: {group: [option, ...]}."""
-    found: dict[str, list[str]] = {}
-    for group, option, content in option_files():
-        if test(content):
-            found.setdefault(group, []).append(option)
-    return found
-
-
-@functools.cache
-def options_reading(key: str) -> dict[str, list[str]]:
-    """The options of nerfexp's config groups whose file reads ``key`` (a value ``${key}``): {group: [option, ...]}."""
-    return options_where(lambda content: any(reference(value) == key for _, value in entries(content)))
 
 
 def targets(content: dict) -> Iterator[type]:

@@ -26,8 +26,8 @@ from fractions import Fraction
 import torch
 from torch import nn
 
-from nerfexp.training.perceptual import LPIPS_NAMES
-from nerfexp.training.measures import ALWAYS_SCORED, image_means, image_scores
+from nerfexp.scoring.measures import ALWAYS_SCORED, image_means, image_scores
+from nerfexp.scoring.perceptual import LPIPS_NAMES
 
 # The scores a budget records (each as ``test_{name}``, where ``measures.scored`` says every image has it)
 BUDGET_SCORES = (*ALWAYS_SCORED, *LPIPS_NAMES)
@@ -185,7 +185,7 @@ def score_test_views(trainer, module, go_on: Callable[[int, float, int], bool] |
     ``module.test_step`` on each batch of the data module's ``test_dataloader()`` (every view, in order), the
     batch converted and moved to the module's device as Lightning's test loop does, under inference mode and the
     precision plugin's test context, the module in evaluation mode. Returns ``{index: measures}``
-    (``nerfexp.training.measures.image_scores``; a NonFiniteError where a view scored NaN). ``go_on(views scored,
+    (``nerfexp.scoring.measures.image_scores``; a NonFiniteError where a view scored NaN). ``go_on(views scored,
     their seconds, views)``, where given, is asked after each view whether to score the next: where it says no,
     the views scored so far are returned (fewer than all).
 

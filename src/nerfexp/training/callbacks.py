@@ -8,8 +8,8 @@ import time
 import lightning as L
 import torch
 
-from nerfexp.training.denormals import flushes_denormals, set_flush_denormal_everywhere
-from nerfexp.training.machine_share import FOLLOW_WINDOW_S, Sample, follow_load, sample
+from nerfexp.denormals import flushes_denormals, set_flush_denormal_everywhere
+from nerfexp.machine_share import FOLLOW_WINDOW_S, Sample, follow_load, sample
 
 log = logging.getLogger(__name__)
 

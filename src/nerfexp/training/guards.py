@@ -14,7 +14,7 @@ A sparse gradient (a hash table's, ``HashGridEncoding(sparse_gradients=True)``) 
 it holds (``held_entries``), its rows the batch touched.
 With gradient accumulation, the losses and the batch seen are those of the last accumulated batch.
 
-After each validation it reads each view's "contrast" (``NeRFModule._evaluate``; ``nerfexp.training.collapse``), a
+After each validation it reads each view's "contrast" (``NeRFModule._evaluate``; ``nerfexp.scoring.collapse``), a
 number per view, gathered from every process in a distributed run.
 """
 
@@ -28,8 +28,8 @@ from lightning.fabric.utilities import move_data_to_device
 from torch import Tensor
 
 from nerfexp.errors import FieldCollapseError, NonFiniteError
+from nerfexp.scoring.collapse import blank_views
 from nerfexp.training.checkpoints import save_whole
-from nerfexp.training.collapse import blank_views
 from nerfexp.training.guard_actions import COLLAPSE_ACTIONS, NONFINITE_ACTIONS
 
 log = logging.getLogger(__name__)
@@ -67,7 +67,7 @@ class TrainingGuard(L.Callback):
     ``collapse_patience`` consecutive training batches renders an empty scene; a ReLU density that
     went negative everywhere has zero gradient and never comes back (on a white background the loss
     then sits at the empty scene's). And a validation after ``collapse_patience`` steps in which every view
-    rendered nothing (``nerfexp.training.collapse.blank_views``: an empty or one-colour render, whatever opacity the
+    rendered nothing (``nerfexp.scoring.collapse.blank_views``: an empty or one-colour render, whatever opacity the
     rays keep) is a collapse: what a person sees, which a field that keeps a little opacity everywhere hides from
     the rule on opacity. The validation's scores are recorded before the run stops.
 

@@ -20,11 +20,11 @@ from nerfexp.nerf.poses import PoseCorrection, PoseFit
 from nerfexp.nerf.schedules import warmup_exponential_decay
 from nerfexp.nerf.volume_renderer import VolumeRenderer, final_output
 from nerfexp.rundir.trained import current_weights
-from nerfexp.training.collapse import contrast
-from nerfexp.training.metrics import psnr, ssim
+from nerfexp.scoring.collapse import contrast
+from nerfexp.scoring.metrics import psnr, ssim
+from nerfexp.scoring.perceptual import LPIPS_NAMES, NOT_SCORED, ImageTooSmall, LpipsScorer, lpips_scorer
+from nerfexp.scoring.scorer import TestScorer, check_scored
 from nerfexp.training.optimizers import update_kernels
-from nerfexp.training.perceptual import LPIPS_NAMES, NOT_SCORED, ImageTooSmall, LpipsScorer, lpips_scorer
-from nerfexp.training.scoring import TestScorer, check_scored
 
 log = logging.getLogger(__name__)
 
@@ -38,7 +38,7 @@ class NeRFModule(L.LightningModule):
 
     Evaluation renders whole images in chunks of ``chunk`` rays (memory bounded at any resolution)
     and scores the fine network's image (the only one without hierarchy): PSNR, SSIM and LPIPS
-    (``nerfexp.training.perceptual``). ``lpips``: auto scores LPIPS where AlexNet's weights are found
+    (``nerfexp.scoring.perceptual``). ``lpips``: auto scores LPIPS where AlexNet's weights are found
     (``lpips_weights``, else the torch hub cache) and images are large enough, and says once why not where
     they are not; true requires it (a ConfigError otherwise); false leaves it out. Only torchvision's published
     weights score ``lpips``; ``lpips_custom``: the file ``lpips_weights`` names is the user's own on purpose,
@@ -167,7 +167,7 @@ class NeRFModule(L.LightningModule):
                                    *self.renderer.sampler.kernels(), *update_kernels(sparse)]))
 
     def setup(self, stage: str) -> None:
-        """Build the LPIPS scorer (``nerfexp.training.perceptual.lpips_scorer``), once per process: before
+        """Build the LPIPS scorer (``nerfexp.scoring.perceptual.lpips_scorer``), once per process: before
         training or a test, so that missing weights under ``lpips=true`` stop the run before any work."""
         self.size_appearance()
         if self._lpips_decided:
@@ -226,9 +226,9 @@ class NeRFModule(L.LightningModule):
 
     def _evaluate(self, batch: dict) -> dict:
         """One whole image scored (over the pixels its "mask" keeps, where it has one:
-        ``nerfexp.training.metrics``; LPIPS with the render's masked pixels the target's): its "index",
+        ``nerfexp.scoring.metrics``; LPIPS with the render's masked pixels the target's): its "index",
         "psnr", "ssim", "lpips" and "lpips_custom" (``_lpips``), the render ("rgb", "depth", "opacity"), the
-        "target", and the render's "contrast" against the target's (``nerfexp.training.collapse``: whether
+        "target", and the render's "contrast" against the target's (``nerfexp.scoring.collapse``: whether
         the view rendered anything, which the guard and the recorders judge). The means over images are
         logged by ``nerfexp.training.recorders.RunRecorder``, which gathers the images of all processes in a
         distributed run (a mean per process would weigh them wrongly)."""
@@ -276,7 +276,7 @@ class NeRFModule(L.LightningModule):
         return {**scorer.protocol_scores(self._evaluate(batch), batch), **camera_fit}
 
     def test_scorer(self) -> TestScorer:
-        """How this module scores a test image (``nerfexp.training.scoring``): its renderer, protocol and test-time
+        """How this module scores a test image (``nerfexp.scoring.scorer``): its renderer, protocol and test-time
         fits, its whole-image render and LPIPS, and its trainer's bars."""
         return TestScorer(renderer=self.renderer, protocol=self.test_protocol, appearance_fit=self.appearance_fit,
                           camera_fit=self.test_camera_fit, render_image=self.render_image, lpips=self._lpips,

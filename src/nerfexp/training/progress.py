@@ -1,13 +1,10 @@
-"""The progress bars of nerfexp's trainers: optimizer steps of the whole run, not batches of an epoch,
-and drawn only on a terminal; and the bar of a test-time fit (``fit_progress``) under the test's."""
+"""The progress bars of nerfexp's trainers: optimizer steps of the whole run, not batches of an epoch, and drawn
+only on a terminal (a test-time fit's bar, under the test's: ``nerfexp.scoring.scorer.fit_progress_bar``)."""
 
-import contextlib
 import sys
-from collections.abc import Callable, Iterator
 
 from lightning.pytorch.callbacks import Callback, TQDMProgressBar
 from omegaconf import DictConfig
-from tqdm import tqdm
 
 
 class StepProgressBar(TQDMProgressBar):
@@ -51,17 +48,3 @@ def progress_bars(trainer: DictConfig) -> list[Callback]:
     where it does not (Lightning refuses a bar callback then). Every trainer nerfexp makes (training,
     ``nerfexp-eval``) takes it, since Lightning's own bar draws on standard output whatever it is."""
     return [StepProgressBar()] if trainer.get("enable_progress_bar", True) else []
-
-
-@contextlib.contextmanager
-def fit_progress(description: str, steps: int, shown: bool) -> Iterator[Callable[[int], None] | None]:
-    """A test-time fit's bar of ``steps`` steps (``description``: what is fitted, for which view), drawn under
-    Lightning's test bar on standard output where ``shown`` (the trainer draws bars: ``StepProgressBar``, on a
-    terminal) and gone when the fit ends. Yields the callback a fit calls with the steps done
-    (``nerfexp.nerf.frozen_fit.fit_frozen``'s ``progress``), or None where not ``shown``: nothing to draw."""
-    if not shown:
-        yield None
-        return
-    with tqdm(total=steps, desc=description, unit="step", position=1, leave=False, file=sys.stdout,
-              dynamic_ncols=True, disable=None) as bar:
-        yield lambda done: bar.update(done - bar.n)

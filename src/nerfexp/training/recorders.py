@@ -19,6 +19,7 @@ import torch
 from nerfexp import manifest
 from nerfexp.files import atomic_write
 from nerfexp.kernels import prepare, prepared_line, seconds_spent
+from nerfexp.machine_share import Sample, available_cpus, others_cpu_s, sample, share_record
 from nerfexp.pixels import depth_image, png_bytes, to_uint8
 from nerfexp.rundir.labels import NO_LABELS
 from nerfexp.rundir.layout import (
@@ -32,6 +33,9 @@ from nerfexp.rundir.layout import (
     read_metrics,
     write_json,
 )
+from nerfexp.scoring.collapse import blank_views
+from nerfexp.scoring.measures import MEASURES, image_means, image_scores
+from nerfexp.scoring.perceptual import CUSTOM, PUBLISHED
 from nerfexp.training.budgets import (
     AUTO,
     COST_SHARE,
@@ -48,11 +52,7 @@ from nerfexp.training.budgets import (
     scoring_seconds,
     training_estimate_s,
 )
-from nerfexp.training.collapse import blank_views
 from nerfexp.training.loggers import log_hyperparams, log_image, log_labels
-from nerfexp.training.machine_share import Sample, available_cpus, others_cpu_s, sample, share_record
-from nerfexp.training.measures import MEASURES, image_means, image_scores
-from nerfexp.training.perceptual import CUSTOM, PUBLISHED
 from nerfexp.training.resume import RESUMES, SETTINGS
 
 log = logging.getLogger("nerfexp")
@@ -100,7 +100,7 @@ def lpips_text(scores: dict, prefix: str = "") -> str:
 
 def collapse_record(scores: dict[int, dict[str, float]]) -> dict[str, str | None]:
     """What ``results.json`` and ``eval.json`` say of whether the test views ``{index: {..., "contrast"}}``
-    rendered anything: ``collapse``, where every one rendered nothing (``nerfexp.training.collapse.blank_views``),
+    rendered anything: ``collapse``, where every one rendered nothing (``nerfexp.scoring.collapse.blank_views``),
     the line that says so, which a report never ranks; else null."""
     contrasts = {index: measures["contrast"] for index, measures in scores.items()}
     return {"collapse": blank_views(contrasts, "test")}
@@ -135,7 +135,7 @@ def keep_metrics(output_dir: Path, keep: Callable[[dict], bool]) -> None:
 
 class RunRecorder(L.Callback):
     """Writes a run's metrics, results and test renders; times the training in wall-clock seconds (and its CPU
-    time, and how busy other processes kept the machine meanwhile: ``nerfexp.training.machine_share``);
+    time, and how busy other processes kept the machine meanwhile: ``nerfexp.machine_share``);
     logs ``val/psnr``, ``val/ssim``, ``test/psnr``, ``test/ssim`` (means over the images), and
     ``val/lpips``, ``test/lpips`` where LPIPS is scored.
 
@@ -154,7 +154,7 @@ class RunRecorder(L.Callback):
     (built, loaded from the cache, not built and why, or off: never "ready" for one the run will not use); a
     kernel first asked for inside the clock is taken out of it all the same (``nerfexp.kernels.seconds_spent``).
     ``results.json`` records those seconds apart, ``kernel_build_s``, never in ``train_time_s``; beside them
-    ``cpu_time_s``, ``other_load``, ``cpus`` (``nerfexp.training.machine_share.share_record``) and
+    ``cpu_time_s``, ``other_load``, ``cpus`` (``nerfexp.machine_share.share_record``) and
     ``torch_threads``.
 
     The elapsed time (and CPU time, others' CPU time and kernel seconds) and the last validation PSNR are part of
@@ -200,7 +200,7 @@ class RunRecorder(L.Callback):
         self.cpu_s: float | None = 0.0  # the training's CPU seconds (None: a resumed checkpoint did not record them)
         self.others_s: float | None = 0.0  # other processes' busy CPU seconds meanwhile (None: not measured)
         self.kernel_build_s = 0.0  # seconds spent getting kernels, outside the clock
-        self._start: Sample | None = None  # the clock's start (``nerfexp.training.machine_share.sample``)
+        self._start: Sample | None = None  # the clock's start (``nerfexp.machine_share.sample``)
         self._spent_at_start = self._spent_at_fit = 0.0  # ``nerfexp.kernels.seconds_spent`` then
         self.torch_threads = torch.get_num_threads()  # as training starts
         self.thread_changes: list[dict] = []  # nerfexp.training.callbacks.ThreadsFollowLoad's, in step order
@@ -220,7 +220,7 @@ class RunRecorder(L.Callback):
 
     def totals(self) -> tuple[float, float | None, float | None]:
         """The training's wall seconds (``wall_time_s``), CPU seconds and other processes' busy CPU seconds so far
-        (``nerfexp.training.machine_share.others_cpu_s``; None where not measured)."""
+        (``nerfexp.machine_share.others_cpu_s``; None where not measured)."""
         if self._start is None:
             return self.elapsed_s, self.cpu_s, self.others_s
         now = sample()

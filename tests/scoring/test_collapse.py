@@ -1,4 +1,4 @@
-"""What counts as a render of nothing (``nerfexp.training.collapse``), against hand-worked images and the renders of
+"""What counts as a render of nothing (``nerfexp.scoring.collapse``), against hand-worked images and the renders of
 real runs: an empty or one-colour render is caught whatever opacity its rays keep; a run that is learning is not."""
 
 import math
@@ -10,7 +10,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from PIL import Image
 
-from nerfexp.training.collapse import BLANK_CONTRAST, blank_views, colour_spread, contrast, rendered_nothing
+from nerfexp.scoring.collapse import BLANK_CONTRAST, blank_views, colour_spread, contrast, rendered_nothing
 
 LEVEL = 1 / 255  # one step of an 8-bit image
 

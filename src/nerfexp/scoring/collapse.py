@@ -24,7 +24,7 @@ from nerfexp.pixels import levels
 # 1 % of the target's spread: for a target whose colours spread by half the range, about one 8-bit level (1/255),
 # the least a PNG can show. A run that is learning renders far more from its first steps: its initial fog already
 # follows the rays' lengths through the scene, and its early renders keep several percent of the target's spread
-# (tests/training/test_collapse.py checks those of a 60-step run on the built-in scene).
+# (tests/scoring/test_collapse.py checks those of a 60-step run on the built-in scene).
 BLANK_CONTRAST = 0.01
 
 

@@ -42,9 +42,9 @@ def alexnet_state(seed: int = 0) -> dict[str, torch.Tensor]:
 
 def stand_in(monkeypatch, path: Path) -> str:
     """Make the weights file ``path`` stand in for torchvision's published one for the rest of a test: nerfexp's
-    pinned digest (``nerfexp.training.perceptual.ALEXNET_SHA256``) set to the file's SHA-256, which it returns.
+    pinned digest (``nerfexp.scoring.perceptual.ALEXNET_SHA256``) set to the file's SHA-256, which it returns.
     Only a file of that digest scores ``lpips``; the ImageNet file itself is on no test machine."""
-    from nerfexp.training import perceptual
+    from nerfexp.scoring import perceptual
 
     digest = hashlib.sha256(Path(path).read_bytes()).hexdigest()
     monkeypatch.setattr(perceptual, "ALEXNET_SHA256", digest)

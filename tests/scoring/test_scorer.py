@@ -10,7 +10,7 @@ from nerfexp.data.procedural import load_procedural
 from nerfexp.data.views import Views
 from nerfexp.errors import DatasetError
 from nerfexp.nerf.appearance import FULL_IMAGE, NERFW_RIGHT_HALF
-from nerfexp.training.scoring import check_scored
+from nerfexp.scoring.scorer import check_scored
 from tests.helpers import TINY, one_error_line, run_nerfexp
 
 SIZE = 24

@@ -1,5 +1,5 @@
 """CPU denormals flushed on every thread of torch's OpenMP team while training (``FlushDenormals``,
-``nerfexp.training.denormals``): ``torch.set_flush_denormal`` alone reaches only the calling thread, and the team's
+``nerfexp.denormals``): ``torch.set_flush_denormal`` alone reaches only the calling thread, and the team's
 other threads kept IEEE denormals. Known content: a float32 denormal times 1 is 0 where the thread computing it
 flushes, itself where it does not; a parallel operator splits a large tensor across the team's threads."""
 
@@ -8,9 +8,9 @@ import contextlib
 import pytest
 import torch
 
-from nerfexp.training import denormals
+from nerfexp import denormals
+from nerfexp.denormals import flushes_denormals, set_flush_denormal_everywhere
 from nerfexp.training.callbacks import FlushDenormals
-from nerfexp.training.denormals import flushes_denormals, set_flush_denormal_everywhere
 
 DENORMAL = 1e-39  # below float32's smallest normal number, 1.18e-38
 SPLIT = 1 << 22  # elements: far above ATen's grain of 32,768, so every thread of the team takes a share

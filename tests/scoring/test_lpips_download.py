@@ -1,6 +1,6 @@
 """AlexNet's weights downloaded into the torch hub cache where they are missing
-(nerfexp.training.perceptual.fetch_alexnet, and lpips_scorer and check_weights_file, which call it), from a
-server on 127.0.0.1 (tests/training/weights_server.py): no test reaches the internet. A file's name carries the
+(nerfexp.scoring.perceptual.fetch_alexnet, and lpips_scorer and check_weights_file, which call it), from a
+server on 127.0.0.1 (tests/scoring/weights_server.py): no test reaches the internet. A file's name carries the
 first hex digits of its SHA-256, as torch hub's does (``name-<hex>.ext``), and the whole digest is nerfexp's
 (``ALEXNET_SHA256``), so each test names what it serves by the SHA-256 of its bytes and gives that digest. However a
 download fails, the cache is left without the file and without a temporary one."""
@@ -19,8 +19,8 @@ import pytest
 import torch
 
 from nerfexp.errors import ConfigError
-from nerfexp.training import perceptual
-from nerfexp.training.perceptual import (
+from nerfexp.scoring import perceptual
+from nerfexp.scoring.perceptual import (
     ALEXNET_FILE,
     ALEXNET_URL,
     DownloadFailed,
@@ -34,8 +34,8 @@ from nerfexp.training.perceptual import (
     url_file_name,
 )
 from tests.helpers import immutable, one_error_line, run_nerfexp
-from tests.training.alexnet import alexnet_state
-from tests.training.weights_server import Cut, hashed_name, misnamed, refused_url, serving, silent
+from tests.scoring.alexnet import alexnet_state
+from tests.scoring.weights_server import Cut, hashed_name, misnamed, refused_url, serving, silent
 
 def digest(data: bytes) -> str:
     return hashlib.sha256(data).hexdigest()

@@ -7,7 +7,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from nerfexp.pixels import quantize
-from nerfexp.training.metrics import SSIM_CROP, SSIM_WINDOW, psnr, ssim, unscorable
+from nerfexp.scoring.metrics import SSIM_CROP, SSIM_WINDOW, psnr, ssim, unscorable
 
 
 def test_psnr_of_a_known_error():

@@ -1,8 +1,8 @@
-"""LPIPS only from weights nerfexp can vouch for (nerfexp.training.perceptual): every AlexNet weights file, named
+"""LPIPS only from weights nerfexp can vouch for (nerfexp.scoring.perceptual): every AlexNet weights file, named
 in the config or in the torch hub cache, must have the published SHA-256 (``ALEXNET_SHA256``) to score ``lpips``;
 any other is refused in one line naming the file and both digests, unless the config says it is the user's own
 (``model.lpips_custom=true``), whose scores are ``lpips_custom`` with the file's digest. The files are made here
-with AlexNet's keys and shapes (tests/training/alexnet.py): the ImageNet file is on no test machine, so a test
+with AlexNet's keys and shapes (tests/scoring/alexnet.py): the ImageNet file is on no test machine, so a test
 that needs "the published weights" makes its own file stand in for them (``stand_in``)."""
 
 import hashlib
@@ -17,8 +17,8 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from nerfexp.errors import ConfigError
-from nerfexp.training import perceptual
-from nerfexp.training.perceptual import (
+from nerfexp.scoring import perceptual
+from nerfexp.scoring.perceptual import (
     ALEXNET_FILE,
     ALEXNET_SHA256,
     CUSTOM,
@@ -32,8 +32,8 @@ from nerfexp.training.perceptual import (
     lpips_network,
     lpips_scorer,
 )
-from tests.training.alexnet import alexnet_state, stand_in
-from tests.training.weights_server import refused_url
+from tests.scoring.alexnet import alexnet_state, stand_in
+from tests.scoring.weights_server import refused_url
 
 
 def digest(path: Path) -> str:

@@ -1,4 +1,4 @@
-"""LPIPS (nerfexp.training.perceptual) on AlexNet weights each test makes (no test needs, or downloads, the
+"""LPIPS (nerfexp.scoring.perceptual) on AlexNet weights each test makes (no test needs, or downloads, the
 ImageNet ones): against the lpips package's own network, against a float64 reference written out here, the
 [-1, 1] input convention, known-content truths, and the one line or error where the weights are missing and
 cannot be downloaded (the download itself: test_lpips_download.py)."""
@@ -16,8 +16,8 @@ import torch.nn.functional as F
 
 from nerfexp.errors import ConfigError
 from nerfexp.pixels import quantize
-from nerfexp.training import perceptual
-from nerfexp.training.perceptual import (
+from nerfexp.scoring import perceptual
+from nerfexp.scoring.perceptual import (
     ALEXNET_FILE,
     HEADS,
     MIN_SIDE,
@@ -31,8 +31,8 @@ from nerfexp.training.perceptual import (
     lpips_network,
     lpips_scorer,
 )
-from tests.training.alexnet import alexnet_state, stand_in, torchvision_alexnet_features
-from tests.training.weights_server import refused_url
+from tests.scoring.alexnet import alexnet_state, stand_in, torchvision_alexnet_features
+from tests.scoring.weights_server import refused_url
 
 
 @pytest.fixture

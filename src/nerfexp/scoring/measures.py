@@ -10,17 +10,17 @@ import numpy as np
 
 from nerfexp.data.views import SPLIT_NAMES
 from nerfexp.errors import NonFiniteError
-from nerfexp.training.perceptual import LPIPS_NAMES
+from nerfexp.scoring.perceptual import LPIPS_NAMES
 
 # each image's scores; lpips (the published weights') or lpips_custom (the user's own), NaN where not scored
-# (nerfexp.training.perceptual); then each protocol's own, which only a test scores (NaN in a validation:
+# (nerfexp.scoring.perceptual); then each protocol's own, which only a test scores (NaN in a validation:
 # ``TestScorer.protocol_scores``, docs/metrics.md)
 PROTOCOL_SCORES = ("psnr_full_image", "ssim_full_image", "psnr_right_half", "ssim_right_half")
 CAMERA_FIT = ("camera_fit_deg", "camera_fit_shift")  # the test cameras' corrections (test_cameras=refined)
 SCORES = ("psnr", "ssim", *LPIPS_NAMES, *PROTOCOL_SCORES, *CAMERA_FIT)
 ALWAYS_SCORED = ("psnr", "ssim")
 # what each image's evaluation measures: its SCORES, and its render's contrast against its target's, which is no
-# score (never averaged or logged) but says whether the view rendered anything (nerfexp.training.collapse)
+# score (never averaged or logged) but says whether the view rendered anything (nerfexp.scoring.collapse)
 MEASURES = (*SCORES, "contrast")
 
 
@@ -29,7 +29,7 @@ def image_scores(item: dict, split: str, step: int) -> dict[str, float]:
     ``nerfexp.training.recorders.gather_evaluations``) of ``split`` at ``step``, NaN for those it
     was not scored by; a NonFiniteError where its PSNR or SSIM (``ALWAYS_SCORED``) is NaN, so that no mean over
     it is recorded. Every view scored was checked to have pixels to score before the first step
-    (``nerfexp.training.scoring.check_scored``), so such a score comes from the render: weights or an appearance
+    (``nerfexp.scoring.scorer.check_scored``), so such a score comes from the render: weights or an appearance
     code that render NaN. Every process raises it alike: the items are every process's."""
     scores = {name: item.get(name, math.nan) for name in MEASURES}
     if missing := [name for name in ALWAYS_SCORED if math.isnan(scores[name])]:

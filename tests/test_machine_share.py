@@ -8,10 +8,9 @@ from types import SimpleNamespace
 import pytest
 import torch
 
+from nerfexp import machine_share
 from nerfexp.domains import THREAD_LIMIT
-from nerfexp.training import callbacks, machine_share
-from nerfexp.training.callbacks import ThreadsFollowLoad
-from nerfexp.training.machine_share import (
+from nerfexp.machine_share import (
     BUSY_LOAD,
     Sample,
     busy_line,
@@ -26,6 +25,8 @@ from nerfexp.training.machine_share import (
     share_record,
     start_threads,
 )
+from nerfexp.training import callbacks
+from nerfexp.training.callbacks import ThreadsFollowLoad
 
 # user nice system idle iowait irq softirq steal guest guest_nice
 STAT = """cpu  100 100 100 100 100 100 100 100 100 100

@@ -6,22 +6,37 @@ image's code fitted on its left half), from its camera as given or refined with 
 import contextlib
 import logging
 import math
-from collections.abc import Callable
+import sys
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 
 import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
+from tqdm import tqdm
 
 from nerfexp.data.views import SPLIT_NAMES, Views
 from nerfexp.errors import DatasetError
 from nerfexp.nerf.appearance import FULL_IMAGE, NERFW_RIGHT_HALF, CodeFit, left_columns
 from nerfexp.nerf.poses import PoseFit, camera_corrected_rays
 from nerfexp.nerf.volume_renderer import final_output
-from nerfexp.training.metrics import psnr, ssim, unscorable
-from nerfexp.training.progress import fit_progress
+from nerfexp.scoring.metrics import psnr, ssim, unscorable
 
 log = logging.getLogger(__name__)
+
+
+@contextlib.contextmanager
+def fit_progress_bar(description: str, steps: int, shown: bool) -> Iterator[Callable[[int], None] | None]:
+    """A test-time fit's bar of ``steps`` steps (``description``: what is fitted, for which view), drawn under
+    Lightning's test bar on standard output where ``shown`` (the trainer draws bars: ``StepProgressBar``, on a
+    terminal) and gone when the fit ends. Yields the callback a fit calls with the steps done
+    (``nerfexp.nerf.frozen_fit.fit_frozen``'s ``progress``), or None where not ``shown``: nothing to draw."""
+    if not shown:
+        yield None
+        return
+    with tqdm(total=steps, desc=description, unit="step", position=1, leave=False, file=sys.stdout,
+              dynamic_ncols=True, disable=None) as bar:
+        yield lambda done: bar.update(done - bar.n)
 
 
 @dataclass(frozen=True)
@@ -31,7 +46,7 @@ class TestScorer:
     code ``appearance_fit`` and the test cameras' fit ``camera_fit`` (None: not fitted), ``render_image`` (rays
     [H, W, 3], viewdirs [H, W, 3] or None, code [D] -> "rgb" [H, W, 3], ...: a whole image rendered in chunks),
     ``lpips`` (image, target [H, W, 3] -> the LPIPS scores by name), whether the test's trainer ``draws_bars``
-    (``nerfexp.training.progress.fit_progress``), and the ``device`` a camera's correction is fitted on."""
+    (``fit_progress_bar``), and the ``device`` a camera's correction is fitted on."""
 
     __test__ = False  # a class pytest should not collect
 
@@ -91,10 +106,10 @@ class TestScorer:
                      ) -> contextlib.AbstractContextManager[Callable[[int], None] | None]:
         """A test-time ``fit`` of ``what`` for the test view ``batch``, said as it starts: a line in the log with
         its steps and rays (what a long fit takes its time over) and a bar of its steps where the trainer draws
-        bars (``nerfexp.training.progress.fit_progress``). Yields the fit's ``progress`` callback (None: no bar)."""
+        bars (``fit_progress_bar``). Yields the fit's ``progress`` callback (None: no bar)."""
         index = int(batch["index"])
         log.info("test view %d: fitting %s (%d Adam steps of %d rays)", index, what, fit.steps, fit.rays)
-        return fit_progress(f"test view {index}: {what}", fit.steps, self.draws_bars)
+        return fit_progress_bar(f"test view {index}: {what}", fit.steps, self.draws_bars)
 
     def refined_camera(self, batch: dict) -> tuple[dict, dict[str, float]]:
         """A test image's ``batch`` with its rays ("origins", "directions", "viewdirs" [H, W, 3]) those of its camera
