@@ -202,8 +202,11 @@ def test_lpips_is_recorded_in_every_file_where_alexnets_weights_are_given(tmp_pa
     weights, run = tmp_path / "alexnet.pth", tmp_path / "run"
     torch.save(alexnet_state(), weights)  # made here: no test reads the ImageNet weights
     published = stand_in(monkeypatch, weights)  # standing in for them
+    # threads=1: one thread count for the run's renders and nerfexp-eval's (which runs in this process after it),
+    # not the count the auto setting follows the machine's load to: a render made with another count may round a
+    # pixel of its 8-bit image the other way, and the LPIPS compared exactly below with it
     result = run_nerfexp(*tiny, "scale.image_size=32", "model.lpips=true", f"model.lpips_weights={weights}",
-                         f"hydra.run.dir={run}", cwd=tmp_path)
+                         "threads=1", f"hydra.run.dir={run}", cwd=tmp_path)
     assert result.returncode == 0, result.stderr[-3000:]
     results = read_json(run / "results.json")
     records = [json.loads(line) for line in (run / "metrics.jsonl").read_text().splitlines()]
