@@ -142,8 +142,10 @@ def run_nerfexp(scene: Path, fmt: str, name: str, overrides: list[str], out: Pat
     """One nerfexp preset trained on ``scene``: its budgets' (seconds, PSNR, SSIM) from results.json, and its final
     renders rescored here (the same code: equal to its own final scores)."""
     run_dir = out / f"nerfexp_{name}"
-    every_view = ["data.test_stride=1"] if fmt == "blender" else []  # scale=cpu scores every 8th: nerfacto all
-    command = ["nerfexp", f"data={fmt}", f"data.root={scene}", *every_view, *overrides, f"threads={threads}", "logger=none",
+    # the images as prepared (scale=cpu shrinks them to 100 pixels a side) and every test view of a Blender scene
+    # (scale=cpu scores every 8th): as nerfacto reads and renders them
+    as_nerfacto = ["data.max_side=null", *(["data.test_stride=1"] if fmt == "blender" else [])]
+    command = ["nerfexp", f"data={fmt}", f"data.root={scene}", *as_nerfacto, *overrides, f"threads={threads}", "logger=none",
                f"test_budgets=[{','.join(map(str, BUDGET_FRACTIONS))}]", "model.lpips=false",
                "trainer.enable_progress_bar=false", f"hydra.run.dir={run_dir}"]
     busy = machine_busy()
