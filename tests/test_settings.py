@@ -241,6 +241,16 @@ def test_every_size_of_the_scale_is_checked_where_it_lands_or_refused_as_unused(
         assert [o for o, _ in unused_settings(bad, [override])] == [override], f"{override} let through"
 
 
+def test_a_scale_key_whose_reader_the_user_set_directly_is_still_a_setting_with_its_readers_rule(hydra_configs):
+    # model.chunk: ${scale.chunk} in config.yaml; set directly, nothing in the run reads scale.chunk any more,
+    # which stays a setting checked by the rule of the key nerfexp's own config has read it (model.chunk's)
+    check_settings(composed("model.chunk=100"))
+    with pytest.raises(ConfigError, match=r"^scale.chunk=abc: expected "):
+        check_settings(composed("model.chunk=100", "scale.chunk=abc"))
+    assert [o for o, _ in unused_settings(composed("model.chunk=100"), ["model.chunk=100", "scale.chunk=64"])] \
+        == ["scale.chunk=64"]
+
+
 def test_an_override_that_does_not_apply_is_named_with_the_reason(hydra_configs):
     cfg = composed("hierarchical=false", "scale.n_fine=64")
     assert [o for o, _ in unused_settings(cfg, ["hierarchical=false", "scale.n_fine=64", "seed=1"])] \

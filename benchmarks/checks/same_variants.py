@@ -1,15 +1,15 @@
 """Check that a change leaves what every existing variant computes as it was: train the same variants with two
 installs of nerfexp (clean clones, each with its own environment) and compare their scores and test images.
 
-    python benchmarks/checks/same_variants.py run BEFORE_VENV/bin/nerfexp OUT/before
-    python benchmarks/checks/same_variants.py run AFTER_VENV/bin/nerfexp OUT/after
+    python benchmarks/checks/same_variants.py run BEFORE_VENV/bin/nerfexp OUT/before [NAME ...]
+    python benchmarks/checks/same_variants.py run AFTER_VENV/bin/nerfexp OUT/after [NAME ...]
     python benchmarks/checks/same_variants.py compare OUT/before OUT/after
 
-``run`` trains each variant of ``VARIANTS`` (300 steps; the default experiment at its own length) into
-``OUT/NAME``, one process at a time; run it alone on the machine: beside another process that trained, the
+``run`` trains each variant of ``VARIANTS`` (300 steps; the default experiment at its own length), or the NAMEs
+given, into ``OUT/NAME``, one process at a time; run it alone on the machine: beside another process that trained, the
 hash grid's variants once came out different in the fourth decimal of PSNR (docs/testing.md).
-``compare`` writes ``benchmarks/results/same_variants.md`` and ``.json``: per variant, whether the scores
-in results.json and every image under ``test/`` are identical.
+``compare`` writes ``benchmarks/results/same_variants.md`` and ``.json``: per variant trained in both folders,
+whether the scores in results.json and every image under ``test/`` are identical.
 """
 
 import hashlib
@@ -25,9 +25,11 @@ RESULTS = Path(__file__).parents[1] / "results"  # benchmarks/results
 SHORT = ["scale.steps=300", "scale.val_every=300"]
 VARIANTS = {
     "default": [],  # the README's default experiment, the paper's complete model at scale=cpu
+    "complete": SHORT,  # the same at 300 steps
     "single": ["hierarchical=false", *SHORT],
     "no_posenc": ["ablation=no_posenc", *SHORT],
     "fewer_images": ["ablation=fewer_images", *SHORT],
+    "fast": ["experiment=fast", *SHORT],
     "hashgrid": ["encoding=hashgrid", *SHORT],
     "occupancy": ["acceleration=occupancy", *SHORT],
     "hash_occ": ["encoding=hashgrid", "acceleration=occupancy", *SHORT],
@@ -40,14 +42,20 @@ SCORES = ("steps", "n_params", "evaluations_per_ray", "val_psnr", "val_ssim", "t
           "test_psnr_per_view", "test_ssim_per_view")
 
 
-def run(nerfexp: Path, out: Path) -> None:
-    """Train every variant with the ``nerfexp`` executable given into ``out/NAME``."""
+def run(nerfexp: Path, out: Path, names: list[str]) -> None:
+    """Train each variant ``names`` names (none: every one) with the ``nerfexp`` executable given into
+    ``out/NAME``."""
+    unknown = sorted(set(names) - set(VARIANTS))
+    if unknown:
+        sys.exit(f"same_variants: no variant {unknown} (choose from {', '.join(VARIANTS)})")
     out.mkdir(parents=True, exist_ok=True)
     scene = out / "scene"
     if not scene.exists():  # a small Blender-format scene, written by the same install
         subprocess.run([str(nerfexp.with_name("nerfexp-scene")), str(scene), "--resolution", "32", "--n-train", "20",
                         "--n-val", "1", "--n-test", "2"], check=True, stdout=subprocess.DEVNULL)
     for name, overrides in VARIANTS.items():
+        if names and name not in names:
+            continue
         print(f"{name}: nerfexp {' '.join(overrides)}", flush=True)
         with open(out / f"{name}.log", "w") as log:
             subprocess.run([str(nerfexp), *(o.format(scene=scene) for o in overrides),
@@ -62,7 +70,8 @@ def images(run_dir: Path) -> dict[str, str]:
 
 def compare(before: Path, after: Path) -> None:
     rows = []
-    for name in VARIANTS:
+    trained = [n for n in VARIANTS if all((folder / n / "results.json").exists() for folder in (before, after))]
+    for name in trained:
         old = json.loads((before / name / "results.json").read_text())
         new = json.loads((after / name / "results.json").read_text())
         rows.append({"variant": name, "overrides": VARIANTS[name], "test_psnr_before": old["test_psnr"],
@@ -87,9 +96,9 @@ def compare(before: Path, after: Path) -> None:
 
 
 if __name__ == "__main__":
-    if len(sys.argv) != 4 or sys.argv[1] not in ("run", "compare"):
+    if len(sys.argv) < 4 or sys.argv[1] not in ("run", "compare") or sys.argv[1] == "compare" and len(sys.argv) > 4:
         sys.exit(__doc__)
     if sys.argv[1] == "run":
-        run(Path(sys.argv[2]), Path(sys.argv[3]))
+        run(Path(sys.argv[2]), Path(sys.argv[3]), sys.argv[4:])
     else:
         compare(Path(sys.argv[2]), Path(sys.argv[3]))

@@ -291,6 +291,8 @@ def test_a_sweeper_never_takes_a_run_that_rendered_nothing_for_its_best():
 def test_results_record_each_groups_option_but_hydras_and_empty_groups_with_hierarchical_and_seed():
     cfg = OmegaConf.create({"hierarchical": False, "seed": 7})
     choices = OmegaConf.create({"data": "procedural", "hydra/launcher": "basic", "hydra/output": "default",
-                                "sweeps": None, "sampler": "uniform"})
-    assert recorded_choices(cfg, choices) == {"data": "procedural", "sampler": "uniform", "hierarchical": False,
-                                              "seed": 7}
+                                "sweeps": None, "sampler": "uniform", "acceleration": "occupancy",
+                                "encoding": "hashgrid", "acceleration/by_encoding": "occupancy_hashgrid"})
+    # acceleration/by_encoding is chosen by config.yaml from the two choices beside it: no one's choice, not recorded
+    assert recorded_choices(cfg, choices) == {"data": "procedural", "sampler": "uniform", "acceleration": "occupancy",
+                                              "encoding": "hashgrid", "hierarchical": False, "seed": 7}

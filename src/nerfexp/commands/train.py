@@ -38,7 +38,7 @@ from nerfexp.rundir.layout import (
     write_status,
 )
 from nerfexp.settings.checks import check_composition, check_settings
-from nerfexp.settings.groups import check_group_overrides, is_nerfexp_group
+from nerfexp.settings.groups import check_group_overrides, derived_choices, is_nerfexp_group
 from nerfexp.settings.rows import check_row
 from nerfexp.settings.schema import PASSED_ON, matching
 from nerfexp.settings.unused import unused_settings, without_unused
@@ -73,7 +73,6 @@ def train(cfg: DictConfig) -> dict | None:
     from nerfexp.data.datamodule import fill_ray_bounds
     from nerfexp.training.precision import fill_precision
     from nerfexp.training.recorders import RunRecorder
-    from nerfexp.training.resume import group_choices
 
     hydra_config = HydraConfig.get()
     runtime, overrides = hydra_config.runtime, list(hydra_config.overrides.task)
@@ -84,7 +83,7 @@ def train(cfg: DictConfig) -> dict | None:
     L.seed_everything(cfg.seed, workers=True, verbose=False)
     threads = start_job_threads(cfg.threads, hydra_config)
     fill_precision(cfg)  # with the run's threads: auto may time the run's field (on forked random numbers)
-    choices, groups = recorded_choices(cfg, runtime.choices), group_choices(runtime.choices)
+    choices, groups = recorded_choices(cfg, runtime.choices), chosen_groups(runtime.choices)
     recorded, settings = recorded_config(cfg, groups, unused)  # before anything is built
     resumed, resumes = checked_resume(cfg, groups, settings, sweep=hydra_config.mode == RunMode.MULTIRUN)
     logger = build_logger(cfg.get("logger"))
@@ -133,12 +132,19 @@ def start_job_threads(setting: int | None, hydra_config: DictConfig) -> "ThreadC
 
 
 def recorded_choices(cfg: DictConfig, choices: DictConfig) -> dict:
-    """What results.json records of the run's choices: each config group's option (Hydra's own groups and the
-    groups left empty left out) and the run's ``hierarchical`` and ``seed``."""
-    recorded = {group: option for group, option in choices.items()
-                if not group.startswith("hydra") and option is not None}
-    recorded.update(hierarchical=cfg.hierarchical, seed=cfg.seed)
-    return recorded
+    """What results.json records of the run's choices: each config group's option (``chosen_groups``) and the
+    run's ``hierarchical`` and ``seed``."""
+    return {**chosen_groups(choices), "hierarchical": cfg.hierarchical, "seed": cfg.seed}
+
+
+def chosen_groups(choices: DictConfig) -> dict[str, str]:
+    """The option chosen in each config group a user chooses (``group_choices``: Hydra's own groups and those
+    left empty aside), those ``config.yaml`` derives from other choices (``derived_choices``:
+    acceleration/by_encoding) aside too: results.json and the checkpoints record what was chosen."""
+    from nerfexp.training.resume import group_choices
+
+    derived = derived_choices()
+    return {group: option for group, option in group_choices(choices).items() if group not in derived}
 
 
 def recorded_config(cfg: DictConfig, choices: dict[str, str], unused: list[tuple[str, str]]) -> tuple[dict, dict]:

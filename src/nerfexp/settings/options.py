@@ -11,7 +11,7 @@ from importlib.resources import files
 
 from omegaconf import OmegaConf
 
-from nerfexp.config_keys import entries, reference
+from nerfexp.config_keys import entries, readers, reference
 
 
 @functools.cache
@@ -34,6 +34,16 @@ def options_where(test: Callable[[dict], bool]) -> dict[str, list[str]]:
         if test(content):
             found.setdefault(group, []).append(option)
     return found
+
+
+@functools.cache
+def primary_readers(key: str) -> tuple[str, ...]:
+    """The keys of nerfexp's own ``config.yaml``, as it writes them, that read ``key`` through a plain reference
+    (``model.chunk: ${scale.chunk}``): where a run overrides such a key, ``key`` is read by no one in that run
+    and is still a setting, whose rule is the one of the keys nerfexp's config would have it set."""
+    content = OmegaConf.to_container(OmegaConf.load(io.StringIO((files("nerfexp.conf") / "config.yaml").read_text())),
+                                     resolve=False)
+    return tuple(readers({k: v for k, v in content.items() if k != "defaults"}).get(key, []))
 
 
 @functools.cache
