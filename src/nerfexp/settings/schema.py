@@ -242,8 +242,9 @@ def readers_rule(cfg: DictConfig, key: str) -> Rule | None:
     """The rule of ``key`` where other keys of ``cfg`` read it through a plain interpolation (``scale.n_coarse``,
     which ``sampler.n_coarse: ${scale.n_coarse}`` reads): each reader's (``rule_of``: there, the sampler's
     ``DOMAINS``), all of which its value must keep; where a run overrides them all (``model.chunk=100``), those of
-    the keys through which nerfexp's own config.yaml reads it (``primary_readers``); ``UNREAD`` where none reads it but an option of
-    nerfexp's groups does (``nerfexp.settings.options.options_reading``); None where nothing reads it (not a setting)."""
+    the keys through which nerfexp's own config.yaml reads it (``primary_readers``); ``UNREAD`` where none reads it
+    but an option of nerfexp's groups does (``nerfexp.settings.options.options_reading``); None where nothing reads it
+    (not a setting)."""
     found = readers(OmegaConf.to_container(cfg, resolve=False)).get(key, []) or list(primary_readers(key))
     rules = [rule for reader in found if reader.split(".")[0] != "hydra" and (rule := rule_of(cfg, reader)) is not None]
     if rules:
