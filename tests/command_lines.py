@@ -9,8 +9,8 @@ import argparse
 import contextlib
 import importlib
 import io
-import tomllib
 
+import tomllib
 from hydra import compose, initialize_config_module
 from hydra.core.override_parser.overrides_parser import OverridesParser
 from hydra.types import RunMode

@@ -13,7 +13,7 @@ from omegaconf import OmegaConf
 
 from nerfexp.nerf.bounds import Bounded
 from nerfexp.nerf.encodings import IdentityEncoding, PositionalEncoding
-from nerfexp.nerf.fields import NoViewDependence, SphericalHarmonicsViewDependence, MLPViewDependence
+from nerfexp.nerf.fields import MLPViewDependence, NoViewDependence, SphericalHarmonicsViewDependence
 from nerfexp.nerf.hashgrid import HashGridEncoding
 from nerfexp.nerf.proposal import ProposalSampler
 from nerfexp.nerf.reflection import ReflectionViewDependence

@@ -23,10 +23,10 @@ from pathlib import Path
 
 import numpy as np
 import torch
-import tyro
-from PIL import Image
 import torchmetrics.image.lpip
+import tyro
 from nerfstudio.configs.method_configs import AnnotatedBaseConfigUnion
+from PIL import Image
 
 
 class NoLPIPS(torch.nn.Module):

@@ -37,7 +37,7 @@ def test_a_checkpoint_that_renders_nan_records_no_score(tiny_run, tmp_path):
     run_dir = shutil.copytree(tiny_run, tmp_path / "run", ignore=shutil.ignore_patterns("eval.json"))
     checkpoint = run_dir / "checkpoints" / "last.ckpt"
     content = torch.load(checkpoint, weights_only=True)
-    for name, weights in content["state_dict"].items():
+    for weights in content["state_dict"].values():
         if weights.is_floating_point():
             weights.fill_(math.nan)
     torch.save(content, checkpoint)

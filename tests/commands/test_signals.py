@@ -6,10 +6,10 @@ import signal
 import subprocess
 import sys
 import time
-import tomllib
 from pathlib import Path
 
 import pytest
+import tomllib
 
 from nerfexp.commands.signals import Signalled, ending_signals, job_signals, received_signal
 from tests.helpers import REPO, command, read_json, start_nerfexp

@@ -12,7 +12,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from nerfexp.data.blender import write_blender
-from tests.data.test_blender import ANGLE, make_views
+from tests.data.blender_views import ANGLE, make_views
 
 KINDS = ("zip", "tar.gz")  # what a catalogue's archive may be (a plain, bzip2 or xz tar is read as tar.gz is)
 

@@ -14,8 +14,7 @@ from nerfexp.data.datamodule import RayDataModule
 from nerfexp.data.views import Views
 from nerfexp.errors import DatasetError
 from nerfexp.geometry.lenses import Intrinsics
-
-ANGLE = 0.6911112070083618
+from tests.data.blender_views import ANGLE, make_views
 
 
 def assert_centred_pinholes(views: Views, focal: float) -> None:
@@ -23,17 +22,6 @@ def assert_centred_pinholes(views: Views, focal: float) -> None:
     expected = torch.tensor([focal, focal, views.width / 2, views.height / 2], dtype=torch.float64)
     torch.testing.assert_close(views.intrinsics.params, expected.expand(len(views), 4))
     assert not views.intrinsics.is_distorted().any()
-
-
-def make_views(n=6, height=6, width=8, seed=0) -> Views:
-    g = torch.Generator().manual_seed(seed)
-    rgba = torch.rand(n, height, width, 4, generator=g)
-    rgba[..., 3] = torch.where(rgba[..., 3] < 0.3, 0.0, rgba[..., 3])  # some fully transparent pixels
-    q, _ = torch.linalg.qr(torch.randn(n, 3, 3, generator=g, dtype=torch.float64))
-    q = q * torch.linalg.det(q).sign()[:, None, None]  # rotations (det +1), not reflections: camera poses
-    c2w = torch.eye(4).repeat(n, 1, 1)
-    c2w[:, :3, :3], c2w[:, :3, 3] = q.float(), torch.randn(n, 3, generator=g)
-    return Views(rgba=rgba, c2w=c2w, intrinsics=Intrinsics.pinhole(1.0, height, width, (n,)))
 
 
 @pytest.fixture

@@ -9,9 +9,9 @@ import pytest
 import torch
 
 from nerfexp.data.nerfstudio import NerfstudioScene
-from nerfexp.data.transforms_file import TRANSFORMS, write_nerfstudio
 from nerfexp.data.procedural import load_procedural
 from nerfexp.data.sparse_points import read_ply_points
+from nerfexp.data.transforms_file import TRANSFORMS, write_nerfstudio
 from nerfexp.errors import DatasetError
 from nerfexp.geometry.cameras import camera_rays
 from nerfexp.products.ply import ply_bytes

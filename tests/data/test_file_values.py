@@ -17,8 +17,8 @@ from nerfexp.data.blender import read_transforms
 from nerfexp.data.colmap import colmap_lens, load_colmap
 from nerfexp.data.llff import read_poses_bounds, write_llff
 from nerfexp.data.nerfstudio import NerfstudioScene
-from nerfexp.data.transforms_file import TRANSFORMS, frame_lens_fields, read_capture
 from nerfexp.data.procedural import scene_cameras
+from nerfexp.data.transforms_file import TRANSFORMS, frame_lens_fields, read_capture
 from nerfexp.data.video import cached_frames
 from nerfexp.errors import DatasetError, NerfexpError
 from nerfexp.geometry.lens_records import LensRecordError, read_lens_record

@@ -14,9 +14,9 @@ from hypothesis import strategies as st
 
 from nerfexp.data.datamodule import RayDataModule
 from nerfexp.data.nerfstudio import NerfstudioScene
-from nerfexp.data.transforms_file import TRANSFORMS, scene_file, spelling, write_nerfstudio
 from nerfexp.data.procedural import load_procedural, occlude, real_lens
 from nerfexp.data.rays import RandomRays, WholeImages
+from nerfexp.data.transforms_file import TRANSFORMS, scene_file, spelling, write_nerfstudio
 from nerfexp.data.views import Views
 from nerfexp.errors import DatasetError
 from nerfexp.geometry.cameras import focal_from_fov

@@ -8,8 +8,8 @@ import json
 import pytest
 import torch
 
-from nerfexp.data.transforms_file import TRANSFORMS, write_nerfstudio
 from nerfexp.data.procedural import load_procedural
+from nerfexp.data.transforms_file import TRANSFORMS, write_nerfstudio
 from nerfexp.geometry.lenses import Intrinsics, distortion_vector
 from tests.helpers import run_nerfexp
 

@@ -13,8 +13,8 @@ import torch
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from nerfexp.data.procedural import load_procedural
 from nerfexp.data import views
+from nerfexp.data.procedural import load_procedural
 from nerfexp.data.views import (
     CENTRE_FRACTION,
     IMAGE_PSNR_DB,

@@ -5,8 +5,13 @@ import pytest
 import torch
 
 from nerfexp.nerf.encodings import IdentityEncoding, PositionalEncoding
-from nerfexp.nerf.fields import (MLPViewDependence, NeRFField, NoViewDependence, SphericalHarmonicsViewDependence,
-                                 sh_basis)
+from nerfexp.nerf.fields import (
+    MLPViewDependence,
+    NeRFField,
+    NoViewDependence,
+    SphericalHarmonicsViewDependence,
+    sh_basis,
+)
 from nerfexp.nerf.hashgrid import HashGridEncoding
 from nerfexp.nerf.reflection import ReflectionViewDependence, normal_penalties
 from nerfexp.nerf.volume_renderer import query_packed, query_thresholded

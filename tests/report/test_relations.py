@@ -16,7 +16,7 @@ import pytest
 from nerfexp.report.folder import write_report
 from nerfexp.report.runs import read_run
 from nerfexp.rundir.records import relations_problem
-from tests.report.test_budgets import budget_sweep
+from tests.report.budget_runs import budget_sweep
 
 
 def end(results: dict) -> dict:

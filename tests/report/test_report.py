@@ -18,8 +18,8 @@ from nerfexp.commands.report import main
 from nerfexp.reading import UnreadableFile
 from nerfexp.report.folder import write_report
 from nerfexp.report.plots import mean_curve
-from nerfexp.report.runs import Run, find_runs, run_precision
 from nerfexp.report.publications import PAPER_ABLATION
+from nerfexp.report.runs import Run, find_runs, run_precision
 from nerfexp.report.variants import group_variants
 from nerfexp.rundir.layout import planned_jobs, process_start
 from tests.helpers import digests, make_run

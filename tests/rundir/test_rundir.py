@@ -21,6 +21,9 @@ from omegaconf import OmegaConf
 from nerfexp import manifest
 from nerfexp.commands import scene
 from nerfexp.errors import ConfigError, NerfexpError
+from nerfexp.nerf.hashgrid import HashGridEncoding
+from nerfexp.nerf.proposal import ProposalSampler
+from nerfexp.nerf.samplers import HierarchicalSampler
 from nerfexp.rundir.claim import admit_run, claim, held_run, remove_entries
 from nerfexp.rundir.layout import (
     LAST_CHECKPOINT,
@@ -32,9 +35,6 @@ from nerfexp.rundir.layout import (
     process_start,
     read_metrics,
 )
-from nerfexp.nerf.hashgrid import HashGridEncoding
-from nerfexp.nerf.proposal import ProposalSampler
-from nerfexp.nerf.samplers import HierarchicalSampler
 from nerfexp.rundir.trained import MOVED_TARGETS, SHIMS_UNTIL, find_run, run_config
 from nerfexp.settings.checks import check_run_settings
 from tests.helpers import REPO, digests, one_error_line, run_nerfexp, tiny_config

@@ -37,6 +37,7 @@ from tests.helpers import immutable, one_error_line, run_nerfexp
 from tests.scoring.alexnet import alexnet_state
 from tests.scoring.weights_server import Cut, hashed_name, misnamed, refused_url, serving, silent
 
+
 def digest(data: bytes) -> str:
     return hashlib.sha256(data).hexdigest()
 

@@ -5,8 +5,8 @@ window."""
 import pytest
 import torch
 
-from nerfexp.data.transforms_file import write_nerfstudio
 from nerfexp.data.procedural import load_procedural
+from nerfexp.data.transforms_file import write_nerfstudio
 from nerfexp.data.views import Views
 from nerfexp.errors import DatasetError
 from nerfexp.nerf.appearance import FULL_IMAGE, NERFW_RIGHT_HALF

@@ -16,8 +16,8 @@ import nerfexp.settings
 from nerfexp.config_keys import entries, reference
 from nerfexp.errors import ConfigError
 from nerfexp.memory import machine_bytes
-from nerfexp.settings.checks import check_settings
 from nerfexp.settings import components as components_module
+from nerfexp.settings.checks import check_settings
 from nerfexp.settings.components import components, walked_once
 from tests.components.toy import PowerEncoding
 from tests.helpers import TINY

@@ -1,6 +1,6 @@
 import csv
-import hashlib
 import functools
+import hashlib
 import math
 from pathlib import Path
 from unittest import mock

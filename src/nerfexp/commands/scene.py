@@ -31,7 +31,6 @@ from nerfexp.commands.arguments import command_parser, positive
 from nerfexp.commands.console import run_command
 from nerfexp.data.blender import write_blender
 from nerfexp.data.glossy import load_glossy
-from nerfexp.data.transforms_file import write_nerfstudio
 from nerfexp.data.procedural import (
     APPEARANCE_CHANGES,
     APPEARANCE_SEEDS,
@@ -42,6 +41,7 @@ from nerfexp.data.procedural import (
     real_lens,
     vary_appearance,
 )
+from nerfexp.data.transforms_file import write_nerfstudio
 from nerfexp.data.unbounded import load_unbounded
 from nerfexp.errors import NerfexpError
 from nerfexp.files import atomic_directory, folder_entries, foreign_message

@@ -117,10 +117,10 @@ def march_fixed(march: March, origins: Tensor, directions: Tensor, near: Tensor,
     while start < len(origins):
         chunk = slice(start, start + count)
         k = torch.arange(longest + 1, dtype=origins.dtype, device=origins.device)  # [K]
-        l, h, b, u = lo[chunk, None], hi[chunk, None], base[chunk, None], offsets[chunk, None]
-        a = l + (k + u) * b  # [C, K], in the kernel's order of operations
-        e = torch.minimum(l + (k + 1 + u) * b, h)
-        hit = (a < h) & occupied_steps(march, origins[chunk], directions[chunk], a, e)
+        low, high, b, u = lo[chunk, None], hi[chunk, None], base[chunk, None], offsets[chunk, None]
+        a = low + (k + u) * b  # [C, K], in the kernel's order of operations
+        e = torch.minimum(low + (k + 1 + u) * b, high)
+        hit = (a < high) & occupied_steps(march, origins[chunk], directions[chunk], a, e)
         kept = first_kept(hit, march.max_samples)
         parts.append((a[kept], e[kept], kept.sum(-1)))
         start += count

@@ -11,14 +11,6 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from nerfexp.reading import UnreadableFile
-from nerfexp.rundir.records import (
-    METRICS_FIELDS,
-    SCORES,
-    STATUS_FIELDS,
-    is_scored,
-    record_problem,
-    results_problem,
-)
 from nerfexp.rundir.labels import NO_LABELS, is_notes, is_tags
 from nerfexp.rundir.layout import (
     METRICS,
@@ -27,6 +19,14 @@ from nerfexp.rundir.layout import (
     find_run_dirs,
     read_json,
     read_metrics,
+)
+from nerfexp.rundir.records import (
+    METRICS_FIELDS,
+    SCORES,
+    STATUS_FIELDS,
+    is_scored,
+    record_problem,
+    results_problem,
 )
 from nerfexp.rundir.state import status_state
 
